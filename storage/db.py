@@ -1,0 +1,64 @@
+"""Opening the SQL index: an engine for a URL, migrated to the newest schema with Alembic.
+
+    engine = open_index("sqlite:///jitdyn-data/index.sqlite")      # the embedded default
+    engine = open_index("postgresql+psycopg://127.0.0.1/test")      # several servers, one index
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import sqlalchemy as sa
+from alembic import command
+from alembic.config import Config
+
+__all__ = ["open_index", "default_index_url", "upgrade"]
+
+_MIGRATIONS = Path(__file__).resolve().parent / "migrations"
+
+
+def default_index_url(data_root: Path) -> str:
+    """The embedded default: a SQLite file in the data folder."""
+    return f"sqlite:///{(data_root / 'index.sqlite').resolve()}"
+
+
+def _alembic_config(engine: sa.Engine) -> Config:
+    config = Config()
+    config.set_main_option("script_location", str(_MIGRATIONS))
+    config.attributes["engine"] = engine
+    return config
+
+
+def upgrade(engine: sa.Engine) -> None:
+    """Apply every migration not yet applied (idempotent)."""
+    command.upgrade(_alembic_config(engine), "head")
+
+
+def open_index(url: str, *, schema: str | None = None) -> sa.Engine:
+    """An engine for the index at `url`, migrated to the newest schema.
+
+    `schema` (PostgreSQL only) puts the tables in that schema, created when missing; tests isolate
+    each run this way.
+    """
+    kwargs: dict[str, object] = {"future": True}
+    if url.startswith("sqlite"):
+        # Sessions write from the event loop's thread and from the recovery thread.
+        kwargs["connect_args"] = {"check_same_thread": False, "timeout": 30}
+    if schema is not None:
+        kwargs["execution_options"] = {"schema_translate_map": {None: schema}}
+    try:
+        engine = sa.create_engine(url, **kwargs)  # type: ignore[arg-type]
+    except (sa.exc.ArgumentError, sa.exc.NoSuchModuleError) as exc:
+        raise ValueError(f"index URL {url!r} is not usable: {exc}") from exc
+    if url.startswith("sqlite"):
+        @sa.event.listens_for(engine, "connect")
+        def _sqlite_pragmas(dbapi_connection, _record):  # type: ignore[no-untyped-def]
+            cursor = dbapi_connection.cursor()
+            cursor.execute("PRAGMA journal_mode=WAL")
+            cursor.execute("PRAGMA synchronous=FULL")
+            cursor.close()
+    if schema is not None:
+        with engine.begin() as conn:
+            conn.execute(sa.text(f'CREATE SCHEMA IF NOT EXISTS "{schema}"'))
+    upgrade(engine)
+    return engine

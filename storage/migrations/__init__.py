@@ -1,0 +1,1 @@
+"""Alembic migrations of the SQL index; applied by storage.db.upgrade."""

@@ -1,0 +1,89 @@
+"""The SQL index's tables (SQLAlchemy Core): registered models and stored sessions.
+
+The schema changes only through Alembic migrations in storage/migrations/versions; `storage.db`
+applies them at start. Every row carries a `tenant`, and every read filters on it.
+"""
+
+from __future__ import annotations
+
+import sqlalchemy as sa
+
+__all__ = ["metadata", "models", "sessions"]
+
+metadata = sa.MetaData(
+    naming_convention={
+        "ix": "ix_%(table_name)s_%(column_0_N_name)s",
+        "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+        "pk": "pk_%(table_name)s",
+    }
+)
+
+models = sa.Table(
+    "models",
+    metadata,
+    sa.Column("pk", sa.Integer, primary_key=True, autoincrement=True),
+    sa.Column("tenant", sa.String(64), nullable=False, server_default=""),
+    # "sha256:<hex>" of the MJCF and its assets; unique within a tenant.
+    sa.Column("id", sa.String(80), nullable=False),
+    sa.Column("name", sa.String(64), nullable=False),
+    sa.Column("version", sa.Integer, nullable=False),
+    sa.Column("builtin", sa.Boolean, nullable=False, server_default=sa.false()),
+    sa.Column("nq", sa.Integer, nullable=False),
+    sa.Column("nv", sa.Integer, nullable=False),
+    sa.Column("nu", sa.Integer, nullable=False),
+    sa.Column("na", sa.Integer, nullable=False),
+    sa.Column("nsensor", sa.Integer, nullable=False),
+    sa.Column("nbody", sa.Integer, nullable=False),
+    sa.Column("timestep", sa.Float, nullable=False),
+    # Joints, actuators and the registrant's metadata, as JSON text.
+    sa.Column("description_json", sa.Text, nullable=False),
+    # Space-separated tags, for filtering with LIKE without a join.
+    sa.Column("tags", sa.Text, nullable=False, server_default=""),
+    # Path of the stored MJCF and assets (a zip), relative to the data root.
+    sa.Column("blob_path", sa.Text, nullable=False),
+    sa.Column("size_bytes", sa.BigInteger, nullable=False),
+    sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
+    sa.UniqueConstraint("tenant", "id"),
+    sa.UniqueConstraint("tenant", "name", "version"),
+)
+
+sessions = sa.Table(
+    "sessions",
+    metadata,
+    sa.Column("session_id", sa.String(36), primary_key=True),
+    sa.Column("tenant", sa.String(64), nullable=False, server_default=""),
+    sa.Column("model_id", sa.String(80), nullable=False),
+    sa.Column("model_name", sa.String(64), nullable=False),
+    sa.Column("model_version", sa.Integer, nullable=False),
+    # Enum names without their prefix: PASSIVE, CONTROLLED, EXTERNAL; REALTIME, LOCKSTEP.
+    sa.Column("scenario", sa.String(16), nullable=False),
+    sa.Column("clock", sa.String(16), nullable=False),
+    sa.Column("dt", sa.Float, nullable=False),
+    sa.Column("estimator_json", sa.Text, nullable=False),
+    # HMAC-SHA256 of the subject id (hex); "" without a subject. Never the id itself.
+    sa.Column("subject_pseudonym", sa.String(64), nullable=False, server_default=""),
+    sa.Column("subject_attributes_json", sa.Text, nullable=False, server_default="{}"),
+    sa.Column("started_at", sa.DateTime(timezone=True), nullable=False),
+    sa.Column("ended_at", sa.DateTime(timezone=True), nullable=True),
+    # OPEN, COMPLETE, RECOVERED, FAILED.
+    sa.Column("status", sa.String(16), nullable=False),
+    sa.Column("ticks", sa.BigInteger, nullable=False, server_default="0"),
+    sa.Column("frames", sa.BigInteger, nullable=False, server_default="0"),
+    sa.Column("measured", sa.BigInteger, nullable=False, server_default="0"),
+    sa.Column("predicted", sa.BigInteger, nullable=False, server_default="0"),
+    sa.Column("corrected", sa.BigInteger, nullable=False, server_default="0"),
+    sa.Column("rejected", sa.BigInteger, nullable=False, server_default="0"),
+    sa.Column("late", sa.BigInteger, nullable=False, server_default="0"),
+    sa.Column("mean_compute_us", sa.Float, nullable=False, server_default="0"),
+    sa.Column("max_compute_us", sa.Float, nullable=False, server_default="0"),
+    sa.Column("duration", sa.Float, nullable=False, server_default="0"),
+    # Summary statistics of the session (e.g. torque ranges per joint), as JSON text.
+    sa.Column("stats_json", sa.Text, nullable=False, server_default="{}"),
+    # The Parquet file, relative to the data root; "" until compacted.
+    sa.Column("location", sa.Text, nullable=False, server_default=""),
+    # The crash-safe log, relative to the data root; "" once compacted.
+    sa.Column("log_path", sa.Text, nullable=False, server_default=""),
+    sa.Index("ix_sessions_tenant_started", "tenant", "started_at"),
+    sa.Index("ix_sessions_tenant_pseudonym", "tenant", "subject_pseudonym"),
+    sa.Index("ix_sessions_status", "status"),
+)
