@@ -150,12 +150,16 @@ class Skip(_message.Message):
     def __init__(self, seq: _Optional[int] = ...) -> None: ...
 
 class SyncPing(_message.Message):
-    __slots__ = ("id", "client_send_time")
+    __slots__ = ("id", "client_send_time", "previous_id", "previous_receive_time")
     ID_FIELD_NUMBER: _ClassVar[int]
     CLIENT_SEND_TIME_FIELD_NUMBER: _ClassVar[int]
+    PREVIOUS_ID_FIELD_NUMBER: _ClassVar[int]
+    PREVIOUS_RECEIVE_TIME_FIELD_NUMBER: _ClassVar[int]
     id: int
     client_send_time: float
-    def __init__(self, id: _Optional[int] = ..., client_send_time: _Optional[float] = ...) -> None: ...
+    previous_id: int
+    previous_receive_time: float
+    def __init__(self, id: _Optional[int] = ..., client_send_time: _Optional[float] = ..., previous_id: _Optional[int] = ..., previous_receive_time: _Optional[float] = ...) -> None: ...
 
 class SyncPong(_message.Message):
     __slots__ = ("id", "client_send_time", "server_receive_time", "server_send_time", "offset", "round_trip")
