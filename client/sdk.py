@@ -1,0 +1,666 @@
+"""The typed Python client of jitdyn: register models, open sessions, send frames, read results.
+
+    from client import Client, SessionOptions, FrameData
+
+    with Client("127.0.0.1:50051") as c:
+        with c.open_session(SessionOptions(model_name="pendulum_1", dt=0.05)) as s:
+            r = s.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0]))
+            r.qfrc_inverse          # numpy array, (nv,)
+            s.skip(1).source        # "PREDICTED"
+            summary = s.close()
+
+Every call raises a `jitdyn.errors` exception for the status the server ends it with. Frames carry
+the contract's CRC32C checksum unless told otherwise.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any
+
+import grpc
+import numpy as np
+
+from jitdyn.checksum import frame_checksum
+from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, error_for_status
+from jitdyn.v1 import common_pb2, dynamics_pb2, dynamics_pb2_grpc, model_registry_pb2, model_registry_pb2_grpc
+from jitdyn.v1 import session_pb2, session_pb2_grpc
+
+__all__ = [
+    "Client",
+    "Session",
+    "SessionOptions",
+    "FrameData",
+    "TickResult",
+    "Rejection",
+    "Opened",
+    "Summary",
+    "ModelRef",
+    "SyncSample",
+    "MAX_MESSAGE_BYTES",
+]
+
+MAX_MESSAGE_BYTES = 128 * 1024 * 1024
+
+_ESTIMATOR_ENUMS = {
+    "estimator": (common_pb2.Estimator, "ESTIMATOR_"),
+    "preset": (common_pb2.Preset, "PRESET_"),
+    "sigma_points": (common_pb2.SigmaPoints, "SIGMA_POINTS_"),
+}
+_ESTIMATOR_SCALARS = ("alpha", "beta", "kappa", "p0", "q_var", "r")
+
+
+def _enum(enum: Any, prefix: str, name: str, what: str) -> int:
+    try:
+        return int(enum.Value(prefix + name.upper()))
+    except ValueError:
+        names = [n[len(prefix):] for n in enum.keys() if not n.endswith("UNSPECIFIED")]
+        raise InvalidArgument(f"{what} must be one of {names}, got {name!r}") from None
+
+
+def _name(enum: Any, prefix: str, value: int) -> str:
+    return str(enum.Name(value))[len(prefix):]
+
+
+def _array(values: Any) -> np.ndarray:
+    array = np.asarray(values, dtype=np.float64)
+    array.flags.writeable = False
+    return array
+
+
+@dataclass(frozen=True)
+class ModelRef:
+    """A registered model, as the client needs it."""
+
+    id: str
+    name: str
+    version: int
+    nq: int
+    nv: int
+    nu: int
+    na: int
+    nsensordata: int
+    timestep: float
+    joint_names: tuple[str, ...]
+    actuator_names: tuple[str, ...]
+    builtin: bool
+    tags: tuple[str, ...]
+    description: str
+
+    @classmethod
+    def from_message(cls, model: model_registry_pb2.Model) -> ModelRef:
+        dims = model.dimensions
+        return cls(
+            id=model.id,
+            name=model.name,
+            version=model.version,
+            nq=dims.nq,
+            nv=dims.nv,
+            nu=dims.nu,
+            na=dims.na,
+            nsensordata=dims.nsensor,
+            timestep=model.timestep,
+            joint_names=tuple(j.name for j in model.joints),
+            actuator_names=tuple(a.name for a in model.actuators),
+            builtin=model.builtin,
+            tags=tuple(model.metadata.tags),
+            description=model.metadata.description,
+        )
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """What to open. Give exactly one of model_name, model_id, inline_mjcf."""
+
+    model_name: str | None = None
+    model_id: str | None = None
+    model_version: int = 0
+    inline_mjcf: str | None = None
+    inline_name: str = "inline"
+    inline_assets: Mapping[str, bytes] = field(default_factory=dict)
+    scenario: str = "PASSIVE"  # PASSIVE | CONTROLLED | EXTERNAL
+    dt: float = 0.05  # s
+    clock: str = "LOCKSTEP"  # LOCKSTEP | REALTIME
+    estimator: Mapping[str, object] = field(default_factory=dict)  # estimator, preset, sigma_points, alpha, ...
+    measured: Sequence[str] = ()  # of qpos, qvel, qacc, ctrl; empty: the server's default
+    outputs: Sequence[str] = ()  # of INVERSE_DYNAMICS, FORWARD_DYNAMICS, SENSORS, FILTER_STATE
+    horizon: str = "NONE"  # NONE | HALF_ROUND_TRIP
+    subject_id: str = ""
+    subject_attributes: Mapping[str, str] = field(default_factory=dict)
+    grace: float = 0.0  # s; 0: dt / 2
+    history: int = 0  # ticks; 0: the server's default
+
+    def to_message(self) -> dynamics_pb2.OpenSession:
+        chosen = [n for n in ("model_name", "model_id", "inline_mjcf") if getattr(self, n)]
+        if len(chosen) != 1:
+            raise InvalidArgument(f"give exactly one of model_name, model_id, inline_mjcf; got {chosen or 'none'}")
+        message = dynamics_pb2.OpenSession(
+            model_version=self.model_version,
+            scenario=_enum(common_pb2.Scenario, "SCENARIO_", self.scenario, "scenario"),
+            dt=self.dt,
+            clock=_enum(common_pb2.Clock, "CLOCK_", self.clock, "clock"),
+            measured=[_enum(common_pb2.Channel, "CHANNEL_", c, "measured") for c in self.measured],
+            outputs=[_enum(common_pb2.Output, "OUTPUT_", o, "outputs") for o in self.outputs],
+            horizon=_enum(dynamics_pb2.Horizon, "HORIZON_", self.horizon, "horizon"),
+            grace=self.grace,
+            history=self.history,
+        )
+        if self.model_name:
+            message.model_name = self.model_name
+        elif self.model_id:
+            message.model_id = self.model_id
+        else:
+            message.inline_model.name = self.inline_name
+            message.inline_model.mjcf = self.inline_mjcf or ""
+            for key, value in self.inline_assets.items():
+                message.inline_model.assets[key] = value
+        for key, value in self.estimator.items():
+            if key in _ESTIMATOR_ENUMS:
+                enum, prefix = _ESTIMATOR_ENUMS[key]
+                setattr(message.estimator, key, _enum(enum, prefix, str(value), f"estimator[{key!r}]"))
+            elif key in _ESTIMATOR_SCALARS:
+                setattr(message.estimator, key, float(value))  # type: ignore[arg-type]
+            else:
+                raise InvalidArgument(
+                    f"estimator keys must be among {sorted([*_ESTIMATOR_ENUMS, *_ESTIMATOR_SCALARS])}, got {key!r}"
+                )
+        if self.subject_id:
+            message.subject.id = self.subject_id
+        for key, value in self.subject_attributes.items():
+            message.subject.attributes[key] = value
+        return message
+
+
+@dataclass(frozen=True)
+class FrameData:
+    """One measured frame; channels the session does not measure stay None."""
+
+    seq: int
+    t: float
+    qpos: Any
+    qvel: Any = None
+    qacc: Any = None
+    ctrl: Any = None
+    sensordata: Any = None
+
+    def to_message(self, *, checksum: bool = True) -> dynamics_pb2.Frame:
+        channels = {
+            name: np.asarray(value, dtype=np.float64).ravel() if value is not None else np.empty(0)
+            for name, value in (
+                ("qpos", self.qpos),
+                ("qvel", self.qvel),
+                ("qacc", self.qacc),
+                ("ctrl", self.ctrl),
+                ("sensordata", self.sensordata),
+            )
+        }
+        frame = dynamics_pb2.Frame(seq=self.seq, t=self.t, **{k: v.tolist() for k, v in channels.items()})
+        if checksum:
+            frame.checksum = frame_checksum(seq=self.seq, t=self.t, **channels)
+        return frame
+
+
+@dataclass(frozen=True)
+class TickResult:
+    """The server's answer for one tick; arrays are read-only, empty when not asked for."""
+
+    seq: int
+    t: float
+    source: str  # MEASURED | PREDICTED | CORRECTED
+    qpos: np.ndarray
+    qvel: np.ndarray
+    qacc: np.ndarray
+    qfrc_inverse: np.ndarray
+    qacc_forward: np.ndarray
+    actuator_force: np.ndarray
+    sensordata: np.ndarray
+    covariance_diagonal: np.ndarray
+    filter_state: np.ndarray
+    covariance: np.ndarray | None  # (nx, nx) with OUTPUT_FILTER_STATE
+    nis: float | None
+    frame_received: bool
+    late_ticks: int
+    frame_delay: float
+    compute_us: int
+    receive_to_send_us: int
+    durable_seq: int | None
+    reinitialised: bool
+    horizon: float
+    received_at: float  # client monotonic time the result arrived
+
+    @classmethod
+    def from_message(cls, result: dynamics_pb2.Result, *, received_at: float) -> TickResult:
+        nx = len(result.filter_state)
+        covariance = _array(result.covariance).reshape(nx, nx) if len(result.covariance) == nx * nx and nx else None
+        return cls(
+            seq=result.seq,
+            t=result.t,
+            source=_name(dynamics_pb2.Source, "SOURCE_", result.source),
+            qpos=_array(result.qpos),
+            qvel=_array(result.qvel),
+            qacc=_array(result.qacc),
+            qfrc_inverse=_array(result.qfrc_inverse),
+            qacc_forward=_array(result.qacc_forward),
+            actuator_force=_array(result.actuator_force),
+            sensordata=_array(result.sensordata),
+            covariance_diagonal=_array(result.covariance_diagonal),
+            filter_state=_array(result.filter_state),
+            covariance=covariance,
+            nis=result.nis if result.HasField("nis") else None,
+            frame_received=result.frame_received,
+            late_ticks=result.late_ticks,
+            frame_delay=result.frame_delay,
+            compute_us=result.compute_us,
+            receive_to_send_us=result.receive_to_send_us,
+            durable_seq=result.durable_seq if result.HasField("durable_seq") else None,
+            reinitialised=result.reinitialised,
+            horizon=result.horizon,
+            received_at=received_at,
+        )
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A frame the server did not use."""
+
+    seq: int
+    reason: str  # BAD_CHECKSUM | BAD_SHAPE | NOT_FINITE | DUPLICATE | TOO_OLD | OUT_OF_ORDER | WRONG_CLOCK
+    message: str
+
+
+@dataclass(frozen=True)
+class Opened:
+    session_id: str
+    model: ModelRef
+    estimator: dict[str, object]
+    state_dimension: int
+    measured: tuple[str, ...]
+    outputs: tuple[str, ...]
+    grace: float
+    history: int
+    dropped_attributes: tuple[str, ...]
+    subject_pseudonym: str
+    dt: float
+    steps_per_tick: int
+
+
+@dataclass(frozen=True)
+class Summary:
+    ticks: int
+    frames: int
+    measured: int
+    predicted: int
+    corrected: int
+    rejected: int
+    late: int
+    location: str
+    mean_compute_us: float
+    max_compute_us: float
+    duration: float
+
+
+@dataclass(frozen=True)
+class SyncSample:
+    """One clock exchange, from the client's side: offset = server - client, seconds."""
+
+    offset: float
+    round_trip: float
+    server_offset: float
+    server_round_trip: float
+
+
+def _opened(message: dynamics_pb2.SessionOpened) -> Opened:
+    settings: dict[str, object] = {}
+    for key, (enum, prefix) in _ESTIMATOR_ENUMS.items():
+        settings[key] = _name(enum, prefix, getattr(message.estimator, key))
+    for key in _ESTIMATOR_SCALARS:
+        if message.estimator.HasField(key):
+            settings[key] = getattr(message.estimator, key)
+    return Opened(
+        session_id=message.session_id,
+        model=ModelRef.from_message(message.model),
+        estimator=settings,
+        state_dimension=message.state_dimension,
+        measured=tuple(_name(common_pb2.Channel, "CHANNEL_", c).lower() for c in message.measured),
+        outputs=tuple(_name(common_pb2.Output, "OUTPUT_", o) for o in message.outputs),
+        grace=message.grace,
+        history=message.history,
+        dropped_attributes=tuple(message.dropped_attributes),
+        subject_pseudonym=message.subject_pseudonym,
+        dt=message.dt,
+        steps_per_tick=message.steps_per_tick,
+    )
+
+
+def _summary(message: dynamics_pb2.SessionSummary) -> Summary:
+    return Summary(
+        ticks=message.ticks,
+        frames=message.frames,
+        measured=message.measured,
+        predicted=message.predicted,
+        corrected=message.corrected,
+        rejected=message.rejected,
+        late=message.late,
+        location=message.location,
+        mean_compute_us=message.mean_compute_us,
+        max_compute_us=message.max_compute_us,
+        duration=message.duration,
+    )
+
+
+_END = object()
+
+
+class Session:
+    """One open session. Use as a context manager; `close()` is safe to call twice.
+
+    LOCKSTEP: `send_frame` and `skip` return the server's one answer. REALTIME: `send` queues a frame
+    without waiting, and `results()` yields answers as they arrive.
+    """
+
+    def __init__(self, stub: dynamics_pb2_grpc.DynamicsServiceStub, options: SessionOptions, *,
+                 timeout: float | None, metadata: Sequence[tuple[str, str]], checksum: bool) -> None:
+        self._requests: queue.Queue[object] = queue.Queue()
+        self._responses: queue.Queue[object] = queue.Queue()
+        self._timeout = timeout
+        self._checksum = checksum
+        self._clock_start = time.monotonic()
+        self._last_probe: tuple[int, float] | None = None
+        self._probe_id = 0
+        self._closed = False
+        self.summary: Summary | None = None
+        open_request = dynamics_pb2.StreamSessionRequest(open=options.to_message())
+        self._requests.put(open_request)
+        self._call = stub.StreamSession(self._request_iterator(), metadata=list(metadata))
+        self._reader = threading.Thread(target=self._read, name="jitdyn-session-reader", daemon=True)
+        self._reader.start()
+        first = self._next_response(self._timeout)
+        if first.WhichOneof("payload") != "opened":
+            raise FailedPrecondition(f"the server answered `open` with `{first.WhichOneof('payload')}`")
+        self.opened = _opened(first.opened)
+
+    # Plumbing.
+
+    def _request_iterator(self) -> Iterator[dynamics_pb2.StreamSessionRequest]:
+        while True:
+            item = self._requests.get()
+            if item is _END:
+                return
+            yield item  # type: ignore[misc]
+
+    def _read(self) -> None:
+        try:
+            for response in self._call:
+                self._responses.put((time.monotonic(), response))
+        except grpc.RpcError as error:
+            self._responses.put(error)
+        finally:
+            self._responses.put(_END)
+
+    def _next_response(self, timeout: float | None) -> dynamics_pb2.StreamSessionResponse:
+        item = self._get(timeout)
+        if item is None:
+            raise FailedPrecondition("the session stream has ended")
+        return item[1]
+
+    def _get(self, timeout: float | None) -> tuple[float, dynamics_pb2.StreamSessionResponse] | None:
+        try:
+            item = self._responses.get(timeout=timeout)
+        except queue.Empty:
+            raise JitdynError(f"no answer from the server within {timeout} s") from None
+        if item is _END:
+            self._responses.put(_END)
+            return None
+        if isinstance(item, grpc.RpcError):
+            self._responses.put(_END)
+            raise error_for_status(item.code(), item.details() or "")  # type: ignore[attr-defined]
+        return item  # type: ignore[return-value]
+
+    def _convert(self, item: tuple[float, dynamics_pb2.StreamSessionResponse]) -> TickResult | Rejection | SyncSample | Summary:
+        received_at, response = item
+        kind = response.WhichOneof("payload")
+        if kind == "result":
+            return TickResult.from_message(response.result, received_at=received_at)
+        if kind == "rejected":
+            r = response.rejected
+            return Rejection(seq=r.seq, reason=_name(dynamics_pb2.RejectReason, "REJECT_REASON_", r.reason), message=r.message)
+        if kind == "sync":
+            return self._sync_sample(response.sync, received_at)
+        if kind == "closed":
+            self.summary = _summary(response.closed.summary)
+            return self.summary
+        raise FailedPrecondition(f"unexpected `{kind}` from the server")
+
+    def _send(self, request: dynamics_pb2.StreamSessionRequest) -> None:
+        if self._closed:
+            raise FailedPrecondition("the session is closed")
+        self._requests.put(request)
+
+    def now(self) -> float:
+        """The client's session clock: seconds since the session was opened."""
+        return time.monotonic() - self._clock_start
+
+    # LOCKSTEP.
+
+    def send_frame(self, frame: FrameData) -> TickResult | Rejection:
+        """Send one frame and wait for its answer (LOCKSTEP)."""
+        self.send(frame)
+        return self._answer()
+
+    def skip(self, seq: int) -> TickResult | Rejection:
+        """Tell the server tick `seq` had no frame; returns the PREDICTED result (LOCKSTEP)."""
+        self._send(dynamics_pb2.StreamSessionRequest(skip=dynamics_pb2.Skip(seq=seq)))
+        return self._answer()
+
+    def _answer(self) -> TickResult | Rejection:
+        while True:
+            item = self._get(self._timeout)
+            if item is None:
+                raise FailedPrecondition("the session stream ended before the answer")
+            answer = self._convert(item)
+            if isinstance(answer, (TickResult, Rejection)):
+                return answer
+
+    # REALTIME (and LOCKSTEP, for callers that pipeline).
+
+    def send(self, frame: FrameData) -> None:
+        """Queue a frame without waiting for its answer."""
+        self._send(dynamics_pb2.StreamSessionRequest(frame=frame.to_message(checksum=self._checksum)))
+
+    def results(self, *, timeout: float | None = None) -> Iterator[TickResult | Rejection | SyncSample]:
+        """Answers as they arrive, until the session is closed or `timeout` passes with none."""
+        while True:
+            try:
+                item = self._get(timeout)
+            except JitdynError as error:
+                if "no answer" in str(error):
+                    return
+                raise
+            if item is None:
+                return
+            answer = self._convert(item)
+            if isinstance(answer, Summary):
+                return
+            yield answer
+
+    def poll(self) -> list[TickResult | Rejection | SyncSample]:
+        """Every answer that has arrived, without waiting."""
+        answers: list[TickResult | Rejection | SyncSample] = []
+        while True:
+            try:
+                item = self._responses.get_nowait()
+            except queue.Empty:
+                return answers
+            if item is _END or isinstance(item, grpc.RpcError):
+                self._responses.put(item)
+                if isinstance(item, grpc.RpcError):
+                    self._responses.get_nowait()
+                    raise error_for_status(item.code(), item.details() or "")  # type: ignore[attr-defined]
+                return answers
+            answer = self._convert(item)  # type: ignore[arg-type]
+            if not isinstance(answer, Summary):
+                answers.append(answer)
+
+    def sync(self) -> None:
+        """Send a clock probe; its answer comes back among the results (a `SyncSample`)."""
+        self._probe_id += 1
+        ping = dynamics_pb2.SyncPing(id=self._probe_id, client_send_time=self.now())
+        if self._last_probe is not None:
+            ping.previous_id, ping.previous_receive_time = self._last_probe
+        self._send(dynamics_pb2.StreamSessionRequest(sync=ping))
+
+    def _sync_sample(self, pong: dynamics_pb2.SyncPong, received_at: float) -> SyncSample:
+        t4 = received_at - self._clock_start
+        self._last_probe = (pong.id, t4)
+        t1, t2, t3 = pong.client_send_time, pong.server_receive_time, pong.server_send_time
+        return SyncSample(
+            offset=((t2 - t1) + (t3 - t4)) / 2.0,
+            round_trip=(t4 - t1) - (t3 - t2),
+            server_offset=pong.offset,
+            server_round_trip=pong.round_trip,
+        )
+
+    # Ending.
+
+    def close(self) -> Summary:
+        """Close the session; returns its summary (where it is stored, counts)."""
+        if self._closed:
+            if self.summary is None:
+                raise FailedPrecondition("the session ended without a summary")
+            return self.summary
+        self._requests.put(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
+        self._closed = True
+        self._requests.put(_END)
+        while self.summary is None:
+            item = self._get(self._timeout)
+            if item is None:
+                raise FailedPrecondition("the session stream ended without a summary")
+            self._convert(item)
+        self._reader.join(timeout=5)
+        return self.summary
+
+    def cancel(self) -> None:
+        """Drop the stream without closing (the server stores the session as FAILED)."""
+        self._closed = True
+        self._call.cancel()
+        self._requests.put(_END)
+
+    def __enter__(self) -> Session:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+        if exc_type is None:
+            self.close()
+        elif not self._closed:
+            self.cancel()
+
+
+class Client:
+    """A connection to a jitdyn server. Keyword-only options beyond the address."""
+
+    def __init__(
+        self,
+        address: str = "127.0.0.1:50051",
+        *,
+        timeout: float | None = 60.0,
+        api_key: str | None = None,
+        root_certificates: bytes | None = None,
+        checksum: bool = True,
+    ) -> None:
+        options = [
+            ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+            ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+        ]
+        if root_certificates is not None:
+            self._channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates), options=options)
+        else:
+            self._channel = grpc.insecure_channel(address, options=options)
+        self._metadata: tuple[tuple[str, str], ...] = (("authorization", f"Bearer {api_key}"),) if api_key else ()
+        self._timeout = timeout
+        self._checksum = checksum
+        self._registry = model_registry_pb2_grpc.ModelRegistryServiceStub(self._channel)
+        self._dynamics = dynamics_pb2_grpc.DynamicsServiceStub(self._channel)
+        self._sessions = session_pb2_grpc.SessionServiceStub(self._channel)
+
+    def wait_ready(self, timeout: float = 10.0) -> None:
+        """Block until the server answers, or raise Unavailable."""
+        try:
+            grpc.channel_ready_future(self._channel).result(timeout=timeout)
+        except grpc.FutureTimeoutError:
+            raise error_for_status(grpc.StatusCode.UNAVAILABLE, f"no jitdyn server answered within {timeout} s") from None
+
+    def _unary(self, method: Any, request: Any) -> Any:
+        try:
+            return method(request, timeout=self._timeout, metadata=self._metadata)
+        except grpc.RpcError as error:
+            raise error_for_status(error.code(), error.details() or "") from None  # type: ignore[attr-defined]
+
+    def register_model(
+        self,
+        *,
+        name: str,
+        mjcf: str,
+        assets: Mapping[str, bytes] | None = None,
+        description: str = "",
+        tags: Sequence[str] = (),
+    ) -> tuple[ModelRef, bool]:
+        """Register a model; returns it and whether it was new."""
+        request = model_registry_pb2.RegisterModelRequest(name=name, mjcf=mjcf, assets=dict(assets or {}))
+        request.metadata.description = description
+        request.metadata.tags.extend(tags)
+        response = self._unary(self._registry.RegisterModel, request)
+        return ModelRef.from_message(response.model), response.created
+
+    def get_model(self, *, model_id: str = "", name: str = "", version: int = 0) -> ModelRef:
+        return ModelRef.from_message(self._unary(self._registry.GetModel, model_registry_pb2.GetModelRequest(model_id=model_id, name=name, version=version)).model)
+
+    def get_model_message(self, *, model_id: str = "", name: str = "", version: int = 0) -> model_registry_pb2.Model:
+        """The full `Model` message (joints with ranges, actuators, metadata)."""
+        return self._unary(self._registry.GetModel, model_registry_pb2.GetModelRequest(model_id=model_id, name=name, version=version)).model
+
+    def list_models(self, *, name: str = "", tag: str = "", page_size: int = 0) -> Iterator[ModelRef]:
+        """Every model matching the filters, page after page."""
+        token = ""
+        while True:
+            page = self._unary(self._registry.ListModels, model_registry_pb2.ListModelsRequest(page_size=page_size, page_token=token, name=name, tag=tag))
+            for model in page.models:
+                yield ModelRef.from_message(model)
+            token = page.next_page_token
+            if not token:
+                return
+
+    def list_sessions(self, request: session_pb2.ListSessionsRequest | None = None) -> Iterator[session_pb2.Session]:
+        """Every stored session matching the request's filters, newest first."""
+        page_request = session_pb2.ListSessionsRequest()
+        if request is not None:
+            page_request.CopyFrom(request)
+        while True:
+            page = self._unary(self._sessions.ListSessions, page_request)
+            yield from page.sessions
+            if not page.next_page_token:
+                return
+            page_request.page_token = page.next_page_token
+
+    def get_session(self, session_id: str) -> session_pb2.Session:
+        return self._unary(self._sessions.GetSession, session_pb2.GetSessionRequest(session_id=session_id)).session
+
+    def open_session(self, options: SessionOptions) -> Session:
+        """Open a session; raises the server's error (InvalidArgument, NotFound, ...) if it refuses."""
+        try:
+            return Session(self._dynamics, options, timeout=self._timeout, metadata=self._metadata, checksum=self._checksum)
+        except grpc.RpcError as error:
+            raise error_for_status(error.code(), error.details() or "") from None  # type: ignore[attr-defined]
+
+    def close(self) -> None:
+        self._channel.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
