@@ -6,14 +6,19 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import sqlalchemy as sa
 from alembic import command
 from alembic.config import Config
 
-__all__ = ["open_index", "default_index_url", "upgrade"]
+from jitdyn.errors import InvalidArgument
 
+__all__ = ["default_index_url", "open_index", "upgrade"]
+
+# Interpolated into CREATE SCHEMA, so nothing but a plain identifier.
+_IDENTIFIER = re.compile(r"[a-z_][a-z0-9_]{0,62}")
 _MIGRATIONS = Path(__file__).resolve().parent / "migrations"
 
 
@@ -40,6 +45,8 @@ def open_index(url: str, *, schema: str | None = None) -> sa.Engine:
     `schema` (PostgreSQL only) puts the tables in that schema, created when missing; tests isolate
     each run this way.
     """
+    if schema is not None and not _IDENTIFIER.fullmatch(schema):
+        raise InvalidArgument(f"schema must be a plain SQL identifier ([a-z_][a-z0-9_]*, at most 63), got {schema!r}")
     kwargs: dict[str, object] = {"future": True}
     if url.startswith("sqlite"):
         # Sessions write from the event loop's thread and from the recovery thread.
@@ -47,9 +54,9 @@ def open_index(url: str, *, schema: str | None = None) -> sa.Engine:
     if schema is not None:
         kwargs["execution_options"] = {"schema_translate_map": {None: schema}}
     try:
-        engine = sa.create_engine(url, **kwargs)  # type: ignore[arg-type]
+        engine = sa.create_engine(url, **kwargs)
     except (sa.exc.ArgumentError, sa.exc.NoSuchModuleError) as exc:
-        raise ValueError(f"index URL {url!r} is not usable: {exc}") from exc
+        raise InvalidArgument(f"index URL {url!r} is not usable: {exc}") from exc
     if url.startswith("sqlite"):
         @sa.event.listens_for(engine, "connect")
         def _sqlite_pragmas(dbapi_connection, _record):  # type: ignore[no-untyped-def]
