@@ -1,0 +1,143 @@
+"""The columns of a session's frame table, and the conversion of `TickRecord`s into them.
+
+The same Arrow schema serves the crash-safe log and, with `session_id` and `model_name` in front,
+the Parquet file. Arrays are list<float64> columns whatever the model, so that one schema reads
+every session and every reader (DuckDB, pandas, polars, Spark) agrees on the type.
+"""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Sequence
+from typing import Final
+
+import numpy as np
+import pyarrow as pa
+
+from jitdyn.errors import InvalidArgument
+from storage.records import SessionHeader, TickRecord
+
+__all__ = [
+    "ARRAY_FIELDS",
+    "FLOAT_LIST",
+    "FRAME_SCHEMA",
+    "ID_COLUMNS",
+    "LOG_SCHEMA",
+    "SCALAR_FIELDS",
+    "expected_lengths",
+    "records_to_batch",
+]
+
+# Parquet names the element of a list "element"; naming it so in Arrow too keeps the log's, the
+# Parquet file's and a read-back table's types identical.
+FLOAT_LIST: Final = pa.list_(pa.field("element", pa.float64()))
+
+SCALAR_FIELDS: Final[tuple[pa.Field, ...]] = (
+    pa.field("kind", pa.string(), nullable=False),
+    pa.field("seq", pa.int64(), nullable=False),
+    pa.field("source", pa.string(), nullable=False),
+    pa.field("t", pa.float64(), nullable=False),
+    pa.field("server_time", pa.float64(), nullable=False),
+    pa.field("frame_received", pa.bool_(), nullable=False),
+    pa.field("frame_t", pa.float64()),
+    pa.field("late_ticks", pa.int32(), nullable=False),
+    pa.field("frame_delay", pa.float64()),
+    pa.field("nis", pa.float64()),
+    pa.field("reinitialised", pa.bool_(), nullable=False),
+    pa.field("compute_us", pa.int64(), nullable=False),
+    pa.field("receive_to_send_us", pa.int64(), nullable=False),
+    pa.field("reject_reason", pa.string(), nullable=False),
+    pa.field("reject_message", pa.string(), nullable=False),
+)
+
+ARRAY_FIELDS: Final[tuple[str, ...]] = (
+    "frame_qpos",
+    "frame_qvel",
+    "frame_qacc",
+    "frame_ctrl",
+    "frame_sensordata",
+    "qpos",
+    "qvel",
+    "qacc",
+    "qfrc_inverse",
+    "qacc_forward",
+    "actuator_force",
+    "sensordata",
+    "covariance_diagonal",
+    "filter_state",
+)
+
+LOG_SCHEMA: Final = pa.schema([*SCALAR_FIELDS, *(pa.field(name, FLOAT_LIST) for name in ARRAY_FIELDS)])
+
+# Constant per file; dictionary-typed so that they cost a few bytes, not a string per row.
+ID_COLUMNS: Final[tuple[pa.Field, ...]] = (
+    pa.field("session_id", pa.dictionary(pa.int32(), pa.string()), nullable=False),
+    pa.field("model_name", pa.dictionary(pa.int32(), pa.string()), nullable=False),
+)
+
+FRAME_SCHEMA: Final = pa.schema([*ID_COLUMNS, *LOG_SCHEMA])
+
+_GETTERS: Final = {f.name: operator.attrgetter(f.name) for f in SCALAR_FIELDS} | {
+    name: operator.attrgetter(name) for name in ARRAY_FIELDS
+}
+
+
+def expected_lengths(header: SessionHeader) -> dict[str, int]:
+    """The length every present array of a column must have, for the columns fixed by the model.
+    covariance_diagonal and filter_state depend on the scenario and are not checked."""
+    nq, nv, nu, ns = header.nq, header.nv, header.nu, header.nsensordata
+    return {
+        "frame_qpos": nq,
+        "frame_qvel": nv,
+        "frame_qacc": nv,
+        "frame_ctrl": nu,
+        "frame_sensordata": ns,
+        "qpos": nq,
+        "qvel": nv,
+        "qacc": nv,
+        "qfrc_inverse": nv,
+        "qacc_forward": nv,
+        "actuator_force": nu,
+        "sensordata": ns,
+    }
+
+
+def _list_column(name: str, arrays: list[object], expected: int | None) -> pa.Array:
+    n = len(arrays)
+    present = [a for a in arrays if a is not None]
+    if not present:
+        return pa.nulls(n, FLOAT_LIST)
+    lengths = np.fromiter((0 if a is None else len(a) for a in arrays), dtype=np.int32, count=n)  # type: ignore[arg-type]
+    if expected is not None:
+        mask_present = np.fromiter((a is not None for a in arrays), dtype=bool, count=n)
+        wrong = np.flatnonzero(mask_present & (lengths != expected))
+        if wrong.size:
+            raise InvalidArgument(
+                f"{name} must have {expected} values in every record, got {int(lengths[wrong[0]])} "
+                f"in the record at position {int(wrong[0])} of the batch"
+            )
+    offsets = np.zeros(n + 1, dtype=np.int32)
+    np.cumsum(lengths, out=offsets[1:])
+    values = np.concatenate(present).astype(np.float64, copy=False)  # type: ignore[arg-type]
+    if values.ndim != 1:
+        raise InvalidArgument(f"{name} must hold 1-D vectors, got arrays of {values.ndim} dimensions")
+    mask = None
+    if len(present) < n:
+        mask = pa.array(np.fromiter((a is None for a in arrays), dtype=bool, count=n))
+    return pa.ListArray.from_arrays(pa.array(offsets), pa.array(values), type=FLOAT_LIST, mask=mask)
+
+
+def records_to_batch(
+    records: Sequence[TickRecord], *, lengths: dict[str, int] | None = None
+) -> pa.RecordBatch:
+    """The records as one batch of LOG_SCHEMA; `lengths` (from `expected_lengths`) checks the
+    array lengths and raises InvalidArgument naming the column on a mismatch."""
+    columns: list[pa.Array] = []
+    for f in SCALAR_FIELDS:
+        getter = _GETTERS[f.name]
+        columns.append(pa.array([getter(r) for r in records], type=f.type))
+    for name in ARRAY_FIELDS:
+        getter = _GETTERS[name]
+        expected = None if lengths is None else lengths.get(name)
+        columns.append(_list_column(name, [getter(r) for r in records], expected))
+    return pa.RecordBatch.from_arrays(columns, schema=LOG_SCHEMA)

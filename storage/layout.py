@@ -1,0 +1,47 @@
+"""Where a session's bytes live under the data root, and how files are made durable there.
+
+<data root>/logs/<session id>.arrows                                 while the session runs
+<data root>/frames/model=<name>/date=<YYYY-MM-DD>/<session id>.parquet once it has ended
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path, PurePosixPath
+
+__all__ = ["FRAMES_DIR", "LOG_DIR", "frames_location", "fsync_dir", "log_location", "make_dirs"]
+
+LOG_DIR = "logs"
+FRAMES_DIR = "frames"
+
+
+def log_location(session_id: str) -> str:
+    """The session's append-only log, relative to the data root."""
+    return str(PurePosixPath(LOG_DIR) / f"{session_id}.arrows")
+
+
+def frames_location(*, model_name: str, date: str, session_id: str) -> str:
+    """The session's Parquet file, relative to the data root (Hive partitions model and date)."""
+    return str(PurePosixPath(FRAMES_DIR) / f"model={model_name}" / f"date={date}" / f"{session_id}.parquet")
+
+
+def fsync_dir(path: Path) -> None:
+    """Make the entries of a folder (a created, renamed or deleted file) durable."""
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def make_dirs(root: Path, relative: str) -> Path:
+    """Create the folders of `relative` under `root`, each new one made durable in its parent."""
+    current = root
+    current.mkdir(parents=True, exist_ok=True)
+    for part in PurePosixPath(relative).parts:
+        child = current / part
+        if not child.is_dir():
+            child.mkdir(exist_ok=True)
+            fsync_dir(current)
+        current = child
+    return current

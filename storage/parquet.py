@@ -1,0 +1,187 @@
+"""A session's Parquet file: its encodings, its self-describing metadata, and its atomic write.
+
+Floats are stored with BYTE_STREAM_SPLIT under zstd (the bytes of a float column compress far
+better split by significance); dictionary encoding is kept for the id and category columns only,
+where it pays. The key-value metadata "jitdyn" holds the JSON of `file_metadata`, readable with
+`pq.read_schema(path).metadata` or DuckDB's `parquet_kv_metadata`.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from jitdyn.errors import InvalidArgument
+from storage.columns import ARRAY_FIELDS, FRAME_SCHEMA, LOG_SCHEMA
+from storage.layout import fsync_dir
+from storage.records import SessionHeader
+
+__all__ = [
+    "METADATA_KEY",
+    "ROW_GROUP_SIZE",
+    "SCHEMA_VERSION",
+    "file_metadata",
+    "header_from_json",
+    "header_to_json",
+    "read_metadata",
+    "to_frame_table",
+    "write_parquet",
+]
+
+# Bumped when a column is added, removed or changes meaning.
+SCHEMA_VERSION: Final = 1
+METADATA_KEY: Final = "jitdyn"
+ROW_GROUP_SIZE: Final = 100_000
+
+_DICTIONARY_COLUMNS: Final = ["session_id", "model_name", "kind", "source", "reject_reason"]
+_FLOAT_SCALARS: Final = [f.name for f in LOG_SCHEMA if f.type == pa.float64()]
+_INT_SCALARS: Final = [f.name for f in LOG_SCHEMA if pa.types.is_integer(f.type)]
+# BYTE_STREAM_SPLIT cannot be combined with dictionary encoding; none of these columns has it.
+_COLUMN_ENCODING: Final = (
+    {name: "BYTE_STREAM_SPLIT" for name in _FLOAT_SCALARS}
+    | {f"{name}.list.element": "BYTE_STREAM_SPLIT" for name in ARRAY_FIELDS}
+    # seq counts up and the timings are small: deltas pack them into a few bits each.
+    | {name: "DELTA_BINARY_PACKED" for name in _INT_SCALARS}
+)
+
+
+def file_metadata(header: SessionHeader) -> dict[str, Any]:
+    """What a reader of the Parquet file needs to interpret its columns, as JSON-ready values."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "session_id": header.session_id,
+        "model_id": header.model_id,
+        "model_name": header.model_name,
+        "model_version": header.model_version,
+        "joint_names": list(header.joint_names),
+        "joint_types": list(header.joint_types),
+        "qpos_names": list(header.qpos_names),
+        "dof_names": list(header.dof_names),
+        # Of qpos for hinge and slide joints, of qvel (per second) and qacc (per second squared);
+        # generalized forces are N along "m" and N m along "rad".
+        "dof_units": list(header.dof_units),
+        "actuator_names": list(header.actuator_names),
+        "nq": header.nq,
+        "nv": header.nv,
+        "nu": header.nu,
+        "nsensordata": header.nsensordata,
+        "timestep": header.timestep,
+        "dt": header.dt,
+        "scenario": header.scenario,
+        "clock": header.clock,
+        "estimator": header.estimator,
+        "subject_pseudonym": header.subject_pseudonym,
+        "subject_attributes": header.subject_attributes,
+        "date": header.date,
+        "time_origin": "t: client clock, server_time: server clock; seconds since the session start",
+    }
+
+
+def header_to_json(header: SessionHeader) -> str:
+    """The whole header as JSON, kept in the log so that recovery can rebuild the Parquet file."""
+    return json.dumps(
+        {
+            "session_id": header.session_id,
+            "tenant": header.tenant,
+            "model_id": header.model_id,
+            "model_name": header.model_name,
+            "model_version": header.model_version,
+            "joint_names": list(header.joint_names),
+            "joint_types": list(header.joint_types),
+            "dof_names": list(header.dof_names),
+            "actuator_names": list(header.actuator_names),
+            "nq": header.nq,
+            "nv": header.nv,
+            "nu": header.nu,
+            "nsensordata": header.nsensordata,
+            "timestep": header.timestep,
+            "dt": header.dt,
+            "scenario": header.scenario,
+            "clock": header.clock,
+            "estimator": header.estimator,
+            "subject_pseudonym": header.subject_pseudonym,
+            "subject_attributes": header.subject_attributes,
+            "started_at": header.started_at.astimezone(_dt.UTC).isoformat(),
+        }
+    )
+
+
+def header_from_json(text: str) -> SessionHeader:
+    """The inverse of `header_to_json`."""
+    try:
+        d = json.loads(text)
+        return SessionHeader(
+            session_id=d["session_id"],
+            tenant=d["tenant"],
+            model_id=d["model_id"],
+            model_name=d["model_name"],
+            model_version=d["model_version"],
+            joint_names=tuple(d["joint_names"]),
+            joint_types=tuple(d["joint_types"]),
+            dof_names=tuple(d["dof_names"]),
+            actuator_names=tuple(d["actuator_names"]),
+            nq=d["nq"],
+            nv=d["nv"],
+            nu=d["nu"],
+            nsensordata=d["nsensordata"],
+            timestep=d["timestep"],
+            dt=d["dt"],
+            scenario=d["scenario"],
+            clock=d["clock"],
+            estimator=d["estimator"],
+            subject_pseudonym=d["subject_pseudonym"],
+            subject_attributes=d["subject_attributes"],
+            started_at=_dt.datetime.fromisoformat(d["started_at"]),
+        )
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InvalidArgument(f"the session header in the log is not readable: {exc!r}") from exc
+
+
+def to_frame_table(log: pa.Table, *, session_id: str, model_name: str) -> pa.Table:
+    """The log's rows with the constant id columns in front: FRAME_SCHEMA."""
+    n = log.num_rows
+    zeros = pa.array(np.zeros(n, dtype=np.int32))
+    ids = [
+        pa.DictionaryArray.from_arrays(zeros, pa.array([value], pa.string()))
+        for value in (session_id, model_name)
+    ]
+    columns = ids + [log.column(name).combine_chunks() for name in LOG_SCHEMA.names]
+    return pa.Table.from_arrays(columns, schema=FRAME_SCHEMA)
+
+
+def write_parquet(table: pa.Table, *, path: Path, metadata: dict[str, Any]) -> None:
+    """Write `table` to `path` atomically: a temporary file beside it, fsync, rename, fsync of the
+    folder. A reader sees the old file or the whole new one, never a part."""
+    table = table.replace_schema_metadata({METADATA_KEY: json.dumps(metadata, allow_nan=False)})
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        pq.write_table(
+            table,
+            f,
+            compression="zstd",
+            use_dictionary=_DICTIONARY_COLUMNS,
+            column_encoding=_COLUMN_ENCODING,
+            row_group_size=ROW_GROUP_SIZE,
+        )
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+def read_metadata(path: Path) -> dict[str, Any]:
+    """The "jitdyn" metadata of a session's Parquet file."""
+    raw = (pq.read_schema(path).metadata or {}).get(METADATA_KEY.encode())
+    if raw is None:
+        raise InvalidArgument(
+            f"{path} has no {METADATA_KEY!r} key-value metadata; it is not a jitdyn session file"
+        )
+    value: dict[str, Any] = json.loads(raw)
+    return value

@@ -1,0 +1,318 @@
+"""The crash-safe recorder of one session, and the recovery of sessions a dead server left open.
+
+    with SessionRecorder(data_root=root, index=index, header=header) as recorder:
+        recorder.append(record)           # cheap; from the event loop
+        result.durable_seq = recorder.durable_seq
+        location = recorder.close(summary) # blocking: compaction; run it in a thread
+
+`append` only queues the record; a commit thread turns what has queued into one record batch,
+appends it to the session's log and fsyncs (group commit), every `commit_every` records or
+`commit_interval` seconds after the first queued one, whichever comes first. `close` compacts the
+log to Parquet, marks the session ended in the index in one transaction, then deletes the log. On
+start, `recover_unfinished` does the same for every session whose server died.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+import pyarrow as pa
+
+from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
+from storage.columns import expected_lengths, records_to_batch
+from storage.index import SessionIndex, SessionRow
+from storage.layout import frames_location, fsync_dir, log_location, make_dirs
+from storage.log import LogWriter, read_log, try_lock
+from storage.parquet import file_metadata, header_from_json, header_to_json, to_frame_table, write_parquet
+from storage.records import SessionHeader, SessionSummaryInfo, TickRecord
+from storage.summary import summarise
+
+__all__ = ["SessionRecorder", "recover_unfinished"]
+
+_log = logging.getLogger(__name__)
+
+
+class _State(enum.Enum):
+    OPEN = "open"
+    CLOSED = "closed"
+
+
+def _compact(*, data_root: Path, header: SessionHeader, log: pa.Table) -> str:
+    """Write the log's rows as the session's Parquet file; its location relative to the data root."""
+    location = frames_location(model_name=header.model_name, date=header.date, session_id=header.session_id)
+    folder = make_dirs(data_root, str(Path(location).parent))
+    table = to_frame_table(log, session_id=header.session_id, model_name=header.model_name)
+    write_parquet(table, path=folder / Path(location).name, metadata=file_metadata(header))
+    return location
+
+
+def _delete_log(path: Path) -> None:
+    path.unlink(missing_ok=True)
+    fsync_dir(path.parent)
+
+
+class SessionRecorder:
+    """Records one session: an append-only log while it runs, Parquet and an index row after.
+
+    `durable_seq` is the highest tick seq of a result such that it and every record appended before
+    it are on disk. Rejected frames are on disk in the same order but do not advance it: their seq
+    is whatever the client sent, and says nothing about the ticks before it.
+    """
+
+    def __init__(
+        self,
+        *,
+        data_root: Path,
+        index: SessionIndex,
+        header: SessionHeader,
+        commit_every: int = 64,
+        commit_interval: float = 0.010,
+    ) -> None:
+        if commit_every < 1:
+            raise InvalidArgument(f"commit_every must be >= 1, got {commit_every}")
+        if not commit_interval > 0:
+            raise InvalidArgument(f"commit_interval must be > 0 seconds, got {commit_interval}")
+        self._data_root = data_root
+        self._index = index
+        self._header = header
+        self._commit_every = commit_every
+        self._commit_interval = commit_interval
+        self._lengths = expected_lengths(header)
+
+        self._cond = threading.Condition()
+        self._pending: list[TickRecord] = []
+        self._first_pending_at = 0.0
+        self._appended = 0
+        self._committed = 0
+        self._flush_now = False
+        self._stopping = False
+        self._failure: JitdynError | None = None
+        self._durable_seq: int | None = None
+        self._state = _State.OPEN
+        self._location = ""
+        self._close_error: BaseException | None = None
+
+        self._log_location = log_location(header.session_id)
+        self._log_path = data_root / self._log_location
+        make_dirs(data_root, str(Path(self._log_location).parent))
+        # The log (with the header) is durable before the index names it, so an OPEN row always
+        # has a log to recover from.
+        self._writer = LogWriter(self._log_path, header_json=header_to_json(header))
+        try:
+            index.create(header, log_path=self._log_location)
+        except BaseException:
+            self._writer.release()
+            _delete_log(self._log_path)
+            raise
+        self._thread = threading.Thread(
+            target=self._run, name=f"recorder-{header.session_id[:8]}", daemon=True
+        )
+        self._thread.start()
+
+    @property
+    def header(self) -> SessionHeader:
+        return self._header
+
+    @property
+    def durable_seq(self) -> int | None:
+        """The highest result seq durable with everything appended before it; None before any."""
+        return self._durable_seq
+
+    @property
+    def log_bytes(self) -> int:
+        """Bytes of the log on disk so far."""
+        return self._writer.bytes_written
+
+    def append(self, record: TickRecord) -> None:
+        """Queue a record for the next group commit. Never waits for the disk.
+
+        Raises FailedPrecondition after close, and Unavailable once the log could not be written
+        (the session cannot promise durability any more and should end).
+        """
+        with self._cond:
+            if self._state is not _State.OPEN:
+                raise FailedPrecondition(
+                    f"the recorder of session {self._header.session_id} is closed; append before close"
+                )
+            if self._failure is not None:
+                raise self._failure
+            self._pending.append(record)
+            self._appended += 1
+            if len(self._pending) == 1:
+                self._first_pending_at = time.monotonic()
+                self._cond.notify()
+            elif len(self._pending) >= self._commit_every:
+                self._cond.notify()
+
+    def flush(self, timeout: float | None = None) -> None:
+        """Commit what is queued now and wait until it is durable (for tests and shutdown)."""
+        with self._cond:
+            target = self._appended
+            self._flush_now = True
+            self._cond.notify_all()
+            if not self._cond.wait_for(
+                lambda: self._committed >= target or self._failure is not None, timeout=timeout
+            ):
+                raise Unavailable(
+                    f"session {self._header.session_id}: the log did not become durable within {timeout} s"
+                )
+            if self._failure is not None:
+                raise self._failure
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._pending and not self._stopping and not self._flush_now:
+                    self._cond.wait()
+                deadline = self._first_pending_at + self._commit_interval
+                while len(self._pending) < self._commit_every and not self._stopping and not self._flush_now:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    self._cond.wait(remaining)
+                batch, self._pending = self._pending, []
+                self._flush_now = False
+                stop = self._stopping
+            if batch:
+                self._commit(batch)
+            with self._cond:
+                self._cond.notify_all()
+                if stop and not self._pending:
+                    return
+
+    def _commit(self, batch: list[TickRecord]) -> None:
+        if self._failure is not None:
+            return
+        try:
+            self._writer.write(records_to_batch(batch, lengths=self._lengths))
+        except InvalidArgument as exc:
+            failure: JitdynError = InvalidArgument(f"session {self._header.session_id}: {exc}")
+        except (OSError, pa.ArrowException) as exc:
+            failure = Unavailable(f"session {self._header.session_id}: its log cannot be written: {exc}")
+        else:
+            seqs = [r.seq for r in batch if r.kind == "result"]
+            with self._cond:
+                self._committed += len(batch)
+                if seqs:
+                    top = max(seqs)
+                    if self._durable_seq is None or top > self._durable_seq:
+                        self._durable_seq = top
+            return
+        _log.error("%s", failure)
+        with self._cond:
+            self._failure = failure
+
+    def _stop_thread(self) -> None:
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        self._thread.join()
+
+    def close(self, summary: SessionSummaryInfo | None = None, *, status: str = "COMPLETE") -> str:
+        """End the session: commit what is queued, compact the log to Parquet, mark the session
+        `status` with `summary` (None: computed from the rows) in one index transaction, delete the
+        log. Returns the Parquet location relative to the data root. Blocks for the compaction;
+        call it off the event loop. A second call returns the same location and does nothing."""
+        with self._cond:
+            if self._state is _State.CLOSED:
+                if self._close_error is not None:
+                    raise self._close_error
+                return self._location
+            self._state = _State.CLOSED
+        self._stop_thread()
+        try:
+            if self._failure is not None:
+                # The log holds what was durable; the session stays OPEN, and the next start
+                # recovers it.
+                raise self._failure
+            self._writer.finish()
+            log = read_log(self._log_path).table
+            location = _compact(data_root=self._data_root, header=self._header, log=log)
+            if summary is None:
+                summary = summarise(log, dof_names=self._header.dof_names)
+            self._index.finish(self._header.session_id, status=status, summary=summary, location=location)
+            _delete_log(self._log_path)
+            self._location = location
+            return location
+        except BaseException as exc:
+            self._close_error = exc
+            raise
+        finally:
+            # Released only now: until the index says the session ended, its lock keeps a
+            # recovering server away from it.
+            self._writer.release()
+
+    def fail(self, summary: SessionSummaryInfo | None = None) -> str:
+        """`close` with status FAILED: the session ended by an error; what was received is kept."""
+        return self.close(summary, status="FAILED")
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if self._state is _State.CLOSED:
+            return
+        if exc_type is None:
+            self.close()
+        else:
+            self.fail()
+
+
+def _recover_one(*, data_root: Path, index: SessionIndex, row: SessionRow) -> bool:
+    path = data_root / row.log_path
+    fd = try_lock(path)
+    if fd is None:
+        _log.info("session %s is open in a live server; left alone", row.session_id)
+        return False
+    try:
+        contents = read_log(path)
+        if contents.header_json is None:
+            # The log died before its header was durable; no frame was acknowledged, and the
+            # index row, written after, cannot exist. Kept for a human to look at.
+            _log.warning("session %s: log %s has no header; not recovered", row.session_id, path)
+            return False
+        header = header_from_json(contents.header_json)
+        if contents.torn:
+            _log.info("session %s: dropped a torn last batch (never acknowledged)", row.session_id)
+        location = _compact(data_root=data_root, header=header, log=contents.table)
+        summary = summarise(contents.table, dof_names=header.dof_names)
+        index.finish(row.session_id, status="RECOVERED", summary=summary, location=location)
+        _delete_log(path)
+        return True
+    finally:
+        os.close(fd)
+
+
+def recover_unfinished(*, data_root: Path, index: SessionIndex) -> list[str]:
+    """Compact every OPEN session whose log is here and not held by a live writer to Parquet, and
+    mark it RECOVERED with a summary computed from its rows. Returns the recovered session ids.
+
+    A session whose log is missing is left OPEN with a warning: its log may be on another server's
+    data root. A session another server recovers at the same moment is skipped.
+    """
+    recovered: list[str] = []
+    for row in index.unfinished():
+        path = data_root / row.log_path
+        if not row.log_path or not path.is_file():
+            _log.warning(
+                "session %s is OPEN but its log %s is not under %s", row.session_id, row.log_path, data_root
+            )
+            continue
+        try:
+            if _recover_one(data_root=data_root, index=index, row=row):
+                recovered.append(row.session_id)
+        except (FailedPrecondition, FileNotFoundError):
+            _log.info("session %s was ended by another server meanwhile", row.session_id)
+    return recovered
