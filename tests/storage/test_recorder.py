@@ -18,8 +18,8 @@ import pytest
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from storage.columns import ARRAY_FIELDS, SCALAR_FIELDS
 from storage.index import SessionIndex
-from storage.records import SessionHeader, SessionSummaryInfo, TickRecord
 from storage.recorder import SessionRecorder
+from storage.records import SessionHeader, SessionSummaryInfo, TickRecord
 
 
 def assert_rows_equal(rows: list[dict[str, Any]], records: list[TickRecord]) -> None:
@@ -157,7 +157,11 @@ def test_row_groups_of_about_100k_rows(
             recorder.append(TickRecord(kind="result", seq=seq, source="MEASURED", qpos=qpos))
         location = recorder.close()
     metadata = pq.ParquetFile(data_root / location).metadata
-    assert [metadata.row_group(i).num_rows for i in range(metadata.num_row_groups)] == [100_000, 100_000, 50_000]
+    assert [metadata.row_group(i).num_rows for i in range(metadata.num_row_groups)] == [
+        100_000,
+        100_000,
+        50_000,
+    ]
 
 
 def test_durable_seq_follows_results_not_rejections(
@@ -254,7 +258,9 @@ def test_wrong_array_length_fails_the_recorder_loudly(
         ({"estimator": {"alpha": math.nan}}, "estimator settings must be JSON-serialisable"),
     ],
 )
-def test_header_is_validated(make_header: Callable[..., SessionHeader], overrides: dict[str, Any], message: str) -> None:
+def test_header_is_validated(
+    make_header: Callable[..., SessionHeader], overrides: dict[str, Any], message: str
+) -> None:
     with pytest.raises(InvalidArgument) as error:
         make_header(**overrides)
     assert str(error.value).startswith(message)
