@@ -1,0 +1,167 @@
+"""SQL over the stored sessions with DuckDB: the tenant's Parquet files as `frames`, its index rows
+as `sessions`.
+
+    table = run_query(
+        "SELECT s.subject_pseudonym, max(list_max(f.qfrc_inverse)) FROM frames f "
+        "JOIN sessions s USING (session_id) GROUP BY 1",
+        data_root=root, engine=engine)
+
+`frames` has the columns of storage.columns.FRAME_SCHEMA plus the Hive partitions `model`
+(VARCHAR) and `date` (DATE). The connection can read exactly the tenant's files and nothing else:
+no other file, no extension download, no Python variable, no configuration change.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Final
+
+import duckdb
+import pyarrow as pa
+import sqlalchemy as sa
+
+from jitdyn.errors import InvalidArgument
+from storage.columns import FRAME_SCHEMA
+from storage.index import SessionIndex, SessionRow
+
+__all__ = ["SESSIONS_SCHEMA", "run_query", "sessions_table"]
+
+_log = logging.getLogger(__name__)
+
+_TIMESTAMP: Final = pa.timestamp("us", tz="UTC")
+SESSIONS_SCHEMA: Final = pa.schema(
+    [
+        pa.field("session_id", pa.string()),
+        pa.field("model_id", pa.string()),
+        pa.field("model_name", pa.string()),
+        pa.field("model_version", pa.int32()),
+        pa.field("scenario", pa.string()),
+        pa.field("clock", pa.string()),
+        pa.field("dt", pa.float64()),
+        pa.field("estimator", pa.string()),  # JSON
+        pa.field("subject_pseudonym", pa.string()),
+        pa.field("subject_attributes", pa.map_(pa.string(), pa.string())),
+        pa.field("started_at", _TIMESTAMP),
+        pa.field("ended_at", _TIMESTAMP),
+        pa.field("status", pa.string()),
+        pa.field("ticks", pa.int64()),
+        pa.field("frames", pa.int64()),
+        pa.field("measured", pa.int64()),
+        pa.field("predicted", pa.int64()),
+        pa.field("corrected", pa.int64()),
+        pa.field("rejected", pa.int64()),
+        pa.field("late", pa.int64()),
+        pa.field("mean_compute_us", pa.float64()),
+        pa.field("max_compute_us", pa.float64()),
+        pa.field("duration", pa.float64()),
+        pa.field("stats", pa.string()),  # JSON
+        pa.field("location", pa.string()),
+    ]
+)
+_PARTITIONS: Final = (pa.field("model", pa.string()), pa.field("date", pa.date32()))
+
+
+def sessions_table(rows: Sequence[SessionRow]) -> pa.Table:
+    """Index rows as an Arrow table of SESSIONS_SCHEMA (the tenant column left out)."""
+    columns: dict[str, list[object]] = {f.name: [] for f in SESSIONS_SCHEMA}
+    for row in rows:
+        s = row.summary
+        values: dict[str, object] = {
+            "session_id": row.session_id,
+            "model_id": row.model_id,
+            "model_name": row.model_name,
+            "model_version": row.model_version,
+            "scenario": row.scenario,
+            "clock": row.clock,
+            "dt": row.dt,
+            "estimator": json.dumps(row.estimator),
+            "subject_pseudonym": row.subject_pseudonym,
+            "subject_attributes": list(row.subject_attributes.items()),
+            "started_at": row.started_at,
+            "ended_at": row.ended_at,
+            "status": row.status,
+            "ticks": s.ticks,
+            "frames": s.frames,
+            "measured": s.measured,
+            "predicted": s.predicted,
+            "corrected": s.corrected,
+            "rejected": s.rejected,
+            "late": s.late,
+            "mean_compute_us": s.mean_compute_us,
+            "max_compute_us": s.max_compute_us,
+            "duration": s.duration,
+            "stats": json.dumps(s.stats),
+            "location": row.location,
+        }
+        for name, value in values.items():
+            columns[name].append(value)
+    return pa.table(columns, schema=SESSIONS_SCHEMA)
+
+
+def _sql_string(text: str) -> str:
+    return "'" + text.replace("'", "''") + "'"
+
+
+def _frame_files(rows: Sequence[SessionRow], data_root: Path) -> list[str]:
+    files: list[str] = []
+    for row in rows:
+        if not row.location:
+            continue
+        path = (data_root / row.location).resolve()
+        if path.is_file():
+            files.append(str(path))
+        else:
+            _log.warning("session %s: its Parquet file %s is missing", row.session_id, path)
+    return files
+
+
+def _connect(*, sessions: pa.Table, files: list[str]) -> duckdb.DuckDBPyConnection:
+    con = duckdb.connect(
+        ":memory:",
+        config={"autoinstall_known_extensions": False, "autoload_known_extensions": False},
+    )
+    try:
+        # Otherwise a query could read any Python variable in scope by naming it.
+        con.execute("SET python_enable_replacements = false")
+        con.register("sessions", sessions)
+        if files:
+            listing = "[" + ", ".join(_sql_string(f) for f in files) + "]"
+            # Explicit partition types: a model named "123" stays a name, not a number.
+            con.execute(
+                f"CREATE VIEW frames AS SELECT * FROM read_parquet({listing}, hive_partitioning = true, "
+                "union_by_name = true, hive_types = {'model': 'VARCHAR', 'date': 'DATE'})"
+            )
+        else:
+            empty = pa.schema([*FRAME_SCHEMA, *_PARTITIONS]).empty_table()
+            con.register("_empty_frames", empty)
+            con.execute("CREATE VIEW frames AS SELECT * FROM _empty_frames")
+        con.execute(f"SET allowed_paths = [{', '.join(_sql_string(f) for f in files)}]")
+        con.execute("SET enable_external_access = false")
+        con.execute("SET lock_configuration = true")
+    except BaseException:
+        con.close()
+        raise
+    return con
+
+
+def run_query(sql: str, *, data_root: Path, engine: sa.Engine, tenant: str = "") -> pa.Table:
+    """Run one SQL statement (DuckDB's dialect) over the tenant's `frames` and `sessions`.
+
+    Raises InvalidArgument with DuckDB's message when the SQL fails (syntax, unknown column, access
+    to a file outside the dataset). The statement runs in a throw-away in-memory database; one
+    without a result (CREATE VIEW) gives an empty table, a write gives DuckDB's count of rows written.
+    """
+    rows = SessionIndex(engine).all_sessions(tenant=tenant)
+    con = _connect(sessions=sessions_table(rows), files=_frame_files(rows, data_root))
+    try:
+        relation = con.sql(sql)
+        if relation is None:
+            return pa.table({})
+        return relation.to_arrow_table()
+    except duckdb.Error as exc:
+        raise InvalidArgument(f"the query failed: {exc}") from exc
+    finally:
+        con.close()
