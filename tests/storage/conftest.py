@@ -192,6 +192,12 @@ class _TenantFromMetadata(grpc.aio.ServerInterceptor):  # type: ignore[misc]
 
 
 @pytest.fixture()
+def as_tenant() -> Callable[[str], list[tuple[str, str]]]:
+    """The call metadata that makes the test server run an RPC for `tenant`."""
+    return lambda tenant: [(TENANT_METADATA, tenant)]
+
+
+@pytest.fixture()
 def session_server(index: SessionIndex) -> Iterator[str]:
     """A grpc.aio server with the SessionServicer on 127.0.0.1:0, in its own event-loop thread;
     yields its address."""
