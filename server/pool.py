@@ -1,0 +1,192 @@
+"""The one bounded pool of workers that propagates the sigma points of every session.
+
+A server makes one `WorkerPool(workers)` and hands it to every estimator; whatever the number of
+sessions, at most `workers` threads run MuJoCo for them at a time. Two back-ends do the stepping
+(server/propagate.py uses them; benchmarks/ukf_cycle.py measures both)::
+
+    with WorkerPool(2) as pool:                       # Backend.ROLLOUT, the default
+        estimator = make_estimator(model, config, pool=pool)
+
+- `Backend.ROLLOUT`: one persistent `mujoco.rollout.Rollout` whose C++ threads step whole sigma
+  sets without the GIL.
+- `Backend.THREADS`: Python threads, each looping `mj_step` on its own MjData (mj_step releases the
+  GIL while it runs).
+
+Propagations are serialised by one lock: a call gets every worker, and sessions queue behind it.
+That is what keeps the bound, and it is also what `mujoco.rollout.Rollout` needs, since its thread
+pool counts finished jobs per call and must not be entered twice at once.
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from types import TracebackType
+from typing import Final
+
+import mujoco
+import mujoco.rollout
+import numpy as np
+
+from jitdyn.errors import FailedPrecondition, InvalidArgument
+
+__all__ = ["Backend", "DEFAULT_BACKEND", "MAX_WORKERS", "WorkerPool"]
+
+
+class Backend(enum.StrEnum):
+    """How a sigma set is stepped: see the module docstring."""
+
+    ROLLOUT = "ROLLOUT"
+    THREADS = "THREADS"
+
+
+# Measured in benchmarks/ukf_cycle.py (numbers in benchmarks/RESULTS.md, "## UKF cycle").
+DEFAULT_BACKEND: Final = Backend.ROLLOUT
+
+# More workers than this is a configuration mistake on any machine we run on.
+MAX_WORKERS: Final = 256
+
+
+class WorkerPool:
+    """`workers` threads shared by all sessions. A context manager; `close()` is safe twice.
+
+    Estimators never call the pool's methods themselves; server/propagate.py does.
+    """
+
+    def __init__(self, workers: int, *, backend: Backend | str = DEFAULT_BACKEND) -> None:
+        if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_WORKERS:
+            raise InvalidArgument(f"workers must be an integer in [1, {MAX_WORKERS}], got {workers!r}")
+        try:
+            self._backend = Backend(backend)
+        except ValueError:
+            raise InvalidArgument(
+                f"backend must be one of {[b.value for b in Backend]}, got {backend!r}"
+            ) from None
+        self._workers = workers
+        self._lock = threading.Lock()
+        self._closed = False
+        self._rollout: mujoco.rollout.Rollout | None = None
+        self._executor: ThreadPoolExecutor | None = None
+        if self._backend is Backend.ROLLOUT:
+            # nthread=0 runs on the calling thread: one worker needs no hand-off to another thread.
+            self._rollout = mujoco.rollout.Rollout(nthread=0 if workers == 1 else workers)
+        elif workers > 1:
+            # The calling thread steps one chunk itself, so workers - 1 more threads make `workers`.
+            self._executor = ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="jitdyn-sigma")
+
+    @property
+    def workers(self) -> int:
+        """How many threads step MuJoCo at most, for all sessions together."""
+        return self._workers
+
+    @property
+    def backend(self) -> Backend:
+        return self._backend
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """Stop the threads. Safe to call twice; using the pool afterwards raises FailedPrecondition."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            if self._rollout is not None:
+                self._rollout.close()
+                self._rollout = None
+            if self._executor is not None:
+                self._executor.shutdown(wait=True)
+                self._executor = None
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"WorkerPool(workers={self._workers}, backend={self._backend.value}, {state})"
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise FailedPrecondition("the worker pool is closed")
+
+    def rollout(
+        self,
+        models: list[mujoco.MjModel],
+        data: list[mujoco.MjData],
+        *,
+        nstep: int,
+        control_spec: int,
+        initial_state: np.ndarray,
+        control: np.ndarray | None,
+        state: np.ndarray,
+    ) -> None:
+        """`Rollout.rollout` with checks skipped: the caller preallocated every array.
+
+        models: the model nbatch times (the unchecked call wants one per rollout); data: one MjData
+        per worker; initial_state (nbatch, nstate); control (nbatch, nstep, ncontrol) or None;
+        state, the output, (nbatch, nstep, nstate).
+        """
+        with self._lock:
+            self._check_open()
+            if self._rollout is None:
+                raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not ROLLOUT")
+            self._rollout.rollout(
+                models,
+                data,
+                initial_state,
+                control,
+                control_spec=control_spec,
+                skip_checks=True,
+                nstep=nstep,
+                initial_warmstart=None,
+                state=state,
+                sensordata=None,
+                # One chunk per worker: sigma sets are small and even, so finer chunks only add
+                # hand-offs.
+                chunk_size=max(1, -(-initial_state.shape[0] // self._workers)),
+            )
+
+    def serial(self, work: Callable[[], None]) -> None:
+        """Run work() on the calling thread while holding the pool, for the odd serial pass."""
+        with self._lock:
+            self._check_open()
+            work()
+
+    def run_chunks(self, work: Callable[[int, int, int], None], count: int) -> None:
+        """Call work(worker, start, stop) over [0, count) split in up to `workers` even chunks.
+
+        Worker 0's chunk runs on the calling thread, the others on the pool's threads; returns
+        when all are done and re-raises the first exception.
+        """
+        with self._lock:
+            self._check_open()
+            if self._backend is not Backend.THREADS:
+                raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not THREADS")
+            nchunk = max(1, min(self._workers, count))
+            bounds = np.linspace(0, count, nchunk + 1).round().astype(int)
+            futures: list[Future[None]] = []
+            if self._executor is not None:
+                futures = [
+                    self._executor.submit(work, i, int(bounds[i]), int(bounds[i + 1]))
+                    for i in range(1, nchunk)
+                ]
+            try:
+                work(0, int(bounds[0]), int(bounds[1]))
+            finally:
+                # Wait for every chunk even when ours failed: they write into the caller's buffers.
+                for future in futures:
+                    future.exception()
+            for future in futures:
+                future.result()

@@ -1,0 +1,275 @@
+"""Batched propagation of a set of sigma points through MuJoCo, one call per filter step.
+
+filterpy's UnscentedKalmanFilter calls its process model once per sigma point from a Python loop;
+jitdyn's filter instead hands the whole set (nsigma, nx) to a `Propagator`, which steps every point
+`nstep` physics steps on the shared `WorkerPool`, by `mujoco.rollout` or by threads looping
+`mj_step` (server/pool.py). Both give the same numbers to the last bit::
+
+    model = process_model(model, scenario="PASSIVE")
+    propagate = Propagator(model, pool=pool, nsigma=5, nstep=5, inputs=Inputs.NONE)
+    out = propagate(qpos, qvel, act=np.zeros(model.na))      # out.qpos (5, nq), out.qvel (5, nv)
+"""
+
+from __future__ import annotations
+
+import copy
+import enum
+from dataclasses import dataclass
+from typing import Final
+
+import mujoco
+import mujoco.batch
+import numpy as np
+
+from jitdyn.errors import InvalidArgument
+from server.pool import Backend, WorkerPool
+
+__all__ = ["Inputs", "Propagated", "Propagator", "process_model"]
+
+_FULL: Final = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+_CTRL: Final = int(mujoco.mjtState.mjSTATE_CTRL)
+_QFRC: Final = int(mujoco.mjtState.mjSTATE_QFRC_APPLIED)
+_INTEGRATION: Final = int(mujoco.mjtState.mjSTATE_INTEGRATION)
+
+
+class Inputs(enum.Enum):
+    """What acts on the sigma points besides the model's own forces, held over the propagation."""
+
+    NONE = 0  # PASSIVE: ctrl and qfrc_applied are zero
+    CTRL = _CTRL  # CONTROLLED: the tick's control
+    QFRC = _QFRC  # EXTERNAL: the restored generalized force, as qfrc_applied
+
+
+def process_model(model: mujoco.MjModel, *, scenario: str) -> mujoco.MjModel:
+    """A private copy of `model` set up as the filter's process model.
+
+    - Warm start off: the constraint solver then starts from the unconstrained acceleration every
+      step, so a step is a pure function of (qpos, qvel, act, ctrl, qfrc_applied). Back-ends, the
+      reference loop and a timewarp replay agree exactly, and the `qacc` of a state can be
+      recomputed (the rollout back-end does so). Without contacts this changes nothing.
+    - Auto-reset off: a sigma point that blows up stays non-finite, where MuJoCo would silently put
+      it back at qpos0; the filter's divergence guard sees it.
+    - Sensors off: the filter never reads them.
+    - EXTERNAL: actuation off. The restored force is everything mj_inverse says acted, actuators
+      included; muscles' passive and active forces must not act a second time on top of it.
+    """
+    private = copy.deepcopy(model)
+    flags = (
+        mujoco.mjtDisableBit.mjDSBL_WARMSTART
+        | mujoco.mjtDisableBit.mjDSBL_AUTORESET
+        | mujoco.mjtDisableBit.mjDSBL_SENSOR
+    )
+    if scenario == "EXTERNAL":
+        flags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
+    private.opt.disableflags |= int(flags)
+    return private
+
+
+@dataclass(frozen=True)
+class Propagated:
+    """The sigma points after propagation; views into the propagator's buffers, valid until its
+    next call.
+
+    qpos (nsigma, nq), qvel (nsigma, nv), act (nsigma, na), qacc (nsigma, nv): the acceleration
+    MuJoCo computed in the last physics step (None unless the propagator was asked for it).
+    """
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    act: np.ndarray
+    qacc: np.ndarray | None
+
+
+def _state_slices(model: mujoco.MjModel, spec: int = _FULL) -> dict[str, slice]:
+    """Where each component (qpos, qvel, act, ...) sits in a state vector of `spec` (components
+    are laid out in bit order)."""
+    slices: dict[str, slice] = {}
+    start = 0
+    for bit in range(int(mujoco.mjtState.mjNSTATE)):
+        component = 1 << bit
+        if not component & spec:
+            continue
+        size = mujoco.mj_stateSize(model, component)
+        slices[mujoco.mjtState(component).name.removeprefix("mjSTATE_").lower()] = slice(start, start + size)
+        start += size
+    return slices
+
+
+def _full_columns(model: mujoco.MjModel) -> np.ndarray:
+    """The columns of an mjSTATE_INTEGRATION row that make up its mjSTATE_FULLPHYSICS vector."""
+    integration = _state_slices(model, _INTEGRATION)
+    return np.concatenate(
+        [np.arange(integration[name].start, integration[name].stop) for name in _state_slices(model)]
+    ).astype(np.intp)
+
+
+class _Buffers:
+    """Preallocated arrays for one step count."""
+
+    def __init__(self, *, nsigma: int, nstep: int, nstate: int, ncontrol: int, nv: int, rollout: bool) -> None:
+        self.nstep = nstep
+        if rollout:
+            self.trajectory = np.zeros((nsigma, nstep, nstate))
+            self.control = np.zeros((nsigma, nstep, ncontrol)) if ncontrol else None
+            self.final = self.trajectory[:, -1, :]
+        else:
+            self.final = np.zeros((nsigma, nstate))
+        self.qacc = np.zeros((nsigma, nv))
+
+
+class Propagator:
+    """Steps `nsigma` states `nstep` physics steps in one batched call on the shared pool.
+
+    One per estimator: it owns one MjData per worker of the pool and every buffer, allocated here
+    and reused. Call it from one thread at a time (an estimator is driven by one session).
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        *,
+        pool: WorkerPool,
+        nsigma: int,
+        nstep: int,
+        inputs: Inputs,
+        want_qacc: bool = False,
+    ) -> None:
+        if nsigma < 1:
+            raise InvalidArgument(f"nsigma must be >= 1, got {nsigma}")
+        if nstep < 1:
+            raise InvalidArgument(f"nstep must be >= 1, got {nstep}")
+        self._model = model
+        self._pool = pool
+        self._nsigma = nsigma
+        self._nstep = nstep
+        self._inputs = inputs
+        self._want_qacc = want_qacc
+        self._rollout = pool.backend is Backend.ROLLOUT
+        self._data = [mujoco.MjData(model) for _ in range(pool.workers)]
+        self._slices = _state_slices(model)
+        self._nstate = mujoco.mj_stateSize(model, _FULL)
+        self._ncontrol = mujoco.mj_stateSize(model, inputs.value) if inputs is not Inputs.NONE else 0
+        # time = 0, and the history and plugin state of a fresh MjData, for every sigma point.
+        template = np.zeros(self._nstate)
+        mujoco.mj_getState(model, self._data[0], template, _FULL)
+        self._initial = np.tile(template, (nsigma, 1))
+        self._models = [model] * nsigma
+        self._ctrl = np.zeros(model.nu)
+        self._qfrc = np.zeros(model.nv)
+        self._buffers = {nstep: self._new_buffers(nstep)}
+        # ROLLOUT and CONTROLLED: a batch of the model on the calling thread (nthread=1 starts no
+        # thread) recomputes the last step's qacc in one C call; see _run_rollout.
+        self._batch: mujoco.batch.Batch | None = None
+        if self._rollout and want_qacc:
+            self._batch = mujoco.batch.Batch(model, nsim=nsigma, nthread=1)
+            self._batch_full = _full_columns(model)
+            self._batch_ctrl = self._batch.bind("ctrl")
+            self._batch_qfrc = self._batch.bind("qfrc_applied")
+            self._batch_qacc = self._batch.bind("qacc")
+
+    @property
+    def nsigma(self) -> int:
+        return self._nsigma
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self._model
+
+    def _new_buffers(self, nstep: int) -> _Buffers:
+        return _Buffers(
+            nsigma=self._nsigma,
+            nstep=nstep,
+            nstate=self._nstate,
+            ncontrol=self._ncontrol,
+            nv=self._model.nv,
+            rollout=self._rollout,
+        )
+
+    def __call__(
+        self,
+        qpos: np.ndarray,
+        qvel: np.ndarray,
+        *,
+        act: np.ndarray,
+        ctrl: np.ndarray | None = None,
+        qfrc: np.ndarray | None = None,
+        nstep: int | None = None,
+    ) -> Propagated:
+        """Step every sigma point.
+
+        qpos (nsigma, nq), qvel (nsigma, nv); act (na,), the same for every point; ctrl (nu,) for
+        Inputs.CTRL, qfrc (nv,) for Inputs.QFRC, held over all steps; nstep defaults to the
+        propagator's own (buffers for another count are made on first use and kept).
+        """
+        m = self._model
+        nstep = self._nstep if nstep is None else nstep
+        if nstep < 1:
+            raise InvalidArgument(f"nstep must be >= 1, got {nstep}")
+        buffers = self._buffers.get(nstep)
+        if buffers is None:
+            # An extrapolation horizon; keep the tick's buffers and at most one other count.
+            self._buffers = {self._nstep: self._buffers[self._nstep], nstep: self._new_buffers(nstep)}
+            buffers = self._buffers[nstep]
+        s = self._slices
+        self._initial[:, s["qpos"]] = qpos
+        self._initial[:, s["qvel"]] = qvel
+        self._initial[:, s["act"]] = act
+        self._ctrl[:] = ctrl if self._inputs is Inputs.CTRL and ctrl is not None else 0.0
+        self._qfrc[:] = qfrc if self._inputs is Inputs.QFRC and qfrc is not None else 0.0
+        if self._rollout:
+            self._run_rollout(buffers)
+        else:
+            self._pool.run_chunks(lambda worker, lo, hi: self._run_chunk(buffers, worker, lo, hi), self._nsigma)
+        final = buffers.final
+        return Propagated(
+            qpos=final[:, s["qpos"]],
+            qvel=final[:, s["qvel"]],
+            act=final[:, s["act"]],
+            qacc=buffers.qacc if self._want_qacc else None,
+        )
+
+    def _run_chunk(self, buffers: _Buffers, worker: int, lo: int, hi: int) -> None:
+        """THREADS back-end: one worker's share, on its own MjData (mj_step releases the GIL)."""
+        m, d = self._model, self._data[worker]
+        # Inputs are not changed by mj_step: set them once per chunk (rollout sets them every step,
+        # to the same values).
+        d.ctrl[:] = self._ctrl
+        d.qfrc_applied[:] = self._qfrc
+        initial, final, qacc, nstep = self._initial, buffers.final, buffers.qacc, buffers.nstep
+        for i in range(lo, hi):
+            mujoco.mj_setState(m, d, initial[i], _FULL)
+            mujoco.mj_step(m, d, nstep)
+            mujoco.mj_getState(m, d, final[i], _FULL)
+            if self._want_qacc:
+                qacc[i] = d.qacc
+
+    def _run_rollout(self, buffers: _Buffers) -> None:
+        """ROLLOUT back-end: the whole set in one call into MuJoCo's C++ thread pool."""
+        control = buffers.control
+        if control is not None:
+            control[...] = self._ctrl if self._inputs is Inputs.CTRL else self._qfrc
+        self._pool.rollout(
+            self._models,
+            self._data,
+            nstep=buffers.nstep,
+            control_spec=self._inputs.value,
+            initial_state=self._initial,
+            control=control,
+            state=buffers.trajectory,
+        )
+        if self._want_qacc:
+            # A rollout returns states, not accelerations. With warm start off (process_model) the
+            # last step's qacc is a function of the state before it, so mj_forward there
+            # reproduces it exactly: 1/nstep of the stepping work again, on one thread.
+            before = buffers.trajectory[:, -2, :] if buffers.nstep > 1 else self._initial
+            self._pool.serial(lambda: self._recompute_qacc(before, buffers.qacc))
+
+    def _recompute_qacc(self, before: np.ndarray, qacc: np.ndarray) -> None:
+        batch = self._batch
+        if batch is None:
+            raise RuntimeError("unreachable: the batch exists whenever qacc is wanted from a rollout")
+        batch.state[:, self._batch_full] = before
+        self._batch_ctrl[...] = self._ctrl
+        self._batch_qfrc[...] = self._qfrc
+        batch.forward()
+        qacc[...] = self._batch_qacc
