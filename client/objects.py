@@ -51,8 +51,10 @@ class TrueState:
     """The true state of an object at the tick's time `t`.
 
     `ctrl` is the control applied over the interval that ended at `t` (zeros at t = 0): what a
-    frame of tick t carries. `qacc` is the acceleration at (qpos, qvel) under that control
-    (mj_forward at the state), i.e. just before the next control takes over.
+    frame of tick t carries. `qacc` is MuJoCo's `data.qacc` after the tick's last physics step,
+    the convention of the server's CONTROLLED state (and of any MuJoCo user): with RK4 it is the
+    acceleration at the new state, with Euler and implicit integrators the one at the start of the
+    last step (one timestep earlier). At t = 0 it is mj_forward's at the initial state.
     """
 
     t: float
@@ -174,11 +176,7 @@ class ResearchObject(ABC):
             u = np.zeros(self.nu)
         u = self._clip(u)
         self._data.ctrl[:] = u
-        for _ in range(self.steps_per_tick):
-            mujoco.mj_step(self.model, self._data)
-        # Derived quantities at the new state (qacc) without advancing it; mj_forward leaves
-        # qacc_warmstart alone, so the trajectory is the same as without this call.
-        mujoco.mj_forward(self.model, self._data)
+        mujoco.mj_step(self.model, self._data, self.steps_per_tick)
         self._tick += 1
         self._last_ctrl = u
         return self._state()
