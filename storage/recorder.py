@@ -91,6 +91,7 @@ class SessionRecorder:
         self._first_pending_at = 0.0
         self._appended = 0
         self._committed = 0
+        self._commits = 0
         self._flush_now = False
         self._stopping = False
         self._failure: JitdynError | None = None
@@ -124,6 +125,11 @@ class SessionRecorder:
     def durable_seq(self) -> int | None:
         """The highest result seq durable with everything appended before it; None before any."""
         return self._durable_seq
+
+    @property
+    def commits(self) -> int:
+        """Group commits (record batches written and fsynced) so far."""
+        return self._commits
 
     @property
     def log_bytes(self) -> int:
@@ -200,6 +206,7 @@ class SessionRecorder:
             seqs = [r.seq for r in batch if r.kind == "result"]
             with self._cond:
                 self._committed += len(batch)
+                self._commits += 1
                 if seqs:
                     top = max(seqs)
                     if self._durable_seq is None or top > self._durable_seq:

@@ -1,0 +1,243 @@
+"""Storage benchmark: sustained frames/s into a session's crash-safe log, and the compaction of a
+long session to Parquet, with bytes per frame in each.
+
+    python -m benchmarks.storage                 # 200k frames for throughput, 1e6 for compaction
+    python -m benchmarks.storage --frames 500000 --compact-frames 1000000
+
+Frames are pendulum_3-sized results (nq = nv = nu = 3) as the session runtime records them: the
+frame's qpos and qvel, the estimate, qacc, qfrc_inverse, the covariance diagonal and the filter
+state (6 values each), NIS and timings, on a smooth trajectory so that compression sees realistic
+data. "append" is what the event loop pays per frame; "durable" counts until the last frame is
+fsynced. Target (issue 5): >= 100k frames/s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import os
+import statistics
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+# Run as a file, this folder would come first on sys.path and this module would shadow the
+# storage package it measures.
+if not __package__:
+    _here = Path(__file__).resolve().parent
+    sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _here]
+    sys.path.insert(0, str(_here.parent))
+
+import numpy as np
+
+from storage.db import open_index
+from storage.index import SessionIndex
+from storage.recorder import SessionRecorder
+from storage.records import SessionHeader, TickRecord
+
+DT = 0.001
+
+
+def header() -> SessionHeader:
+    return SessionHeader(
+        session_id=str(uuid.uuid4()),
+        tenant="",
+        model_id="sha256:" + "00" * 32,
+        model_name="pendulum_3",
+        model_version=1,
+        joint_names=("hinge_1", "hinge_2", "hinge_3"),
+        joint_types=("hinge", "hinge", "hinge"),
+        dof_names=("hinge_1", "hinge_2", "hinge_3"),
+        nq=3,
+        nv=3,
+        nu=3,
+        nsensordata=0,
+        timestep=0.001,
+        dt=DT,
+        scenario="PASSIVE",
+        clock="LOCKSTEP",
+        estimator={"estimator": "UKF", "preset": "JITDYN", "sigma_points": "MERWE"},
+        subject_pseudonym="",
+        subject_attributes={},
+        started_at=dt.datetime.now(dt.UTC),
+    )
+
+
+class Trajectory:
+    """A smooth three-link motion and its derived channels, one row per frame."""
+
+    def __init__(self, n: int, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        t = np.arange(n)[:, None] * DT
+        freq = np.array([0.7, 1.1, 1.6])
+        phase = rng.random(3) * 2 * np.pi
+        self.t = t[:, 0]
+        self.qpos = 0.8 * np.sin(2 * np.pi * freq * t + phase)
+        self.qvel = 0.8 * 2 * np.pi * freq * np.cos(2 * np.pi * freq * t + phase)
+        self.qacc = -((2 * np.pi * freq) ** 2) * self.qpos
+        self.qfrc = 9.81 * np.sin(self.qpos) + 0.3 * self.qacc
+        self.cov = 1e-4 + 1e-5 * rng.random((n, 6))
+        self.state = np.hstack([self.qpos, self.qvel]) + 1e-4 * rng.standard_normal((n, 6))
+        self.nis = rng.chisquare(6, n)
+        self.compute = rng.integers(80, 400, n)
+
+    def record(self, i: int) -> TickRecord:
+        return TickRecord(
+            kind="result",
+            seq=i,
+            source="MEASURED",
+            t=float(self.t[i]),
+            server_time=float(self.t[i]) + 2e-4,
+            frame_received=True,
+            frame_t=float(self.t[i]),
+            frame_qpos=self.qpos[i],
+            frame_qvel=self.qvel[i],
+            frame_delay=0.0,
+            qpos=self.qpos[i],
+            qvel=self.qvel[i],
+            qacc=self.qacc[i],
+            qfrc_inverse=self.qfrc[i],
+            covariance_diagonal=self.cov[i],
+            filter_state=self.state[i],
+            nis=float(self.nis[i]),
+            compute_us=int(self.compute[i]),
+            receive_to_send_us=int(self.compute[i]) + 30,
+        )
+
+
+def throughput(root: Path, index: SessionIndex, frames: int) -> dict[str, float]:
+    trajectory = Trajectory(frames)
+    started = time.perf_counter()
+    records = [trajectory.record(i) for i in range(frames)]
+    build_us = (time.perf_counter() - started) / frames * 1e6
+    samples: list[float] = []
+    recorder = SessionRecorder(data_root=root, index=index, header=header())
+    started = time.perf_counter()
+    for i, record in enumerate(records):
+        if i % 97 == 0:
+            t0 = time.perf_counter_ns()
+            recorder.append(record)
+            samples.append((time.perf_counter_ns() - t0) / 1e3)
+        else:
+            recorder.append(record)
+    appended = time.perf_counter() - started
+    recorder.flush()
+    durable = time.perf_counter() - started
+    result = {
+        "build_us": build_us,
+        "append_rate": frames / appended,
+        "durable_rate": frames / durable,
+        "append_p50_us": statistics.median(samples),
+        "append_p99_us": float(np.percentile(samples, 99)),
+        "commits": recorder.commits,
+        "log_bytes_per_frame": recorder.log_bytes / frames,
+    }
+    recorder.close()
+    return result
+
+
+def paced(root: Path, index: SessionIndex, rate: float, seconds: float) -> dict[str, float]:
+    """Append at `rate` frames/s in 1 ms bursts, idling between them as an event loop does, and
+    sample how far durability lags behind (ms of frames appended but not yet fsynced)."""
+    frames = int(rate * seconds)
+    trajectory = Trajectory(frames, seed=2)
+    records = [trajectory.record(i) for i in range(frames)]
+    burst = max(1, int(rate / 1000))
+    lags: list[float] = []
+    recorder = SessionRecorder(data_root=root, index=index, header=header())
+    started = time.perf_counter()
+    for start in range(0, frames, burst):
+        for record in records[start : start + burst]:
+            recorder.append(record)
+        durable = recorder.durable_seq
+        lags.append((start + burst - 1 - (-1 if durable is None else durable)) / rate * 1e3)
+        pause = started + (start + burst) / rate - time.perf_counter()
+        if pause > 0:
+            time.sleep(pause)
+    recorder.flush()
+    elapsed = time.perf_counter() - started
+    commits = recorder.commits
+    recorder.close()
+    return {
+        "rate": frames / elapsed,
+        "lag_p50_ms": statistics.median(lags),
+        "lag_p99_ms": float(np.percentile(lags, 99)),
+        "lag_max_ms": max(lags),
+        "commits": commits,
+    }
+
+
+def compaction(root: Path, index: SessionIndex, frames: int) -> dict[str, float]:
+    trajectory = Trajectory(frames, seed=1)
+    recorder = SessionRecorder(data_root=root, index=index, header=header(), commit_every=4096)
+    started = time.perf_counter()
+    for i in range(frames):
+        recorder.append(trajectory.record(i))
+    recorder.flush()
+    built_and_logged = time.perf_counter() - started
+    log_bytes = recorder.log_bytes
+    started = time.perf_counter()
+    location = recorder.close()
+    close_seconds = time.perf_counter() - started
+    return {
+        "log_rate": frames / built_and_logged,
+        "close_s": close_seconds,
+        "log_bytes_per_frame": log_bytes / frames,
+        "parquet_bytes_per_frame": os.path.getsize(root / location) / frames,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--frames", type=int, default=200_000, help="frames for the throughput run (200000)")
+    parser.add_argument("--compact-frames", type=int, default=1_000_000, help="frames to compact (1000000)")
+    parser.add_argument("--rate", type=float, default=100_000, help="paced run: frames/s (100000)")
+    parser.add_argument("--seconds", type=float, default=3.0, help="paced run: length in seconds (3)")
+    parser.add_argument("--dir", type=Path, default=None, help="data root (default: a temporary folder)")
+    args = parser.parse_args(argv)
+
+    with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
+        root = Path(tmp)
+        engine = open_index(f"sqlite:///{root / 'index.sqlite'}")
+        index = SessionIndex(engine)
+        t = throughput(root, index, args.frames)
+        p = paced(root, index, args.rate, args.seconds)
+        c = compaction(root, index, args.compact_frames)
+        engine.dispose()
+
+    print(
+        f"storage benchmark: pendulum_3 frames (nq = nv = 3), {os.cpu_count()} CPUs, data in {args.dir or 'tmp'}"
+    )
+    print(f"{'measure':<52}{'value':>20}")
+    rows = [
+        (f"append, {args.frames} prebuilt frames (frames/s)", f"{t['append_rate']:,.0f}"),
+        ("durable: appended and fsynced (frames/s)", f"{t['durable_rate']:,.0f}"),
+        ("append() latency p50 / p99 (us)", f"{t['append_p50_us']:.2f} / {t['append_p99_us']:.2f}"),
+        ("group commits (fsyncs)", f"{t['commits']:,}"),
+        (f"paced at {args.rate:,.0f} frames/s for {args.seconds:g} s: achieved", f"{p['rate']:,.0f}"),
+        (
+            "  durability lag p50 / p99 / max (ms)",
+            f"{p['lag_p50_ms']:.1f} / {p['lag_p99_ms']:.1f} / {p['lag_max_ms']:.1f}",
+        ),
+        ("  group commits (fsyncs)", f"{p['commits']:,}"),
+        ("building a TickRecord (us, the runtime's cost)", f"{t['build_us']:.2f}"),
+        ("log bytes per frame", f"{t['log_bytes_per_frame']:.1f}"),
+        (f"build + log, {args.compact_frames} frames (frames/s)", f"{c['log_rate']:,.0f}"),
+        (f"close: compact {args.compact_frames} frames to Parquet (s)", f"{c['close_s']:.2f}"),
+        ("log bytes per frame (1e6 run)", f"{c['log_bytes_per_frame']:.1f}"),
+        ("Parquet bytes per frame", f"{c['parquet_bytes_per_frame']:.1f}"),
+    ]
+    for name, value in rows:
+        print(f"{name:<52}{value:>20}")
+    target = 100_000
+    verdict = "meets" if t["durable_rate"] >= target else "MISSES"
+    print(f"target >= {target:,} durable frames/s: {verdict} ({t['durable_rate'] / target:.2f}x)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
