@@ -61,6 +61,9 @@ def _delete_log(path: Path) -> None:
 class SessionRecorder:
     """Records one session: an append-only log while it runs, Parquet and an index row after.
 
+    Creating one creates and fsyncs the log and inserts the index row, and `close` compacts: both
+    block on the disk and the database, so call them off the event loop (asyncio.to_thread).
+
     `durable_seq` is the highest tick seq of a result such that it and every record appended before
     it are on disk. Rejected frames are on disk in the same order but do not advance it: their seq
     is whatever the client sent, and says nothing about the ticks before it.
@@ -227,6 +230,8 @@ class SessionRecorder:
         `status` with `summary` (None: computed from the rows) in one index transaction, delete the
         log. Returns the Parquet location relative to the data root. Blocks for the compaction;
         call it off the event loop. A second call returns the same location and does nothing."""
+        if status not in ("COMPLETE", "RECOVERED", "FAILED"):
+            raise InvalidArgument(f"status must be one of COMPLETE, RECOVERED, FAILED, got {status!r}")
         with self._cond:
             if self._state is _State.CLOSED:
                 if self._close_error is not None:

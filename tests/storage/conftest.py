@@ -210,7 +210,9 @@ def session_server(index: SessionIndex) -> Iterator[str]:
 
     async def start() -> None:
         server = grpc.aio.server(interceptors=[_TenantFromMetadata()])
-        session_pb2_grpc.add_SessionServiceServicer_to_server(SessionServicer(index), server)
+        session_pb2_grpc.add_SessionServiceServicer_to_server(  # type: ignore[no-untyped-call]
+            SessionServicer(index), server
+        )
         state["port"] = server.add_insecure_port("127.0.0.1:0")
         await server.start()
         state["server"] = server

@@ -218,8 +218,13 @@ def test_export_errors(
         )
     with pytest.raises(InvalidArgument, match="format must be one of csv, sto, got 'mot'"):
         export_session(
-            session.session_id, data_root=data_root, engine=engine, tenant="lab", fmt="mot", out=tmp_path
-        )  # type: ignore[arg-type]
+            session.session_id,
+            data_root=data_root,
+            engine=engine,
+            tenant="lab",
+            fmt="mot",  # type: ignore[arg-type]
+            out=tmp_path,
+        )
     with pytest.raises(InvalidArgument, match="the folder of the export target"):
         export_session(
             session.session_id,

@@ -97,7 +97,7 @@ def test_frames_join_sessions(
         data_root=data_root,
         engine=engine,
     )
-    assert qfrc.column("qfrc_inverse").to_pylist() == [records3[0].qfrc_inverse.tolist()]  # type: ignore[union-attr]
+    assert qfrc.column("qfrc_inverse").to_pylist() == [records3[0].qfrc_inverse.tolist()]
 
     # The other tenant sees only its own session, in both tables.
     other = run_query(

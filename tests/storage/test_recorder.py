@@ -101,9 +101,11 @@ def test_parquet_metadata_readable_by_pyarrow_and_duckdb(
 
     from_pyarrow = json.loads(pq.read_schema(path).metadata[b"jitdyn"])
     con = duckdb.connect(config={"autoinstall_known_extensions": False, "autoload_known_extensions": False})
-    (raw,) = con.execute(
+    found = con.execute(
         "SELECT value FROM parquet_kv_metadata(?) WHERE key = 'jitdyn'", [str(path)]
     ).fetchone()
+    assert found is not None
+    (raw,) = found
     con.close()
     from_duckdb = json.loads(raw)
     assert from_duckdb == from_pyarrow

@@ -22,7 +22,7 @@ Metadata = Callable[[str], list[tuple[str, str]]]
 @pytest.fixture()
 def stub(session_server: str) -> Iterator[session_pb2_grpc.SessionServiceStub]:
     with grpc.insecure_channel(session_server) as channel:
-        yield session_pb2_grpc.SessionServiceStub(channel)
+        yield session_pb2_grpc.SessionServiceStub(channel)  # type: ignore[no-untyped-call]
 
 
 def stamp(value: dt.datetime) -> timestamp_pb2.Timestamp:
