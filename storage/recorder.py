@@ -116,7 +116,7 @@ class SessionRecorder:
             _delete_log(self._log_path)
             raise
         self._thread = threading.Thread(
-            target=self._run, name=f"recorder-{header.session_id[:8]}", daemon=True
+            target=self._run_guarded, name=f"recorder-{header.session_id[:8]}", daemon=True
         )
         self._thread.start()
 
@@ -199,25 +199,45 @@ class SessionRecorder:
     def _commit(self, batch: list[TickRecord]) -> None:
         if self._failure is not None:
             return
+        session = self._header.session_id
+        failure: JitdynError
         try:
-            self._writer.write(records_to_batch(batch, lengths=self._lengths))
+            arrow = records_to_batch(batch, lengths=self._lengths)
         except InvalidArgument as exc:
-            failure: JitdynError = InvalidArgument(f"session {self._header.session_id}: {exc}")
-        except (OSError, pa.ArrowException) as exc:
-            failure = Unavailable(f"session {self._header.session_id}: its log cannot be written: {exc}")
+            failure = InvalidArgument(f"session {session}: {exc}")
+        except (TypeError, ValueError, pa.ArrowException) as exc:
+            # A field of the wrong type (a string for a seq, a ragged array): the runtime's bug.
+            failure = InvalidArgument(f"session {session}: a record cannot be stored: {exc}")
         else:
-            seqs = [r.seq for r in batch if r.kind == "result"]
-            with self._cond:
-                self._committed += len(batch)
-                self._commits += 1
-                if seqs:
-                    top = max(seqs)
-                    if self._durable_seq is None or top > self._durable_seq:
-                        self._durable_seq = top
-            return
+            try:
+                self._writer.write(arrow)
+            except (OSError, pa.ArrowException) as exc:
+                failure = Unavailable(f"session {session}: its log cannot be written: {exc}")
+            else:
+                seqs = [r.seq for r in batch if r.kind == "result"]
+                with self._cond:
+                    self._committed += len(batch)
+                    self._commits += 1
+                    if seqs:
+                        top = max(seqs)
+                        if self._durable_seq is None or top > self._durable_seq:
+                            self._durable_seq = top
+                return
         _log.error("%s", failure)
         with self._cond:
             self._failure = failure
+
+    def _run_guarded(self) -> None:
+        try:
+            self._run()
+        except Exception as exc:  # noqa: BLE001 - any bug here must reach the caller, not hang it
+            # Never leave flush() waiting on a thread that died.
+            _log.exception("the commit thread of session %s died", self._header.session_id)
+            with self._cond:
+                self._failure = Unavailable(
+                    f"session {self._header.session_id}: its commit thread died: {exc!r}"
+                )
+                self._cond.notify_all()
 
     def _stop_thread(self) -> None:
         with self._cond:

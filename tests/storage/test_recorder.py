@@ -249,6 +249,19 @@ def test_wrong_array_length_fails_the_recorder_loudly(
     assert (data_root / "logs" / f"{header.session_id}.arrows").exists()
 
 
+def test_record_of_the_wrong_type_fails_the_recorder(
+    data_root: Path, index: SessionIndex, make_header: Callable[..., SessionHeader]
+) -> None:
+    header = make_header()
+    recorder = SessionRecorder(data_root=data_root, index=index, header=header)
+    recorder.append(TickRecord(kind="result", seq="seven", source="MEASURED"))  # type: ignore[arg-type]
+    with pytest.raises(InvalidArgument) as error:
+        recorder.flush()
+    assert str(error.value).startswith(f"session {header.session_id}: a record cannot be stored: ")
+    with pytest.raises(InvalidArgument):
+        recorder.close()
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
