@@ -1,0 +1,43 @@
+"""jitdyn's model registry: validation, content addressing, storage of MJCF and assets, built-ins.
+
+from registry import ModelRegistry, ModelMetadata
+with ModelRegistry(engine=engine, data_root=root) as registry:
+    info, created = registry.register(name="arm", mjcf=xml, assets={"arm.stl": data})
+"""
+
+from registry.builtins import BUILTIN_NAMES, BuiltinModel, builtin_model_path, builtin_models
+from registry.compile import ModelCompiler, compile_model
+from registry.content_id import content_id
+from registry.info import (
+    ESTIMATOR_SETTINGS,
+    SCENARIOS,
+    ActuatorInfo,
+    JointInfo,
+    ModelInfo,
+    ModelMetadata,
+    describe_model,
+)
+from registry.limits import DEFAULT_LIMITS, RegistryLimits
+from registry.registry import DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, ModelRegistry
+
+__all__ = [
+    "BUILTIN_NAMES",
+    "DEFAULT_LIMITS",
+    "DEFAULT_PAGE_SIZE",
+    "ESTIMATOR_SETTINGS",
+    "MAX_PAGE_SIZE",
+    "SCENARIOS",
+    "ActuatorInfo",
+    "BuiltinModel",
+    "JointInfo",
+    "ModelCompiler",
+    "ModelInfo",
+    "ModelMetadata",
+    "ModelRegistry",
+    "RegistryLimits",
+    "builtin_model_path",
+    "builtin_models",
+    "compile_model",
+    "content_id",
+    "describe_model",
+]
