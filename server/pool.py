@@ -24,7 +24,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from types import TracebackType
-from typing import Final
+from typing import Final, Self
 
 import mujoco
 import mujoco.rollout
@@ -32,7 +32,7 @@ import numpy as np
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 
-__all__ = ["Backend", "DEFAULT_BACKEND", "MAX_WORKERS", "WorkerPool"]
+__all__ = ["DEFAULT_BACKEND", "MAX_WORKERS", "Backend", "WorkerPool"]
 
 
 class Backend(enum.StrEnum):
@@ -102,7 +102,7 @@ class WorkerPool:
                 self._executor.shutdown(wait=True)
                 self._executor = None
 
-    def __enter__(self) -> WorkerPool:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(

@@ -201,7 +201,6 @@ class Propagator:
         Inputs.CTRL, qfrc (nv,) for Inputs.QFRC, held over all steps; nstep defaults to the
         propagator's own (buffers for another count are made on first use and kept).
         """
-        m = self._model
         nstep = self._nstep if nstep is None else nstep
         if nstep < 1:
             raise InvalidArgument(f"nstep must be >= 1, got {nstep}")
