@@ -1,0 +1,128 @@
+"""Conversions between the registry's types and the jitdyn.v1 model messages."""
+
+from __future__ import annotations
+
+import datetime
+
+import pytest
+
+from jitdyn.errors import InvalidArgument
+from jitdyn.v1 import common_pb2, model_registry_pb2
+from registry import ESTIMATOR_SETTINGS, SCENARIOS, ActuatorInfo, JointInfo, ModelInfo
+from server.model_messages import metadata_from_message, model_message
+
+
+def scenario_defaults(scenario: int, **settings: object) -> model_registry_pb2.ScenarioDefaults:
+    return model_registry_pb2.ScenarioDefaults(
+        scenario=scenario, estimator=common_pb2.EstimatorSettings(**settings)
+    )
+
+
+def test_metadata_defaults_become_dicts_of_enum_names() -> None:
+    message = model_registry_pb2.ModelMetadata(
+        description="d",
+        tags=["a", "b"],
+        defaults=[
+            scenario_defaults(
+                common_pb2.SCENARIO_CONTROLLED,
+                estimator=common_pb2.ESTIMATOR_UKF,
+                sigma_points=common_pb2.SIGMA_POINTS_SIMPLEX,
+                alpha=0.001,
+                kappa=0.0,
+            ),
+            scenario_defaults(common_pb2.SCENARIO_PASSIVE),
+        ],
+    )
+    metadata = metadata_from_message(message)
+    assert metadata.description == "d" and metadata.tags == ("a", "b")
+    # kappa = 0 is set (field presence), unset fields are absent.
+    assert metadata.defaults == {
+        "CONTROLLED": {"estimator": "UKF", "sigma_points": "SIMPLEX", "alpha": 0.001, "kappa": 0.0},
+        "PASSIVE": {},
+    }
+
+
+@pytest.mark.parametrize(
+    ("defaults", "message"),
+    [
+        (
+            [scenario_defaults(0)],
+            "metadata.defaults[0].scenario must be set (PASSIVE, CONTROLLED or EXTERNAL)",
+        ),
+        ([scenario_defaults(9)], "metadata.defaults[0].scenario has no value 9"),
+        (
+            [scenario_defaults(1), scenario_defaults(2), scenario_defaults(1)],
+            "metadata.defaults has more than one entry for scenario PASSIVE",
+        ),
+        ([scenario_defaults(1, preset=7)], "metadata.defaults[0].estimator.preset has no value 7"),
+        ([scenario_defaults(1, p0=-1.0)], "metadata.defaults['PASSIVE']['p0'] must be positive, got -1.0"),
+    ],
+)
+def test_bad_metadata_messages_are_invalid_argument(
+    defaults: list[model_registry_pb2.ScenarioDefaults], message: str
+) -> None:
+    with pytest.raises(InvalidArgument) as error:
+        metadata_from_message(model_registry_pb2.ModelMetadata(defaults=defaults))
+    assert str(error.value) == message
+
+
+def test_model_message_carries_every_field() -> None:
+    info = ModelInfo(
+        id="sha256:" + "ab" * 32,
+        name="arm",
+        version=3,
+        tenant="t",
+        builtin=True,
+        nq=7,
+        nv=6,
+        nu=1,
+        na=1,
+        nsensor=3,
+        nbody=2,
+        timestep=0.004,
+        joints=(
+            JointInfo(
+                name="root", type="free", limited=False, lower=0.0, upper=0.0, qpos_address=0, dof_address=0
+            ),
+        ),
+        actuators=(ActuatorInfo(name="m", target="tendon0", ctrl_limited=True, lower=0.0, upper=1.0),),
+        description="d",
+        tags=("x",),
+        defaults={"EXTERNAL": {"preset": "THESIS", "q_var": 50.0}},
+        created_at=datetime.datetime(2026, 1, 2, 3, 4, 5, 600000, tzinfo=datetime.UTC),
+    )
+    message = model_message(info)
+    assert (message.id, message.name, message.version, message.builtin, message.timestep) == (
+        info.id,
+        "arm",
+        3,
+        True,
+        0.004,
+    )
+    assert message.dimensions == model_registry_pb2.Dimensions(nq=7, nv=6, nu=1, na=1, nsensor=3, nbody=2)
+    assert message.joints[0].type == model_registry_pb2.JOINT_TYPE_FREE
+    assert message.actuators[0] == model_registry_pb2.Actuator(
+        name="m", target="tendon0", ctrl_limited=True, ctrl_lower=0.0, ctrl_upper=1.0
+    )
+    assert message.created_at.ToDatetime(tzinfo=datetime.UTC) == info.created_at
+    assert metadata_from_message(message.metadata) == info.metadata
+
+
+def test_registry_names_match_the_proto_enums() -> None:
+    assert SCENARIOS == tuple(
+        name.removeprefix("SCENARIO_")
+        for name in common_pb2.Scenario.DESCRIPTOR.values_by_name
+        if not name.endswith("UNSPECIFIED")
+    )
+    for field, enum, prefix in (
+        ("estimator", common_pb2.Estimator, "ESTIMATOR_"),
+        ("preset", common_pb2.Preset, "PRESET_"),
+        ("sigma_points", common_pb2.SigmaPoints, "SIGMA_POINTS_"),
+    ):
+        names = tuple(
+            name.removeprefix(prefix)
+            for name in enum.DESCRIPTOR.values_by_name
+            if not name.endswith("UNSPECIFIED")
+        )
+        assert ESTIMATOR_SETTINGS[field] == names
+    assert set(ESTIMATOR_SETTINGS) == {field.name for field in common_pb2.EstimatorSettings.DESCRIPTOR.fields}
