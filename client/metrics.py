@@ -51,7 +51,9 @@ def rmse(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
     """
     truth2, estimate2 = _as_2d("truth", truth), _as_2d("estimate", estimate)
     if truth2.shape != estimate2.shape:
-        raise ValueError(f"truth and estimate must have the same shape, got {truth2.shape} and {estimate2.shape}")
+        raise ValueError(
+            f"truth and estimate must have the same shape, got {truth2.shape} and {estimate2.shape}"
+        )
     if truth2.shape[0] == 0:
         raise ValueError("truth and estimate must have at least one tick, got 0")
     squared = (truth2 - estimate2) ** 2
@@ -228,7 +230,9 @@ def gap_error_profile(
     """
     truth2, estimate2 = _as_2d("truth", truth), _as_2d("estimate", estimate)
     if truth2.shape != estimate2.shape:
-        raise ValueError(f"truth and estimate must have the same shape, got {truth2.shape} and {estimate2.shape}")
+        raise ValueError(
+            f"truth and estimate must have the same shape, got {truth2.shape} and {estimate2.shape}"
+        )
     since = ticks_since_frame(received)
     if since.shape[0] != truth2.shape[0]:
         raise ValueError(f"received must have one flag per tick ({truth2.shape[0]}), got {since.shape[0]}")

@@ -19,7 +19,7 @@ import itertools
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Generic, Literal, TypeVar
@@ -28,8 +28,8 @@ import numpy as np
 
 __all__ = [
     "PERFECT",
-    "Delivery",
     "DelayedSender",
+    "Delivery",
     "Distribution",
     "NetworkProfile",
     "Schedule",

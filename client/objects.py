@@ -164,12 +164,16 @@ class ResearchObject(ABC):
             raise RuntimeError("step before reset: call reset(seed) first")
         if self.scenario is Scenario.CONTROLLED:
             if ctrl is None:
-                raise ValueError("ctrl is required in the CONTROLLED scenario (computed from the filter's estimate)")
+                raise ValueError(
+                    "ctrl is required in the CONTROLLED scenario (computed from the filter's estimate)"
+                )
             u = np.asarray(ctrl, dtype=float)
             if u.shape != (self.nu,):
                 raise ValueError(f"ctrl must have shape ({self.nu},), got {u.shape}")
         elif ctrl is not None:
-            raise ValueError(f"ctrl must be None in the {self.scenario.value} scenario: the object drives itself")
+            raise ValueError(
+                f"ctrl must be None in the {self.scenario.value} scenario: the object drives itself"
+            )
         elif self.scenario is Scenario.EXTERNAL:
             u = self.control(self.t, self._data.qpos.copy(), self._data.qvel.copy())
         else:
@@ -212,21 +216,22 @@ class ResearchObject(ABC):
         lo = np.full(self.nq, -np.inf)
         hi = np.full(self.nq, np.inf)
         for j in range(self.model.njnt):
-            if self.model.jnt_limited[j] and self.model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+            if self.model.jnt_limited[j] and self.model.jnt_type[j] in (
+                mujoco.mjtJoint.mjJNT_HINGE,
+                mujoco.mjtJoint.mjJNT_SLIDE,
+            ):
                 a = self.model.jnt_qposadr[j]
                 lo[a], hi[a] = self.model.jnt_range[j]
         return lo, hi
 
-    def _computed_torque(
-        self, qpos: np.ndarray, qvel: np.ndarray, qacc_desired: np.ndarray
-    ) -> np.ndarray:
+    def _computed_torque(self, qpos: np.ndarray, qvel: np.ndarray, qacc_desired: np.ndarray) -> np.ndarray:
         """Generalized forces that give `qacc_desired` at (qpos, qvel): M qacc + bias, by mj_inverse."""
         s = self._scratch
         s.qpos[:] = qpos
         s.qvel[:] = qvel
         s.qacc[:] = qacc_desired
         mujoco.mj_inverse(self.model, s)
-        return s.qfrc_inverse.copy()
+        return np.array(s.qfrc_inverse)
 
 
 class Pendulum(ResearchObject):
@@ -330,7 +335,7 @@ class MyoElbow(ResearchObject):
         ctrl = np.full(self.nu, self.tone)
         ctrl[self._flexors] += max(u, 0.0)
         ctrl[self._extensors] += max(-u, 0.0)
-        return np.clip(ctrl, 0.0, 1.0)
+        return np.asarray(np.clip(ctrl, 0.0, 1.0))
 
     def _initial_state(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         return self._jittered(np.array([self.low]), rng), np.zeros(1)
@@ -362,12 +367,11 @@ class MyoHand(ResearchObject):
         super().__init__(source or load_source("myohand"), scenario=scenario, dt=dt, jitter=jitter)
         names = [self.model.actuator(i).name for i in range(self.nu)]
         self._fingers = [
-            (names.index(f"FDS{f}_r"), names.index(f"FDP{f}_r"), names.index(f"EDC{f}_r")) for f in (2, 3, 4, 5)
+            (names.index(f"FDS{f}_r"), names.index(f"FDP{f}_r"), names.index(f"EDC{f}_r"))
+            for f in (2, 3, 4, 5)
         ]
         self.period, self.flex, self.extend, self.tone = period, flex, extend, tone
-        self.description = (
-            f"fingers 2-5 flex in turn (a wave, period {period} s): FDS/FDP up to {flex}, EDC up to {extend} between"
-        )
+        self.description = f"fingers 2-5 flex in turn (a wave, period {period} s): FDS/FDP up to {flex}, EDC up to {extend} between"
 
     def control(self, t: float, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
         ctrl = np.full(self.nu, self.tone)

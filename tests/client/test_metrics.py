@@ -40,7 +40,9 @@ def test_rmse_leaves_out_missing_ticks():
 
 
 def test_rmse_shape_mismatch_is_named():
-    with pytest.raises(ValueError, match=r"truth and estimate must have the same shape, got \(2, 1\) and \(3, 1\)"):
+    with pytest.raises(
+        ValueError, match=r"truth and estimate must have the same shape, got \(2, 1\) and \(3, 1\)"
+    ):
         rmse(np.zeros((2, 1)), np.zeros((3, 1)))
 
 
@@ -56,7 +58,9 @@ def test_nees_singular_covariance_is_inf_not_a_crash():
 
 
 def test_nees_covariance_shape_is_named():
-    with pytest.raises(ValueError, match=r"covariances must have shape \(1, 2, 2\) to match errors \(1, 2\), got \(1, 3, 3\)"):
+    with pytest.raises(
+        ValueError, match=r"covariances must have shape \(1, 2, 2\) to match errors \(1, 2\), got \(1, 3, 3\)"
+    ):
         nees(np.zeros((1, 2)), np.zeros((1, 3, 3)))
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import threading
 import time
@@ -62,7 +63,9 @@ def _check_invariants(schedule):
             assert position[("skip", d.seq)] < position[("frame", d.seq)]
             assert d.tick == min(d.seq + d.late_ticks, schedule.ticks)
             if d.tick < schedule.ticks:
-                assert position[("frame", d.seq)] < position.get(("frame", d.tick), position.get(("skip", d.tick)))
+                assert position[("frame", d.seq)] < position.get(
+                    ("frame", d.tick), position.get(("skip", d.tick))
+                )
     # Ticks answered in order: the tick of every message never decreases.
     assert all(a.tick <= b.tick for a, b in zip(schedule.deliveries, schedule.deliveries[1:]))
 
@@ -80,23 +83,36 @@ def test_latency_under_grace_is_in_time_over_it_is_late_by_whole_ticks():
     _check_invariants(schedule)
     # ceil(35 ms / 50 ms) = 1: skip(k), then frame k just before tick k + 1.
     assert [(d.kind, d.seq) for d in schedule.deliveries[:5]] == [
-        ("skip", 0), ("frame", 0), ("skip", 1), ("frame", 1), ("skip", 2)
+        ("skip", 0),
+        ("frame", 0),
+        ("skip", 1),
+        ("frame", 1),
+        ("skip", 2),
     ]
     assert {d.late_ticks for d in schedule.deliveries if d.kind == "frame"} == {1}
-    slow = lockstep_schedule(10, dt=0.05, profile=NetworkProfile(latency=0.12, distribution=Distribution.CONSTANT))
+    slow = lockstep_schedule(
+        10, dt=0.05, profile=NetworkProfile(latency=0.12, distribution=Distribution.CONSTANT)
+    )
     # ceil(120 / 50) = 3, but for the last frames, which come after the last tick
     assert {d.late_ticks for d in slow.deliveries if d.kind == "frame" and d.tick < 10} == {3}
 
 
 def test_exactly_one_dt_late_is_one_tick_late():
-    schedule = lockstep_schedule(3, dt=0.05, profile=NetworkProfile(latency=0.05, distribution=Distribution.CONSTANT))
+    schedule = lockstep_schedule(
+        3, dt=0.05, profile=NetworkProfile(latency=0.05, distribution=Distribution.CONSTANT)
+    )
     assert [d.late_ticks for d in schedule.deliveries if d.kind == "frame"] == [1, 1, 1]
 
 
 def test_frames_late_past_the_end_come_after_the_last_tick():
-    schedule = lockstep_schedule(2, dt=0.05, profile=NetworkProfile(latency=1.0, distribution=Distribution.CONSTANT))
+    schedule = lockstep_schedule(
+        2, dt=0.05, profile=NetworkProfile(latency=1.0, distribution=Distribution.CONSTANT)
+    )
     assert [(d.kind, d.seq, d.tick) for d in schedule.deliveries] == [
-        ("skip", 0, 0), ("skip", 1, 1), ("frame", 0, 2), ("frame", 1, 2)
+        ("skip", 0, 0),
+        ("skip", 1, 1),
+        ("frame", 0, 2),
+        ("frame", 1, 2),
     ]
 
 
@@ -105,15 +121,13 @@ def test_jitter_and_reordering_keep_the_invariants_and_do_reorder():
     schedule = lockstep_schedule(2000, dt=0.05, profile=profile, seed=5)
     _check_invariants(schedule)
     late_order = [d.seq for d in schedule.deliveries if d.kind == "frame" and d.late_ticks > 0]
-    assert any(a > b for a, b in zip(late_order, late_order[1:]))  # some frames overtaken
+    assert any(a > b for a, b in itertools.pairwise(late_order))  # some frames overtaken
     assert schedule.on_time + schedule.late + schedule.lost == 2000
 
 
 def test_gap_schedule_loses_whole_gaps_every_period():
     schedule = gap_schedule(12, dt=0.05, gap_ticks=2, period=5)
-    np.testing.assert_array_equal(
-        schedule.received_in_time(), [1, 1, 1, 1, 1, 0, 0, 1, 1, 1, 0, 0]
-    )
+    np.testing.assert_array_equal(schedule.received_in_time(), [1, 1, 1, 1, 1, 0, 0, 1, 1, 1, 0, 0])
     assert schedule.late == 0 and schedule.lost == 4
 
 

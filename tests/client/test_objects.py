@@ -88,7 +88,10 @@ def test_biped_keeps_rocking_on_its_feet():
         (lambda: Biped(Scenario.PASSIVE), "the biped cannot move passively"),
         (lambda: make_object("pendulum_9", Scenario.PASSIVE), "object must be one of"),
         (lambda: load_source("nope"), "model must be one of"),
-        (lambda: Pendulum(1, Scenario.PASSIVE, dt=0.015), "dt must be a positive whole multiple of the model's timestep 0.01, got 0.015"),
+        (
+            lambda: Pendulum(1, Scenario.PASSIVE, dt=0.015),
+            "dt must be a positive whole multiple of the model's timestep 0.01, got 0.015",
+        ),
     ],
 )
 def test_misuse_is_refused_with_a_precise_message(call, message):
