@@ -44,9 +44,9 @@ def process_model(model: mujoco.MjModel, *, scenario: str) -> mujoco.MjModel:
     """A private copy of `model` set up as the filter's process model.
 
     - Warm start off: the constraint solver then starts from the unconstrained acceleration every
-      step, so a step is a pure function of (qpos, qvel, act, ctrl, qfrc_applied). Back-ends, the
-      reference loop and a timewarp replay agree exactly, and the `qacc` of a state can be
-      recomputed (the rollout back-end does so). Without contacts this changes nothing.
+      step, so a step is a pure function of (qpos, qvel, act, ctrl, qfrc_applied), with no hidden
+      state carried in an MjData: back-ends, the reference loop and a timewarp replay agree
+      exactly. Without constraints this changes nothing.
     - Auto-reset off: a sigma point that blows up stays non-finite, where MuJoCo would silently put
       it back at qpos0; the filter's divergence guard sees it.
     - Sensors off: the filter never reads them.
@@ -104,13 +104,15 @@ def _full_columns(model: mujoco.MjModel) -> np.ndarray:
 
 
 class _Buffers:
-    """Preallocated arrays for one step count."""
+    """Preallocated arrays for one step count. `rolled`: the steps the rollout takes (all of them,
+    or all but the last, which a batch then steps to read its qacc)."""
 
-    def __init__(self, *, nsigma: int, nstep: int, nstate: int, ncontrol: int, nv: int, rollout: bool) -> None:
+    def __init__(self, *, nsigma: int, nstep: int, rolled: int, nstate: int, ncontrol: int, nv: int) -> None:
         self.nstep = nstep
-        if rollout:
-            self.trajectory = np.zeros((nsigma, nstep, nstate))
-            self.control = np.zeros((nsigma, nstep, ncontrol)) if ncontrol else None
+        self.rolled = rolled
+        self.trajectory = np.zeros((nsigma, rolled, nstate)) if rolled else None
+        self.control = np.zeros((nsigma, rolled, ncontrol)) if rolled and ncontrol else None
+        if self.trajectory is not None and rolled == nstep:
             self.final = self.trajectory[:, -1, :]
         else:
             self.final = np.zeros((nsigma, nstate))
@@ -157,8 +159,8 @@ class Propagator:
         self._ctrl = np.zeros(model.nu)
         self._qfrc = np.zeros(model.nv)
         self._buffers = {nstep: self._new_buffers(nstep)}
-        # ROLLOUT and CONTROLLED: a batch of the model on the calling thread (nthread=1 starts no
-        # thread) recomputes the last step's qacc in one C call; see _run_rollout.
+        # ROLLOUT and qacc wanted: a batch of the model on the calling thread (nthread=1 starts no
+        # thread) takes the last step, whose qacc it reports; see _run_rollout.
         self._batch: mujoco.batch.Batch | None = None
         if self._rollout and want_qacc:
             self._batch = mujoco.batch.Batch(model, nsim=nsigma, nthread=1)
@@ -176,13 +178,16 @@ class Propagator:
         return self._model
 
     def _new_buffers(self, nstep: int) -> _Buffers:
+        rolled = 0
+        if self._rollout:
+            rolled = nstep - 1 if self._want_qacc else nstep
         return _Buffers(
             nsigma=self._nsigma,
             nstep=nstep,
+            rolled=rolled,
             nstate=self._nstate,
             ncontrol=self._ncontrol,
             nv=self._model.nv,
-            rollout=self._rollout,
         )
 
     def __call__(
@@ -244,31 +249,34 @@ class Propagator:
 
     def _run_rollout(self, buffers: _Buffers) -> None:
         """ROLLOUT back-end: the whole set in one call into MuJoCo's C++ thread pool."""
-        control = buffers.control
-        if control is not None:
-            control[...] = self._ctrl if self._inputs is Inputs.CTRL else self._qfrc
-        self._pool.rollout(
-            self._models,
-            self._data,
-            nstep=buffers.nstep,
-            control_spec=self._inputs.value,
-            initial_state=self._initial,
-            control=control,
-            state=buffers.trajectory,
-        )
+        if buffers.trajectory is not None:
+            control = buffers.control
+            if control is not None:
+                control[...] = self._ctrl if self._inputs is Inputs.CTRL else self._qfrc
+            self._pool.rollout(
+                self._models,
+                self._data,
+                nstep=buffers.rolled,
+                control_spec=self._inputs.value,
+                initial_state=self._initial,
+                control=control,
+                state=buffers.trajectory,
+            )
         if self._want_qacc:
-            # A rollout returns states, not accelerations. With warm start off (process_model) the
-            # last step's qacc is a function of the state before it, so mj_forward there
-            # reproduces it exactly: 1/nstep of the stepping work again, on one thread.
-            before = buffers.trajectory[:, -2, :] if buffers.nstep > 1 else self._initial
-            self._pool.serial(lambda: self._recompute_qacc(before, buffers.qacc))
+            # A rollout returns states, not accelerations; and the qacc MuJoCo leaves after a step
+            # depends on the integrator (Euler: the one at the state before the step; RK4: its
+            # last stage's). So the last step is taken by a batch, which reports it as mj_step
+            # does: 1/nstep of the work, on the calling thread.
+            before = buffers.trajectory[:, -1, :] if buffers.trajectory is not None else self._initial
+            self._pool.serial(lambda: self._last_step(before, buffers))
 
-    def _recompute_qacc(self, before: np.ndarray, qacc: np.ndarray) -> None:
+    def _last_step(self, before: np.ndarray, buffers: _Buffers) -> None:
         batch = self._batch
         if batch is None:
             raise RuntimeError("unreachable: the batch exists whenever qacc is wanted from a rollout")
         batch.state[:, self._batch_full] = before
         self._batch_ctrl[...] = self._ctrl
         self._batch_qfrc[...] = self._qfrc
-        batch.forward()
-        qacc[...] = self._batch_qacc
+        batch.step(nstep=1)
+        buffers.final[...] = batch.state[:, self._batch_full]
+        buffers.qacc[...] = self._batch_qacc

@@ -74,7 +74,14 @@ MUSCLE = """
 </mujoco>
 """
 
-MODELS = {"pendulum_2": PENDULUM_2, "hopper": HOPPER, "muscle": MUSCLE}
+MODELS = {
+    "pendulum_2": PENDULUM_2,
+    # What MuJoCo leaves in qacc after a step depends on the integrator (RK4: its last stage's).
+    "pendulum_2_rk4": PENDULUM_2.replace('timestep="0.01"', 'timestep="0.01" integrator="RK4"'),
+    "hopper_implicitfast": HOPPER.replace('timestep="0.002"', 'timestep="0.002" integrator="implicitfast"'),
+    "hopper": HOPPER,
+    "muscle": MUSCLE,
+}
 SCENARIO_OF = {Inputs.NONE: "PASSIVE", Inputs.CTRL: "CONTROLLED", Inputs.QFRC: "EXTERNAL"}
 
 
