@@ -153,7 +153,8 @@ def plot_estimates(
 ) -> None:
     """Estimate against truth as the thesis' figures 4.2-4.14: one panel per joint and component.
 
-    `traces` maps a legend label to a run of the same object; the truth is drawn once.
+    `traces` maps a legend label to a run of the same object; a truth shared by the runs is drawn
+    once, in black.
     """
     first = next(iter(traces.values()))
     blocks = ("q", "qd", "qdd")[: first.nx // first.nv]
@@ -162,14 +163,34 @@ def plot_estimates(
         len(rows), len(blocks), figsize=(3.2 * len(blocks), 1.7 * len(rows) + 0.6), squeeze=False
     )
     styles = ("--", ":", "-.")
+    # With the control fed from the estimate (CONTROLLED), every run moves its own way: each run's
+    # estimate is drawn against its own truth.
+    shared_truth = all(
+        t.truth_state.shape == first.truth_state.shape and np.allclose(t.truth_state, first.truth_state)
+        for t in traces.values()
+    )
     for r, joint in enumerate(rows):
         for c, block in enumerate(blocks):
             ax = axes[r][c]
-            truth, _ = first.component(block)
-            ax.plot(first.t, truth[:, joint], color="black", lw=1.2, label="truth")
+            if shared_truth:
+                truth, _ = first.component(block)
+                ax.plot(first.t, truth[:, joint], color="black", lw=1.2, label="truth")
             for i, (label, trace) in enumerate(traces.items()):
-                _, estimate = trace.component(block)
-                ax.plot(trace.t, estimate[:, joint], styles[i % len(styles)], lw=1.0, label=label)
+                truth, estimate = trace.component(block)
+                color = f"C{i}"
+                if not shared_truth:
+                    ax.plot(
+                        trace.t,
+                        truth[:, joint],
+                        "-",
+                        color=color,
+                        lw=1.2,
+                        alpha=0.5,
+                        label=f"truth ({label} run)",
+                    )
+                ax.plot(
+                    trace.t, estimate[:, joint], styles[i % len(styles)], color=color, lw=1.0, label=label
+                )
             name = first.joint_names[joint] if joint < len(first.joint_names) else str(joint)
             ax.set_title(f"{name}: {block}", fontsize=8)
             ax.tick_params(labelsize=7)
