@@ -97,15 +97,14 @@ def run_demo(address: str, settings: DemoSettings, *, out: TextIO, progress: boo
                 else:
                     syncs.append(answer)
 
-        bar = tqdm(total=ticks, desc="ticks", unit="tick", disable=not progress, file=out, leave=False)
+        bar = tqdm(total=ticks, desc="ticks answered", unit="tick", disable=not progress, file=out, leave=False, mininterval=0.5)
         lost = 0
         with DelayedSender(session.send, profile, seed=settings.seed) as network:
-            start = time.monotonic()
             for k in range(ticks):
                 if k % 20 == 0:
                     session.sync()
-                # Frame k is measured at client time k * dt.
-                wait = start + k * dt - time.monotonic()
+                # Frame k is measured at k * dt on the session clock.
+                wait = k * dt - session.now()
                 if wait > 0:
                     time.sleep(wait)
                 ctrl = np.zeros(model.nu)
@@ -119,16 +118,18 @@ def run_demo(address: str, settings: DemoSettings, *, out: TextIO, progress: boo
                 for _ in range(steps):
                     mujoco.mj_step(model, data)
                 collect(session.poll())
-                bar.n = len(results)
-                bar.refresh()
+                bar.update(min(len(results), ticks) - bar.n)
         # Every tick is answered by its deadline; wait for the last ones, then close.
         deadline = time.monotonic() + 2.0 + 4 * dt
-        while len(results) < ticks and time.monotonic() < deadline:
+        while any(k not in results for k in range(ticks)) and time.monotonic() < deadline:
             collect(session.poll())
             time.sleep(dt / 4)
         summary = session.close()
-        bar.n = len(results)
+        bar.update(min(len(results), ticks) - bar.n)
         bar.close()
+        # Ticks the server's clock answered between the last frame and `close`.
+        for seq in [seq for seq in results if seq >= ticks]:
+            del results[seq]
     return _report(
         settings=settings,
         model=model,

@@ -382,6 +382,9 @@ class Session:
         first = self._next_response(self._timeout)
         if first.WhichOneof("payload") != "opened":
             raise FailedPrecondition(f"the server answered `open` with `{first.WhichOneof('payload')}`")
+        # The session clock starts when `opened` arrives: the server's starts as it sends it, so
+        # the two differ by one transit until `sync` exchanges measure the offset.
+        self._clock_start = time.monotonic()
         self.opened = _opened(first.opened)
 
     # Plumbing.
@@ -442,7 +445,8 @@ class Session:
         self._requests.put(request)
 
     def now(self) -> float:
-        """The client's session clock: seconds since the session was opened."""
+        """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at
+        `seq * dt` on this clock."""
         return time.monotonic() - self._clock_start
 
     # LOCKSTEP.

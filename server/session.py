@@ -107,7 +107,6 @@ class SessionRuntime:
         self._ticks: OrderedDict[int, _Tick] = OrderedDict()
         self._initialised = False
         self._next = 0
-        self._last_qvel: dict[int, np.ndarray] = {}
         self.counts = SessionCounts()
         self._zero_ctrl = np.zeros(model.nu)
         self._qpos0 = model.qpos0.copy()
@@ -172,7 +171,8 @@ class SessionRuntime:
             if seq == frame.seq:
                 corrected = estimate
         target.outcome_source = "CORRECTED"
-        late_ticks = self._next - 1 - frame.seq
+        # Ticks answered since this one was due, itself included: 1 = just missed its deadline.
+        late_ticks = self._next - frame.seq
         self.counts.frames += 1
         self.counts.corrected += 1
         self.counts.late += 1

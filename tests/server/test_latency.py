@@ -69,7 +69,7 @@ def _filter_states(client: Any, truth: list[tuple[np.ndarray, np.ndarray]], *, l
                 q_late, v_late = truth[late]
                 corrected = session.send_frame(FrameData(seq=late, t=late * 0.05, qpos=q_late, qvel=v_late))
                 assert isinstance(corrected, TickResult)
-                assert corrected.source == "CORRECTED" and corrected.late_ticks == delay
+                assert corrected.source == "CORRECTED" and corrected.late_ticks == delay + 1
                 results[-1] = corrected
     return results
 

@@ -206,6 +206,26 @@ def test_process_model_is_a_private_copy() -> None:
     )
 
 
+def test_external_process_model_drops_only_tendons_that_do_nothing() -> None:
+    sprung = MUSCLE.replace('<spatial name="t">', '<spatial name="t" stiffness="50" springlength="0.1">')
+    for xml, dropped in ((MUSCLE, True), (sprung, False)):
+        model = mujoco.MjModel.from_xml_string(xml)
+        private = process_model(model, scenario="EXTERNAL")
+        assert (private.tendon_num[0] == 0) == dropped
+        assert process_model(model, scenario="CONTROLLED").tendon_num[0] == model.tendon_num[0]
+        # Same states as the model with only its actuators off.
+        plain = mujoco.MjModel.from_xml_string(xml)
+        plain.opt.disableflags = private.opt.disableflags
+        qpos, qvel = _sigma_set(model, 5, seed=6)
+        with WorkerPool(1) as pool:
+            out = Propagator(private, pool=pool, nsigma=5, nstep=20, inputs=Inputs.QFRC)(
+                qpos, qvel, act=np.array([0.7]), qfrc=np.array([0.3])
+            )
+        expected = _reference(plain, qpos, qvel, np.array([0.7]), np.zeros(1), np.array([0.3]), 20)
+        np.testing.assert_array_equal(out.qpos, expected[0])
+        np.testing.assert_array_equal(out.qvel, expected[1])
+
+
 def test_a_diverging_point_stays_non_finite_instead_of_resetting() -> None:
     model = process_model(mujoco.MjModel.from_xml_string(PENDULUM_2), scenario="PASSIVE")
     qpos, qvel = _sigma_set(model, 3, seed=5)

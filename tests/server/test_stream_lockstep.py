@@ -110,7 +110,7 @@ def test_every_rejection_reason_and_the_session_goes_on(client: Any) -> None:
         skip_again = session.skip(2)
         assert isinstance(skip_again, Rejection) and skip_again.reason == "DUPLICATE"
         late = session.send_frame(FrameData(seq=4, t=0.2, qpos=[0.1], qvel=[0.0]))
-        assert isinstance(late, TickResult) and late.source == "CORRECTED" and late.late_ticks == 1
+        assert isinstance(late, TickResult) and late.source == "CORRECTED" and late.late_ticks == 2
         after = session.send_frame(FrameData(seq=6, t=0.3, qpos=[0.1], qvel=[0.0]))
         assert isinstance(after, TickResult) and after.source == "MEASURED"
         summary = session.close()
