@@ -215,7 +215,7 @@ def check_vector(value: object, size: int, name: str) -> np.ndarray:
         raise InvalidArgument(f"{name} must be an array of {size} numbers, got {value!r}") from None
     if array.shape != (size,):
         raise InvalidArgument(f"{name} must have shape ({size},), got {array.shape}")
-    if not np.all(np.isfinite(array)):
+    if not np.isfinite(array).all():
         raise InvalidArgument(f"{name} must be finite, got {array.tolist()}")
     array.flags.writeable = False
     return array

@@ -14,7 +14,9 @@ sessions, at most `workers` threads run MuJoCo for them at a time. Two back-ends
 
 Propagations are serialised by one lock: a call gets every worker, and sessions queue behind it.
 That is what keeps the bound, and it is also what `mujoco.rollout.Rollout` needs, since its thread
-pool counts finished jobs per call and must not be entered twice at once.
+pool counts finished jobs per call and must not be entered twice at once. A call says how many
+chunks its work is worth (server/propagate.py: about MIN_CHUNK_SECONDS of physics each); one chunk
+runs on the calling thread, with no hand-off at all.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import numpy as np
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 
-__all__ = ["DEFAULT_BACKEND", "MAX_WORKERS", "Backend", "WorkerPool"]
+__all__ = ["DEFAULT_BACKEND", "MAX_WORKERS", "MIN_CHUNK_SECONDS", "Backend", "WorkerPool"]
 
 
 class Backend(enum.StrEnum):
@@ -47,6 +49,11 @@ DEFAULT_BACKEND: Final = Backend.ROLLOUT
 
 # More workers than this is a configuration mistake on any machine we run on.
 MAX_WORKERS: Final = 256
+
+# A chunk handed to another thread should carry at least this much work (seconds): waking a
+# thread and waiting for it costs tens of microseconds, and far more when the other cores are
+# busy with other work.
+MIN_CHUNK_SECONDS: Final = 200e-6
 
 
 class WorkerPool:
@@ -68,10 +75,13 @@ class WorkerPool:
         self._lock = threading.Lock()
         self._closed = False
         self._rollout: mujoco.rollout.Rollout | None = None
+        self._serial_rollout: mujoco.rollout.Rollout | None = None
         self._executor: ThreadPoolExecutor | None = None
         if self._backend is Backend.ROLLOUT:
-            # nthread=0 runs on the calling thread: one worker needs no hand-off to another thread.
-            self._rollout = mujoco.rollout.Rollout(nthread=0 if workers == 1 else workers)
+            # nthread=0 runs on the calling thread: for one chunk, no hand-off to another thread.
+            self._serial_rollout = mujoco.rollout.Rollout(nthread=0)
+            if workers > 1:
+                self._rollout = mujoco.rollout.Rollout(nthread=workers)
         elif workers > 1:
             # The calling thread steps one chunk itself, so workers - 1 more threads make `workers`.
             self._executor = ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="jitdyn-sigma")
@@ -95,9 +105,10 @@ class WorkerPool:
             if self._closed:
                 return
             self._closed = True
-            if self._rollout is not None:
-                self._rollout.close()
-                self._rollout = None
+            for rollout in (self._rollout, self._serial_rollout):
+                if rollout is not None:
+                    rollout.close()
+            self._rollout = self._serial_rollout = None
             if self._executor is not None:
                 self._executor.shutdown(wait=True)
                 self._executor = None
@@ -131,20 +142,24 @@ class WorkerPool:
         initial_state: np.ndarray,
         control: np.ndarray | None,
         state: np.ndarray,
+        chunks: int,
     ) -> None:
         """`Rollout.rollout` with checks skipped: the caller preallocated every array.
 
         models: the model nbatch times (the unchecked call wants one per rollout); data: one MjData
         per worker; initial_state (nbatch, nstate); control (nbatch, nstep, ncontrol) or None;
-        state, the output, (nbatch, nstep, nstate).
+        state, the output, (nbatch, nstep, nstate); chunks: how many workers the work is worth.
         """
         with self._lock:
             self._check_open()
-            if self._rollout is None:
+            if self._serial_rollout is None:
                 raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not ROLLOUT")
-            self._rollout.rollout(
+            nchunk = max(1, min(chunks, self._workers, initial_state.shape[0]))
+            serial = nchunk == 1 or self._rollout is None
+            rollout = self._serial_rollout if serial else self._rollout
+            rollout.rollout(  # type: ignore[union-attr]
                 models,
-                data,
+                data[:1] if serial else data,
                 initial_state,
                 control,
                 control_spec=control_spec,
@@ -153,9 +168,8 @@ class WorkerPool:
                 initial_warmstart=None,
                 state=state,
                 sensordata=None,
-                # One chunk per worker: sigma sets are small and even, so finer chunks only add
-                # hand-offs.
-                chunk_size=max(1, -(-initial_state.shape[0] // self._workers)),
+                # Sigma sets are small and even: finer chunks than needed only add hand-offs.
+                chunk_size=-(-initial_state.shape[0] // nchunk),
             )
 
     def serial(self, work: Callable[[], None]) -> None:
@@ -164,8 +178,8 @@ class WorkerPool:
             self._check_open()
             work()
 
-    def run_chunks(self, work: Callable[[int, int, int], None], count: int) -> None:
-        """Call work(worker, start, stop) over [0, count) split in up to `workers` even chunks.
+    def run_chunks(self, work: Callable[[int, int, int], None], count: int, *, chunks: int) -> None:
+        """Call work(worker, start, stop) over [0, count) split in up to `chunks` even chunks.
 
         Worker 0's chunk runs on the calling thread, the others on the pool's threads; returns
         when all are done and re-raises the first exception.
@@ -174,7 +188,7 @@ class WorkerPool:
             self._check_open()
             if self._backend is not Backend.THREADS:
                 raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not THREADS")
-            nchunk = max(1, min(self._workers, count))
+            nchunk = max(1, min(chunks, self._workers, count))
             bounds = np.linspace(0, count, nchunk + 1).round().astype(int)
             futures: list[Future[None]] = []
             if self._executor is not None:

@@ -35,7 +35,6 @@ from typing import Final
 
 import mujoco
 import numpy as np
-import scipy.linalg
 from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import UnscentedKalmanFilter, unscented_transform
 
@@ -55,7 +54,7 @@ from server.estimator import (
 from server.manifold import SplitManifold, has_manifold
 from server.pool import WorkerPool
 from server.propagate import Inputs, Propagator, process_model
-from server.sigma import RobustCholesky, make_sigma_points, nearest_positive_definite
+from server.sigma import RobustCholesky, cholesky_upper, make_sigma_points, nearest_positive_definite
 
 __all__ = [
     "COVARIANCE_LIMIT",
@@ -188,7 +187,10 @@ class UnscentedFilter:
         if self._controlled and "qacc" in config.measured:
             index += range(nq + nv, nq + 2 * nv)
             z_tangent += nv
-        self._z_index = np.array(index)
+        # A slice when the measured entries are contiguous (qpos and qvel): cheaper than fancy
+        # indexing in filterpy's per-point measurement loop.
+        contiguous = index == list(range(len(index)))
+        self._z_index: slice | np.ndarray = slice(0, len(index)) if contiguous else np.array(index)
         self._z_tangent = z_tangent
 
         manifold = has_manifold(m)
@@ -397,36 +399,54 @@ class UnscentedFilter:
             raise FailedPrecondition(f"{what} needs an initialised estimator: call initialise() with the first frame")
 
     def _finite(self) -> bool:
-        return bool(np.all(np.isfinite(self._kf.x)) and np.all(np.isfinite(self._kf.P)))
+        return bool(np.isfinite(self._kf.x).all() and np.isfinite(self._kf.P).all())
 
     def _blown_up(self) -> bool:
-        return float(np.max(np.diag(self._kf.P))) > COVARIANCE_LIMIT
+        return float(self._kf.P.diagonal().max()) > COVARIANCE_LIMIT
 
     def _repair_if_indefinite(self) -> None:
-        try:
-            scipy.linalg.cholesky(self._kf.P, lower=False, check_finite=False)
-        except np.linalg.LinAlgError:
+        if cholesky_upper(self._kf.P) is None:
             self._sqrt.repairs += 1
             self._kf.P = nearest_positive_definite(self._kf.P)
 
     def _propagate_sigmas(self, sigmas: np.ndarray, *, nstep: int | None) -> np.ndarray:
-        """The process model on a sigma set (nsigma, len x) -> (nsigma, len x)."""
+        """The process model on a sigma set (nsigma, len x) -> (nsigma, len x).
+
+        In CONTROLLED, qdd does not enter the dynamics, so points that differ from the first only
+        in qdd propagate exactly as it does (with Merwe points and an upper Cholesky factor, the
+        last 2 nv of them): each distinct (q, qd) is stepped once and its result shared, which
+        gives the same numbers with 2 nv fewer points stepped.
+        """
         nq, nv = self._nq, self._nv
-        out = self._propagator(
-            sigmas[:, :nq],
-            sigmas[:, nq : nq + nv],
-            act=self._act,
-            ctrl=self._ctrl,
-            qfrc=self._qfrc,
-            nstep=nstep,
-        )
-        propagated = np.empty((sigmas.shape[0], self._size))
-        propagated[:, :nq] = out.qpos
-        propagated[:, nq : nq + nv] = out.qvel
+        head = sigmas[:, : nq + nv]
+        shared: np.ndarray | None = None
         if self._controlled:
-            propagated[:, nq + nv :] = out.qacc
+            same = (head == head[0]).all(axis=1)
+            same[0] = False
+            if same.any():
+                shared = same
+                head = head[~same]
+        out = self._propagator(
+            head[:, :nq], head[:, nq:], act=self._act, ctrl=self._ctrl, qfrc=self._qfrc, nstep=nstep
+        )
+        stepped = np.empty((head.shape[0], self._size))
+        stepped[:, :nq] = out.qpos
+        stepped[:, nq : nq + nv] = out.qvel
+        if self._controlled:
+            stepped[:, nq + nv :] = out.qacc
+        act = out.act
+        if shared is None:
+            propagated = stepped
+        else:
+            propagated = np.empty((sigmas.shape[0], self._size))
+            propagated[~shared] = stepped
+            propagated[shared] = stepped[0]
+            if self._na:
+                act = np.empty((sigmas.shape[0], self._na))
+                act[~shared] = out.act
+                act[shared] = out.act[0]
         if self._na:
-            self._propagated_act = self._points.Wm @ out.act
+            self._propagated_act = self._points.Wm @ act
         return propagated
 
     def _activation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -517,18 +537,19 @@ class UnscentedFilter:
         reinitialised: bool = False,
     ) -> Estimate:
         nq, nv = self._nq, self._nv
-        qpos, qvel = x[:nq], x[nq : nq + nv]
+        state = read_only(x)
+        qpos, qvel = state[:nq], state[nq : nq + nv]  # views of a read-only copy are read-only
         if self._controlled:
-            qacc = x[nq + nv :]
-        elif np.all(np.isfinite(x)):
-            qacc = self._forward(qpos, qvel, act)
+            qacc = state[nq + nv :]
+        elif np.isfinite(state).all():
+            qacc = read_only(self._forward(qpos, qvel, act))
         else:
-            qacc = np.full(nv, np.nan)
+            qacc = read_only(np.full(nv, np.nan))
         return Estimate(
-            qpos=read_only(qpos),
-            qvel=read_only(qvel),
-            qacc=read_only(qacc),
-            state=read_only(x),
+            qpos=qpos,
+            qvel=qvel,
+            qacc=qacc,
+            state=state,
             covariance=read_only(P),
             nis=nis,
             reinitialised=reinitialised,

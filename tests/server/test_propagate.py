@@ -126,7 +126,9 @@ def test_backends_equal_a_plain_mj_step_loop(backend: Backend, workers: int, inp
     ctrl = rng.uniform(0.0, 1.0, model.nu)
     qfrc = rng.standard_normal(model.nv)
     with WorkerPool(workers, backend=backend) as pool:
-        propagate = Propagator(model, pool=pool, nsigma=nsigma, nstep=nstep, inputs=inputs, want_qacc=True)
+        propagate = Propagator(
+            model, pool=pool, nsigma=nsigma, nstep=nstep, inputs=inputs, want_qacc=True, min_chunk_seconds=0
+        )
         out = propagate(qpos, qvel, act=act, ctrl=ctrl, qfrc=qfrc)
         expected = _reference(
             model,
@@ -150,7 +152,9 @@ def test_other_step_counts_and_repeated_calls(backend: Backend) -> None:
     qpos, qvel = _sigma_set(model, 5, seed=3)
     ctrl = np.array([0.2, -0.1])
     with WorkerPool(2, backend=backend) as pool:
-        propagate = Propagator(model, pool=pool, nsigma=5, nstep=5, inputs=Inputs.CTRL, want_qacc=True)
+        propagate = Propagator(
+            model, pool=pool, nsigma=5, nstep=5, inputs=Inputs.CTRL, want_qacc=True, min_chunk_seconds=0
+        )
         for nstep in (5, 1, 12, 5, 3):
             out = propagate(qpos, qvel, act=np.zeros(0), ctrl=ctrl, nstep=nstep)
             expected = _reference(model, qpos, qvel, np.zeros(0), ctrl, np.zeros(2), nstep)
@@ -174,7 +178,8 @@ def test_sessions_share_one_pool_from_several_threads() -> None:
     results: dict[int, list[np.ndarray]] = {}
     with WorkerPool(2) as pool:
         propagators = [
-            Propagator(model, pool=pool, nsigma=9, nstep=5, inputs=Inputs.CTRL, want_qacc=True) for _ in sets
+            Propagator(model, pool=pool, nsigma=9, nstep=5, inputs=Inputs.CTRL, want_qacc=True, min_chunk_seconds=0)
+            for _ in sets
         ]
 
         def session(i: int) -> None:
@@ -244,7 +249,7 @@ def test_pool_lifecycle() -> None:
     pool.close()
     assert pool.closed
     with pytest.raises(FailedPrecondition, match="^the worker pool is closed$"):
-        pool.run_chunks(lambda worker, lo, hi: None, 4)
+        pool.run_chunks(lambda worker, lo, hi: None, 4, chunks=1)
     with WorkerPool(1) as rollout_pool:
         assert rollout_pool.backend is Backend.ROLLOUT
     assert rollout_pool.closed
@@ -273,17 +278,20 @@ def test_chunks_cover_the_set_once_and_errors_propagate() -> None:
             seen.append((worker, lo, hi))
 
     with WorkerPool(3, backend="THREADS") as pool:
-        pool.run_chunks(record, 10)
+        pool.run_chunks(record, 10, chunks=5)
         assert sorted(seen) == [(0, 0, 3), (1, 3, 7), (2, 7, 10)]
+        seen.clear()
+        pool.run_chunks(record, 10, chunks=0)  # not worth a hand-off: all on the calling thread
+        assert seen == [(0, 0, 10)]
 
         def fail(worker: int, lo: int, hi: int) -> None:
             if worker == 2:
                 raise ValueError("chunk 2 failed")
 
         with pytest.raises(ValueError, match="chunk 2 failed"):
-            pool.run_chunks(fail, 10)
+            pool.run_chunks(fail, 10, chunks=3)
         with pytest.raises(FailedPrecondition, match="^the pool's backend is THREADS, not ROLLOUT$"):
             pool.rollout(
                 [], [], nstep=1, control_spec=0, initial_state=np.zeros((0, 1)), control=None,
-                state=np.zeros((0, 1, 1)),
+                state=np.zeros((0, 1, 1)), chunks=1,
             )
