@@ -300,7 +300,9 @@ class UnscentedFilter:
             self._repair_if_indefinite()
         if not self._finite() or self._blown_up():
             # No new measurement to start from: the last one is the best that is known.
-            self._reinitialise(self._last)  # type: ignore[arg-type]
+            if self._last is None:
+                raise RuntimeError("unreachable: an initialised filter has a last measurement")
+            self._reinitialise(self._last)
             reinitialised = True
         return self._estimate(reinitialised=reinitialised)
 
@@ -308,9 +310,14 @@ class UnscentedFilter:
         self._require_initialised("update")
         m = check_measurement(m, self._model, self._config.measured)
         z = np.concatenate([m.qpos] + [getattr(m, c) for c in ("qvel", "qacc") if self._measures(c)])
-        self._kf.update(z, UT=self._ut)
-        y, SI = self._kf.y, self._kf.SI
-        nis_value = float(y @ SI @ y)
+        try:
+            self._kf.update(z, UT=self._ut)
+            y, SI = self._kf.y, self._kf.SI
+            nis_value = float(y @ SI @ y)
+        except np.linalg.LinAlgError:
+            # An innovation covariance that cannot be inverted: nothing of this update is usable.
+            self._kf.x = np.full(self._size, np.nan)
+            nis_value = float("nan")
         nis = nis_value if np.isfinite(nis_value) else None
         reinitialised = False
         if self._finite():

@@ -592,9 +592,10 @@ def test_split_manifold_operations_are_consistent() -> None:
 
 @pytest.mark.parametrize("xml", [FREE_BODY, BALL_PENDULUM], ids=["free", "ball"])
 @pytest.mark.parametrize("scheme", ["MERWE", "SIMPLEX"])
-def test_filter_on_the_manifold_tracks_rotation(xml: str, scheme: str) -> None:
+@pytest.mark.parametrize("scenario", ["PASSIVE", "CONTROLLED", "EXTERNAL"])
+def test_filter_on_the_manifold_tracks_rotation(xml: str, scheme: str, scenario: str) -> None:
     model = mujoco.MjModel.from_xml_string(xml)
-    config = config_for(model, "PASSIVE", sigma_points=scheme)
+    config = config_for(model, scenario, sigma_points=scheme)
     d = mujoco.MjData(model)
     if model.nq == 7:  # tumbling about a non-principal axis: Euler's equations are nonlinear
         d.qvel[:] = [0.2, 0.0, -0.1, 2.0, 1.0, 3.0]
@@ -608,7 +609,8 @@ def test_filter_on_the_manifold_tracks_rotation(xml: str, scheme: str) -> None:
             mujoco.mj_step(model, d)
     with WorkerPool(2) as pool:
         estimator = UnscentedFilter(model, config, pool=pool)
-        assert (estimator.state_size, estimator.state_dimension) == (model.nq + model.nv, 2 * model.nv)
+        order = 3 if scenario == "CONTROLLED" else 2
+        assert (estimator.state_size, estimator.state_dimension) == (model.nq + (order - 1) * model.nv, order * model.nv)
         estimator.initialise(frames[0])
         errors = []
         for k in range(1, len(frames)):
@@ -619,7 +621,7 @@ def test_filter_on_the_manifold_tracks_rotation(xml: str, scheme: str) -> None:
                 errors.append(float(np.linalg.norm(error)))
             else:
                 estimate = estimator.update(frames[k])
-            assert estimate.covariance is not None and estimate.covariance.shape == (2 * model.nv,) * 2
+            assert estimate.covariance is not None and estimate.covariance.shape == (order * model.nv,) * 2
             quaternions = estimate.qpos[3:7] if model.nq == 7 else estimate.qpos
             assert abs(np.linalg.norm(quaternions) - 1.0) < 1e-12
     assert max(errors) < 0.01
