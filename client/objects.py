@@ -33,6 +33,7 @@ __all__ = [
     "ResearchObject",
     "Scenario",
     "TrueState",
+    "UnstableSimulation",
     "load_source",
     "make_object",
 ]
@@ -98,6 +99,25 @@ def load_source(name: str) -> ModelSource:
     raise ValueError(f"model must be one of {_BUILTINS + _MYO}, got {name!r}")
 
 
+_INSTABILITY_WARNINGS = tuple(
+    int(w)
+    for w in (
+        mujoco.mjtWarning.mjWARN_BADCTRL,
+        mujoco.mjtWarning.mjWARN_BADQPOS,
+        mujoco.mjtWarning.mjWARN_BADQVEL,
+        mujoco.mjtWarning.mjWARN_BADQACC,
+    )
+)
+
+
+class UnstableSimulation(RuntimeError):
+    """The truth left the finite numbers (a control law fed a diverged estimate, typically)."""
+
+    def __init__(self, t: float, message: str) -> None:
+        super().__init__(message)
+        self.t = t
+
+
 class ResearchObject(ABC):
     """A MuJoCo simulation of one model in one scenario, advanced one frame period at a time."""
 
@@ -107,6 +127,8 @@ class ResearchObject(ABC):
         self.source = source
         self.scenario = scenario
         self.model = source.compile()
+        # A truth that blows up must say so, not be put back at qpos0 by MuJoCo's auto-reset.
+        self.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
         steps = dt / self.model.opt.timestep
         if dt <= 0 or abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
             raise ValueError(
@@ -179,10 +201,18 @@ class ResearchObject(ABC):
         else:
             u = np.zeros(self.nu)
         u = self._clip(u)
+        if not np.all(np.isfinite(u)):
+            raise UnstableSimulation(self.t, f"the control at t = {self.t:.4g} s is not finite: {u.tolist()}")
         self._data.ctrl[:] = u
         mujoco.mj_step(self.model, self._data, self.steps_per_tick)
         self._tick += 1
         self._last_ctrl = u
+        d = self._data
+        # MuJoCo flags NaN, inf or huge ctrl, qpos, qvel or qacc with a warning and carries on
+        # (ctrl zeroed); for a ground truth that is the end of the run.
+        flagged = sum(int(d.warning[w].number) for w in _INSTABILITY_WARNINGS)
+        if flagged or not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))):
+            raise UnstableSimulation(self.t, f"the simulation became unstable by t = {self.t:.4g} s")
         return self._state()
 
     @abstractmethod

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import os
 import platform
 import subprocess
@@ -135,7 +136,9 @@ def run_experiments(
         for experiment in experiments:
             if progress:
                 print(f"[experiments] {experiment.name}: {experiment.title}", file=sys.stderr, flush=True)
-            sections.append(experiment.run(ctx))
+            ctx.notes.clear()
+            section = experiment.run(ctx)
+            sections.append(dataclasses.replace(section, notes=(*section.notes, *ctx.notes)))
     return sections
 
 

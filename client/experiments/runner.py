@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from client.netem import PERFECT, NetworkProfile, Schedule, gap_schedule, lockstep_schedule
-from client.objects import ResearchObject, Scenario, TrueState, make_object
+from client.objects import ResearchObject, Scenario, TrueState, UnstableSimulation, make_object
 from client.sdk import Client, FrameData, Rejection, SessionOptions, TickResult
 
 __all__ = ["ModelCache", "RunSpec", "Trace", "estimate_of", "run_lockstep"]
@@ -45,7 +45,8 @@ class RunSpec:
     @property
     def label(self) -> str:
         estimator = self.preset if self.estimator == "UKF" else self.estimator
-        return f"{self.object}/{self.scenario.value}/{estimator}"
+        extra = "".join(f",{k}={v:g}" for k, v in sorted(self.overrides.items()))
+        return f"{self.object}/{self.scenario.value}/{estimator}{extra}"
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,9 @@ class Trace:
     rejected: int
     corrected_ticks: int
     wall_seconds: float
+    stopped: tuple[float, str] | None = (
+        None  # (t, why) when the truth became unstable and the run ended early
+    )
 
     @property
     def nx(self) -> int:
@@ -186,6 +190,7 @@ def run_lockstep(
     finals: dict[int, TickResult] = {}
     rejected = 0
     corrected = 0
+    stopped: tuple[float, str] | None = None
     started = time.perf_counter()
     bar = tqdm(total=ticks, desc=spec.label, unit="tick", leave=False, disable=not progress)
     with client.open_session(options) as session:
@@ -223,16 +228,18 @@ def run_lockstep(
                     f"{spec.label}: the server rejected tick {j}'s {kind}; see the session log"
                 )
             answers[j] = finals[j] = answer
-            if spec.scenario is Scenario.CONTROLLED:
-                q, qd = estimate_of(answer, nq, nv)
-                ctrl = obj.control(truths[j].t, q, qd)
-                if not np.all(np.isfinite(ctrl)):
-                    # A diverged estimate gives a non-finite law; hold the last control rather than
-                    # feed NaN to the truth (the server's guard will re-initialise the filter).
-                    ctrl = truths[j].ctrl
-                truths.append(obj.step(ctrl))
-            else:
-                truths.append(obj.step())
+            try:
+                if spec.scenario is Scenario.CONTROLLED:
+                    q, qd = estimate_of(answer, nq, nv)
+                    truths.append(obj.step(obj.control(truths[j].t, q, qd)))
+                else:
+                    truths.append(obj.step())
+            except UnstableSimulation as error:
+                # A law fed a diverged estimate can throw the truth itself off the rails; the run
+                # ends there, and the trace says when.
+                stopped = (error.t, str(error))
+                ticks = j + 1
+                break
             bar.update(1)
     bar.close()
     wall = time.perf_counter() - started
@@ -267,6 +274,7 @@ def run_lockstep(
         rejected=rejected,
         corrected_ticks=corrected,
         wall_seconds=wall,
+        stopped=stopped,
     )
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from client.objects import Biped, Pendulum, Scenario, load_source, make_object
+from client.objects import Biped, Pendulum, Scenario, UnstableSimulation, load_source, make_object
 
 
 def _run(obj, seed, ticks):
@@ -110,3 +110,11 @@ def test_ctrl_is_required_in_controlled_and_refused_otherwise():
     external.reset(0)
     with pytest.raises(ValueError, match="ctrl must be None in the EXTERNAL scenario"):
         external.step(np.zeros(1))
+
+
+def test_a_truth_that_blows_up_says_so_instead_of_resetting():
+    obj = Pendulum(1, Scenario.CONTROLLED)
+    obj.reset(0)
+    with pytest.raises(UnstableSimulation, match=r"the simulation became unstable by t = 0.05 s") as error:
+        obj.step(np.array([1e12]))
+    assert error.value.t == pytest.approx(0.05)
