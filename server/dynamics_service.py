@@ -401,10 +401,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                     raise InvalidArgument(_unexpected(kind))
         finally:
             tick_task.cancel()
-            try:
-                await tick_task
-            except (asyncio.CancelledError, Exception):  # the stream is ending either way
-                pass
+            # The clock's own end (cancelled, or failed while the stream ends) is not news here.
+            await asyncio.gather(tick_task, return_exceptions=True)
 
     def _pong(self, stream: _Stream, ping: dynamics_pb2.SyncPing, arrived: float) -> Response:
         if not math.isfinite(ping.client_send_time):
