@@ -90,7 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "start (env JITDYN_SECRET_FILE; default ~/.config/jitdyn/secret.key; JITDYN_SECRET=hex overrides)")
     serve.add_argument("--tls-cert", type=Path, help="PEM certificate chain, to serve over TLS")
     serve.add_argument("--tls-key", type=Path, help="PEM private key of --tls-cert")
-    serve.add_argument("--insecure", action="store_true", help="allow plaintext on a non-loopback address")
+    serve.add_argument("--api-keys", type=Path, help="file of `KEY TENANT` lines: every RPC must then carry "
+                       "`authorization: Bearer KEY`, and sees only its tenant's sessions and models")
+    serve.add_argument("--insecure", action="store_true", help="allow a non-loopback address without TLS and API keys")
     serve.add_argument("--max-sessions", type=int, default=64, help="open sessions in total (default 64)")
     serve.add_argument("--max-sessions-per-tenant", type=int, default=16, help="open sessions per tenant (default 16)")
     serve.add_argument("--max-state-dimension", type=int, default=200, help="largest nv of a session's model (default 200)")
@@ -170,6 +172,7 @@ def _serve(args: argparse.Namespace) -> int:
         secret_file=args.secret_file,
         tls_cert=args.tls_cert,
         tls_key=args.tls_key,
+        api_keys=args.api_keys,
         insecure=args.insecure,
         session_limits=SessionLimits(
             max_sessions=args.max_sessions,

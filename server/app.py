@@ -26,6 +26,7 @@ from jitdyn.errors import InvalidArgument
 from jitdyn.v1 import dynamics_pb2, dynamics_pb2_grpc, model_registry_pb2, model_registry_pb2_grpc
 from jitdyn.v1 import session_pb2, session_pb2_grpc
 from registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
+from server.auth import ApiKeyInterceptor, load_api_keys
 from server.dynamics_service import DynamicsServicer
 from server.pool import WorkerPool
 from server.registry_service import ModelRegistryServicer
@@ -66,6 +67,7 @@ class ServerConfig:
     max_message_bytes: int = MAX_MESSAGE_BYTES
     tls_cert: Path | None = None
     tls_key: Path | None = None
+    api_keys: Path | None = None  # `KEY TENANT` lines; None: everyone is the default tenant
     insecure: bool = False
     shutdown_grace: float = 5.0
     environ: dict[str, str] = field(default_factory=lambda: dict(os.environ))
@@ -86,16 +88,18 @@ def _check_security(config: ServerConfig) -> None:
         raise InvalidArgument(f"--address must be HOST:PORT, got {config.address!r}")
     if bool(config.tls_cert) != bool(config.tls_key):
         raise InvalidArgument("--tls-cert and --tls-key must be given together")
-    if not _is_loopback(config.address) and not config.tls_cert and not config.insecure:
+    if not _is_loopback(config.address) and not config.insecure and not (config.tls_cert and config.api_keys):
         raise InvalidArgument(
             f"--address {config.address} is not a loopback address: serving beyond this machine needs "
-            "--tls-cert and --tls-key (or --insecure, to accept plaintext on a trusted network)"
+            "--tls-cert, --tls-key and --api-keys (or --insecure, on a network you trust)"
         )
 
 
 async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Services]:
     """Build the server and everything it serves with; not started. Returns the bound port."""
     _check_security(config)
+    if config.api_keys:
+        load_api_keys(config.api_keys)  # refuse a bad key file before touching any data
     data_root = config.data_root.resolve()
     data_root.mkdir(parents=True, exist_ok=True)
     secret = load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
@@ -121,7 +125,8 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
         ("grpc.max_send_message_length", config.max_message_bytes),
         ("grpc.so_reuseport", 0),
     ]
-    server = grpc.aio.server(options=options)
+    interceptors = [ApiKeyInterceptor(load_api_keys(config.api_keys))] if config.api_keys else []
+    server = grpc.aio.server(options=options, interceptors=interceptors)
     model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(ModelRegistryServicer(registry), server)
     dynamics_pb2_grpc.add_DynamicsServiceServicer_to_server(DynamicsServicer(services), server)
     session_pb2_grpc.add_SessionServiceServicer_to_server(SessionServicer(index), server)
