@@ -53,7 +53,7 @@ def run_demo(address: str, settings: DemoSettings, *, out: TextIO, progress: boo
     mujoco.mj_forward(model, data)
     dt = settings.dt or (0.05 if settings.model.startswith("pendulum") else 10 * model.opt.timestep)
     steps = max(1, round(dt / model.opt.timestep))
-    ticks = max(1, int(round(settings.seconds / dt)))
+    ticks = max(1, round(settings.seconds / dt))
     profile = NetworkProfile(latency=settings.latency, jitter=settings.jitter, loss=settings.loss)
     controlled = settings.scenario.upper() == "CONTROLLED"
     options = SessionOptions(

@@ -21,28 +21,35 @@ import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any
+from typing import Any, Self
 
 import grpc
 import numpy as np
 
 from jitdyn.checksum import frame_checksum
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, error_for_status
-from jitdyn.v1 import common_pb2, dynamics_pb2, dynamics_pb2_grpc, model_registry_pb2, model_registry_pb2_grpc
-from jitdyn.v1 import session_pb2, session_pb2_grpc
+from jitdyn.v1 import (
+    common_pb2,
+    dynamics_pb2,
+    dynamics_pb2_grpc,
+    model_registry_pb2,
+    model_registry_pb2_grpc,
+    session_pb2,
+    session_pb2_grpc,
+)
 
 __all__ = [
+    "MAX_MESSAGE_BYTES",
     "Client",
+    "FrameData",
+    "ModelRef",
+    "Opened",
+    "Rejection",
     "Session",
     "SessionOptions",
-    "FrameData",
-    "TickResult",
-    "Rejection",
-    "Opened",
     "Summary",
-    "ModelRef",
     "SyncSample",
-    "MAX_MESSAGE_BYTES",
+    "TickResult",
 ]
 
 MAX_MESSAGE_BYTES = 128 * 1024 * 1024
@@ -59,7 +66,7 @@ def _enum(enum: Any, prefix: str, name: str, what: str) -> int:
     try:
         return int(enum.Value(prefix + name.upper()))
     except ValueError:
-        names = [n[len(prefix):] for n in enum.keys() if not n.endswith("UNSPECIFIED")]
+        names = [n[len(prefix):] for n in enum.keys() if not n.endswith("UNSPECIFIED")]  # noqa: SIM118 (an enum wrapper, not a dict)
         raise InvalidArgument(f"{what} must be one of {names}, got {name!r}") from None
 
 
@@ -554,7 +561,7 @@ class Session:
         self._call.cancel()
         self._requests.put(_END)
 
-    def __enter__(self) -> Session:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
@@ -663,7 +670,7 @@ class Client:
     def close(self) -> None:
         self._channel.close()
 
-    def __enter__(self) -> Client:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:

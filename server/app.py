@@ -23,8 +23,14 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from jitdyn.errors import InvalidArgument
-from jitdyn.v1 import dynamics_pb2, dynamics_pb2_grpc, model_registry_pb2, model_registry_pb2_grpc
-from jitdyn.v1 import session_pb2, session_pb2_grpc
+from jitdyn.v1 import (
+    dynamics_pb2,
+    dynamics_pb2_grpc,
+    model_registry_pb2,
+    model_registry_pb2_grpc,
+    session_pb2,
+    session_pb2_grpc,
+)
 from registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from server.auth import ApiKeyInterceptor, load_api_keys
 from server.dynamics_service import DynamicsServicer
@@ -37,7 +43,7 @@ from storage.db import default_index_url, open_index
 from storage.index import SessionIndex
 from storage.recorder import recover_unfinished
 
-__all__ = ["ServerConfig", "create_server", "shutdown", "serve", "MAX_MESSAGE_BYTES", "SERVICE_NAMES"]
+__all__ = ["MAX_MESSAGE_BYTES", "SERVICE_NAMES", "ServerConfig", "create_server", "serve", "shutdown"]
 
 _log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ import grpc
 
 from jitdyn.errors import InvalidArgument
 
-__all__ = ["DEFAULT_TENANT", "tenant_of", "current_tenant", "load_api_keys", "ApiKeyInterceptor"]
+__all__ = ["DEFAULT_TENANT", "ApiKeyInterceptor", "current_tenant", "load_api_keys", "tenant_of"]
 
 DEFAULT_TENANT = ""
 

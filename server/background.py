@@ -13,6 +13,7 @@ import asyncio
 import threading
 from concurrent.futures import Future
 from types import TracebackType
+from typing import Self
 
 import grpc
 
@@ -66,7 +67,7 @@ class BackgroundServer:
             asyncio.run_coroutine_threadsafe(stop, self._loop).result(timeout=120)
         self._stop_loop()
 
-    def __enter__(self) -> BackgroundServer:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(

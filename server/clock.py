@@ -16,7 +16,7 @@ import time
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 
-__all__ = ["ClockSync", "SyncSample", "MonotonicClock"]
+__all__ = ["ClockSync", "MonotonicClock", "SyncSample"]
 
 
 class MonotonicClock:

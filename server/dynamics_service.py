@@ -30,13 +30,13 @@ from server.messages import (
     rejection_record,
     result_message,
     summary_info,
-    summary_message,
     tick_record,
 )
 from server.model_messages import metadata_from_message, model_message, settings_message
 from server.opening import SessionPlan, plan_session
 from server.services import Services
 from server.session import SessionRuntime, TickOutcome
+from server.session_service import summary_to_pb
 from server.status import abort
 from storage.recorder import SessionRecorder
 from storage.records import SessionHeader, SessionSummaryInfo
@@ -180,7 +180,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     def __init__(self, services: Services) -> None:
         self._services = services
 
-    async def StreamSession(  # noqa: N802 (the contract's name)
+    async def StreamSession(
         self,
         request_iterator: AsyncIterator[dynamics_pb2.StreamSessionRequest],
         context: grpc.aio.ServicerContext,
@@ -429,7 +429,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
 
     async def _close(self, stream: _Stream) -> Response:
         summary, location = await self._finish(stream, "COMPLETE")
-        return Response(closed=dynamics_pb2.SessionClosed(summary=summary_message(summary, location=location)))
+        return Response(closed=dynamics_pb2.SessionClosed(summary=summary_to_pb(summary, location=location)))
 
     async def _finish(self, stream: _Stream, status: str) -> tuple[SessionSummaryInfo, str]:
         async with stream.lock:

@@ -13,7 +13,7 @@ import numpy as np
 from jitdyn.checksum import frame_checksum
 from jitdyn.v1 import dynamics_pb2
 
-__all__ = ["FrameIn", "Rejection", "check_frame", "CHANNELS"]
+__all__ = ["CHANNELS", "FrameIn", "Rejection", "check_frame"]
 
 # Frame fields in the order of the contract; ctrl and sensordata are channels too.
 CHANNELS = ("qpos", "qvel", "qacc", "ctrl", "sensordata")

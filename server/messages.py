@@ -13,7 +13,7 @@ from server.frames import Rejection
 from server.session import SessionCounts, TickOutcome
 from storage.records import SessionSummaryInfo, TickRecord
 
-__all__ = ["result_message", "rejected_message", "tick_record", "rejection_record", "summary_info", "summary_message"]
+__all__ = ["rejected_message", "rejection_record", "result_message", "summary_info", "tick_record"]
 
 _SOURCES = {
     "MEASURED": dynamics_pb2.SOURCE_MEASURED,
@@ -171,20 +171,4 @@ def summary_info(counts: SessionCounts, *, duration: float) -> SessionSummaryInf
         max_compute_us=float(counts.compute_us_max),
         duration=duration,
         stats=stats,
-    )
-
-
-def summary_message(summary: SessionSummaryInfo, *, location: str) -> dynamics_pb2.SessionSummary:
-    return dynamics_pb2.SessionSummary(
-        ticks=summary.ticks,
-        frames=summary.frames,
-        measured=summary.measured,
-        predicted=summary.predicted,
-        corrected=summary.corrected,
-        rejected=summary.rejected,
-        late=summary.late,
-        location=location,
-        mean_compute_us=summary.mean_compute_us,
-        max_compute_us=summary.max_compute_us,
-        duration=summary.duration,
     )

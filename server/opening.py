@@ -14,7 +14,7 @@ from jitdyn.errors import InvalidArgument
 from jitdyn.v1 import common_pb2, dynamics_pb2
 from server.model_messages import settings_from_message
 
-__all__ = ["SessionPlan", "plan_session", "enum_name", "ESTIMATOR_FIELDS"]
+__all__ = ["ESTIMATOR_FIELDS", "SessionPlan", "enum_name", "plan_session"]
 
 # Optional scalar fields of EstimatorSettings, by name.
 ESTIMATOR_FIELDS = ("alpha", "beta", "kappa", "p0", "q_var", "r")

@@ -16,7 +16,7 @@ from server.pool import WorkerPool
 from storage.anonymise import Anonymiser
 from storage.index import SessionIndex
 
-__all__ = ["SessionLimits", "DEFAULT_SESSION_LIMITS", "Services"]
+__all__ = ["DEFAULT_SESSION_LIMITS", "Services", "SessionLimits"]
 
 
 @dataclass(frozen=True)

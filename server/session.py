@@ -23,7 +23,7 @@ from server.dynamics import Dynamics, DynamicsResult
 from server.estimator import Estimate, Estimator, Measurement
 from server.frames import FrameIn, Rejection
 
-__all__ = ["TickOutcome", "SessionRuntime", "SessionCounts"]
+__all__ = ["SessionCounts", "SessionRuntime", "TickOutcome"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -241,9 +241,13 @@ class SessionRuntime:
         if frame.qacc is not None:
             return frame.qacc
         previous = self._ticks.get(tick.seq - 1)
-        if frame.qvel is not None and previous is not None and previous.frame is not None:
-            if previous.frame.qvel is not None:
-                return (frame.qvel - previous.frame.qvel) / self._dt
+        if (
+            frame.qvel is not None
+            and previous is not None
+            and previous.frame is not None
+            and previous.frame.qvel is not None
+        ):
+            return (frame.qvel - previous.frame.qvel) / self._dt
         if estimate is not None:
             return estimate.qacc
         qvel = frame.qvel if frame.qvel is not None else self._zero_nv
