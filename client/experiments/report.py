@@ -100,7 +100,8 @@ class Section:
 
 def _raw(cell: object) -> object:
     if isinstance(cell, float):
-        return repr(cell)
+        # float() first: numpy's scalars are floats whose repr is "np.float64(...)".
+        return repr(float(cell))
     if isinstance(cell, tuple):
         return ";".join(str(_raw(c)) for c in cell)
     return "" if cell is None else cell

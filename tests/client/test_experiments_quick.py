@@ -59,6 +59,7 @@ def test_quick_run_writes_every_table_and_plot_with_finite_numbers(tmp_path: Pat
     }
     assert len(pngs) >= 12
     for path in csvs:
+        assert not [c for c in _cells(path) if "np." in c], f"{path.name} holds numpy reprs, not numbers"
         numbers = _numbers(_cells(path))
         assert numbers, f"{path.name} holds no numbers"
         bad = [x for x in numbers if not math.isfinite(x)]
