@@ -1,0 +1,333 @@
+"""How long one UKF cycle (predict + update) takes per model, against the floor of its physics.
+
+For each of the thesis' experiments (passive pendulums, controlled pendulum_3, controlled biped,
+externally controlled myoElbow and myoHand), with jitdyn's default settings (the JITDYN preset),
+both propagation back-ends and 1 and 2 workers:
+
+    cycle   median wall time of estimator.predict(ctrl) + estimator.update(frame)
+    floor   nsigma x steps per tick x one mj_step (measured in the same run, on the filter's own
+            process model, along the same trajectory) / workers
+    ratio   cycle / floor     (target <= 1.5; and cycle < dt for every model)
+
+In CONTROLLED the filter steps fewer points than nsigma (points that differ only in qdd share one
+propagation; server/ukf.py): the floor still counts every sigma point, and the table says how many
+were stepped. mj_step is the process model's (server/propagate.py: warm start and sensors off;
+in EXTERNAL actuators off and inert tendons dropped); the model's own is printed beside it.
+
+Everything is measured side by side, round-robin, in one process: on a machine shared with other
+work, a slow moment then hits every configuration alike. Ground truth is MuJoCo itself, driven
+as the thesis drove it; models come from models/*.xml when present (else an inline stand-in, which
+the output flags) and from myo_sim.
+
+    python benchmarks/ukf_cycle.py                   # full run, ~2 minutes
+    python benchmarks/ukf_cycle.py --quick           # fewer rounds
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import threading
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from server.estimator import EstimatorConfig, Measurement, make_estimator, resolve_config
+from server.pool import Backend, WorkerPool
+from server.propagate import process_model
+from server.ukf import UnscentedFilter
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+
+
+def _pendulum_xml(n: int) -> str:
+    bodies = "".join(
+        f'<body pos="0 0 {0 if i == 0 else -1}"><joint name="j{i}" type="hinge" axis="0 1 0"/>'
+        '<geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1" contype="0" conaffinity="0"/>'
+        for i in range(n)
+    )
+    motors = "".join(f'<motor joint="j{i}" gear="1"/>' for i in range(n))
+    return (
+        f'<mujoco><option timestep="0.01"/><worldbody>{bodies}{"</body>" * n}</worldbody>'
+        f"<actuator>{motors}</actuator></mujoco>"
+    )
+
+
+# Stand-in for models/biped.xml until it lands: 6 joints (x slide, z slide, two leg hinges, two
+# shock-absorber slides), rods of 1 m and 1 kg, contact with the ground, timestep 1 ms.
+_BIPED_XML = """
+<mujoco>
+  <option timestep="0.001"/>
+  <worldbody>
+    <geom type="plane" size="20 20 0.1"/>
+    <body pos="0 0 1.05">
+      <joint name="x" type="slide" axis="1 0 0"/>
+      <joint name="z" type="slide" axis="0 0 1"/>
+      <geom type="sphere" size="0.08" mass="0.5"/>
+      <body>
+        <joint name="left_hip" type="hinge" axis="0 1 0" range="-1 1" limited="true"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="0.5"/>
+        <body pos="0 0 -0.5">
+          <joint name="left_absorber" type="slide" axis="0 0 1" range="-0.1 0.1" limited="true"
+                 stiffness="1000" damping="20"/>
+          <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="0.5"/>
+        </body>
+      </body>
+      <body>
+        <joint name="right_hip" type="hinge" axis="0 1 0" range="-1 1" limited="true"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="0.5"/>
+        <body pos="0 0 -0.5">
+          <joint name="right_absorber" type="slide" axis="0 0 1" range="-0.1 0.1" limited="true"
+                 stiffness="1000" damping="20"/>
+          <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="0.5"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="left_hip" gear="1"/><motor joint="left_absorber" gear="1"/>
+    <motor joint="right_hip" gear="1"/><motor joint="right_absorber" gear="1"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def load(name: str) -> tuple[mujoco.MjModel, str]:
+    """The model and where it came from."""
+    if name.startswith("myo"):
+        import myo_sim  # heavy: only when a myo model is benchmarked
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "Attaching a spec with an empty prefix": myo_sim's own
+            return myo_sim.load_model(name), "myo_sim"
+    path = MODELS / f"{name}.xml"
+    if path.exists():
+        return mujoco.MjModel.from_xml_path(str(path)), str(path.relative_to(MODELS.parent))
+    xml = _BIPED_XML if name == "biped" else _pendulum_xml(int(name.rsplit("_", 1)[1]))
+    return mujoco.MjModel.from_xml_string(xml), "inline stand-in"
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    model: str
+    scenario: str
+    dt: float
+    control: Callable[[mujoco.MjModel, int], np.ndarray]
+
+
+def _sines(model: mujoco.MjModel, k: int) -> np.ndarray:
+    return 2.0 * np.sin(0.2 * k + np.arange(model.nu))
+
+
+def _gait(model: mujoco.MjModel, k: int) -> np.ndarray:
+    return 5.0 * np.sin(0.02 * k + np.pi * np.arange(model.nu))
+
+
+def _excitation(model: mujoco.MjModel, k: int) -> np.ndarray:
+    # Gradual raising and lowering (myoElbow), alternate bending (myoHand): slow, out-of-phase waves.
+    return 0.5 + 0.5 * np.sin(0.01 * k + 0.7 * np.arange(model.nu))
+
+
+def _none(model: mujoco.MjModel, k: int) -> np.ndarray:
+    return np.zeros(model.nu)
+
+
+CASES = [
+    Case("pendulum_1 passive", "pendulum_1", "PASSIVE", 0.05, _none),
+    Case("pendulum_2 passive", "pendulum_2", "PASSIVE", 0.05, _none),
+    Case("pendulum_3 passive", "pendulum_3", "PASSIVE", 0.05, _none),
+    Case("pendulum_3 controlled", "pendulum_3", "CONTROLLED", 0.05, _sines),
+    Case("biped controlled", "biped", "CONTROLLED", 0.005, _gait),
+    Case("myoElbow external", "myoelbow", "EXTERNAL", 0.002, _excitation),
+    Case("myoHand external", "myohand", "EXTERNAL", 0.002, _excitation),
+]
+
+
+def ground_truth(model: mujoco.MjModel, case: Case, nstep: int, ticks: int) -> list[Measurement]:
+    d = mujoco.MjData(model)
+    if case.model.startswith("pendulum"):
+        d.qpos[:] = 0.5
+    mujoco.mj_forward(model, d)
+    frames = []
+    for k in range(ticks):
+        d.ctrl[:] = case.control(model, k)
+        for _ in range(nstep):
+            mujoco.mj_step(model, d)
+        frames.append(Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy(), ctrl=d.ctrl.copy()))
+    return frames
+
+
+class Runner:
+    """One estimator on one pool, stepping through its ground truth a few cycles at a time."""
+
+    def __init__(self, model: mujoco.MjModel, config: EstimatorConfig, pool: WorkerPool, frames: list[Measurement]):
+        self.estimator = make_estimator(model, config, pool=pool)
+        self.frames = frames
+        self.estimator.initialise(frames[0])
+        self.next = 1
+        self.controlled = config.scenario == "CONTROLLED"
+
+    def cycles(self, count: int) -> float:
+        """Run `count` cycles; seconds per cycle."""
+        estimator, frames = self.estimator, self.frames
+        if self.next + count > len(frames):
+            estimator.initialise(frames[0])
+            self.next = 1
+        start = time.perf_counter()
+        for k in range(self.next, self.next + count):
+            frame = frames[k]
+            estimator.predict(ctrl=frame.ctrl if self.controlled else None)
+            estimator.update(frame)
+        elapsed = time.perf_counter() - start
+        self.next += count
+        return elapsed / count
+
+
+def step_time(model: mujoco.MjModel, frames: list[Measurement], nstep: int, ticks: int, start: int) -> float:
+    """Seconds per mj_step of the process model along the ground truth (states set per tick)."""
+    d = mujoco.MjData(model)
+    elapsed = 0.0
+    for k in range(start, start + ticks):
+        frame = frames[k % len(frames)]
+        d.qpos[:], d.qvel[:] = frame.qpos, frame.qvel
+        if frame.ctrl is not None:
+            d.ctrl[:] = frame.ctrl
+        t0 = time.perf_counter()
+        mujoco.mj_step(model, d, nstep)
+        elapsed += time.perf_counter() - t0
+    return elapsed / (ticks * nstep)
+
+
+def parallel_speedup(model: mujoco.MjModel, steps: int = 2000) -> float:
+    """How much faster two threads step MuJoCo than one, right now (2.0: a free second core).
+
+    Each thread loops mj_step on its own MjData (mj_step releases the GIL); the same work is done
+    once on one thread and once split across two.
+    """
+    datas = [mujoco.MjData(model) for _ in range(2)]
+
+    def run(d: mujoco.MjData, n: int) -> None:
+        mujoco.mj_step(model, d, n)
+
+    start = time.perf_counter()
+    run(datas[0], 2 * steps)
+    one = time.perf_counter() - start
+    other = threading.Thread(target=run, args=(datas[1], steps))
+    start = time.perf_counter()
+    other.start()
+    run(datas[0], steps)
+    other.join()
+    two = time.perf_counter() - start
+    return one / two
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--rounds", type=int, default=15, help="round-robin rounds (default 15)")
+    parser.add_argument("--seconds", type=float, default=0.05, help="target time per measurement (default 0.05 s)")
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--preset", default="JITDYN", choices=["JITDYN", "THESIS"])
+    parser.add_argument("--cases", nargs="+", help="substrings of case names to run")
+    parser.add_argument("--quick", action="store_true", help="5 rounds")
+    args = parser.parse_args(argv)
+    rounds = 5 if args.quick else args.rounds
+    cases = [c for c in CASES if not args.cases or any(s in c.name for s in args.cases)]
+
+    pools = {(b, w): WorkerPool(w, backend=b) for b in Backend for w in args.workers}
+    setups = []
+    for case in cases:
+        model, source = load(case.model)
+        measured = {"qpos", "qvel", "ctrl"} if case.scenario == "CONTROLLED" else {"qpos", "qvel"}
+        config = resolve_config(
+            model=model, scenario=case.scenario, dt=case.dt, requested={}, model_defaults={},
+            preset=args.preset, measured=measured,
+        )
+        frames = ground_truth(model, case, config.steps_per_tick, ticks=4000)
+        runners = {key: Runner(model, config, pool, frames) for key, pool in pools.items()}
+        some = next(iter(runners.values())).estimator
+        nsigma = some.nsigma if isinstance(some, UnscentedFilter) else 1
+        stepped = nsigma - 2 * model.nv if case.scenario == "CONTROLLED" and config.sigma_points == "MERWE" else nsigma
+        # Calibrate the cycles per measurement on the slowest configuration (one worker).
+        probe = runners[Backend.ROLLOUT, min(args.workers)].cycles(5)
+        count = max(3, min(500, int(args.seconds / probe)))
+        setups.append((case, model, source, config, frames, runners, nsigma, count, stepped))
+
+    cycle: dict[tuple[str, Backend, int], list[float]] = {}
+    step: dict[str, list[float]] = {}
+    own_step: dict[str, list[float]] = {}
+    speedups: list[float] = []
+    probe_model = load("pendulum_3")[0]
+    processes = {case.name: process_model(model, scenario=case.scenario) for case, model, *_ in setups}
+    # Ratios are paired: each cycle measurement is divided by the floor measured just before and
+    # just after it, so that a busy moment on the shared machine weighs on both alike.
+    ratio: dict[tuple[str, Backend, int], list[float]] = {}
+    rollout_over_threads: dict[tuple[str, int], list[float]] = {}
+    for r in range(rounds):
+        speedups.append(parallel_speedup(probe_model))
+        for case, model, _, config, frames, runners, nsigma, count, _ in setups:
+            ticks = max(20, count * nsigma // config.steps_per_tick)
+            process = processes[case.name]
+            own_step.setdefault(case.name, []).append(
+                step_time(model, frames, config.steps_per_tick, ticks=max(5, ticks // 4), start=r * 37)
+            )
+            here: dict[tuple[Backend, int], float] = {}
+            for (backend, workers), runner in runners.items():
+                before = step_time(process, frames, config.steps_per_tick, ticks=ticks, start=r * 37)
+                seconds = runner.cycles(count)
+                after = step_time(process, frames, config.steps_per_tick, ticks=ticks, start=r * 37)
+                mj = 0.5 * (before + after)
+                step.setdefault(case.name, []).append(mj)
+                cycle.setdefault((case.name, backend, workers), []).append(seconds)
+                floor = nsigma * config.steps_per_tick * mj / workers
+                ratio.setdefault((case.name, backend, workers), []).append(seconds / floor)
+                here[backend, workers] = seconds
+            for workers in args.workers:
+                rollout_over_threads.setdefault((case.name, workers), []).append(
+                    here[Backend.ROLLOUT, workers] / here[Backend.THREADS, workers]
+                )
+
+    print(
+        f"preset {args.preset}; {rounds} rounds; medians (ratios: median of paired ratios); "
+        f"python {sys.version.split()[0]}, mujoco {mujoco.__version__}"
+    )
+    print(
+        f"two threads stepped MuJoCo {statistics.median(speedups):.2f}x as fast as one (median; "
+        f"{min(speedups):.2f}-{max(speedups):.2f}): the parallelism the machine had to give"
+    )
+    print()
+    print("| case | model | dt (ms) | points x steps (stepped) | mj_step process / own (us) | workers "
+          "| floor (us) | rollout (us) | ratio | threads (us) | ratio | faster | cycle < dt |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for case, _, source, config, _, _, nsigma, _, stepped in setups:
+        mj = statistics.median(step[case.name])
+        own = statistics.median(own_step[case.name])
+        for workers in args.workers:
+            floor = nsigma * config.steps_per_tick * mj / workers
+            roll = statistics.median(cycle[case.name, Backend.ROLLOUT, workers])
+            thr = statistics.median(cycle[case.name, Backend.THREADS, workers])
+            roll_ratio = statistics.median(ratio[case.name, Backend.ROLLOUT, workers])
+            thr_ratio = statistics.median(ratio[case.name, Backend.THREADS, workers])
+            best = min(roll, thr)
+            relative = statistics.median(rollout_over_threads[case.name, workers])
+            faster = f"rollout {1 / relative:.2f}x" if relative <= 1 else f"threads {relative:.2f}x"
+            print(
+                f"| {case.name} | {source} | {case.dt * 1e3:g} | {config.sigma_points.lower()} {nsigma} x "
+                f"{config.steps_per_tick} ({stepped}) | {mj * 1e6:.1f} / {own * 1e6:.1f} | {workers} "
+                f"| {floor * 1e6:.0f} "
+                f"| {roll * 1e6:.0f} | {roll_ratio:.2f} | {thr * 1e6:.0f} | {thr_ratio:.2f} "
+                f"| {faster} | {'yes' if best < case.dt else 'NO'} ({best / case.dt:.0%}) |"
+            )
+    for pool in pools.values():
+        pool.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
