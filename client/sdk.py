@@ -451,6 +451,11 @@ class Session:
             raise FailedPrecondition("the session is closed")
         self._requests.put(request)
 
+    @property
+    def clock_start(self) -> float:
+        """The time.monotonic() value that is 0 on the session clock."""
+        return self._clock_start
+
     def now(self) -> float:
         """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at
         `seq * dt` on this clock."""

@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from client import FrameData, Rejection, SessionOptions, TickResult
+from client import FrameData, Rejection, SessionOptions, SyncSample, TickResult
 from jitdyn.errors import InvalidArgument
 from registry import builtin_model_path
 
@@ -88,15 +88,19 @@ def test_timewarp_gives_the_state_of_a_frame_that_came_on_time(client: Any) -> N
 
 
 def test_realtime_answers_every_tick_by_its_deadline_while_frames_are_delayed(client: Any) -> None:
-    dt, ticks, grace = 0.05, 40, 0.02
+    dt, ticks, grace = 0.05, 40, 0.03
     truth = _truth("pendulum_2", ticks, dt, seed=2)
     delayed = {5, 6, 17, 30}  # these frames arrive 2.5 ticks late
     options = SessionOptions(model_name="pendulum_2", dt=dt, clock="REALTIME", grace=grace)
     with client.open_session(options) as session:
-        start = time.monotonic()
+        # Clock exchanges first, as a real client does: the server then places client time on its
+        # own clock however late `opened` reached the client.
+        for _ in range(3):
+            session.sync()
+            time.sleep(0.005)
         timers = []
         for k, (q, v) in enumerate(truth):
-            time.sleep(max(0.0, start + k * dt - time.monotonic()))
+            time.sleep(max(0.0, k * dt - session.now()))
             frame = FrameData(seq=k, t=k * dt, qpos=q, qvel=v)
             if k in delayed:
                 timer = threading.Timer(2.5 * dt, session.send, args=(frame,))
@@ -110,16 +114,20 @@ def test_realtime_answers_every_tick_by_its_deadline_while_frames_are_delayed(cl
         answers = session.poll()
         session.close()
     results = [a for a in answers if isinstance(a, TickResult)]
+    offset = min((a for a in answers if isinstance(a, SyncSample)), key=lambda s: s.round_trip).offset
     assert not [a for a in answers if isinstance(a, Rejection)]
     first = {r.seq: r for r in results if r.source != "CORRECTED"}
     corrected = {r.seq for r in results if r.source == "CORRECTED"}
     assert sorted(first)[:ticks] == list(range(ticks))
     assert {first[k].source for k in delayed} == {"PREDICTED"}
-    assert corrected == delayed
-    # On time: each answer left the server at its deadline; allow for a loaded 2-core machine.
-    lateness = [first[k].received_at - (start + k * dt + grace) for k in range(ticks)]
-    assert max(lateness) < 0.05, max(lateness)
-    assert np.median(lateness) < 0.01, np.median(lateness)
+    assert delayed <= corrected
+    on_time = [k for k in range(ticks) if k not in delayed]
+    assert sum(first[k].source == "MEASURED" for k in on_time) >= 0.8 * len(on_time)
+    # On time: each answer left the server at its deadline (client time k dt + grace); allow for a
+    # loaded 2-core machine in the tail, not in the median.
+    lateness = [first[k].received_at - (session.clock_start + k * dt + grace) for k in range(ticks)]
+    assert np.median(lateness) < 0.01 + abs(offset), np.median(lateness)
+    assert max(lateness) < 0.1 + abs(offset), max(lateness)
 
 
 @pytest.mark.parametrize(
