@@ -367,11 +367,14 @@ class Session:
     """One open session. Use as a context manager; `close()` is safe to call twice.
 
     LOCKSTEP: `send_frame` and `skip` return the server's one answer. REALTIME: `send` queues a frame
-    without waiting, and `results()` yields answers as they arrive.
+    without waiting, and `results()` or `poll()` give answers as they arrive, among them the
+    `SyncSample`s of the clock probes the session sends by itself (at open, then every
+    `sync_interval` seconds with the frames).
     """
 
     def __init__(self, stub: dynamics_pb2_grpc.DynamicsServiceStub, options: SessionOptions, *,
-                 timeout: float | None, metadata: Sequence[tuple[str, str]], checksum: bool) -> None:
+                 timeout: float | None, metadata: Sequence[tuple[str, str]], checksum: bool,
+                 sync_interval: float = 0.5) -> None:
         self._requests: queue.Queue[object] = queue.Queue()
         self._responses: queue.Queue[object] = queue.Queue()
         self._timeout = timeout
@@ -379,6 +382,9 @@ class Session:
         self._clock_start = time.monotonic()
         self._last_probe: tuple[int, float] | None = None
         self._probe_id = 0
+        self._realtime = options.clock.upper() == "REALTIME"
+        self._sync_interval = sync_interval
+        self._last_sync_sent = -float("inf")
         self._closed = False
         self.summary: Summary | None = None
         open_request = dynamics_pb2.StreamSessionRequest(open=options.to_message())
@@ -393,6 +399,8 @@ class Session:
         # the two differ by one transit until `sync` exchanges measure the offset.
         self._clock_start = time.monotonic()
         self.opened = _opened(first.opened)
+        if self._realtime:
+            self.sync()
 
     # Plumbing.
 
@@ -406,7 +414,11 @@ class Session:
     def _read(self) -> None:
         try:
             for response in self._call:
-                self._responses.put((time.monotonic(), response))
+                received_at = time.monotonic()
+                if response.HasField("sync"):
+                    # t4 of this exchange, reported by the next probe however late the caller reads it.
+                    self._last_probe = (response.sync.id, received_at - self._clock_start)
+                self._responses.put((received_at, response))
         except grpc.RpcError as error:
             self._responses.put(error)
         finally:
@@ -485,7 +497,10 @@ class Session:
     # REALTIME (and LOCKSTEP, for callers that pipeline).
 
     def send(self, frame: FrameData) -> None:
-        """Queue a frame without waiting for its answer."""
+        """Queue a frame without waiting for its answer. In REALTIME a clock probe goes along every
+        `sync_interval` seconds, so the server keeps client time on its clock."""
+        if self._realtime and self.now() - self._last_sync_sent >= self._sync_interval:
+            self.sync()
         self._send(dynamics_pb2.StreamSessionRequest(frame=frame.to_message(checksum=self._checksum)))
 
     def results(self, *, timeout: float | None = None) -> Iterator[TickResult | Rejection | SyncSample]:
@@ -525,14 +540,14 @@ class Session:
     def sync(self) -> None:
         """Send a clock probe; its answer comes back among the results (a `SyncSample`)."""
         self._probe_id += 1
-        ping = dynamics_pb2.SyncPing(id=self._probe_id, client_send_time=self.now())
+        self._last_sync_sent = self.now()
+        ping = dynamics_pb2.SyncPing(id=self._probe_id, client_send_time=self._last_sync_sent)
         if self._last_probe is not None:
             ping.previous_id, ping.previous_receive_time = self._last_probe
         self._send(dynamics_pb2.StreamSessionRequest(sync=ping))
 
     def _sync_sample(self, pong: dynamics_pb2.SyncPong, received_at: float) -> SyncSample:
         t4 = received_at - self._clock_start
-        self._last_probe = (pong.id, t4)
         t1, t2, t3 = pong.client_send_time, pong.server_receive_time, pong.server_send_time
         return SyncSample(
             offset=((t2 - t1) + (t3 - t4)) / 2.0,

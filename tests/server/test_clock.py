@@ -71,7 +71,7 @@ def test_sync_over_the_stream_and_the_half_round_trip_horizon(client: Any) -> No
         session.close()
     samples = [a for a in answers if isinstance(a, SyncSample)]
     results = [a for a in answers if isinstance(a, TickResult)]
-    assert len(samples) == 4
+    assert len(samples) >= 4  # ours, and the ones the session sends by itself
     assert samples[-1].server_round_trip > 0.0
     assert all(abs(s.offset) < 0.05 for s in samples)
     measured = [r for r in results if r.source == "MEASURED"]
