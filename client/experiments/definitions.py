@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,7 +28,7 @@ from client.experiments.report import (
     plot_gap_errors,
 )
 from client.experiments.runner import ModelCache, RunSpec, Trace, run_lockstep
-from client.metrics import chi_square_interval, gap_errors
+from client.metrics import gap_errors
 from client.netem import DelayedSender, Distribution, NetworkProfile, sample_delays
 from client.objects import Scenario, make_object
 from client.sdk import Client, FrameData, SessionOptions, SyncSample, TickResult
@@ -733,7 +733,6 @@ def _run_realtime(
     downlink = sample_delays(down, 4 * (ticks + spare), seed=ctx.seed + 1)
     first: dict[int, float] = {}
     with_frame: dict[int, float] = {}
-    measured = 0
     answers = 0
     synced = 0
     options = SessionOptions(
@@ -748,7 +747,7 @@ def _run_realtime(
         base = time.monotonic() - session.now()  # the session clock's zero on time.monotonic
 
         def take(results: Sequence[object]) -> None:
-            nonlocal measured, answers, synced
+            nonlocal answers, synced
             for r in results:
                 if isinstance(r, SyncSample):
                     synced += 1
@@ -761,7 +760,6 @@ def _run_realtime(
                 first.setdefault(r.seq, arrival - sent)
                 if r.source in ("MEASURED", "CORRECTED") and r.seq not in with_frame:
                     with_frame[r.seq] = arrival - sent
-                    measured += r.source == "MEASURED"
 
         # Clock sync first, over the plain loopback: each probe completes the exchange before it,
         # so after four the server places client time on its clock from three round trips.
@@ -947,13 +945,3 @@ EXPERIMENTS: dict[str, Experiment] = {
         ),
     )
 }
-
-
-def thesis_interval_note(dim: int) -> str:
-    """How a thesis CI compares with ours, for the docs."""
-    c = chi_square_interval(dim)
-    return f"chi2({dim}) 95 %: [{c.low:.4g}; {c.high:.4g}]"
-
-
-def seconds_table() -> Mapping[str, tuple[float, float]]:
-    return dict(_SECONDS)

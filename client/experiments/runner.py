@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -283,7 +283,3 @@ def _state(result: TickResult, nx: int) -> np.ndarray:
         return np.asarray(result.filter_state, dtype=float)
     # Before the first frame there is no filter state; NaN keeps the tick out of the metrics.
     return np.full(nx, math.nan)
-
-
-def with_preset(spec: RunSpec, preset: str) -> RunSpec:
-    return replace(spec, preset=preset)
