@@ -118,3 +118,31 @@ def test_a_truth_that_blows_up_says_so_instead_of_resetting():
     with pytest.raises(UnstableSimulation, match=r"the simulation became unstable by t = 0.05 s") as error:
         obj.step(np.array([1e12]))
     assert error.value.t == pytest.approx(0.05)
+
+
+def test_myoelbow_raises_and_lowers_the_forearm_deterministically():
+    from client.objects import MyoElbow
+
+    def run(seed):
+        obj = MyoElbow()
+        obj.reset(seed)
+        return np.array([obj.step().qpos[0] for _ in range(1000)])  # 2 s: up to the top
+
+    a = run(1)
+    np.testing.assert_array_equal(a, run(1))
+    assert not np.array_equal(a, run(2))
+    assert a[-1] - a[0] > 0.8  # raised from 0.3 towards 1.5 rad
+
+
+def test_myohand_bends_the_index_first():
+    from client.objects import MyoHand
+
+    obj = MyoHand()
+    obj.reset(0)
+    index = obj.model.joint("mcp2_flexion_r").qposadr[0]
+    for _ in range(200):  # 0.4 s: the index's flexion peaks at a quarter period
+        s = obj.step()
+    assert s.qpos[index] > 1.0
+    assert obj.scenario is Scenario.EXTERNAL
+    with pytest.raises(ValueError, match="myohand runs only in the EXTERNAL scenario, got CONTROLLED"):
+        MyoHand(Scenario.CONTROLLED)
