@@ -7,16 +7,20 @@ sessions, at most `workers` threads run MuJoCo for them at a time. Two back-ends
     with WorkerPool(2) as pool:                       # Backend.ROLLOUT, the default
         estimator = make_estimator(model, config, pool=pool)
 
-- `Backend.ROLLOUT`: one persistent `mujoco.rollout.Rollout` whose C++ threads step whole sigma
-  sets without the GIL.
-- `Backend.THREADS`: Python threads, each looping `mj_step` on its own MjData (mj_step releases the
-  GIL while it runs).
+- `Backend.ROLLOUT`: one persistent `mujoco.rollout.Rollout` per worker steps that worker's share
+  of a sigma set in C++, without the GIL and without Python per point or per step.
+- `Backend.THREADS`: each worker loops `mj_step` over its share on its own MjData, from Python
+  (mj_step releases the GIL while it runs).
+
+Either way a call is cut into up to `workers` contiguous chunks; the calling thread steps the
+first itself and `workers - 1` pool threads the others, so a call wakes at most `workers - 1`
+threads and the caller never sleeps while there is work. (A single Rollout with its own C++ pool
+of `workers` threads was measured slower inside a filter cycle: it wakes every thread, and the
+caller, on every call.) A call also says how many chunks its work is worth (server/propagate.py:
+about MIN_CHUNK_SECONDS of physics each): a small sigma set stays on the calling thread.
 
 Propagations are serialised by one lock: a call gets every worker, and sessions queue behind it.
-That is what keeps the bound, and it is also what `mujoco.rollout.Rollout` needs, since its thread
-pool counts finished jobs per call and must not be entered twice at once. A call says how many
-chunks its work is worth (server/propagate.py: about MIN_CHUNK_SECONDS of physics each); one chunk
-runs on the calling thread, with no hand-off at all.
+That is what keeps the bound.
 """
 
 from __future__ import annotations
@@ -74,17 +78,13 @@ class WorkerPool:
         self._workers = workers
         self._lock = threading.Lock()
         self._closed = False
-        self._rollout: mujoco.rollout.Rollout | None = None
-        self._serial_rollout: mujoco.rollout.Rollout | None = None
-        self._executor: ThreadPoolExecutor | None = None
-        if self._backend is Backend.ROLLOUT:
-            # nthread=0 runs on the calling thread: for one chunk, no hand-off to another thread.
-            self._serial_rollout = mujoco.rollout.Rollout(nthread=0)
-            if workers > 1:
-                self._rollout = mujoco.rollout.Rollout(nthread=workers)
-        elif workers > 1:
-            # The calling thread steps one chunk itself, so workers - 1 more threads make `workers`.
-            self._executor = ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="jitdyn-sigma")
+        # nthread=0: each Rollout runs on the thread that calls it, the caller or a pool thread.
+        self._rollouts = (
+            [mujoco.rollout.Rollout(nthread=0) for _ in range(workers)] if self._backend is Backend.ROLLOUT else []
+        )
+        self._executor = (
+            ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="jitdyn-sigma") if workers > 1 else None
+        )
 
     @property
     def workers(self) -> int:
@@ -105,10 +105,9 @@ class WorkerPool:
             if self._closed:
                 return
             self._closed = True
-            for rollout in (self._rollout, self._serial_rollout):
-                if rollout is not None:
-                    rollout.close()
-            self._rollout = self._serial_rollout = None
+            for rollout in self._rollouts:
+                rollout.close()
+            self._rollouts = []
             if self._executor is not None:
                 self._executor.shutdown(wait=True)
                 self._executor = None
@@ -144,33 +143,33 @@ class WorkerPool:
         state: np.ndarray,
         chunks: int,
     ) -> None:
-        """`Rollout.rollout` with checks skipped: the caller preallocated every array.
+        """`Rollout.rollout` with checks skipped, each worker on its share of the rows.
 
-        models: the model nbatch times (the unchecked call wants one per rollout); data: one MjData
-        per worker; initial_state (nbatch, nstate); control (nbatch, nstep, ncontrol) or None;
-        state, the output, (nbatch, nstep, nstate); chunks: how many workers the work is worth.
+        models: the model nbatch times (the unchecked call wants one per rollout); data: one
+        MjData per worker; initial_state (nbatch, nstate); control (nbatch, nstep, ncontrol) or
+        None; state, the output, (nbatch, nstep, nstate), all C-contiguous; chunks: how many
+        workers the work is worth.
         """
-        with self._lock:
-            self._check_open()
-            if self._serial_rollout is None:
-                raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not ROLLOUT")
-            nchunk = max(1, min(chunks, self._workers, initial_state.shape[0]))
-            serial = nchunk == 1 or self._rollout is None
-            rollout = self._serial_rollout if serial else self._rollout
-            rollout.rollout(  # type: ignore[union-attr]
-                models,
-                data[:1] if serial else data,
-                initial_state,
-                control,
+        if self._backend is not Backend.ROLLOUT:
+            raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not ROLLOUT")
+
+        def work(worker: int, lo: int, hi: int) -> None:
+            # Leading-axis slices of C-contiguous arrays are C-contiguous, as the call needs.
+            self._rollouts[worker].rollout(
+                models[lo:hi],
+                [data[worker]],
+                initial_state[lo:hi],
+                None if control is None else control[lo:hi],
                 control_spec=control_spec,
                 skip_checks=True,
                 nstep=nstep,
                 initial_warmstart=None,
-                state=state,
+                state=state[lo:hi],
                 sensordata=None,
-                # Sigma sets are small and even: finer chunks than needed only add hand-offs.
-                chunk_size=-(-initial_state.shape[0] // nchunk),
+                chunk_size=None,
             )
+
+        self._run(work, initial_state.shape[0], chunks)
 
     def serial(self, work: Callable[[], None]) -> None:
         """Run work() on the calling thread while holding the pool, for the odd serial pass."""
@@ -179,25 +178,25 @@ class WorkerPool:
             work()
 
     def run_chunks(self, work: Callable[[int, int, int], None], count: int, *, chunks: int) -> None:
-        """Call work(worker, start, stop) over [0, count) split in up to `chunks` even chunks.
+        """THREADS: call work(worker, start, stop) over [0, count) in up to `chunks` even chunks.
 
         Worker 0's chunk runs on the calling thread, the others on the pool's threads; returns
         when all are done and re-raises the first exception.
         """
+        if self._backend is not Backend.THREADS:
+            raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not THREADS")
+        self._run(work, count, chunks)
+
+    def _run(self, work: Callable[[int, int, int], None], count: int, chunks: int) -> None:
         with self._lock:
             self._check_open()
-            if self._backend is not Backend.THREADS:
-                raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not THREADS")
             nchunk = max(1, min(chunks, self._workers, count))
-            bounds = np.linspace(0, count, nchunk + 1).round().astype(int)
+            bounds = [i * count // nchunk for i in range(nchunk + 1)]  # even, contiguous
             futures: list[Future[None]] = []
-            if self._executor is not None:
-                futures = [
-                    self._executor.submit(work, i, int(bounds[i]), int(bounds[i + 1]))
-                    for i in range(1, nchunk)
-                ]
+            if nchunk > 1 and self._executor is not None:
+                futures = [self._executor.submit(work, i, bounds[i], bounds[i + 1]) for i in range(1, nchunk)]
             try:
-                work(0, int(bounds[0]), int(bounds[1]))
+                work(0, bounds[0], bounds[1])
             finally:
                 # Wait for every chunk even when ours failed: they write into the caller's buffers.
                 for future in futures:

@@ -279,7 +279,7 @@ def test_chunks_cover_the_set_once_and_errors_propagate() -> None:
 
     with WorkerPool(3, backend="THREADS") as pool:
         pool.run_chunks(record, 10, chunks=5)
-        assert sorted(seen) == [(0, 0, 3), (1, 3, 7), (2, 7, 10)]
+        assert sorted(seen) == [(0, 0, 3), (1, 3, 6), (2, 6, 10)]
         seen.clear()
         pool.run_chunks(record, 10, chunks=0)  # not worth a hand-off: all on the calling thread
         assert seen == [(0, 0, 10)]
