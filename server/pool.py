@@ -140,42 +140,41 @@ class WorkerPool:
         control_spec: int,
         initial_state: np.ndarray,
         control: np.ndarray | None,
-        state: np.ndarray,
+        state: np.ndarray | None,
         chunks: int,
+        then: Callable[[int, int, int], None] | None = None,
     ) -> None:
         """`Rollout.rollout` with checks skipped, each worker on its share of the rows.
 
         models: the model nbatch times (the unchecked call wants one per rollout); data: one
         MjData per worker; initial_state (nbatch, nstate); control (nbatch, nstep, ncontrol) or
-        None; state, the output, (nbatch, nstep, nstate), all C-contiguous; chunks: how many
-        workers the work is worth.
+        None; state, the output, (nbatch, nstep, nstate), all C-contiguous (None when nstep is 0);
+        chunks: how many workers the work is worth; then(worker, start, stop): more work on the
+        same rows, run by the same worker after its rollout.
         """
         if self._backend is not Backend.ROLLOUT:
             raise FailedPrecondition(f"the pool's backend is {self._backend.value}, not ROLLOUT")
 
         def work(worker: int, lo: int, hi: int) -> None:
-            # Leading-axis slices of C-contiguous arrays are C-contiguous, as the call needs.
-            self._rollouts[worker].rollout(
-                models[lo:hi],
-                [data[worker]],
-                initial_state[lo:hi],
-                None if control is None else control[lo:hi],
-                control_spec=control_spec,
-                skip_checks=True,
-                nstep=nstep,
-                initial_warmstart=None,
-                state=state[lo:hi],
-                sensordata=None,
-                chunk_size=None,
-            )
+            if nstep > 0 and state is not None:
+                # Leading-axis slices of C-contiguous arrays are C-contiguous, as the call needs.
+                self._rollouts[worker].rollout(
+                    models[lo:hi],
+                    [data[worker]],
+                    initial_state[lo:hi],
+                    None if control is None else control[lo:hi],
+                    control_spec=control_spec,
+                    skip_checks=True,
+                    nstep=nstep,
+                    initial_warmstart=None,
+                    state=state[lo:hi],
+                    sensordata=None,
+                    chunk_size=None,
+                )
+            if then is not None:
+                then(worker, lo, hi)
 
         self._run(work, initial_state.shape[0], chunks)
-
-    def serial(self, work: Callable[[], None]) -> None:
-        """Run work() on the calling thread while holding the pool, for the odd serial pass."""
-        with self._lock:
-            self._check_open()
-            work()
 
     def run_chunks(self, work: Callable[[int, int, int], None], count: int, *, chunks: int) -> None:
         """THREADS: call work(worker, start, stop) over [0, count) in up to `chunks` even chunks.

@@ -141,6 +141,29 @@ def _step_seconds(model: mujoco.MjModel, data: mujoco.MjData) -> float:
     return best
 
 
+class _LastStep:
+    """One worker's batch for the last physics step of its rows of a sigma set."""
+
+    def __init__(self, model: mujoco.MjModel, nsigma: int) -> None:
+        self._batch = mujoco.batch.Batch(model, nsim=nsigma, nthread=1)
+        self._columns = _full_columns(model)
+        self._ctrl = self._batch.bind("ctrl")
+        self._qfrc = self._batch.bind("qfrc_applied")
+        self._qacc = self._batch.bind("qacc")
+        self._ids = np.arange(nsigma, dtype=np.int32)
+
+    def step(self, before: np.ndarray, buffers: _Buffers, lo: int, hi: int, *, ctrl: np.ndarray,
+             qfrc: np.ndarray) -> None:
+        """Rows [lo, hi) of `before` (nsigma, nstate) one step on; into buffers.final and .qacc."""
+        state = self._batch.state
+        state[lo:hi, self._columns] = before[lo:hi]
+        self._ctrl[lo:hi] = ctrl
+        self._qfrc[lo:hi] = qfrc
+        self._batch.step(ids=self._ids[lo:hi], nstep=1)
+        buffers.final[lo:hi] = state[lo:hi, self._columns]
+        buffers.qacc[lo:hi] = self._qacc[lo:hi]
+
+
 class _Buffers:
     """Preallocated arrays for one step count. `rolled`: the steps the rollout takes (all of them,
     or all but the last, which a batch then steps to read its qacc)."""
@@ -202,16 +225,10 @@ class Propagator:
         self._buffers = {nstep: self._new_buffers(nstep)}
         self._step_seconds = _step_seconds(model, self._data[0])
         self._min_chunk_seconds = min_chunk_seconds
-        # ROLLOUT and qacc wanted: a batch of the model on the calling thread (nthread=1 starts no
-        # thread) takes the last step, whose qacc it reports; see _run_rollout.
-        self._batch: mujoco.batch.Batch | None = None
-        if self._rollout and want_qacc:
-            self._batch = mujoco.batch.Batch(model, nsim=nsigma, nthread=1)
-            self._batch_full = _full_columns(model)
-            self._batch_ctrl = self._batch.bind("ctrl")
-            self._batch_qfrc = self._batch.bind("qfrc_applied")
-            self._batch_qacc = self._batch.bind("qacc")
-            self._ids = np.arange(nsigma, dtype=np.int32)
+        # ROLLOUT and qacc wanted: per worker, a batch of the model on that worker's thread
+        # (nthread=1 starts no thread of its own) takes the last step of its rows and reports the
+        # qacc of it; see _run_rollout.
+        self._batches = [_LastStep(model, nsigma) for _ in self._data] if self._rollout and want_qacc else []
 
     @property
     def nsigma(self) -> int:
@@ -301,37 +318,31 @@ class Propagator:
                 qacc[i] = d.qacc
 
     def _run_rollout(self, buffers: _Buffers, count: int, chunks: int) -> None:
-        """ROLLOUT back-end: the whole set in one call into MuJoCo's C++ thread pool."""
-        if buffers.trajectory is not None:
-            control = buffers.control
-            if control is not None:
-                control[:count] = self._ctrl if self._inputs is Inputs.CTRL else self._qfrc
-            # Leading rows of C-contiguous buffers are C-contiguous: the unchecked call accepts them.
-            self._pool.rollout(
-                self._models[:count],
-                self._data,
-                nstep=buffers.rolled,
-                control_spec=self._inputs.value,
-                initial_state=self._initial[:count],
-                control=None if control is None else control[:count],
-                state=buffers.trajectory[:count],
-                chunks=chunks,
-            )
+        """ROLLOUT back-end: each worker's rows in one call into C++ (server/pool.py)."""
+        control = buffers.control
+        if control is not None:
+            control[:count] = self._ctrl if self._inputs is Inputs.CTRL else self._qfrc
+        trajectory = buffers.trajectory
+        then = None
         if self._want_qacc:
             # A rollout returns states, not accelerations; and the qacc MuJoCo leaves after a step
             # depends on the integrator (Euler: the one at the state before the step; RK4: its
-            # last stage's). So the last step is taken by a batch, which reports it as mj_step
-            # does: 1/nstep of the work, on the calling thread.
-            before = buffers.trajectory[:count, -1, :] if buffers.trajectory is not None else self._initial[:count]
-            self._pool.serial(lambda: self._last_step(before, buffers, count))
+            # last stage's). So each worker takes the last step of its rows with a batch, which
+            # reports it as mj_step does.
+            before = trajectory[:, -1, :] if trajectory is not None else self._initial
 
-    def _last_step(self, before: np.ndarray, buffers: _Buffers, count: int) -> None:
-        batch = self._batch
-        if batch is None:
-            raise RuntimeError("unreachable: the batch exists whenever qacc is wanted from a rollout")
-        batch.state[:count, self._batch_full] = before
-        self._batch_ctrl[:count] = self._ctrl
-        self._batch_qfrc[:count] = self._qfrc
-        batch.step(ids=None if count == self._nsigma else self._ids[:count], nstep=1)
-        buffers.final[:count] = batch.state[:count, self._batch_full]
-        buffers.qacc[:count] = self._batch_qacc[:count]
+            def then(worker: int, lo: int, hi: int) -> None:
+                self._batches[worker].step(before, buffers, lo, hi, ctrl=self._ctrl, qfrc=self._qfrc)
+
+        # Leading rows of C-contiguous buffers are C-contiguous: the unchecked call accepts them.
+        self._pool.rollout(
+            self._models[:count],
+            self._data,
+            nstep=buffers.rolled,
+            control_spec=self._inputs.value,
+            initial_state=self._initial[:count],
+            control=None if control is None else control[:count],
+            state=None if trajectory is None else trajectory[:count],
+            chunks=chunks,
+            then=then,
+        )
