@@ -167,7 +167,9 @@ def ground_truth(model: mujoco.MjModel, case: Case, nstep: int, ticks: int) -> l
 class Runner:
     """One estimator on one pool, stepping through its ground truth a few cycles at a time."""
 
-    def __init__(self, model: mujoco.MjModel, config: EstimatorConfig, pool: WorkerPool, frames: list[Measurement]):
+    def __init__(
+        self, model: mujoco.MjModel, config: EstimatorConfig, pool: WorkerPool, frames: list[Measurement]
+    ):
         self.estimator = make_estimator(model, config, pool=pool)
         self.frames = frames
         self.estimator.initialise(frames[0])
@@ -230,9 +232,13 @@ def parallel_speedup(model: mujoco.MjModel, steps: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--rounds", type=int, default=15, help="round-robin rounds (default 15)")
-    parser.add_argument("--seconds", type=float, default=0.05, help="target time per measurement (default 0.05 s)")
+    parser.add_argument(
+        "--seconds", type=float, default=0.05, help="target time per measurement (default 0.05 s)"
+    )
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--preset", default="JITDYN", choices=["JITDYN", "THESIS"])
     parser.add_argument("--cases", nargs="+", help="substrings of case names to run")
@@ -247,14 +253,23 @@ def main(argv: list[str] | None = None) -> int:
         model, source = load(case.model)
         measured = {"qpos", "qvel", "ctrl"} if case.scenario == "CONTROLLED" else {"qpos", "qvel"}
         config = resolve_config(
-            model=model, scenario=case.scenario, dt=case.dt, requested={}, model_defaults={},
-            preset=args.preset, measured=measured,
+            model=model,
+            scenario=case.scenario,
+            dt=case.dt,
+            requested={},
+            model_defaults={},
+            preset=args.preset,
+            measured=measured,
         )
         frames = ground_truth(model, case, config.steps_per_tick, ticks=4000)
         runners = {key: Runner(model, config, pool, frames) for key, pool in pools.items()}
         some = next(iter(runners.values())).estimator
         nsigma = some.nsigma if isinstance(some, UnscentedFilter) else 1
-        stepped = nsigma - 2 * model.nv if case.scenario == "CONTROLLED" and config.sigma_points == "MERWE" else nsigma
+        stepped = (
+            nsigma - 2 * model.nv
+            if case.scenario == "CONTROLLED" and config.sigma_points == "MERWE"
+            else nsigma
+        )
         # Calibrate the cycles per measurement on the slowest configuration (one worker).
         probe = runners[Backend.ROLLOUT, min(args.workers)].cycles(5)
         count = max(3, min(500, int(args.seconds / probe)))
@@ -273,7 +288,9 @@ def main(argv: list[str] | None = None) -> int:
         for case, model, _, config, frames, runners, nsigma, count, _ in setups:
             ticks = max(20, count * nsigma // config.steps_per_tick)
             process = processes[case.name]
-            speedups.setdefault(case.name, []).append(parallel_speedup(process, steps=ticks * config.steps_per_tick))
+            speedups.setdefault(case.name, []).append(
+                parallel_speedup(process, steps=ticks * config.steps_per_tick)
+            )
             own_step.setdefault(case.name, []).append(
                 step_time(model, frames, config.steps_per_tick, ticks=max(5, ticks // 4), start=r * 37)
             )
@@ -300,8 +317,10 @@ def main(argv: list[str] | None = None) -> int:
     print("2 threads: how much faster two threads stepped the model than one, in the same run: the")
     print("parallelism the machine had to give (2.00 would be a free second core, uncontended).")
     print()
-    print("| case | model | dt (ms) | points x steps (stepped) | mj_step process / own (us) | 2 threads "
-          "| workers | floor (us) | rollout (us) | ratio | threads (us) | ratio | faster | cycle < dt |")
+    print(
+        "| case | model | dt (ms) | points x steps (stepped) | mj_step process / own (us) | 2 threads "
+        "| workers | floor (us) | rollout (us) | ratio | threads (us) | ratio | faster | cycle < dt |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for case, _, source, config, _, _, nsigma, _, stepped in setups:
         mj = statistics.median(step[case.name])

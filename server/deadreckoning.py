@@ -120,7 +120,11 @@ class DeadReckoning:
 
     def extrapolate(self, seconds: float) -> Estimate:
         anchor = self._require_anchor("extrapolate")
-        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0.0 <= seconds < float("inf"):
+        if (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float))
+            or not 0.0 <= seconds < float("inf")
+        ):
             raise InvalidArgument(f"seconds must be finite and >= 0, got {seconds!r}")
         return self._at(anchor, self._elapsed * self._config.dt + seconds)
 
@@ -135,7 +139,9 @@ class DeadReckoning:
 
     def _require_anchor(self, what: str) -> _Anchor:
         if self._anchor is None:
-            raise FailedPrecondition(f"{what} needs an initialised estimator: call initialise() with the first frame")
+            raise FailedPrecondition(
+                f"{what} needs an initialised estimator: call initialise() with the first frame"
+            )
         return self._anchor
 
     def _at(self, anchor: _Anchor, t: float) -> Estimate:

@@ -165,12 +165,12 @@ class EstimatorConfig:
             raise InvalidArgument(f"steps_per_tick must be an integer >= 1, got {steps!r}")
         set_(self, "steps_per_tick", int(steps))
         if isinstance(self.measured, str):
-            raise InvalidArgument(f"measured must be a set of channel names, got the string {self.measured!r}")
+            raise InvalidArgument(
+                f"measured must be a set of channel names, got the string {self.measured!r}"
+            )
         measured = frozenset(str(c).lower() for c in self.measured)
         if not measured <= CHANNELS:
-            raise InvalidArgument(
-                f"measured must be a subset of {sorted(CHANNELS)}, got {sorted(measured)}"
-            )
+            raise InvalidArgument(f"measured must be a subset of {sorted(CHANNELS)}, got {sorted(measured)}")
         if Channel.QPOS not in measured:
             raise InvalidArgument(f"measured must include 'qpos', got {sorted(measured)}")
         set_(self, "measured", measured)
@@ -311,7 +311,9 @@ def is_pendulum_like(model: mujoco.MjModel) -> bool:
     return bool(model.na == 0 and model.njnt > 0 and all(int(t) == hinge for t in model.jnt_type))
 
 
-def preset_values(preset: Preset | str, *, model: mujoco.MjModel, scenario: Scenario | str) -> dict[str, object]:
+def preset_values(
+    preset: Preset | str, *, model: mujoco.MjModel, scenario: Scenario | str
+) -> dict[str, object]:
     """Every setting of `preset` for this model and scenario.
 
     THESIS: reference/thesis-experiments.md exactly: Merwe points, alpha 0.001, beta 2, P0 0.2 I,
@@ -373,7 +375,11 @@ def check_against_model(model: mujoco.MjModel, config: EstimatorConfig) -> None:
             f"steps_per_tick must be dt / timestep = {expected}, got {config.steps_per_tick}"
         )
     n = state_dimension(model, config.scenario)
-    if config.estimator == EstimatorKind.UKF and config.sigma_points == SigmaScheme.MERWE and n + config.kappa <= 0:
+    if (
+        config.estimator == EstimatorKind.UKF
+        and config.sigma_points == SigmaScheme.MERWE
+        and n + config.kappa <= 0
+    ):
         raise InvalidArgument(
             f"kappa must make n + kappa > 0 for Merwe sigma points (state dimension n = {n}), "
             f"got kappa = {config.kappa}"

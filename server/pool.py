@@ -80,10 +80,14 @@ class WorkerPool:
         self._closed = False
         # nthread=0: each Rollout runs on the thread that calls it, the caller or a pool thread.
         self._rollouts = (
-            [mujoco.rollout.Rollout(nthread=0) for _ in range(workers)] if self._backend is Backend.ROLLOUT else []
+            [mujoco.rollout.Rollout(nthread=0) for _ in range(workers)]
+            if self._backend is Backend.ROLLOUT
+            else []
         )
         self._executor = (
-            ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="jitdyn-sigma") if workers > 1 else None
+            ThreadPoolExecutor(max_workers=workers - 1, thread_name_prefix="jitdyn-sigma")
+            if workers > 1
+            else None
         )
 
     @property

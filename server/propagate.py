@@ -152,8 +152,9 @@ class _LastStep:
         self._qacc = self._batch.bind("qacc")
         self._ids = np.arange(nsigma, dtype=np.int32)
 
-    def step(self, before: np.ndarray, buffers: _Buffers, lo: int, hi: int, *, ctrl: np.ndarray,
-             qfrc: np.ndarray) -> None:
+    def step(
+        self, before: np.ndarray, buffers: _Buffers, lo: int, hi: int, *, ctrl: np.ndarray, qfrc: np.ndarray
+    ) -> None:
         """Rows [lo, hi) of `before` (nsigma, nstate) one step on; into buffers.final and .qacc."""
         state = self._batch.state
         state[lo:hi, self._columns] = before[lo:hi]

@@ -163,7 +163,9 @@ class UnscentedFilter:
 
     def __init__(self, model: mujoco.MjModel, config: EstimatorConfig, *, pool: WorkerPool) -> None:
         if config.estimator != EstimatorKind.UKF:
-            raise InvalidArgument(f"config.estimator must be UKF for an UnscentedFilter, got {config.estimator}")
+            raise InvalidArgument(
+                f"config.estimator must be UKF for an UnscentedFilter, got {config.estimator}"
+            )
         check_against_model(model, config)
         self._config = config
         self._scenario = Scenario(config.scenario)
@@ -206,7 +208,11 @@ class UnscentedFilter:
             sqrt=self._sqrt,
             add=self._x_manifold.add if self._x_manifold is not None else None,
         )
-        inputs = {Scenario.PASSIVE: Inputs.NONE, Scenario.CONTROLLED: Inputs.CTRL, Scenario.EXTERNAL: Inputs.QFRC}
+        inputs = {
+            Scenario.PASSIVE: Inputs.NONE,
+            Scenario.CONTROLLED: Inputs.CTRL,
+            Scenario.EXTERNAL: Inputs.QFRC,
+        }
         self._propagator = Propagator(
             m,
             pool=pool,
@@ -343,7 +349,11 @@ class UnscentedFilter:
 
     def extrapolate(self, seconds: float) -> Estimate:
         self._require_initialised("extrapolate")
-        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0.0 <= seconds < float("inf"):
+        if (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float))
+            or not 0.0 <= seconds < float("inf")
+        ):
             raise InvalidArgument(f"seconds must be finite and >= 0, got {seconds!r}")
         timestep = float(self._model.opt.timestep)
         nstep = round(seconds / timestep)
@@ -355,9 +365,7 @@ class UnscentedFilter:
             self._extrapolation_Q = {self._config.steps_per_tick: self._Q, nstep: Q}
         sigmas = self._points.sigma_points(self._kf.x, self._kf.P)
         propagated = self._propagate_sigmas(sigmas, nstep=nstep)
-        x, P = self._ut(
-            propagated, self._points.Wm, self._points.Wc, Q, self._kf.x_mean, self._kf.residual_x
-        )
+        x, P = self._ut(propagated, self._points.Wm, self._points.Wc, Q, self._kf.x_mean, self._kf.residual_x)
         P = _symmetric(P)
         act = self._clip_act(self._propagated_act)
         return self._make_estimate(x, P, act=act)
@@ -403,7 +411,9 @@ class UnscentedFilter:
 
     def _require_initialised(self, what: str) -> None:
         if not self._initialised:
-            raise FailedPrecondition(f"{what} needs an initialised estimator: call initialise() with the first frame")
+            raise FailedPrecondition(
+                f"{what} needs an initialised estimator: call initialise() with the first frame"
+            )
 
     def _finite(self) -> bool:
         return bool(np.isfinite(self._kf.x).all() and np.isfinite(self._kf.P).all())
@@ -532,7 +542,9 @@ class UnscentedFilter:
         return np.array(d.qacc)
 
     def _estimate(self, *, nis: float | None = None, reinitialised: bool = False) -> Estimate:
-        return self._make_estimate(self._kf.x, self._kf.P, act=self._act, nis=nis, reinitialised=reinitialised)
+        return self._make_estimate(
+            self._kf.x, self._kf.P, act=self._act, nis=nis, reinitialised=reinitialised
+        )
 
     def _make_estimate(
         self,

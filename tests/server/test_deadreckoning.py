@@ -35,8 +35,13 @@ FREE_BODY = """
 """
 
 
-def config(kind: str, *, scenario: str = "PASSIVE", measured: frozenset[str] = frozenset({"qpos", "qvel", "qacc"}),
-           xml: str = SLIDES) -> tuple[mujoco.MjModel, EstimatorConfig]:
+def config(
+    kind: str,
+    *,
+    scenario: str = "PASSIVE",
+    measured: frozenset[str] = frozenset({"qpos", "qvel", "qacc"}),
+    xml: str = SLIDES,
+) -> tuple[mujoco.MjModel, EstimatorConfig]:
     model = mujoco.MjModel.from_xml_string(xml)
     return model, resolve_config(
         model=model,
@@ -58,7 +63,12 @@ FRAME = Measurement(qpos=Q0, qvel=V0, qacc=A0)
     [
         ("STATIC", lambda t: Q0, lambda t: V0, lambda t: A0),
         ("CONSTANT_VELOCITY", lambda t: Q0 + V0 * t, lambda t: V0, lambda t: 0 * A0),
-        ("CONSTANT_ACCELERATION", lambda t: Q0 + V0 * t + 0.5 * A0 * t**2, lambda t: V0 + A0 * t, lambda t: A0),
+        (
+            "CONSTANT_ACCELERATION",
+            lambda t: Q0 + V0 * t + 0.5 * A0 * t**2,
+            lambda t: V0 + A0 * t,
+            lambda t: A0,
+        ),
     ],
 )
 def test_extrapolation_formulae(kind: str, qpos, qvel, qacc) -> None:  # type: ignore[no-untyped-def]
@@ -96,8 +106,9 @@ def test_a_frame_re_anchors_and_unmeasured_channels_come_from_differences() -> N
 
 
 def test_controlled_state_carries_qdd_and_the_control_is_ignored() -> None:
-    model, cfg = config("CONSTANT_VELOCITY", scenario="CONTROLLED",
-                        measured=frozenset({"qpos", "qvel", "qacc", "ctrl"}))
+    model, cfg = config(
+        "CONSTANT_VELOCITY", scenario="CONTROLLED", measured=frozenset({"qpos", "qvel", "qacc", "ctrl"})
+    )
     estimator = DeadReckoning(model, cfg)
     assert (estimator.state_dimension, estimator.state_size) == (6, 6)
     estimator.initialise(Measurement(qpos=Q0, qvel=V0, qacc=A0, ctrl=np.array([3.0])))
@@ -113,7 +124,9 @@ def test_quaternions_turn_on_their_manifold() -> None:
     estimator.initialise(Measurement(qpos=np.array([0, 0, 1, 1, 0, 0, 0.0]), qvel=spin))
     for _ in range(10):
         estimate = estimator.predict(ctrl=None)
-    np.testing.assert_allclose(estimate.qpos, [0, 0, 1, np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)], atol=1e-12)
+    np.testing.assert_allclose(
+        estimate.qpos, [0, 0, 1, np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)], atol=1e-12
+    )
 
 
 def test_snapshot_restore_and_contract() -> None:
@@ -121,7 +134,9 @@ def test_snapshot_restore_and_contract() -> None:
     estimator = DeadReckoning(model, cfg)
     with pytest.raises(FailedPrecondition, match=r"^predict needs an initialised estimator"):
         estimator.predict(ctrl=None)
-    with pytest.raises(InvalidArgument, match=r"^measurement must have the measured channels \['qacc'\], got None$"):
+    with pytest.raises(
+        InvalidArgument, match=r"^measurement must have the measured channels \['qacc'\], got None$"
+    ):
         estimator.initialise(Measurement(qpos=Q0, qvel=V0))
     estimator.initialise(FRAME)
     estimator.predict(ctrl=None)
@@ -136,5 +151,7 @@ def test_snapshot_restore_and_contract() -> None:
     with pytest.raises(InvalidArgument, match=r"^seconds must be finite and >= 0, got inf$"):
         estimator.extrapolate(float("inf"))
     _, ukf = config("UKF")
-    with pytest.raises(InvalidArgument, match=r"^config.estimator must be a dead-reckoning estimator, got UKF$"):
+    with pytest.raises(
+        InvalidArgument, match=r"^config.estimator must be a dead-reckoning estimator, got UKF$"
+    ):
         DeadReckoning(model, ukf)

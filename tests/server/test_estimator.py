@@ -88,7 +88,9 @@ def load_myo(name: str) -> mujoco.MjModel:
         return myo_sim.load_model(name)
 
 
-def resolve(model: mujoco.MjModel, scenario: str, preset: str = "JITDYN", **kwargs: object) -> EstimatorConfig:
+def resolve(
+    model: mujoco.MjModel, scenario: str, preset: str = "JITDYN", **kwargs: object
+) -> EstimatorConfig:
     return resolve_config(
         model=model,
         scenario=scenario,
@@ -107,7 +109,9 @@ def resolve(model: mujoco.MjModel, scenario: str, preset: str = "JITDYN", **kwar
 @pytest.mark.parametrize(
     ("scenario", "q_var", "derivatives"), [("PASSIVE", 0.1, 2), ("CONTROLLED", 0.2, 3), ("EXTERNAL", 50.0, 2)]
 )
-def test_thesis_preset_is_the_table_for_the_pendulums(n: int, scenario: str, q_var: float, derivatives: int) -> None:
+def test_thesis_preset_is_the_table_for_the_pendulums(
+    n: int, scenario: str, q_var: float, derivatives: int
+) -> None:
     config = resolve(pendulum(n), scenario, "THESIS")
     assert (config.estimator, config.sigma_points) == ("UKF", "MERWE")
     assert (config.alpha, config.beta, config.p0, config.r, config.q_var) == (0.001, 2.0, 0.2, 0.01, q_var)
@@ -124,12 +128,19 @@ def test_thesis_preset_is_the_table_for_the_pendulums(n: int, scenario: str, q_v
         ("myohand", "EXTERNAL", 0.002, 50.0),
     ],
 )
-def test_thesis_preset_for_contact_and_muscle_models(model: str, scenario: str, dt: float, q_var: float) -> None:
+def test_thesis_preset_for_contact_and_muscle_models(
+    model: str, scenario: str, dt: float, q_var: float
+) -> None:
     mj_model = mujoco.MjModel.from_xml_string(BIPED) if model == "biped" else load_myo(model)
     assert not is_pendulum_like(mj_model)
     config = resolve(mj_model, scenario, "THESIS", dt=dt)
     assert (config.alpha, config.beta, config.kappa, config.p0, config.r, config.q_var) == (
-        0.001, 2.0, 0.0, 0.2, 0.01, q_var,
+        0.001,
+        2.0,
+        0.0,
+        0.2,
+        0.01,
+        q_var,
     )
     assert config.sigma_points == "MERWE"
 
@@ -155,7 +166,13 @@ def test_request_beats_model_defaults_beats_preset() -> None:
         requested={"r": 0.5, "sigma_points": "UNIFORM"},
         model_defaults={"r": 0.2, "q_var": 3.0, "alpha": 0.5},
     )
-    assert (config.r, config.q_var, config.alpha, config.sigma_points, config.kappa) == (0.5, 3.0, 0.5, "UNIFORM", -1.0)
+    assert (config.r, config.q_var, config.alpha, config.sigma_points, config.kappa) == (
+        0.5,
+        3.0,
+        0.5,
+        "UNIFORM",
+        -1.0,
+    )
     assert resolve(model, "PASSIVE", requested={"estimator": "STATIC"}).estimator == "STATIC"
     assert preset_values("JITDYN", model=model, scenario="PASSIVE")["kappa"] == 0.0
 
@@ -166,14 +183,21 @@ def test_request_beats_model_defaults_beats_preset() -> None:
         ({"requested": {"gamma": 1.0}}, r"^requested has unknown settings \['gamma'\]; expected some of \["),
         ({"model_defaults": {"R": 1.0}}, r"^model_defaults has unknown settings \['R'\]"),
         ({"requested": {"r": "small"}}, r"^r must be a number, got 'small'$"),
-        ({"requested": {"estimator": "EKF"}},
-         r"^estimator must be one of \['UKF', 'STATIC', 'CONSTANT_VELOCITY', 'CONSTANT_ACCELERATION'\], got 'EKF'$"),
-        ({"requested": {"sigma_points": "merwe"}},
-         r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM'\], got 'merwe'$"),
+        (
+            {"requested": {"estimator": "EKF"}},
+            r"^estimator must be one of \['UKF', 'STATIC', 'CONSTANT_VELOCITY', 'CONSTANT_ACCELERATION'\], got 'EKF'$",
+        ),
+        (
+            {"requested": {"sigma_points": "merwe"}},
+            r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM'\], got 'merwe'$",
+        ),
         ({"dt": 0.055}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.01 s, got 0.055$"),
         ({"dt": 0.0}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.01 s, got 0.0$"),
         ({"measured": {"qvel"}}, r"^measured must include 'qpos', got \['qvel'\]$"),
-        ({"measured": {"qpos", "torque"}}, r"^measured must be a subset of \['ctrl', 'qacc', 'qpos', 'qvel'\], got \['qpos', 'torque'\]$"),
+        (
+            {"measured": {"qpos", "torque"}},
+            r"^measured must be a subset of \['ctrl', 'qacc', 'qpos', 'qvel'\], got \['qpos', 'torque'\]$",
+        ),
         ({"measured": "qpos"}, r"^measured must be a set of channel names, got the string 'qpos'$"),
     ],
 )
@@ -183,7 +207,10 @@ def test_settings_are_checked_with_messages_naming_the_field(kwargs: dict[str, o
 
 
 def test_unknown_scenario_and_preset_are_refused() -> None:
-    with pytest.raises(InvalidArgument, match=r"^scenario must be one of \['PASSIVE', 'CONTROLLED', 'EXTERNAL'\], got 'IDLE'$"):
+    with pytest.raises(
+        InvalidArgument,
+        match=r"^scenario must be one of \['PASSIVE', 'CONTROLLED', 'EXTERNAL'\], got 'IDLE'$",
+    ):
         resolve(pendulum(1), "IDLE")
     with pytest.raises(InvalidArgument, match=r"^preset must be one of \['JITDYN', 'THESIS'\], got 'PAPER'$"):
         resolve(pendulum(1), "PASSIVE", "PAPER")
@@ -194,8 +221,9 @@ def test_config_is_frozen_and_checked_against_the_model_by_the_factory() -> None
     with pytest.raises(AttributeError):
         config.r = 1.0  # type: ignore[misc]
     wrong_steps = EstimatorConfig(**{**config.__dict__, "steps_per_tick": 4})
-    with WorkerPool(1) as pool, pytest.raises(
-        InvalidArgument, match=r"^steps_per_tick must be dt / timestep = 5, got 4$"
+    with (
+        WorkerPool(1) as pool,
+        pytest.raises(InvalidArgument, match=r"^steps_per_tick must be dt / timestep = 5, got 4$"),
     ):
         make_estimator(pendulum(1), wrong_steps, pool=pool)
 

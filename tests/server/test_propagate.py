@@ -102,8 +102,12 @@ def _reference(
     nstep: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The plain loop: one fresh MjData per point, mj_step nstep times."""
-    out = [np.empty((len(qpos), model.nq)), np.empty((len(qpos), model.nv)),
-           np.empty((len(qpos), model.na)), np.empty((len(qpos), model.nv))]
+    out = [
+        np.empty((len(qpos), model.nq)),
+        np.empty((len(qpos), model.nv)),
+        np.empty((len(qpos), model.na)),
+        np.empty((len(qpos), model.nv)),
+    ]
     for i in range(len(qpos)):
         d = mujoco.MjData(model)
         d.qpos[:], d.qvel[:], d.act[:], d.ctrl[:], d.qfrc_applied[:] = qpos[i], qvel[i], act, ctrl, qfrc
@@ -117,7 +121,9 @@ def _reference(
 @pytest.mark.parametrize("workers", [1, 2, 3])
 @pytest.mark.parametrize("inputs", list(Inputs))
 @pytest.mark.parametrize("name", list(MODELS))
-def test_backends_equal_a_plain_mj_step_loop(backend: Backend, workers: int, inputs: Inputs, name: str) -> None:
+def test_backends_equal_a_plain_mj_step_loop(
+    backend: Backend, workers: int, inputs: Inputs, name: str
+) -> None:
     model = process_model(mujoco.MjModel.from_xml_string(MODELS[name]), scenario=SCENARIO_OF[inputs])
     nsigma, nstep = 7, 5
     qpos, qvel = _sigma_set(model, nsigma, seed=1)
@@ -178,7 +184,9 @@ def test_sessions_share_one_pool_from_several_threads() -> None:
     results: dict[int, list[np.ndarray]] = {}
     with WorkerPool(2) as pool:
         propagators = [
-            Propagator(model, pool=pool, nsigma=9, nstep=5, inputs=Inputs.CTRL, want_qacc=True, min_chunk_seconds=0)
+            Propagator(
+                model, pool=pool, nsigma=9, nstep=5, inputs=Inputs.CTRL, want_qacc=True, min_chunk_seconds=0
+            )
             for _ in sets
         ]
 
@@ -292,6 +300,12 @@ def test_chunks_cover_the_set_once_and_errors_propagate() -> None:
             pool.run_chunks(fail, 10, chunks=3)
         with pytest.raises(FailedPrecondition, match="^the pool's backend is THREADS, not ROLLOUT$"):
             pool.rollout(
-                [], [], nstep=1, control_spec=0, initial_state=np.zeros((0, 1)), control=None,
-                state=np.zeros((0, 1, 1)), chunks=1,
+                [],
+                [],
+                nstep=1,
+                control_spec=0,
+                initial_state=np.zeros((0, 1)),
+                control=None,
+                state=np.zeros((0, 1, 1)),
+                chunks=1,
             )

@@ -87,7 +87,13 @@ def config_for(
     if scenario == "CONTROLLED":
         measured = measured | {"ctrl"}
     return resolve_config(
-        model=model, scenario=scenario, dt=dt, requested=requested, model_defaults={}, preset=preset, measured=measured
+        model=model,
+        scenario=scenario,
+        dt=dt,
+        requested=requested,
+        model_defaults={},
+        preset=preset,
+        measured=measured,
     )
 
 
@@ -109,7 +115,9 @@ def simulate(
         d.ctrl[:] = control(k) if control is not None else 0.0
         for _ in range(nstep):
             mujoco.mj_step(model, d)
-        frames.append(Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy(), qacc=d.qacc.copy(), ctrl=d.ctrl.copy()))
+        frames.append(
+            Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy(), qacc=d.qacc.copy(), ctrl=d.ctrl.copy())
+        )
     return frames
 
 
@@ -126,7 +134,9 @@ def _random_spd(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     return rng.standard_normal(n), A @ A.T + 0.1 * np.eye(n)
 
 
-@pytest.mark.parametrize(("n", "alpha", "beta", "kappa"), [(2, 0.001, 2.0, 1.0), (6, 1.0, 2.0, 0.0), (9, 0.5, 0.0, -6.0)])
+@pytest.mark.parametrize(
+    ("n", "alpha", "beta", "kappa"), [(2, 0.001, 2.0, 1.0), (6, 1.0, 2.0, 0.0), (9, 0.5, 0.0, -6.0)]
+)
 def test_merwe_points_are_filterpys_bit_for_bit(n: int, alpha: float, beta: float, kappa: float) -> None:
     x, P = _random_spd(n, seed=n)
     ours = MerweScaled(n, alpha=alpha, beta=beta, kappa=kappa)
@@ -178,10 +188,18 @@ def test_sigma_counts_and_weights() -> None:
 @pytest.mark.parametrize(
     ("call", "message"),
     [
-        (lambda: make_sigma_points("CUBATURE", n=2, alpha=1, beta=2, kappa=0),
-         r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM'\], got 'CUBATURE'$"),
-        (lambda: make_sigma_points("MERWE", n=2, alpha=0.0, beta=2, kappa=0), r"^alpha must be in \(0, 1\], got 0.0$"),
-        (lambda: make_sigma_points("MERWE", n=4, alpha=1, beta=2, kappa=-4), r"^kappa must make n \+ kappa > 0 \(n = 4\), got kappa = -4$"),
+        (
+            lambda: make_sigma_points("CUBATURE", n=2, alpha=1, beta=2, kappa=0),
+            r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM'\], got 'CUBATURE'$",
+        ),
+        (
+            lambda: make_sigma_points("MERWE", n=2, alpha=0.0, beta=2, kappa=0),
+            r"^alpha must be in \(0, 1\], got 0.0$",
+        ),
+        (
+            lambda: make_sigma_points("MERWE", n=4, alpha=1, beta=2, kappa=-4),
+            r"^kappa must make n \+ kappa > 0 \(n = 4\), got kappa = -4$",
+        ),
     ],
 )
 def test_sigma_settings_are_checked(call: Callable[[], object], message: str) -> None:
@@ -252,14 +270,19 @@ def plain_filterpy_run(
     points = MerweScaledSigmaPoints(n, alpha=config.alpha, beta=config.beta, kappa=config.kappa)
     ukf = UnscentedKalmanFilter(dim_x=n, dim_z=nq + nv, dt=config.dt, hx=hx, fx=fx, points=points)
     if product_cross_variance:
-        def cross_variance(x: np.ndarray, z: np.ndarray, sigmas_f: np.ndarray, sigmas_h: np.ndarray) -> np.ndarray:
+
+        def cross_variance(
+            x: np.ndarray, z: np.ndarray, sigmas_f: np.ndarray, sigmas_h: np.ndarray
+        ) -> np.ndarray:
             return np.asarray((sigmas_f - x).T @ (ukf.Wc[:, None] * (sigmas_h - z)))
 
         ukf.cross_variance = cross_variance
     first = frames[0]
     ukf.x = np.concatenate([first.qpos, first.qvel] + ([first.qacc] if controlled else []))  # type: ignore[list-item]
     ukf.P = config.p0 * np.eye(n)
-    ukf.Q = Q_discrete_white_noise(dim=order, dt=config.dt, var=config.q_var, block_size=nv, order_by_dim=False)
+    ukf.Q = Q_discrete_white_noise(
+        dim=order, dt=config.dt, var=config.q_var, block_size=nv, order_by_dim=False
+    )
     ukf.R = config.r * np.eye(nq + nv)
     last_qvel, gap = first.qvel, 0
     states = [(ukf.x.copy(), ukf.P.copy())]
@@ -286,7 +309,9 @@ def run_filter(
     estimator: UnscentedFilter, frames: list[Measurement], skipped: set[int], *, with_qacc: bool = False
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     def strip(frame: Measurement) -> Measurement:
-        return Measurement(qpos=frame.qpos, qvel=frame.qvel, qacc=frame.qacc if with_qacc else None, ctrl=frame.ctrl)
+        return Measurement(
+            qpos=frame.qpos, qvel=frame.qvel, qacc=frame.qacc if with_qacc else None, ctrl=frame.ctrl
+        )
 
     estimator.initialise(strip(frames[0]))
     first = estimator.extrapolate(0.0)
@@ -313,15 +338,18 @@ def test_filter_equals_plain_filterpy_with_a_per_point_mj_step(scenario: str, pr
     """
     model = pendulum(2)
     config = config_for(model, scenario, preset=preset)
-    frames = simulate(model, 40, config.steps_per_tick, qpos0=np.array([0.8, -0.4]),
-                      control=lambda k: swing(k)[:2])
+    frames = simulate(
+        model, 40, config.steps_per_tick, qpos0=np.array([0.8, -0.4]), control=lambda k: swing(k)[:2]
+    )
     skipped = {3, 4, 9, 15, 16, 17, 30}
     expected = plain_filterpy_run(model, config, frames, skipped)
     runs = {}
     for backend in Backend:
         for workers in (1, 2):
             with WorkerPool(workers, backend=backend) as pool:
-                runs[backend, workers] = run_filter(UnscentedFilter(model, config, pool=pool), frames, skipped)
+                runs[backend, workers] = run_filter(
+                    UnscentedFilter(model, config, pool=pool), frames, skipped
+                )
     reference_run = runs[Backend.ROLLOUT, 1]
     for key, run in runs.items():
         for (x, P), (x0, P0) in zip(run, reference_run, strict=True):
@@ -344,7 +372,9 @@ def test_controlled_qdd_is_mujocos_qacc_of_the_last_step() -> None:
     frames = simulate(model, 30, config.steps_per_tick, qpos0=np.array([0.5, 0.2, -0.3]), control=swing)
     with WorkerPool(1) as pool:
         states = run_filter(UnscentedFilter(model, config, pool=pool), frames, set(), with_qacc=True)
-    errors = [np.max(np.abs(x[6:] - frame.qacc)) for (x, _), frame in zip(states[5:], frames[5:], strict=True)]  # type: ignore[operator]
+    errors = [
+        np.max(np.abs(x[6:] - frame.qacc)) for (x, _), frame in zip(states[5:], frames[5:], strict=True)
+    ]  # type: ignore[operator]
     assert max(errors) < 0.05
 
 
@@ -392,7 +422,9 @@ def test_snapshots_belong_to_their_filter_and_hand_out_read_only_state() -> None
     with WorkerPool(1) as pool:
         a, b = UnscentedFilter(model, config, pool=pool), UnscentedFilter(model, config, pool=pool)
         a.initialise(Measurement(qpos=np.array([0.1]), qvel=np.array([0.0])))
-        with pytest.raises(InvalidArgument, match="^snap must be a snapshot of this estimator, got _Snapshot$"):
+        with pytest.raises(
+            InvalidArgument, match="^snap must be a snapshot of this estimator, got _Snapshot$"
+        ):
             b.restore(a.snapshot())
         with pytest.raises(InvalidArgument, match="^snap must be a snapshot of this estimator, got dict$"):
             a.restore({})
@@ -411,11 +443,15 @@ def test_filter_needs_its_first_frame_and_well_formed_measurements() -> None:
     with WorkerPool(1) as pool:
         estimator = UnscentedFilter(model, config_for(model, "PASSIVE"), pool=pool)
         assert (estimator.state_dimension, estimator.state_size, estimator.nsigma) == (4, 4, 9)
-        with pytest.raises(FailedPrecondition, match=r"^predict needs an initialised estimator: call initialise\(\)"):
+        with pytest.raises(
+            FailedPrecondition, match=r"^predict needs an initialised estimator: call initialise\(\)"
+        ):
             estimator.predict(ctrl=None)
         with pytest.raises(InvalidArgument, match=r"^measurement.qpos must have shape \(2,\), got \(3,\)$"):
             estimator.initialise(Measurement(qpos=np.zeros(3), qvel=np.zeros(2)))
-        with pytest.raises(InvalidArgument, match=r"^measurement must have the measured channels \['qvel'\], got None$"):
+        with pytest.raises(
+            InvalidArgument, match=r"^measurement must have the measured channels \['qvel'\], got None$"
+        ):
             estimator.initialise(Measurement(qpos=np.zeros(2)))
         with pytest.raises(InvalidArgument, match=r"^measurement.qvel must be finite, got \[0.0, nan\]$"):
             estimator.initialise(Measurement(qpos=np.zeros(2), qvel=np.array([0.0, np.nan])))
@@ -471,8 +507,9 @@ def test_thesis_weights_at_n_46_on_myohand_keep_running_sound() -> None:
     config = config_for(model, "EXTERNAL", dt=0.002, preset="THESIS", kappa=3.0 - n)
     assert (config.alpha, config.kappa, config.sigma_points) == (0.001, -43.0, "MERWE")
     rng = np.random.default_rng(7)
-    frames = simulate(model, 25, config.steps_per_tick, qpos0=model.qpos0,
-                      control=lambda k: rng.uniform(0.0, 1.0, model.nu))
+    frames = simulate(
+        model, 25, config.steps_per_tick, qpos0=model.qpos0, control=lambda k: rng.uniform(0.0, 1.0, model.nu)
+    )
     with WorkerPool(2) as pool:
         estimator = UnscentedFilter(model, config, pool=pool)
         estimator.initialise(frames[0])
@@ -522,7 +559,10 @@ def test_hostile_settings_never_crash_or_produce_nan(settings: dict[str, object]
         ({"r": 0.0}, r"^r must be > 0, got 0.0$"),
         ({"p0": -1.0}, r"^p0 must be > 0, got -1.0$"),
         ({"q_var": -0.1}, r"^q_var must be >= 0, got -0.1$"),
-        ({"kappa": -6.0}, r"^kappa must make n \+ kappa > 0 for Merwe sigma points \(state dimension n = 6\), got kappa = -6.0$"),
+        (
+            {"kappa": -6.0},
+            r"^kappa must make n \+ kappa > 0 for Merwe sigma points \(state dimension n = 6\), got kappa = -6.0$",
+        ),
         ({"alpha": 2.0}, r"^alpha must be in \(0, 1\], got 2.0$"),
         ({"alpha": float("nan")}, r"^alpha must be finite, got nan$"),
     ],
@@ -610,7 +650,10 @@ def test_filter_on_the_manifold_tracks_rotation(xml: str, scheme: str, scenario:
     with WorkerPool(2) as pool:
         estimator = UnscentedFilter(model, config, pool=pool)
         order = 3 if scenario == "CONTROLLED" else 2
-        assert (estimator.state_size, estimator.state_dimension) == (model.nq + (order - 1) * model.nv, order * model.nv)
+        assert (estimator.state_size, estimator.state_dimension) == (
+            model.nq + (order - 1) * model.nv,
+            order * model.nv,
+        )
         estimator.initialise(frames[0])
         errors = []
         for k in range(1, len(frames)):
