@@ -15,6 +15,7 @@ the contract's CRC32C checksum unless told otherwise.
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 import time
@@ -242,8 +243,10 @@ class TickResult:
 
     @classmethod
     def from_message(cls, result: dynamics_pb2.Result, *, received_at: float) -> TickResult:
-        nx = len(result.filter_state)
-        covariance = _array(result.covariance).reshape(nx, nx) if len(result.covariance) == nx * nx and nx else None
+        # The covariance lives in the tangent space: its side is the state dimension, which is
+        # less than len(filter_state) for models with ball or free joints.
+        side = math.isqrt(len(result.covariance))
+        covariance = _array(result.covariance).reshape(side, side) if side and side * side == len(result.covariance) else None
         return cls(
             seq=result.seq,
             t=result.t,

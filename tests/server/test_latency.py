@@ -154,3 +154,43 @@ def test_hostile_settings_never_crash_the_server(client: Any, settings: dict[str
             assert isinstance(answer, TickResult)
             assert np.isfinite(answer.qpos).all() and np.isfinite(answer.qfrc_inverse).all()
         session.close()
+
+
+FREE_BODY = """
+<mujoco model="tumbler">
+  <option gravity="0 0 0"/>
+  <worldbody>
+    <body name="box" pos="0 0 1"><freejoint name="root"/><geom type="box" size=".1 .2 .3" mass="1"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_a_free_joint_is_estimated_on_its_manifold(client: Any) -> None:
+    """nq = 7, nv = 6: predictions keep a unit quaternion and follow a tumbling body."""
+    model = mujoco.MjModel.from_xml_string(FREE_BODY)
+    data = mujoco.MjData(model)
+    data.qvel[:] = [0.1, 0.0, 0.0, 0.5, 1.0, 2.0]  # drifting and tumbling, no gravity
+    truth = []
+    for _ in range(30):
+        truth.append((data.qpos.copy(), data.qvel.copy()))
+        for _ in range(5):
+            mujoco.mj_step(model, data)
+    options = SessionOptions(inline_mjcf=FREE_BODY, inline_name="tumbler", dt=5 * model.opt.timestep,
+                             outputs=("INVERSE_DYNAMICS", "FILTER_STATE"))
+    with client.open_session(options) as session:
+        assert session.opened.state_dimension == 12
+        for k, (q, v) in enumerate(truth):
+            if k >= 10 and k % 5 < 3:
+                result = session.skip(k)
+                assert isinstance(result, TickResult) and result.source == "PREDICTED"
+                assert np.linalg.norm(result.qpos[3:7]) == pytest.approx(1.0, abs=1e-9)
+                # The orientation error, as a rotation angle between the quaternions.
+                angle = 2 * np.arccos(min(1.0, abs(float(np.dot(result.qpos[3:7], q[3:7])))))
+                assert angle < 0.05, (k, angle)
+                assert np.max(np.abs(result.qpos[:3] - q[:3])) < 1e-2
+            else:
+                result = session.send_frame(FrameData(seq=k, t=k * options.dt, qpos=q, qvel=v))
+                assert isinstance(result, TickResult) and result.source == "MEASURED"
+                assert result.filter_state.shape == (13,) and result.covariance.shape == (12, 12)
+        session.close()
