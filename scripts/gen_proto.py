@@ -3,13 +3,17 @@
     python scripts/gen_proto.py            # rewrite jitdyn/v1/*_pb2*.py(i)
     python scripts/gen_proto.py --out DIR  # write elsewhere (the freshness test compares)
 
-Generated code is never edited by hand; tests/test_generated.py fails when it is stale.
+The .pyi stubs of messages and of gRPC stubs and servicers come from mypy-protobuf, so that mypy
+strict checks every call into the contract. Generated code is never edited by hand;
+tests/jitdyn/test_generated.py fails when it is stale.
 """
 
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
+import sysconfig
 from importlib import resources
 from pathlib import Path
 
@@ -17,6 +21,15 @@ from grpc_tools import protoc
 
 ROOT = Path(__file__).resolve().parent.parent
 PROTO_ROOT = ROOT / "proto"
+
+
+def _plugin(name: str) -> str:
+    """The path of a protoc plugin installed beside this interpreter, else on PATH: a venv's scripts
+    need not be on PATH when its python runs this file."""
+    found = shutil.which(name, path=sysconfig.get_path("scripts")) or shutil.which(name)
+    if found is None:
+        raise SystemExit(f"{name} is not installed: pip install -e '.[test]' installs mypy-protobuf")
+    return found
 
 
 def generate(out: Path) -> list[Path]:
@@ -29,8 +42,11 @@ def generate(out: Path) -> list[Path]:
         f"-I{PROTO_ROOT}",
         f"-I{well_known}",
         f"--python_out={out}",
-        f"--pyi_out={out}",
         f"--grpc_python_out={out}",
+        f"--plugin=protoc-gen-mypy={_plugin('protoc-gen-mypy')}",
+        f"--mypy_out={out}",
+        f"--plugin=protoc-gen-mypy_grpc={_plugin('protoc-gen-mypy_grpc')}",
+        f"--mypy_grpc_out={out}",
         *protos,
     ]
     if protoc.main(args) != 0:
