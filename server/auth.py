@@ -12,9 +12,9 @@ import contextvars
 import hashlib
 import hmac
 import re
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import grpc
 
@@ -29,8 +29,11 @@ current_tenant: contextvars.ContextVar[str] = contextvars.ContextVar("jitdyn_ten
 _TENANT = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 _OPEN_SERVICES = ("/grpc.health.v1.Health/", "/grpc.reflection.")
 
+_Request = TypeVar("_Request")
+_Response = TypeVar("_Response")
 
-def tenant_of(context: grpc.aio.ServicerContext) -> str:
+
+def tenant_of(context: grpc.aio.ServicerContext[_Request, _Response]) -> str:
     """The tenant the current RPC runs for."""
     del context  # the interceptor has set the context variable for this RPC's task
     return current_tenant.get()
@@ -69,7 +72,7 @@ def load_api_keys(path: Path) -> dict[bytes, str]:
     return keys
 
 
-def _tenant_for(metadata: Any, keys: Mapping[bytes, str]) -> str | None:
+def _tenant_for(metadata: Sequence[tuple[str, str | bytes]] | None, keys: Mapping[bytes, str]) -> str | None:
     for name, value in metadata or ():
         if name == "authorization" and isinstance(value, str) and value.startswith("Bearer "):
             digest = _digest(value[len("Bearer ") :].strip())
@@ -79,9 +82,11 @@ def _tenant_for(metadata: Any, keys: Mapping[bytes, str]) -> str | None:
     return None
 
 
+# The grpc stubs type a handler's behaviours as synchronous; under grpc.aio they return awaitables
+# or async iterators, so they are taken and given back untyped.
 def _with_tenant(behavior: Callable[..., Any], tenant: str, streaming_response: bool) -> Callable[..., Any]:
     if streaming_response:
-        async def stream(request: Any, context: grpc.aio.ServicerContext) -> Any:
+        async def stream(request: Any, context: grpc.aio.ServicerContext[Any, Any]) -> Any:
             current_tenant.set(tenant)
             result = behavior(request, context)
             if hasattr(result, "__aiter__"):
@@ -91,7 +96,7 @@ def _with_tenant(behavior: Callable[..., Any], tenant: str, streaming_response: 
                 await result
         return stream
 
-    async def unary(request: Any, context: grpc.aio.ServicerContext) -> Any:
+    async def unary(request: Any, context: grpc.aio.ServicerContext[Any, Any]) -> Any:
         current_tenant.set(tenant)
         return await behavior(request, context)
 
@@ -106,15 +111,17 @@ class ApiKeyInterceptor(grpc.aio.ServerInterceptor):
 
     async def intercept_service(
         self,
-        continuation: Callable[[grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler]],
+        continuation: Callable[
+            [grpc.HandlerCallDetails], Awaitable[grpc.RpcMethodHandler[_Request, _Response] | None]
+        ],
         details: grpc.HandlerCallDetails,
-    ) -> grpc.RpcMethodHandler:
+    ) -> grpc.RpcMethodHandler[_Request, _Response] | None:
         handler = await continuation(details)
         if handler is None or details.method.startswith(_OPEN_SERVICES):
             return handler
         tenant = _tenant_for(details.invocation_metadata, self._keys)
         if tenant is None:
-            async def refuse(request: Any, context: grpc.aio.ServicerContext) -> None:
+            async def refuse(request: object, context: grpc.aio.ServicerContext[_Request, _Response]) -> None:
                 await context.abort(
                     grpc.StatusCode.UNAUTHENTICATED,
                     "this server needs an API key: send metadata `authorization: Bearer <key>`",
@@ -123,7 +130,7 @@ class ApiKeyInterceptor(grpc.aio.ServerInterceptor):
             if handler.request_streaming and handler.response_streaming:
                 return grpc.stream_stream_rpc_method_handler(refuse)
             return grpc.unary_unary_rpc_method_handler(refuse)
-        if handler.request_streaming and handler.response_streaming:
+        if handler.request_streaming and handler.response_streaming and handler.stream_stream is not None:
             return grpc.stream_stream_rpc_method_handler(
                 _with_tenant(handler.stream_stream, tenant, streaming_response=False),
                 request_deserializer=handler.request_deserializer,

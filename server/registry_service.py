@@ -31,7 +31,11 @@ class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer
 
     @translate_errors
     async def RegisterModel(
-        self, request: model_registry_pb2.RegisterModelRequest, context: grpc.aio.ServicerContext
+        self,
+        request: model_registry_pb2.RegisterModelRequest,
+        context: grpc.aio.ServicerContext[
+            model_registry_pb2.RegisterModelRequest, model_registry_pb2.RegisterModelResponse
+        ],
     ) -> model_registry_pb2.RegisterModelResponse:
         tenant = tenant_of(context)
         metadata = metadata_from_message(request.metadata)
@@ -47,7 +51,11 @@ class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer
 
     @translate_errors
     async def GetModel(
-        self, request: model_registry_pb2.GetModelRequest, context: grpc.aio.ServicerContext
+        self,
+        request: model_registry_pb2.GetModelRequest,
+        context: grpc.aio.ServicerContext[
+            model_registry_pb2.GetModelRequest, model_registry_pb2.GetModelResponse
+        ],
     ) -> model_registry_pb2.GetModelResponse:
         tenant = tenant_of(context)
         if request.model_id and (request.name or request.version):
@@ -68,7 +76,11 @@ class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer
 
     @translate_errors
     async def ListModels(
-        self, request: model_registry_pb2.ListModelsRequest, context: grpc.aio.ServicerContext
+        self,
+        request: model_registry_pb2.ListModelsRequest,
+        context: grpc.aio.ServicerContext[
+            model_registry_pb2.ListModelsRequest, model_registry_pb2.ListModelsResponse
+        ],
     ) -> model_registry_pb2.ListModelsResponse:
         tenant = tenant_of(context)
         page_size = request.page_size or DEFAULT_PAGE_SIZE

@@ -10,7 +10,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Awaitable, Callable
-from typing import Any, NoReturn, TypeVar
+from typing import NoReturn, TypeVar
 
 import grpc
 
@@ -20,22 +20,31 @@ __all__ = ["abort", "translate_errors"]
 
 _log = logging.getLogger(__name__)
 
-T = TypeVar("T")
+_Servicer = TypeVar("_Servicer")
+_Request = TypeVar("_Request")
+_Response = TypeVar("_Response")
+
+# A unary aio servicer method: (self, request, context) -> awaitable response.
+_UnaryMethod = Callable[
+    [_Servicer, _Request, grpc.aio.ServicerContext[_Request, _Response]], Awaitable[_Response]
+]
 
 
-async def abort(context: grpc.aio.ServicerContext, error: JitdynError) -> NoReturn:
+async def abort(context: grpc.aio.ServicerContext[_Request, _Response], error: JitdynError) -> NoReturn:
     """End the RPC with the status and message of `error`."""
     await context.abort(error.code, str(error))
     raise AssertionError("unreachable: context.abort raises")  # pragma: no cover
 
 
 def translate_errors(
-    method: Callable[..., Awaitable[T]],
-) -> Callable[..., Awaitable[T]]:
+    method: _UnaryMethod[_Servicer, _Request, _Response],
+) -> _UnaryMethod[_Servicer, _Request, _Response]:
     """Decorate a unary aio servicer method so that project errors become their statuses."""
 
     @functools.wraps(method)
-    async def wrapper(self: Any, request: Any, context: grpc.aio.ServicerContext) -> T:
+    async def wrapper(
+        self: _Servicer, request: _Request, context: grpc.aio.ServicerContext[_Request, _Response]
+    ) -> _Response:
         try:
             return await method(self, request, context)
         except JitdynError as error:
