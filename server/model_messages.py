@@ -11,7 +11,7 @@ keyed by the enums' value names without their prefix: {"PASSIVE": {"preset": "TH
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, TypeAlias, TypeVar
 
 from google.protobuf import timestamp_pb2
 
@@ -19,6 +19,12 @@ from jitdyn.errors import InvalidArgument
 from jitdyn.v1 import common_pb2, model_registry_pb2
 from registry import ModelInfo, ModelMetadata
 from registry.info import check_metadata
+
+if TYPE_CHECKING:
+    # The stubs' generic enum wrapper: mypy-protobuf types each enum's values as its own int NewType.
+    from google.protobuf.internal.enum_type_wrapper import _EnumTypeWrapper
+
+    _SettingsEnum: TypeAlias = type[common_pb2.Estimator | common_pb2.Preset | common_pb2.SigmaPoints]
 
 __all__ = [
     "metadata_from_message",
@@ -35,18 +41,21 @@ _JOINT_TYPES = {
     "hinge": model_registry_pb2.JOINT_TYPE_HINGE,
 }
 # Enum settings: field -> (enum, prefix of its value names).
-_ENUMS: dict[str, tuple[Any, str]] = {
+_ENUMS: dict[str, tuple[_SettingsEnum, str]] = {
     "estimator": (common_pb2.Estimator, "ESTIMATOR_"),
     "preset": (common_pb2.Preset, "PRESET_"),
     "sigma_points": (common_pb2.SigmaPoints, "SIGMA_POINTS_"),
 }
-_NUMBERS = ("alpha", "beta", "kappa", "p0", "q_var", "r")
+# A Literal, so that mypy checks the names against EstimatorSettings' fields (HasField).
+_Number: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r"]
+_NUMBERS: tuple[_Number, ...] = ("alpha", "beta", "kappa", "p0", "q_var", "r")
 _SCENARIO_PREFIX = "SCENARIO_"
-# The enum wrappers' Name and Value are not in the generated stubs.
-_SCENARIO: Any = common_pb2.Scenario
+_SCENARIO = common_pb2.Scenario
+
+_V = TypeVar("_V", bound=int)
 
 
-def _enum_name(enum: Any, prefix: str, value: int, *, argument: str) -> str:
+def _enum_name(enum: _EnumTypeWrapper[_V], prefix: str, value: _V, *, argument: str) -> str:
     try:
         return str(enum.Name(value)).removeprefix(prefix)
     except ValueError:

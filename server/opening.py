@@ -8,11 +8,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, TypeVar
 
 from jitdyn.errors import InvalidArgument
 from jitdyn.v1 import common_pb2, dynamics_pb2
 from server.model_messages import settings_from_message
+
+if TYPE_CHECKING:
+    # The stubs' generic enum wrapper: mypy-protobuf types each enum's values as its own int NewType.
+    from google.protobuf.internal.enum_type_wrapper import _EnumTypeWrapper
 
 __all__ = ["ESTIMATOR_FIELDS", "SessionPlan", "enum_name", "plan_session"]
 
@@ -23,8 +27,10 @@ _DEFAULT_HISTORY = 50
 _MAX_HISTORY = 10_000
 _MAX_SUBJECT_ID = 256
 
+_V = TypeVar("_V", bound=int)
 
-def enum_name(enum: Any, value: int) -> str:
+
+def enum_name(enum: _EnumTypeWrapper[_V], value: _V) -> str:
     """An enum value's name without its type prefix: Scenario 1 -> "PASSIVE"."""
     full = enum.Name(value)
     prefix = "".join("_" + c if c.isupper() and i else c for i, c in enumerate(enum.DESCRIPTOR.name)).upper()

@@ -13,11 +13,10 @@ from __future__ import annotations
 import asyncio
 import datetime as _dt
 from collections.abc import Mapping
-from typing import Final
+from typing import TYPE_CHECKING, Final, TypeAlias, TypeVar
 
 import grpc
 from google.protobuf import timestamp_pb2
-from google.protobuf.internal.enum_type_wrapper import EnumTypeWrapper
 
 from jitdyn.errors import InvalidArgument
 from jitdyn.v1 import common_pb2, dynamics_pb2, session_pb2, session_pb2_grpc
@@ -25,6 +24,12 @@ from server.auth import tenant_of
 from server.status import translate_errors
 from storage.index import MAX_PAGE_SIZE, SessionIndex, SessionRow
 from storage.records import SessionSummaryInfo
+
+if TYPE_CHECKING:
+    # The stubs' generic enum wrapper: mypy-protobuf types each enum's values as its own int NewType.
+    from google.protobuf.internal.enum_type_wrapper import _EnumTypeWrapper
+
+    _SettingsEnum: TypeAlias = type[common_pb2.Estimator | common_pb2.Preset | common_pb2.SigmaPoints]
 
 __all__ = [
     "DEFAULT_PAGE_SIZE",
@@ -36,8 +41,10 @@ __all__ = [
 
 DEFAULT_PAGE_SIZE: Final = 50
 
+_V = TypeVar("_V", bound=int)
+
 # Enum fields of EstimatorSettings, stored by name without prefix: their enum and its prefix.
-_ESTIMATOR_ENUMS: Final[dict[str, tuple[EnumTypeWrapper, str]]] = {
+_ESTIMATOR_ENUMS: Final[dict[str, tuple[_SettingsEnum, str]]] = {
     "estimator": (common_pb2.Estimator, "ESTIMATOR_"),
     "preset": (common_pb2.Preset, "PRESET_"),
     "sigma_points": (common_pb2.SigmaPoints, "SIGMA_POINTS_"),
@@ -110,7 +117,7 @@ def session_to_pb(row: SessionRow) -> session_pb2.Session:
     return message
 
 
-def _enum_name(value: int, enum: EnumTypeWrapper, prefix: str, field: str) -> str | None:
+def _enum_name(value: _V, enum: _EnumTypeWrapper[_V], prefix: str, field: str) -> str | None:
     """The stored name of a filter's enum value (None for UNSPECIFIED); InvalidArgument for a
     number the proto does not define."""
     if value == 0:
@@ -130,7 +137,9 @@ class SessionServicer(session_pb2_grpc.SessionServiceServicer):
 
     @translate_errors
     async def ListSessions(
-        self, request: session_pb2.ListSessionsRequest, context: grpc.aio.ServicerContext
+        self,
+        request: session_pb2.ListSessionsRequest,
+        context: grpc.aio.ServicerContext[session_pb2.ListSessionsRequest, session_pb2.ListSessionsResponse],
     ) -> session_pb2.ListSessionsResponse:
         tenant = tenant_of(context)
         if request.page_size > MAX_PAGE_SIZE:
@@ -158,7 +167,9 @@ class SessionServicer(session_pb2_grpc.SessionServiceServicer):
 
     @translate_errors
     async def GetSession(
-        self, request: session_pb2.GetSessionRequest, context: grpc.aio.ServicerContext
+        self,
+        request: session_pb2.GetSessionRequest,
+        context: grpc.aio.ServicerContext[session_pb2.GetSessionRequest, session_pb2.GetSessionResponse],
     ) -> session_pb2.GetSessionResponse:
         tenant = tenant_of(context)
         if not request.session_id:
