@@ -49,7 +49,8 @@ class Dynamics:
         """qacc of mj_forward at (qpos, qvel) under `ctrl` (zero when None); shape (nv,)."""
         self._set_state(qpos, qvel, ctrl, act)
         mujoco.mj_forward(self._model, self._data)
-        return self._data.qacc.copy()
+        qacc: np.ndarray = self._data.qacc.copy()  # mujoco's bindings are untyped
+        return qacc
 
     def compute(
         self,

@@ -17,9 +17,11 @@ from collections.abc import AsyncIterator
 from datetime import UTC, datetime
 
 import grpc
+import mujoco
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, ResourceExhausted
 from jitdyn.v1 import common_pb2, dynamics_pb2, dynamics_pb2_grpc
+from registry import ModelInfo
 from server.auth import tenant_of
 from server.clock import ClockSync, MonotonicClock
 from server.dynamics import Dynamics
@@ -46,6 +48,7 @@ __all__ = ["DynamicsServicer"]
 _log = logging.getLogger(__name__)
 
 Response = dynamics_pb2.StreamSessionResponse
+_Context = grpc.aio.ServicerContext[dynamics_pb2.StreamSessionRequest, Response]
 
 # REALTIME: how far ahead of the clock a frame may arrive and wait for its tick.
 _MAX_TICKS_AHEAD = 1000
@@ -180,10 +183,12 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     def __init__(self, services: Services) -> None:
         self._services = services
 
-    async def StreamSession(
+    # grpc.aio also takes a stream handler that writes through `context.write` and returns None,
+    # which the generated servicer's signature (iterators of responses) does not describe.
+    async def StreamSession(  # type: ignore[override]
         self,
         request_iterator: AsyncIterator[dynamics_pb2.StreamSessionRequest],
-        context: grpc.aio.ServicerContext,
+        context: _Context,
     ) -> None:
         try:
             first = await anext(aiter(request_iterator), None)
@@ -327,7 +332,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         self,
         stream: _Stream,
         requests: AsyncIterator[dynamics_pb2.StreamSessionRequest],
-        context: grpc.aio.ServicerContext,
+        context: _Context,
     ) -> None:
         async for request in requests:
             arrived = stream.clock.now()
@@ -349,7 +354,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         self,
         stream: _Stream,
         requests: AsyncIterator[dynamics_pb2.StreamSessionRequest],
-        context: grpc.aio.ServicerContext,
+        context: _Context,
     ) -> None:
         write_lock = asyncio.Lock()
 
@@ -450,7 +455,7 @@ def _unexpected(kind: str | None) -> str:
     return f"a request must carry one of open, frame, skip, sync, close; got {kind or 'nothing'}"
 
 
-def _dof_names(model, info) -> tuple[str, ...]:  # type: ignore[no-untyped-def]
+def _dof_names(model: mujoco.MjModel, info: ModelInfo) -> tuple[str, ...]:
     """One name per degree of freedom: the joint's name, suffixed for multi-dof joints."""
     names: list[str] = []
     for joint in info.joints:

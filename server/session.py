@@ -247,7 +247,7 @@ class SessionRuntime:
             and previous.frame is not None
             and previous.frame.qvel is not None
         ):
-            return (frame.qvel - previous.frame.qvel) / self._dt
+            return np.asarray((frame.qvel - previous.frame.qvel) / self._dt)
         if estimate is not None:
             return estimate.qacc
         qvel = frame.qvel if frame.qvel is not None else self._zero_nv
