@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import google_crc32c
 import numpy as np
 
-__all__ = ["frame_checksum", "canonical_bytes"]
+__all__ = ["canonical_bytes", "frame_checksum"]
 
 _LE_F64 = np.dtype("<f8")
 

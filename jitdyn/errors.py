@@ -16,13 +16,13 @@ from __future__ import annotations
 import grpc
 
 __all__ = [
-    "JitdynError",
-    "InvalidArgument",
-    "NotFound",
     "FailedPrecondition",
+    "InvalidArgument",
+    "JitdynError",
+    "NotFound",
+    "PermissionDenied",
     "ResourceExhausted",
     "Unauthenticated",
-    "PermissionDenied",
     "Unavailable",
     "error_for_status",
 ]

@@ -14,7 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from client import FrameData, Rejection, SessionOptions, TickResult
-from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
+from jitdyn.errors import InvalidArgument, NotFound
 from jitdyn.v1 import dynamics_pb2, dynamics_pb2_grpc
 from registry import builtin_model_path
 
@@ -187,7 +187,7 @@ def test_the_session_is_stored_as_parquet_and_indexed(server: Any, client: Any) 
     data_root = Path(server.services.data_root)
     path = data_root / summary.location
     assert path.is_file() and path.suffix == ".parquet"
-    assert f"model=pendulum_3" in summary.location
+    assert "model=pendulum_3" in summary.location
     table = pq.read_table(path)
     results = [r for r in table.to_pylist() if r["kind"] == "result"]
     assert [r["seq"] for r in results] == list(range(12))

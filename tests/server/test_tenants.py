@@ -35,9 +35,8 @@ def test_no_key_is_unauthenticated_but_health_answers(keyed_server: BackgroundSe
             list(anonymous.list_models())
         with pytest.raises(Unauthenticated):
             anonymous.open_session(SessionOptions(model_name="pendulum_1", dt=0.05))
-    with Client(keyed_server.address, api_key="x" * 24) as wrong:
-        with pytest.raises(Unauthenticated):
-            list(wrong.list_models())
+    with Client(keyed_server.address, api_key="x" * 24) as wrong, pytest.raises(Unauthenticated):
+        list(wrong.list_models())
     with grpc.insecure_channel(keyed_server.address) as channel:
         status = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service="jitdyn.v1.DynamicsService"))
     assert status.status == health_pb2.HealthCheckResponse.SERVING
