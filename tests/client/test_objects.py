@@ -89,8 +89,8 @@ def test_biped_keeps_rocking_on_its_feet():
         (lambda: make_object("pendulum_9", Scenario.PASSIVE), "object must be one of"),
         (lambda: load_source("nope"), "model must be one of"),
         (
-            lambda: Pendulum(1, Scenario.PASSIVE, dt=0.015),
-            "dt must be a positive whole multiple of the model's timestep 0.01, got 0.015",
+            lambda: Pendulum(1, Scenario.PASSIVE, dt=0.06),
+            "dt must be a positive whole multiple of the model's timestep 0.025, got 0.06",
         ),
     ],
 )

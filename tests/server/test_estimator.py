@@ -116,7 +116,7 @@ def test_thesis_preset_is_the_table_for_the_pendulums(
     assert (config.estimator, config.sigma_points) == ("UKF", "MERWE")
     assert (config.alpha, config.beta, config.p0, config.r, config.q_var) == (0.001, 2.0, 0.2, 0.01, q_var)
     assert config.kappa == 3 - derivatives * n  # 3 - 2n passive and external, 3 - 3n controlled
-    assert (config.dt, config.steps_per_tick) == (0.05, 5)
+    assert (config.dt, config.steps_per_tick) == (0.05, round(0.05 / pendulum(n).opt.timestep))
 
 
 @pytest.mark.parametrize(
@@ -191,8 +191,8 @@ def test_request_beats_model_defaults_beats_preset() -> None:
             {"requested": {"sigma_points": "merwe"}},
             r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM'\], got 'merwe'$",
         ),
-        ({"dt": 0.055}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.01 s, got 0.055$"),
-        ({"dt": 0.0}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.01 s, got 0.0$"),
+        ({"dt": 0.055}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.055$"),
+        ({"dt": 0.0}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.0$"),
         ({"measured": {"qvel"}}, r"^measured must include 'qpos', got \['qvel'\]$"),
         (
             {"measured": {"qpos", "torque"}},
@@ -223,7 +223,7 @@ def test_config_is_frozen_and_checked_against_the_model_by_the_factory() -> None
     wrong_steps = EstimatorConfig(**{**config.__dict__, "steps_per_tick": 4})
     with (
         WorkerPool(1) as pool,
-        pytest.raises(InvalidArgument, match=r"^steps_per_tick must be dt / timestep = 5, got 4$"),
+        pytest.raises(InvalidArgument, match=r"^steps_per_tick must be dt / timestep = 2, got 4$"),
     ):
         make_estimator(pendulum(1), wrong_steps, pool=pool)
 
@@ -314,7 +314,7 @@ def test_controlled_and_external_pendulums_track_through_skips(n: int) -> None:
     frames = [Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy(), ctrl=np.zeros(n))]
     for k in range(1, 150):
         d.ctrl[:] = 3.0 * np.sin(0.2 * k + np.arange(n))
-        for _ in range(5):
+        for _ in range(round(0.05 / model.opt.timestep)):
             mujoco.mj_step(model, d)
         frames.append(Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy(), ctrl=d.ctrl.copy()))
     skipped = skip_pattern(len(frames), seed=10 + n)

@@ -51,7 +51,7 @@ def test_measured_results_carry_mj_inverse_of_the_frame(client: Any) -> None:
     options = SessionOptions(model_name="pendulum_3", dt=0.05, measured=("qpos", "qvel", "qacc"))
     with client.open_session(options) as session:
         assert session.opened.model.name == "pendulum_3"
-        assert session.opened.steps_per_tick == 5
+        assert session.opened.steps_per_tick == 2
         for k, (q, v, a) in enumerate(truth):
             result = session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v, qacc=a))
             assert isinstance(result, TickResult), result
@@ -155,8 +155,8 @@ def test_second_open_is_invalid_argument(server: Any) -> None:
     [
         (SessionOptions(model_name="no_such_model", dt=0.05), NotFound, "no_such_model"),
         (SessionOptions(model_name="pendulum_1", dt=0.0), InvalidArgument, "open.dt must be in (0, 10.0] seconds, got 0.0"),
-        (SessionOptions(model_name="pendulum_1", dt=0.015), InvalidArgument,
-         "open.dt must be a whole multiple of the model's timestep 0.01 s, got 0.015"),
+        (SessionOptions(model_name="pendulum_1", dt=0.06), InvalidArgument,
+         "open.dt must be a whole multiple of the model's timestep 0.025 s, got 0.06"),
         (SessionOptions(model_name="pendulum_1", dt=0.05, scenario="CONTROLLED", measured=("qpos", "qvel")),
          InvalidArgument, "open.measured must include CHANNEL_CTRL in SCENARIO_CONTROLLED"),
         (SessionOptions(model_name="pendulum_1", dt=0.05, history=20000), InvalidArgument,
