@@ -21,8 +21,9 @@ import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import Enum, auto
 from types import TracebackType
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Final, Literal, Protocol, Self, TypeAlias, TypeVar
 
 import grpc
 import numpy as np
@@ -38,6 +39,12 @@ from jitdyn.v1 import (
     session_pb2,
     session_pb2_grpc,
 )
+
+if TYPE_CHECKING:
+    # The stubs' generic enum wrapper: mypy-protobuf types each enum's values as its own int NewType.
+    from google.protobuf.internal.enum_type_wrapper import _EnumTypeWrapper
+
+    _SettingsEnum: TypeAlias = type[common_pb2.Estimator | common_pb2.Preset | common_pb2.SigmaPoints]
 
 __all__ = [
     "MAX_MESSAGE_BYTES",
@@ -55,23 +62,37 @@ __all__ = [
 
 MAX_MESSAGE_BYTES = 128 * 1024 * 1024
 
-_ESTIMATOR_ENUMS = {
+_V = TypeVar("_V", bound=int)
+_V_co = TypeVar("_V_co", bound=int, covariant=True)
+_Request = TypeVar("_Request")
+_Response = TypeVar("_Response")
+
+_ESTIMATOR_ENUMS: dict[str, tuple[_SettingsEnum, str]] = {
     "estimator": (common_pb2.Estimator, "ESTIMATOR_"),
     "preset": (common_pb2.Preset, "PRESET_"),
     "sigma_points": (common_pb2.SigmaPoints, "SIGMA_POINTS_"),
 }
-_ESTIMATOR_SCALARS = ("alpha", "beta", "kappa", "p0", "q_var", "r")
+# A Literal, so that mypy checks the names against EstimatorSettings' fields (HasField).
+_Scalar: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r"]
+_ESTIMATOR_SCALARS: tuple[_Scalar, ...] = ("alpha", "beta", "kappa", "p0", "q_var", "r")
 
 
-def _enum(enum: Any, prefix: str, name: str, what: str) -> int:
+class _EnumValues(Protocol[_V_co]):
+    """What `_enum` needs of a generated enum; unlike the stubs' wrapper it takes a union of enums."""
+
+    def Value(self, name: str) -> _V_co: ...
+    def keys(self) -> list[str]: ...
+
+
+def _enum(enum: _EnumValues[_V_co], prefix: str, name: str, what: str) -> _V_co:
     try:
-        return int(enum.Value(prefix + name.upper()))
+        return enum.Value(prefix + name.upper())
     except ValueError:
         names = [n[len(prefix):] for n in enum.keys() if not n.endswith("UNSPECIFIED")]  # noqa: SIM118 (an enum wrapper, not a dict)
         raise InvalidArgument(f"{what} must be one of {names}, got {name!r}") from None
 
 
-def _name(enum: Any, prefix: str, value: int) -> str:
+def _name(enum: _EnumTypeWrapper[_V], prefix: str, value: _V) -> str:
     return str(enum.Name(value))[len(prefix):]
 
 
@@ -165,22 +186,23 @@ class SessionOptions:
         else:
             message.inline_model.name = self.inline_name
             message.inline_model.mjcf = self.inline_mjcf or ""
-            for key, value in self.inline_assets.items():
-                message.inline_model.assets[key] = value
-        for key, value in self.estimator.items():
+            for key, asset in self.inline_assets.items():
+                message.inline_model.assets[key] = asset
+        for key, setting in self.estimator.items():
             if key in _ESTIMATOR_ENUMS:
                 enum, prefix = _ESTIMATOR_ENUMS[key]
-                setattr(message.estimator, key, _enum(enum, prefix, str(value), f"estimator[{key!r}]"))
+                setattr(message.estimator, key, _enum(enum, prefix, str(setting), f"estimator[{key!r}]"))
             elif key in _ESTIMATOR_SCALARS:
-                setattr(message.estimator, key, float(value))  # type: ignore[arg-type]
+                # `estimator` holds any object: float() converts it, or raises for one it cannot.
+                setattr(message.estimator, key, float(setting))  # type: ignore[arg-type]
             else:
                 raise InvalidArgument(
                     f"estimator keys must be among {sorted([*_ESTIMATOR_ENUMS, *_ESTIMATOR_SCALARS])}, got {key!r}"
                 )
         if self.subject_id:
             message.subject.id = self.subject_id
-        for key, value in self.subject_attributes.items():
-            message.subject.attributes[key] = value
+        for key, attribute in self.subject_attributes.items():
+            message.subject.attributes[key] = attribute
         return message
 
 
@@ -207,7 +229,15 @@ class FrameData:
                 ("sensordata", self.sensordata),
             )
         }
-        frame = dynamics_pb2.Frame(seq=self.seq, t=self.t, **{k: v.tolist() for k, v in channels.items()})
+        frame = dynamics_pb2.Frame(
+            seq=self.seq,
+            t=self.t,
+            qpos=channels["qpos"].tolist(),
+            qvel=channels["qvel"].tolist(),
+            qacc=channels["qacc"].tolist(),
+            ctrl=channels["ctrl"].tolist(),
+            sensordata=channels["sensordata"].tolist(),
+        )
         if checksum:
             frame.checksum = frame_checksum(seq=self.seq, t=self.t, **channels)
         return frame
@@ -363,7 +393,13 @@ def _summary(message: dynamics_pb2.SessionSummary) -> Summary:
     )
 
 
-_END = object()
+class _End(Enum):
+    """The end of a session's request or response queue."""
+
+    END = auto()
+
+
+_END: Final = _End.END
 
 
 class Session:
@@ -378,8 +414,10 @@ class Session:
     def __init__(self, stub: dynamics_pb2_grpc.DynamicsServiceStub, options: SessionOptions, *,
                  timeout: float | None, metadata: Sequence[tuple[str, str]], checksum: bool,
                  sync_interval: float = 0.5) -> None:
-        self._requests: queue.Queue[object] = queue.Queue()
-        self._responses: queue.Queue[object] = queue.Queue()
+        self._requests: queue.Queue[dynamics_pb2.StreamSessionRequest | _End] = queue.Queue()
+        self._responses: queue.Queue[tuple[float, dynamics_pb2.StreamSessionResponse] | grpc.RpcError | _End] = (
+            queue.Queue()
+        )
         self._timeout = timeout
         self._checksum = checksum
         self._clock_start = time.monotonic()
@@ -392,7 +430,7 @@ class Session:
         self.summary: Summary | None = None
         open_request = dynamics_pb2.StreamSessionRequest(open=options.to_message())
         self._requests.put(open_request)
-        self._call = stub.StreamSession(self._request_iterator(), metadata=list(metadata))
+        self._call = stub.StreamSession(self._request_iterator(), metadata=tuple(metadata))
         self._reader = threading.Thread(target=self._read, name="jitdyn-session-reader", daemon=True)
         self._reader.start()
         first = self._next_response(self._timeout)
@@ -412,7 +450,7 @@ class Session:
             item = self._requests.get()
             if item is _END:
                 return
-            yield item  # type: ignore[misc]
+            yield item
 
     def _read(self) -> None:
         try:
@@ -443,8 +481,8 @@ class Session:
             return None
         if isinstance(item, grpc.RpcError):
             self._responses.put(_END)
-            raise error_for_status(item.code(), item.details() or "")  # type: ignore[attr-defined]
-        return item  # type: ignore[return-value]
+            raise error_for_status(item.code(), item.details() or "")
+        return item
 
     def _convert(self, item: tuple[float, dynamics_pb2.StreamSessionResponse]) -> TickResult | Rejection | SyncSample | Summary:
         received_at, response = item
@@ -534,9 +572,9 @@ class Session:
                 self._responses.put(item)
                 if isinstance(item, grpc.RpcError):
                     self._responses.get_nowait()
-                    raise error_for_status(item.code(), item.details() or "")  # type: ignore[attr-defined]
+                    raise error_for_status(item.code(), item.details() or "")
                 return answers
-            answer = self._convert(item)  # type: ignore[arg-type]
+            answer = self._convert(item)
             if not isinstance(answer, Summary):
                 answers.append(answer)
 
@@ -628,11 +666,11 @@ class Client:
         except grpc.FutureTimeoutError:
             raise error_for_status(grpc.StatusCode.UNAVAILABLE, f"no jitdyn server answered within {timeout} s") from None
 
-    def _unary(self, method: Any, request: Any) -> Any:
+    def _unary(self, method: grpc.UnaryUnaryMultiCallable[_Request, _Response], request: _Request) -> _Response:
         try:
             return method(request, timeout=self._timeout, metadata=self._metadata)
         except grpc.RpcError as error:
-            raise error_for_status(error.code(), error.details() or "") from None  # type: ignore[attr-defined]
+            raise error_for_status(error.code(), error.details() or "") from None
 
     def register_model(
         self,
@@ -688,7 +726,7 @@ class Client:
         try:
             return Session(self._dynamics, options, timeout=self._timeout, metadata=self._metadata, checksum=self._checksum)
         except grpc.RpcError as error:
-            raise error_for_status(error.code(), error.details() or "") from None  # type: ignore[attr-defined]
+            raise error_for_status(error.code(), error.details() or "") from None
 
     def close(self) -> None:
         self._channel.close()
