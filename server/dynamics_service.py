@@ -213,12 +213,12 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 await self._lockstep(stream, request_iterator, context)
             status = "COMPLETE"
         except JitdynError as error:
-            await self._finish(stream, "FAILED")
+            await self._finish_quietly(stream, "FAILED")
             await abort(context, error)
         finally:
             if not stream.closed:
                 # The client went away or the server is stopping: what arrived is stored.
-                await asyncio.shield(self._finish(stream, status if status == "COMPLETE" else "FAILED"))
+                await asyncio.shield(self._finish_quietly(stream, status))
 
     async def _open(
         self, request: dynamics_pb2.OpenSession, tenant: str
@@ -435,6 +435,15 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     async def _close(self, stream: _Stream) -> Response:
         summary, location = await self._finish(stream, "COMPLETE")
         return Response(closed=dynamics_pb2.SessionClosed(summary=summary_to_pb(summary, location=location)))
+
+    async def _finish_quietly(self, stream: _Stream, status: str) -> None:
+        """End a session that is ending anyway; a store that fails now keeps its log, which the
+        next start recovers, so the failure is logged rather than raised over the first error."""
+        try:
+            await self._finish(stream, status)
+        except Exception:
+            _log.exception("session %s could not be closed; its log is recovered at the next start",
+                           stream.recorder.header.session_id)
 
     async def _finish(self, stream: _Stream, status: str) -> tuple[SessionSummaryInfo, str]:
         async with stream.lock:

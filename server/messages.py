@@ -123,7 +123,8 @@ def rejection_record(rejection: Rejection, *, server_time: float, t: float) -> T
     """The stored row of a rejected frame (its values are not kept: they were not used)."""
     return TickRecord(
         kind="rejected",
-        seq=rejection.seq,
+        # The column is int64; a hostile seq is kept whole in the message.
+        seq=min(rejection.seq, 2**63 - 1),
         source="",
         t=t,
         server_time=server_time,

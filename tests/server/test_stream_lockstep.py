@@ -197,3 +197,15 @@ def test_the_session_is_stored_as_parquet_and_indexed(server: Any, client: Any) 
         row = db.execute("SELECT status, ticks, measured, predicted, location, subject_pseudonym FROM sessions WHERE session_id = ?", (session_id,)).fetchone()
     assert row[:5] == ("COMPLETE", 12, 10, 2, summary.location)
     assert len(row[5]) == 64 and "4711" not in row[5]
+
+
+def test_hostile_values_are_rejected_or_survived_and_the_session_is_stored(client: Any) -> None:
+    with client.open_session(SessionOptions(model_name="pendulum_1", dt=0.05)) as session:
+        huge = session.send_frame(FrameData(seq=2**64 - 1, t=0.0, qpos=[0.1], qvel=[0.0]))
+        assert isinstance(huge, Rejection) and huge.reason == "OUT_OF_ORDER" and huge.seq == 2**64 - 1
+        absurd = session.send_frame(FrameData(seq=0, t=0.0, qpos=[1e300], qvel=[-1e300]))
+        assert isinstance(absurd, TickResult)
+        predicted = session.skip(1)
+        assert isinstance(predicted, TickResult) and np.isfinite(predicted.qpos).all()
+        summary = session.close()
+    assert (summary.ticks, summary.rejected) == (2, 1) and summary.location.endswith(".parquet")
