@@ -132,7 +132,7 @@ class _SigmaPoints:
 class _SigmaPointsEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_SigmaPoints.ValueType], _builtins.type):
     DESCRIPTOR: _descriptor.EnumDescriptor
     SIGMA_POINTS_UNSPECIFIED: _SigmaPoints.ValueType  # 0
-    """Not set. Defaults to SIGMA_POINTS_MERWE."""
+    """Not set: the preset decides (see EstimatorSettings.sigma_points)."""
     SIGMA_POINTS_MERWE: _SigmaPoints.ValueType  # 1
     """Van der Merwe's scaled sigma points, 2n + 1 points (alpha, beta, kappa), as in the thesis."""
     SIGMA_POINTS_SIMPLEX: _SigmaPoints.ValueType  # 2
@@ -144,7 +144,7 @@ class SigmaPoints(_SigmaPoints, metaclass=_SigmaPointsEnumTypeWrapper):
     """The sigma-point scheme of the unscented transform."""
 
 SIGMA_POINTS_UNSPECIFIED: SigmaPoints.ValueType  # 0
-"""Not set. Defaults to SIGMA_POINTS_MERWE."""
+"""Not set: the preset decides (see EstimatorSettings.sigma_points)."""
 SIGMA_POINTS_MERWE: SigmaPoints.ValueType  # 1
 """Van der Merwe's scaled sigma points, 2n + 1 points (alpha, beta, kappa), as in the thesis."""
 SIGMA_POINTS_SIMPLEX: SigmaPoints.ValueType  # 2
@@ -276,7 +276,9 @@ class EstimatorSettings(_message.Message):
     preset: Global___Preset.ValueType
     """The preset that fills the unset fields. Unset: PRESET_JITDYN."""
     sigma_points: Global___SigmaPoints.ValueType
-    """The sigma-point scheme. Unset: SIGMA_POINTS_MERWE."""
+    """The sigma-point scheme. Unset: from the preset (PRESET_JITDYN: Merwe below a state dimension
+    of 32, simplex from 32 on; PRESET_THESIS: Merwe).
+    """
     alpha: _builtins.float
     """Spread of the sigma points around the mean; 0 < alpha <= 1 (dimensionless)."""
     beta: _builtins.float
