@@ -163,6 +163,7 @@ async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float 
     await server.stop(grace)
     services.pool.close()
     services.registry.close()
+    services.index.engine.dispose()
 
 
 async def serve(config: ServerConfig, *, announce: Callable[[str], None] = print) -> None:

@@ -194,3 +194,32 @@ def test_a_free_joint_is_estimated_on_its_manifold(client: Any) -> None:
                 assert isinstance(result, TickResult) and result.source == "MEASURED"
                 assert result.filter_state.shape == (13,) and result.covariance.shape == (12, 12)
         session.close()
+
+
+def test_thesis_weights_at_n_46_on_myohand_do_not_crash_the_server(client: Any) -> None:
+    """kappa = 3 - n with alpha = 0.001 at n = 46: weights of order 1e7 (reference: indefinite
+    covariances). The server repairs, guards, and keeps answering."""
+    from client.myo import pack_myo_model
+
+    mjcf, assets = pack_myo_model("myohand")
+    model, _ = client.register_model(name="myohand", mjcf=mjcf, assets=assets)
+    truth = mujoco.MjModel.from_xml_string(mjcf, assets)
+    data = mujoco.MjData(truth)
+    options = SessionOptions(model_name="myohand", dt=0.002, scenario="EXTERNAL", estimator={
+        "preset": "THESIS", "sigma_points": "MERWE", "alpha": 0.001, "beta": 2.0, "kappa": 3.0 - 46})
+    with client.open_session(options) as session:
+        assert session.opened.state_dimension == 46
+        for k in range(40):
+            data.ctrl[:] = 0.5 * (1 + np.sin(0.3 * k + np.arange(truth.nu)))
+            if k % 4 == 3:
+                answer = session.skip(k)
+            else:
+                answer = session.send_frame(FrameData(seq=k, t=k * 0.002, qpos=data.qpos, qvel=data.qvel))
+            assert isinstance(answer, TickResult)
+            assert np.isfinite(answer.qpos).all() and np.isfinite(answer.qfrc_inverse).all()
+            mujoco.mj_step(truth, data)
+        summary = session.close()
+    assert summary.ticks == 40
+    # The server is fine: the next session opens and answers.
+    with client.open_session(SessionOptions(model_id=model.id, dt=0.002, scenario="EXTERNAL")) as session:
+        assert isinstance(session.send_frame(FrameData(seq=0, t=0.0, qpos=data.qpos, qvel=data.qvel)), TickResult)
