@@ -197,6 +197,11 @@ def _models(args: argparse.Namespace) -> int:
 
                 mjcf, assets = pack_myo_model(args.myo)
                 name = args.name or args.myo
+                from importlib.metadata import version
+
+                args.tag = args.tag or ["myosuite"]
+                args.description = args.description or f"MyoSuite {args.myo}, packed from myo-sim {version('myo-sim')}"
+
             else:
                 if args.file is None:
                     raise SystemExit("jitdyn models register: give an MJCF FILE or --myo NAME")
