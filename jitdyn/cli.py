@@ -197,10 +197,10 @@ def _models(args: argparse.Namespace) -> int:
 
                 mjcf, assets = pack_myo_model(args.myo)
                 name = args.name or args.myo
-                from importlib.metadata import version
+                from importlib.metadata import version as package_version
 
                 args.tag = args.tag or ["myosuite"]
-                args.description = args.description or f"MyoSuite {args.myo}, packed from myo-sim {version('myo-sim')}"
+                args.description = args.description or f"MyoSuite {args.myo}, packed from myo-sim {package_version('myo-sim')}"
 
             else:
                 if args.file is None:
