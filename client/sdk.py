@@ -61,6 +61,10 @@ __all__ = [
 ]
 
 MAX_MESSAGE_BYTES = 128 * 1024 * 1024
+_CHANNEL_OPTIONS: Final = (
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+)
 
 _V = TypeVar("_V", bound=int)
 _V_co = TypeVar("_V_co", bound=int, covariant=True)
@@ -393,6 +397,70 @@ def _summary(message: dynamics_pb2.SessionSummary) -> Summary:
     )
 
 
+def _status_error(error: grpc.RpcError) -> JitdynError:
+    """The `jitdyn.errors` exception for the status an RPC ended with (sync or grpc.aio)."""
+    return error_for_status(error.code(), error.details() or "")
+
+
+def _auth_metadata(api_key: str | None) -> tuple[tuple[str, str], ...]:
+    return (("authorization", f"Bearer {api_key}"),) if api_key else ()
+
+
+def _register_request(
+    *, name: str, mjcf: str, assets: Mapping[str, bytes] | None, description: str, tags: Sequence[str]
+) -> model_registry_pb2.RegisterModelRequest:
+    request = model_registry_pb2.RegisterModelRequest(name=name, mjcf=mjcf, assets=dict(assets or {}))
+    request.metadata.description = description
+    request.metadata.tags.extend(tags)
+    return request
+
+
+def _first_answer(response: dynamics_pb2.StreamSessionResponse) -> Opened:
+    """The `opened` a session stream must begin with."""
+    if response.WhichOneof("payload") != "opened":
+        raise FailedPrecondition(f"the server answered `open` with `{response.WhichOneof('payload')}`")
+    return _opened(response.opened)
+
+
+def _sync_request(
+    probe_id: int, client_send_time: float, last_probe: tuple[int, float] | None
+) -> dynamics_pb2.StreamSessionRequest:
+    """A clock probe sent at `client_send_time` (session clock, s), reporting the receive time of the
+    last answered probe, `(id, t4)`, so the server can complete that exchange."""
+    ping = dynamics_pb2.SyncPing(id=probe_id, client_send_time=client_send_time)
+    if last_probe is not None:
+        ping.previous_id, ping.previous_receive_time = last_probe
+    return dynamics_pb2.StreamSessionRequest(sync=ping)
+
+
+def _sync_sample(pong: dynamics_pb2.SyncPong, t4: float) -> SyncSample:
+    """One NTP-style exchange from the client's side; `t4` is the pong's receive time on the session clock."""
+    t1, t2, t3 = pong.client_send_time, pong.server_receive_time, pong.server_send_time
+    return SyncSample(
+        offset=((t2 - t1) + (t3 - t4)) / 2.0,
+        round_trip=(t4 - t1) - (t3 - t2),
+        server_offset=pong.offset,
+        server_round_trip=pong.round_trip,
+    )
+
+
+def _answer(
+    response: dynamics_pb2.StreamSessionResponse, *, received_at: float, clock_start: float
+) -> TickResult | Rejection | SyncSample | Summary:
+    """A response of the session stream as the SDK hands it out; times are time.monotonic() values."""
+    kind = response.WhichOneof("payload")
+    if kind == "result":
+        return TickResult.from_message(response.result, received_at=received_at)
+    if kind == "rejected":
+        r = response.rejected
+        return Rejection(seq=r.seq, reason=_name(dynamics_pb2.RejectReason, "REJECT_REASON_", r.reason), message=r.message)
+    if kind == "sync":
+        return _sync_sample(response.sync, received_at - clock_start)
+    if kind == "closed":
+        return _summary(response.closed.summary)
+    raise FailedPrecondition(f"unexpected `{kind}` from the server")
+
+
 class _End(Enum):
     """The end of a session's request or response queue."""
 
@@ -434,12 +502,11 @@ class Session:
         self._reader = threading.Thread(target=self._read, name="jitdyn-session-reader", daemon=True)
         self._reader.start()
         first = self._next_response(self._timeout)
-        if first.WhichOneof("payload") != "opened":
-            raise FailedPrecondition(f"the server answered `open` with `{first.WhichOneof('payload')}`")
+        opened = _first_answer(first)
         # The session clock starts when `opened` arrives: the server's starts as it sends it, so
         # the two differ by one transit until `sync` exchanges measure the offset.
         self._clock_start = time.monotonic()
-        self.opened = _opened(first.opened)
+        self.opened = opened
         if self._realtime:
             self.sync()
 
@@ -481,23 +548,15 @@ class Session:
             return None
         if isinstance(item, grpc.RpcError):
             self._responses.put(_END)
-            raise error_for_status(item.code(), item.details() or "")
+            raise _status_error(item)
         return item
 
     def _convert(self, item: tuple[float, dynamics_pb2.StreamSessionResponse]) -> TickResult | Rejection | SyncSample | Summary:
         received_at, response = item
-        kind = response.WhichOneof("payload")
-        if kind == "result":
-            return TickResult.from_message(response.result, received_at=received_at)
-        if kind == "rejected":
-            r = response.rejected
-            return Rejection(seq=r.seq, reason=_name(dynamics_pb2.RejectReason, "REJECT_REASON_", r.reason), message=r.message)
-        if kind == "sync":
-            return self._sync_sample(response.sync, received_at)
-        if kind == "closed":
-            self.summary = _summary(response.closed.summary)
-            return self.summary
-        raise FailedPrecondition(f"unexpected `{kind}` from the server")
+        answer = _answer(response, received_at=received_at, clock_start=self._clock_start)
+        if isinstance(answer, Summary):
+            self.summary = answer
+        return answer
 
     def _send(self, request: dynamics_pb2.StreamSessionRequest) -> None:
         if self._closed:
@@ -572,7 +631,7 @@ class Session:
                 self._responses.put(item)
                 if isinstance(item, grpc.RpcError):
                     self._responses.get_nowait()
-                    raise error_for_status(item.code(), item.details() or "")
+                    raise _status_error(item)
                 return answers
             answer = self._convert(item)
             if not isinstance(answer, Summary):
@@ -582,20 +641,7 @@ class Session:
         """Send a clock probe; its answer comes back among the results (a `SyncSample`)."""
         self._probe_id += 1
         self._last_sync_sent = self.now()
-        ping = dynamics_pb2.SyncPing(id=self._probe_id, client_send_time=self._last_sync_sent)
-        if self._last_probe is not None:
-            ping.previous_id, ping.previous_receive_time = self._last_probe
-        self._send(dynamics_pb2.StreamSessionRequest(sync=ping))
-
-    def _sync_sample(self, pong: dynamics_pb2.SyncPong, received_at: float) -> SyncSample:
-        t4 = received_at - self._clock_start
-        t1, t2, t3 = pong.client_send_time, pong.server_receive_time, pong.server_send_time
-        return SyncSample(
-            offset=((t2 - t1) + (t3 - t4)) / 2.0,
-            round_trip=(t4 - t1) - (t3 - t2),
-            server_offset=pong.offset,
-            server_round_trip=pong.round_trip,
-        )
+        self._send(_sync_request(self._probe_id, self._last_sync_sent, self._last_probe))
 
     # Ending.
 
@@ -644,15 +690,13 @@ class Client:
         root_certificates: bytes | None = None,
         checksum: bool = True,
     ) -> None:
-        options = [
-            ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
-            ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
-        ]
         if root_certificates is not None:
-            self._channel = grpc.secure_channel(address, grpc.ssl_channel_credentials(root_certificates), options=options)
+            self._channel = grpc.secure_channel(
+                address, grpc.ssl_channel_credentials(root_certificates), options=_CHANNEL_OPTIONS
+            )
         else:
-            self._channel = grpc.insecure_channel(address, options=options)
-        self._metadata: tuple[tuple[str, str], ...] = (("authorization", f"Bearer {api_key}"),) if api_key else ()
+            self._channel = grpc.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._metadata = _auth_metadata(api_key)
         self._timeout = timeout
         self._checksum = checksum
         self._registry = model_registry_pb2_grpc.ModelRegistryServiceStub(self._channel)
@@ -670,7 +714,7 @@ class Client:
         try:
             return method(request, timeout=self._timeout, metadata=self._metadata)
         except grpc.RpcError as error:
-            raise error_for_status(error.code(), error.details() or "") from None
+            raise _status_error(error) from None
 
     def register_model(
         self,
@@ -682,9 +726,7 @@ class Client:
         tags: Sequence[str] = (),
     ) -> tuple[ModelRef, bool]:
         """Register a model; returns it and whether it was new."""
-        request = model_registry_pb2.RegisterModelRequest(name=name, mjcf=mjcf, assets=dict(assets or {}))
-        request.metadata.description = description
-        request.metadata.tags.extend(tags)
+        request = _register_request(name=name, mjcf=mjcf, assets=assets, description=description, tags=tags)
         response = self._unary(self._registry.RegisterModel, request)
         return ModelRef.from_message(response.model), response.created
 
@@ -726,7 +768,7 @@ class Client:
         try:
             return Session(self._dynamics, options, timeout=self._timeout, metadata=self._metadata, checksum=self._checksum)
         except grpc.RpcError as error:
-            raise error_for_status(error.code(), error.details() or "") from None
+            raise _status_error(error) from None
 
     def close(self) -> None:
         self._channel.close()
