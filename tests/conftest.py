@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import grpc
 import pytest
 
 
@@ -47,3 +48,42 @@ def client(server: Any) -> Iterator[Any]:
 
     with Client(server.address, timeout=60) as connected:
         yield connected
+
+
+TENANT_METADATA = "x-test-tenant"
+
+
+class _TenantFromMetadata(grpc.aio.ServerInterceptor):  # type: ignore[misc]
+    """Sets server.auth.current_tenant from the `x-test-tenant` metadata, as server/app.py's key
+    interceptor does from an API key, so servicer tests can act as any tenant without keys."""
+
+    async def intercept_service(self, continuation: Any, details: grpc.HandlerCallDetails) -> Any:
+        from server.auth import current_tenant
+
+        handler = await continuation(details)
+        tenant = dict(details.invocation_metadata or ()).get(TENANT_METADATA, "")
+        if handler is None or handler.unary_unary is None:
+            return handler
+        inner = handler.unary_unary
+
+        async def with_tenant(request: Any, context: grpc.aio.ServicerContext) -> Any:
+            current_tenant.set(tenant)
+            return await inner(request, context)
+
+        return grpc.unary_unary_rpc_method_handler(
+            with_tenant,
+            request_deserializer=handler.request_deserializer,
+            response_serializer=handler.response_serializer,
+        )
+
+
+@pytest.fixture(scope="session")
+def tenant_interceptor() -> grpc.aio.ServerInterceptor:
+    """An interceptor for single-servicer test servers: the tenant comes from `as_tenant`."""
+    return _TenantFromMetadata()
+
+
+@pytest.fixture()
+def as_tenant() -> Callable[[str], list[tuple[str, str]]]:
+    """The call metadata that makes a test server with `tenant_interceptor` run an RPC for `tenant`."""
+    return lambda tenant: [(TENANT_METADATA, tenant)]

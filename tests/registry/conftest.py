@@ -7,7 +7,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +19,6 @@ from registry import ModelRegistry, RegistryLimits
 from storage.db import open_index
 
 POSTGRES_URL = "postgresql+psycopg://root@127.0.0.1:5432/test"
-TENANT_METADATA = "x-test-tenant"
 # The test server's limits: small enough to go over cheaply, big enough for myoHand.
 SERVER_LIMITS = RegistryLimits(max_mjcf_bytes=1 << 20, compile_timeout=60.0)
 MESSAGE_BYTES = 64 << 20
@@ -58,36 +57,6 @@ def registry(engine: sa.Engine, data_root: Path) -> Iterator[ModelRegistry]:
         yield opened
 
 
-class _TenantFromMetadata(grpc.aio.ServerInterceptor):  # type: ignore[misc]
-    """Sets server.auth.current_tenant from the `x-test-tenant` metadata, as server/app.py's key
-    interceptor does from an API key."""
-
-    async def intercept_service(self, continuation: Any, details: grpc.HandlerCallDetails) -> Any:
-        from server.auth import current_tenant
-
-        handler = await continuation(details)
-        tenant = dict(details.invocation_metadata or ()).get(TENANT_METADATA, "")
-        if handler is None or handler.unary_unary is None:
-            return handler
-        inner = handler.unary_unary
-
-        async def with_tenant(request: Any, context: grpc.aio.ServicerContext) -> Any:
-            current_tenant.set(tenant)
-            return await inner(request, context)
-
-        return grpc.unary_unary_rpc_method_handler(
-            with_tenant,
-            request_deserializer=handler.request_deserializer,
-            response_serializer=handler.response_serializer,
-        )
-
-
-@pytest.fixture()
-def as_tenant() -> Callable[[str], list[tuple[str, str]]]:
-    """The call metadata that makes the test server run an RPC for `tenant`."""
-    return lambda tenant: [(TENANT_METADATA, tenant)]
-
-
 @pytest.fixture(scope="module")
 def served_registry(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ModelRegistry]:
     """The registry behind the module's server: SQLite, built-ins registered, SERVER_LIMITS."""
@@ -100,7 +69,7 @@ def served_registry(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ModelR
 
 
 @pytest.fixture(scope="module")
-def registry_stub(served_registry: ModelRegistry) -> Iterator[Any]:
+def registry_stub(served_registry: ModelRegistry, tenant_interceptor: grpc.aio.ServerInterceptor) -> Iterator[Any]:
     """A synchronous ModelRegistryService stub to a grpc.aio server on 127.0.0.1:0, in its own
     event-loop thread, serving `served_registry`."""
     from jitdyn.v1 import model_registry_pb2_grpc
@@ -115,7 +84,7 @@ def registry_stub(served_registry: ModelRegistry) -> Iterator[Any]:
     state: dict[str, Any] = {}
 
     async def start() -> None:
-        server = grpc.aio.server(interceptors=[_TenantFromMetadata()], options=options)
+        server = grpc.aio.server(interceptors=[tenant_interceptor], options=options)
         model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(
             ModelRegistryServicer(served_registry), server
         )

@@ -22,7 +22,6 @@ from storage.index import SessionIndex
 from storage.records import SessionHeader, TickRecord
 
 POSTGRES_URL = "postgresql+psycopg://root@127.0.0.1:5432/test"
-TENANT_METADATA = "x-test-tenant"
 
 
 @pytest.fixture()
@@ -167,38 +166,8 @@ def make_records() -> Callable[..., list[TickRecord]]:
     return build_records
 
 
-class _TenantFromMetadata(grpc.aio.ServerInterceptor):  # type: ignore[misc]
-    """Sets server.auth.current_tenant from the `x-test-tenant` metadata, as server/app.py's key
-    interceptor does from an API key."""
-
-    async def intercept_service(self, continuation: Any, details: grpc.HandlerCallDetails) -> Any:
-        from server.auth import current_tenant
-
-        handler = await continuation(details)
-        tenant = dict(details.invocation_metadata or ()).get(TENANT_METADATA, "")
-        if handler is None or handler.unary_unary is None:
-            return handler
-        inner = handler.unary_unary
-
-        async def with_tenant(request: Any, context: grpc.aio.ServicerContext) -> Any:
-            current_tenant.set(tenant)
-            return await inner(request, context)
-
-        return grpc.unary_unary_rpc_method_handler(
-            with_tenant,
-            request_deserializer=handler.request_deserializer,
-            response_serializer=handler.response_serializer,
-        )
-
-
 @pytest.fixture()
-def as_tenant() -> Callable[[str], list[tuple[str, str]]]:
-    """The call metadata that makes the test server run an RPC for `tenant`."""
-    return lambda tenant: [(TENANT_METADATA, tenant)]
-
-
-@pytest.fixture()
-def session_server(index: SessionIndex) -> Iterator[str]:
+def session_server(index: SessionIndex, tenant_interceptor: grpc.aio.ServerInterceptor) -> Iterator[str]:
     """A grpc.aio server with the SessionServicer on 127.0.0.1:0, in its own event-loop thread;
     yields its address."""
     from jitdyn.v1 import session_pb2_grpc
@@ -209,7 +178,7 @@ def session_server(index: SessionIndex) -> Iterator[str]:
     state: dict[str, Any] = {}
 
     async def start() -> None:
-        server = grpc.aio.server(interceptors=[_TenantFromMetadata()])
+        server = grpc.aio.server(interceptors=[tenant_interceptor])
         session_pb2_grpc.add_SessionServiceServicer_to_server(  # type: ignore[no-untyped-call]
             SessionServicer(index), server
         )
