@@ -130,6 +130,12 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
         ("grpc.max_receive_message_length", config.max_message_bytes),
         ("grpc.max_send_message_length", config.max_message_bytes),
         ("grpc.so_reuseport", 0),
+        # A client that vanishes without closing its connection (a prosthesis losing power) is
+        # found by keepalive pings within about a minute, and its session is stored and released.
+        ("grpc.keepalive_time_ms", 30_000),
+        ("grpc.keepalive_timeout_ms", 10_000),
+        ("grpc.keepalive_permit_without_calls", 1),
+        ("grpc.http2.min_ping_interval_without_data_ms", 10_000),
     ]
     interceptors = [ApiKeyInterceptor(load_api_keys(config.api_keys))] if config.api_keys else []
     server = grpc.aio.server(options=options, interceptors=interceptors)
