@@ -79,6 +79,13 @@ def run_demo(address: str, settings: DemoSettings, *, out: TextIO, progress: boo
             f"grace {session.opened.grace * 1e3:g} ms",
             file=out,
         )
+        if settings.latency > session.opened.grace:
+            print(
+                f"frames take {settings.latency * 1e3:g} ms to arrive and the server answers each tick "
+                f"{session.opened.grace * 1e3:g} ms after it is due: expect most ticks PREDICTED by the "
+                "estimator, then CORRECTED when their frame arrives",
+                file=out,
+            )
         print(
             f"network: latency {settings.latency * 1e3:g} ms, jitter {settings.jitter * 1e3:g} ms, "
             f"loss {settings.loss:.0%} (seeded {settings.seed})",
