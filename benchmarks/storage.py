@@ -17,25 +17,17 @@ import argparse
 import datetime as dt
 import os
 import statistics
-import sys
 import tempfile
 import time
 import uuid
 from pathlib import Path
 
-# Run as a file, this folder would come first on sys.path and this module would shadow the
-# storage package it measures.
-if not __package__:
-    _here = Path(__file__).resolve().parent
-    sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _here]
-    sys.path.insert(0, str(_here.parent))
-
 import numpy as np
 
-from storage.db import open_index
-from storage.index import SessionIndex
-from storage.recorder import SessionRecorder
-from storage.records import SessionHeader, TickRecord
+from jitdyn.storage.db import open_index
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.recorder import SessionRecorder
+from jitdyn.storage.records import SessionHeader, TickRecord
 
 DT = 0.001
 

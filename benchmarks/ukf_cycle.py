@@ -10,8 +10,8 @@ both propagation back-ends and 1 and 2 workers:
     ratio   cycle / floor     (target <= 1.5; and cycle < dt for every model)
 
 In CONTROLLED the filter steps fewer points than nsigma (points that differ only in qdd share one
-propagation; server/ukf.py): the floor still counts every sigma point, and the table says how many
-were stepped. mj_step is the process model's (server/propagate.py: warm start and sensors off;
+propagation; server/estimation/ukf.py): the floor still counts every sigma point, and the table says how many
+were stepped. mj_step is the process model's (server/estimation/propagate.py: warm start and sensors off;
 in EXTERNAL actuators off and inert tendons dropped); the model's own is printed beside it.
 
 Everything is measured side by side, round-robin, in one process: on a machine shared with other
@@ -38,10 +38,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from server.estimator import EstimatorConfig, Measurement, make_estimator, resolve_config
-from server.pool import Backend, WorkerPool
-from server.propagate import process_model
-from server.ukf import UnscentedFilter
+from jitdyn.server.estimation.estimator import EstimatorConfig, Measurement, resolve_config
+from jitdyn.server.estimation.factory import make_estimator
+from jitdyn.server.estimation.pool import Backend, WorkerPool
+from jitdyn.server.estimation.propagate import process_model
+from jitdyn.server.estimation.ukf import UnscentedFilter
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 

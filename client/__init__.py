@@ -1,11 +1,14 @@
-"""jitdyn's Python client: the SDK, simulated research objects, network emulation, experiments.
+"""jitdyn's Python SDK: register models, open sessions, stream frames, read results; sync and async.
 
-    from client import Client, SessionOptions, FrameData
-    from client import AsyncClient      # the same over asyncio (grpc.aio)
+    from jitdyn.client import Client, SessionOptions, FrameData
+    from jitdyn.client import AsyncClient      # the same over asyncio (grpc.aio)
+
+It may import jitdyn.v1, jitdyn.errors and jitdyn.registry (model packing); never the server
+or the research harness.
 """
 
-from client.aio import AsyncClient, AsyncSession
-from client.sdk import (
+from jitdyn.client.aio import AsyncClient, AsyncSession
+from jitdyn.client.sdk import (
     Client,
     FrameData,
     ModelRef,

@@ -1,6 +1,6 @@
 """The asyncio client of jitdyn, over grpc.aio: the sync SDK's types, checksums and clock sync.
 
-    from client import AsyncClient, SessionOptions, FrameData
+    from jitdyn.client import AsyncClient, SessionOptions, FrameData
 
     async with AsyncClient("127.0.0.1:50051") as c:
         async with await c.open_session(SessionOptions(model_name="pendulum_1", dt=0.05)) as s:
@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar
 
 import grpc
 
-from client.sdk import (
+from jitdyn.client.sdk import (
     _CHANNEL_OPTIONS,
     _END,
     FrameData,

@@ -11,8 +11,8 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from jitdyn.errors import InvalidArgument
-from registry.limits import DEFAULT_LIMITS
-from registry.references import check_model
+from jitdyn.registry.limits import DEFAULT_LIMITS
+from jitdyn.registry.references import check_model
 
 __all__ = ["read_model_files"]
 

@@ -105,7 +105,8 @@ def _parse_file(path: Path) -> ET.Element:
     text = _COMMENT.sub(
         lambda match: "<!--" + match.group(1).replace("--", "- -") + "-->", path.read_text("utf-8")
     )
-    return DET.fromstring(text)
+    root: ET.Element = DET.fromstring(text)
+    return root
 
 
 def _pack_file(path: Path) -> tuple[str, dict[str, bytes]]:

@@ -1,6 +1,6 @@
 """The typed Python client of jitdyn: register models, open sessions, send frames, read results.
 
-    from client import Client, SessionOptions, FrameData
+    from jitdyn.client import Client, SessionOptions, FrameData
 
     with Client("127.0.0.1:50051") as c:
         with c.open_session(SessionOptions(model_name="pendulum_1", dt=0.05)) as s:
@@ -92,12 +92,12 @@ def _enum(enum: _EnumValues[_V_co], prefix: str, name: str, what: str) -> _V_co:
     try:
         return enum.Value(prefix + name.upper())
     except ValueError:
-        names = [n[len(prefix):] for n in enum.keys() if not n.endswith("UNSPECIFIED")]  # noqa: SIM118 (an enum wrapper, not a dict)
+        names = [n[len(prefix) :] for n in enum.keys() if not n.endswith("UNSPECIFIED")]  # noqa: SIM118 (an enum wrapper, not a dict)
         raise InvalidArgument(f"{what} must be one of {names}, got {name!r}") from None
 
 
 def _name(enum: _EnumTypeWrapper[_V], prefix: str, value: _V) -> str:
-    return str(enum.Name(value))[len(prefix):]
+    return str(enum.Name(value))[len(prefix) :]
 
 
 def _array(values: Any) -> np.ndarray:
@@ -159,7 +159,9 @@ class SessionOptions:
     scenario: str = "PASSIVE"  # PASSIVE | CONTROLLED | EXTERNAL
     dt: float = 0.05  # s
     clock: str = "LOCKSTEP"  # LOCKSTEP | REALTIME
-    estimator: Mapping[str, object] = field(default_factory=dict)  # estimator, preset, sigma_points, alpha, ...
+    estimator: Mapping[str, object] = field(
+        default_factory=dict
+    )  # estimator, preset, sigma_points, alpha, ...
     measured: Sequence[str] = ()  # of qpos, qvel, qacc, ctrl; empty: the server's default
     outputs: Sequence[str] = ()  # of INVERSE_DYNAMICS, FORWARD_DYNAMICS, SENSORS, FILTER_STATE
     horizon: str = "NONE"  # NONE | HALF_ROUND_TRIP
@@ -171,7 +173,9 @@ class SessionOptions:
     def to_message(self) -> dynamics_pb2.OpenSession:
         chosen = [n for n in ("model_name", "model_id", "inline_mjcf") if getattr(self, n)]
         if len(chosen) != 1:
-            raise InvalidArgument(f"give exactly one of model_name, model_id, inline_mjcf; got {chosen or 'none'}")
+            raise InvalidArgument(
+                f"give exactly one of model_name, model_id, inline_mjcf; got {chosen or 'none'}"
+            )
         message = dynamics_pb2.OpenSession(
             model_version=self.model_version,
             scenario=_enum(common_pb2.Scenario, "SCENARIO_", self.scenario, "scenario"),
@@ -280,7 +284,11 @@ class TickResult:
         # The covariance lives in the tangent space: its side is the state dimension, which is
         # less than len(filter_state) for models with ball or free joints.
         side = math.isqrt(len(result.covariance))
-        covariance = _array(result.covariance).reshape(side, side) if side and side * side == len(result.covariance) else None
+        covariance = (
+            _array(result.covariance).reshape(side, side)
+            if side and side * side == len(result.covariance)
+            else None
+        )
         return cls(
             seq=result.seq,
             t=result.t,
@@ -453,7 +461,9 @@ def _answer(
         return TickResult.from_message(response.result, received_at=received_at)
     if kind == "rejected":
         r = response.rejected
-        return Rejection(seq=r.seq, reason=_name(dynamics_pb2.RejectReason, "REJECT_REASON_", r.reason), message=r.message)
+        return Rejection(
+            seq=r.seq, reason=_name(dynamics_pb2.RejectReason, "REJECT_REASON_", r.reason), message=r.message
+        )
     if kind == "sync":
         return _sync_sample(response.sync, received_at - clock_start)
     if kind == "closed":
@@ -479,13 +489,20 @@ class Session:
     `sync_interval` seconds with the frames).
     """
 
-    def __init__(self, stub: dynamics_pb2_grpc.DynamicsServiceStub, options: SessionOptions, *,
-                 timeout: float | None, metadata: Sequence[tuple[str, str]], checksum: bool,
-                 sync_interval: float = 0.5) -> None:
+    def __init__(
+        self,
+        stub: dynamics_pb2_grpc.DynamicsServiceStub,
+        options: SessionOptions,
+        *,
+        timeout: float | None,
+        metadata: Sequence[tuple[str, str]],
+        checksum: bool,
+        sync_interval: float = 0.5,
+    ) -> None:
         self._requests: queue.Queue[dynamics_pb2.StreamSessionRequest | _End] = queue.Queue()
-        self._responses: queue.Queue[tuple[float, dynamics_pb2.StreamSessionResponse] | grpc.RpcError | _End] = (
-            queue.Queue()
-        )
+        self._responses: queue.Queue[
+            tuple[float, dynamics_pb2.StreamSessionResponse] | grpc.RpcError | _End
+        ] = queue.Queue()
         self._timeout = timeout
         self._checksum = checksum
         self._clock_start = time.monotonic()
@@ -551,7 +568,9 @@ class Session:
             raise _status_error(item)
         return item
 
-    def _convert(self, item: tuple[float, dynamics_pb2.StreamSessionResponse]) -> TickResult | Rejection | SyncSample | Summary:
+    def _convert(
+        self, item: tuple[float, dynamics_pb2.StreamSessionResponse]
+    ) -> TickResult | Rejection | SyncSample | Summary:
         received_at, response = item
         answer = _answer(response, received_at=received_at, clock_start=self._clock_start)
         if isinstance(answer, Summary):
@@ -671,7 +690,9 @@ class Session:
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         if exc_type is None:
             self.close()
         elif not self._closed:
@@ -708,9 +729,13 @@ class Client:
         try:
             grpc.channel_ready_future(self._channel).result(timeout=timeout)
         except grpc.FutureTimeoutError:
-            raise error_for_status(grpc.StatusCode.UNAVAILABLE, f"no jitdyn server answered within {timeout} s") from None
+            raise error_for_status(
+                grpc.StatusCode.UNAVAILABLE, f"no jitdyn server answered within {timeout} s"
+            ) from None
 
-    def _unary(self, method: grpc.UnaryUnaryMultiCallable[_Request, _Response], request: _Request) -> _Response:
+    def _unary(
+        self, method: grpc.UnaryUnaryMultiCallable[_Request, _Response], request: _Request
+    ) -> _Response:
         try:
             return method(request, timeout=self._timeout, metadata=self._metadata)
         except grpc.RpcError as error:
@@ -731,24 +756,41 @@ class Client:
         return ModelRef.from_message(response.model), response.created
 
     def get_model(self, *, model_id: str = "", name: str = "", version: int = 0) -> ModelRef:
-        return ModelRef.from_message(self._unary(self._registry.GetModel, model_registry_pb2.GetModelRequest(model_id=model_id, name=name, version=version)).model)
+        return ModelRef.from_message(
+            self._unary(
+                self._registry.GetModel,
+                model_registry_pb2.GetModelRequest(model_id=model_id, name=name, version=version),
+            ).model
+        )
 
-    def get_model_message(self, *, model_id: str = "", name: str = "", version: int = 0) -> model_registry_pb2.Model:
+    def get_model_message(
+        self, *, model_id: str = "", name: str = "", version: int = 0
+    ) -> model_registry_pb2.Model:
         """The full `Model` message (joints with ranges, actuators, metadata)."""
-        return self._unary(self._registry.GetModel, model_registry_pb2.GetModelRequest(model_id=model_id, name=name, version=version)).model
+        return self._unary(
+            self._registry.GetModel,
+            model_registry_pb2.GetModelRequest(model_id=model_id, name=name, version=version),
+        ).model
 
     def list_models(self, *, name: str = "", tag: str = "", page_size: int = 0) -> Iterator[ModelRef]:
         """Every model matching the filters, page after page."""
         token = ""
         while True:
-            page = self._unary(self._registry.ListModels, model_registry_pb2.ListModelsRequest(page_size=page_size, page_token=token, name=name, tag=tag))
+            page = self._unary(
+                self._registry.ListModels,
+                model_registry_pb2.ListModelsRequest(
+                    page_size=page_size, page_token=token, name=name, tag=tag
+                ),
+            )
             for model in page.models:
                 yield ModelRef.from_message(model)
             token = page.next_page_token
             if not token:
                 return
 
-    def list_sessions(self, request: session_pb2.ListSessionsRequest | None = None) -> Iterator[session_pb2.Session]:
+    def list_sessions(
+        self, request: session_pb2.ListSessionsRequest | None = None
+    ) -> Iterator[session_pb2.Session]:
         """Every stored session matching the request's filters, newest first."""
         page_request = session_pb2.ListSessionsRequest()
         if request is not None:
@@ -761,12 +803,20 @@ class Client:
             page_request.page_token = page.next_page_token
 
     def get_session(self, session_id: str) -> session_pb2.Session:
-        return self._unary(self._sessions.GetSession, session_pb2.GetSessionRequest(session_id=session_id)).session
+        return self._unary(
+            self._sessions.GetSession, session_pb2.GetSessionRequest(session_id=session_id)
+        ).session
 
     def open_session(self, options: SessionOptions) -> Session:
         """Open a session; raises the server's error (InvalidArgument, NotFound, ...) if it refuses."""
         try:
-            return Session(self._dynamics, options, timeout=self._timeout, metadata=self._metadata, checksum=self._checksum)
+            return Session(
+                self._dynamics,
+                options,
+                timeout=self._timeout,
+                metadata=self._metadata,
+                checksum=self._checksum,
+            )
         except grpc.RpcError as error:
             raise _status_error(error) from None
 

@@ -1,14 +1,14 @@
 """jitdyn's model registry: validation, content addressing, storage of MJCF and assets, built-ins.
 
-from registry import ModelRegistry, ModelMetadata
+from jitdyn.registry import ModelRegistry, ModelMetadata
 with ModelRegistry(engine=engine, data_root=root) as registry:
     info, created = registry.register(name="arm", mjcf=xml, assets={"arm.stl": data})
 """
 
-from registry.builtins import BUILTIN_NAMES, BuiltinModel, builtin_model_path, builtin_models
-from registry.compile import ModelCompiler, compile_model
-from registry.content_id import content_id
-from registry.info import (
+from jitdyn.registry.builtins import BUILTIN_NAMES, BuiltinModel, builtin_model_path, builtin_models
+from jitdyn.registry.compile import ModelCompiler, compile_model
+from jitdyn.registry.content_id import content_id
+from jitdyn.registry.info import (
     ESTIMATOR_SETTINGS,
     SCENARIOS,
     ActuatorInfo,
@@ -17,8 +17,8 @@ from registry.info import (
     ModelMetadata,
     describe_model,
 )
-from registry.limits import DEFAULT_LIMITS, RegistryLimits
-from registry.registry import DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, ModelRegistry
+from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
+from jitdyn.registry.registry import DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, ModelRegistry
 
 __all__ = [
     "BUILTIN_NAMES",

@@ -29,8 +29,8 @@ from typing import Self
 import mujoco
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
-from registry.limits import DEFAULT_LIMITS, RegistryLimits
-from registry.references import check_asset_names, check_model
+from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
+from jitdyn.registry.references import check_asset_names, check_model
 
 __all__ = ["ModelCompiler", "check_request", "compile_model"]
 

@@ -30,10 +30,10 @@ import mujoco
 import sqlalchemy as sa
 
 from jitdyn.errors import InvalidArgument, NotFound
-from registry.builtins import builtin_models
-from registry.compile import ModelCompiler, check_request
-from registry.content_id import check_content_id, content_id
-from registry.info import (
+from jitdyn.registry.builtins import builtin_models
+from jitdyn.registry.compile import ModelCompiler, check_request
+from jitdyn.registry.content_id import check_content_id, content_id
+from jitdyn.registry.info import (
     ActuatorInfo,
     JointInfo,
     ModelInfo,
@@ -44,9 +44,9 @@ from registry.info import (
     check_tag,
     describe_model,
 )
-from registry.limits import DEFAULT_LIMITS, RegistryLimits
-from registry.store import read_blob, write_blob
-from storage.schema import models
+from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
+from jitdyn.registry.store import read_blob, write_blob
+from jitdyn.storage.schema import models
 
 __all__ = ["DEFAULT_PAGE_SIZE", "MAX_PAGE_SIZE", "ModelRegistry"]
 

@@ -1,6 +1,6 @@
-"""Regenerate the Python code of the v1 contract from proto/ into jitdyn/v1/.
+"""Regenerate the Python code of the v1 contract from proto/ into src/jitdyn/v1/.
 
-    python scripts/gen_proto.py            # rewrite jitdyn/v1/*_pb2*.py(i)
+    python scripts/gen_proto.py            # rewrite src/jitdyn/v1/*_pb2*.py(i)
     python scripts/gen_proto.py --out DIR  # write elsewhere (the freshness test compares)
 
 The .pyi stubs of messages and of gRPC stubs and servicers come from mypy-protobuf, so that mypy
@@ -60,7 +60,12 @@ def generate(out: Path) -> list[Path]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=ROOT, help="root to write jitdyn/v1/ under (default: the checkout)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=ROOT / "src",
+        help="root to write jitdyn/v1/ under (default: the checkout's src/)",
+    )
     args = parser.parse_args(argv)
     for path in generate(args.out):
         print(path)

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Final
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from storage.layout import fsync_dir
+from jitdyn.storage.layout import fsync_dir
 
 __all__ = [
     "DEFAULT_ALLOWED",

@@ -15,7 +15,7 @@ import numpy as np
 import pyarrow as pa
 
 from jitdyn.errors import InvalidArgument
-from storage.records import SessionHeader, TickRecord
+from jitdyn.storage.records import SessionHeader, TickRecord
 
 __all__ = [
     "ARRAY_FIELDS",

@@ -1,7 +1,7 @@
 """Opening the SQL index: an engine for a URL, migrated to the newest schema with Alembic.
 
-    engine = open_index("sqlite:///jitdyn-data/index.sqlite")      # the embedded default
-    engine = open_index("postgresql+psycopg://127.0.0.1/test")      # several servers, one index
+engine = open_index("sqlite:///jitdyn-data/index.sqlite")      # the embedded default
+engine = open_index("postgresql+psycopg://127.0.0.1/test")      # several servers, one index
 """
 
 from __future__ import annotations
@@ -46,7 +46,9 @@ def open_index(url: str, *, schema: str | None = None) -> sa.Engine:
     each run this way.
     """
     if schema is not None and not _IDENTIFIER.fullmatch(schema):
-        raise InvalidArgument(f"schema must be a plain SQL identifier ([a-z_][a-z0-9_]*, at most 63), got {schema!r}")
+        raise InvalidArgument(
+            f"schema must be a plain SQL identifier ([a-z_][a-z0-9_]*, at most 63), got {schema!r}"
+        )
     kwargs: dict[str, object] = {"future": True}
     if url.startswith("sqlite"):
         # Sessions write from the event loop's thread and from the recovery thread.
@@ -58,12 +60,14 @@ def open_index(url: str, *, schema: str | None = None) -> sa.Engine:
     except (sa.exc.ArgumentError, sa.exc.NoSuchModuleError) as exc:
         raise InvalidArgument(f"index URL {url!r} is not usable: {exc}") from exc
     if url.startswith("sqlite"):
+
         @sa.event.listens_for(engine, "connect")
         def _sqlite_pragmas(dbapi_connection, _record):  # type: ignore[no-untyped-def]
             cursor = dbapi_connection.cursor()
             cursor.execute("PRAGMA journal_mode=WAL")
             cursor.execute("PRAGMA synchronous=FULL")
             cursor.close()
+
     if schema is not None:
         with engine.begin() as conn:
             conn.execute(sa.text(f'CREATE SCHEMA IF NOT EXISTS "{schema}"'))

@@ -26,9 +26,9 @@ import pyarrow.parquet as pq
 import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
-from storage.columns import ARRAY_FIELDS, LOG_SCHEMA, SCALAR_FIELDS
-from storage.index import SessionIndex
-from storage.parquet import read_metadata
+from jitdyn.storage.columns import ARRAY_FIELDS, LOG_SCHEMA, SCALAR_FIELDS
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.parquet import read_metadata
 
 __all__ = ["FORMATS", "element_names", "export_session"]
 

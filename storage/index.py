@@ -24,8 +24,8 @@ from typing import Any, Final
 import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
-from storage.records import SCENARIOS, STATUSES, SessionHeader, SessionSummaryInfo
-from storage.schema import sessions
+from jitdyn.storage.records import SCENARIOS, STATUSES, SessionHeader, SessionSummaryInfo
+from jitdyn.storage.schema import sessions
 
 __all__ = ["MAX_PAGE_SIZE", "SessionIndex", "SessionRow"]
 
@@ -153,7 +153,7 @@ def _decode_token(token: str, fingerprint: str) -> tuple[_dt.datetime, str]:
 
 
 class SessionIndex:
-    """The `sessions` table on an engine from `storage.db.open_index`. Thread-safe: each call
+    """The `sessions` table on an engine from `jitdyn.storage.db.open_index`. Thread-safe: each call
     takes its own connection from the engine's pool."""
 
     def __init__(self, engine: sa.Engine) -> None:

@@ -17,8 +17,8 @@ from typing import Final
 
 import pyarrow as pa
 
-from storage.columns import LOG_SCHEMA
-from storage.layout import fsync_dir
+from jitdyn.storage.columns import LOG_SCHEMA
+from jitdyn.storage.layout import fsync_dir
 
 __all__ = ["HEADER_KEY", "LogContents", "LogWriter", "read_log", "try_lock"]
 

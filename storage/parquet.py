@@ -19,9 +19,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from jitdyn.errors import InvalidArgument
-from storage.columns import ARRAY_FIELDS, FRAME_SCHEMA, LOG_SCHEMA
-from storage.layout import fsync_dir
-from storage.records import SessionHeader
+from jitdyn.storage.columns import ARRAY_FIELDS, FRAME_SCHEMA, LOG_SCHEMA
+from jitdyn.storage.layout import fsync_dir
+from jitdyn.storage.records import SessionHeader
 
 __all__ = [
     "METADATA_KEY",

@@ -24,8 +24,8 @@ import pyarrow as pa
 import sqlalchemy as sa
 
 from jitdyn.errors import InvalidArgument
-from storage.columns import FRAME_SCHEMA
-from storage.index import SessionIndex, SessionRow
+from jitdyn.storage.columns import FRAME_SCHEMA
+from jitdyn.storage.index import SessionIndex, SessionRow
 
 __all__ = ["SESSIONS_SCHEMA", "run_query", "sessions_table"]
 

@@ -26,13 +26,19 @@ from typing import Self
 import pyarrow as pa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
-from storage.columns import expected_lengths, records_to_batch
-from storage.index import SessionIndex, SessionRow
-from storage.layout import frames_location, fsync_dir, log_location, make_dirs
-from storage.log import LogWriter, read_log, try_lock
-from storage.parquet import file_metadata, header_from_json, header_to_json, to_frame_table, write_parquet
-from storage.records import SessionHeader, SessionSummaryInfo, TickRecord
-from storage.summary import summarise
+from jitdyn.storage.columns import expected_lengths, records_to_batch
+from jitdyn.storage.index import SessionIndex, SessionRow
+from jitdyn.storage.layout import frames_location, fsync_dir, log_location, make_dirs
+from jitdyn.storage.log import LogWriter, read_log, try_lock
+from jitdyn.storage.parquet import (
+    file_metadata,
+    header_from_json,
+    header_to_json,
+    to_frame_table,
+    write_parquet,
+)
+from jitdyn.storage.records import SessionHeader, SessionSummaryInfo, TickRecord
+from jitdyn.storage.summary import summarise
 
 __all__ = ["SessionRecorder", "recover_unfinished"]
 

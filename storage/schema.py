@@ -1,6 +1,6 @@
 """The SQL index's tables (SQLAlchemy Core): registered models and stored sessions.
 
-The schema changes only through Alembic migrations in storage/migrations/versions; `storage.db`
+The schema changes only through Alembic migrations in storage/migrations/versions; `jitdyn.storage.db`
 applies them at start. Every row carries a `tenant`, and every read filters on it.
 """
 

@@ -9,7 +9,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from storage.records import SessionSummaryInfo
+from jitdyn.storage.records import SessionSummaryInfo
 
 __all__ = ["summarise"]
 

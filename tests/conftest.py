@@ -18,7 +18,7 @@ import pytest
 @pytest.fixture(scope="session")
 def make_config() -> Callable[..., Any]:
     """Builds a server config for tests: port 0, its own data folder, a secret in its environment."""
-    from server.app import ServerConfig
+    from jitdyn.server.transport.app import ServerConfig
 
     def build(data_root: Path, **overrides: object) -> ServerConfig:
         values: dict[str, object] = {
@@ -36,7 +36,7 @@ def make_config() -> Callable[..., Any]:
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory, make_config: Callable[..., Any]) -> Iterator[Any]:
-    from server.background import BackgroundServer
+    from jitdyn.server.transport.background import BackgroundServer
 
     with BackgroundServer(make_config(tmp_path_factory.mktemp("data"))) as running:
         yield running
@@ -44,7 +44,7 @@ def server(tmp_path_factory: pytest.TempPathFactory, make_config: Callable[..., 
 
 @pytest.fixture()
 def client(server: Any) -> Iterator[Any]:
-    from client import Client
+    from jitdyn.client import Client
 
     with Client(server.address, timeout=60) as connected:
         yield connected
@@ -54,11 +54,11 @@ TENANT_METADATA = "x-test-tenant"
 
 
 class _TenantFromMetadata(grpc.aio.ServerInterceptor):  # type: ignore[misc]
-    """Sets server.auth.current_tenant from the `x-test-tenant` metadata, as server/app.py's key
+    """Sets jitdyn.server.transport.auth.current_tenant from the `x-test-tenant` metadata, as server/transport/app.py's key
     interceptor does from an API key, so servicer tests can act as any tenant without keys."""
 
     async def intercept_service(self, continuation: Any, details: grpc.HandlerCallDetails) -> Any:
-        from server.auth import current_tenant
+        from jitdyn.server.transport.auth import current_tenant
 
         handler = await continuation(details)
         tenant = dict(details.invocation_metadata or ()).get(TENANT_METADATA, "")

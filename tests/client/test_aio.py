@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from client import AsyncClient, FrameData, Rejection, SessionOptions, SyncSample, TickResult
+from jitdyn.client import AsyncClient, FrameData, Rejection, SessionOptions, SyncSample, TickResult
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
 from jitdyn.v1 import dynamics_pb2
 

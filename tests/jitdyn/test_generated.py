@@ -15,11 +15,19 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_generated_code_is_fresh(tmp_path: Path) -> None:
-    subprocess.run([sys.executable, str(ROOT / "scripts" / "gen_proto.py"), "--out", str(tmp_path)], check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "gen_proto.py"), "--out", str(tmp_path)],
+        check=True,
+        capture_output=True,
+    )
     fresh = {p.name: p.read_bytes() for p in (tmp_path / "jitdyn" / "v1").iterdir() if p.is_file()}
-    checked_in = {p.name: p.read_bytes() for p in (ROOT / "jitdyn" / "v1").iterdir() if p.is_file()}
-    stale = sorted(name for name in fresh.keys() | checked_in.keys() if fresh.get(name) != checked_in.get(name))
-    assert not stale, f"jitdyn/v1 is stale for {stale}: run `python scripts/gen_proto.py` and commit the result"
+    checked_in = {p.name: p.read_bytes() for p in (ROOT / "src" / "jitdyn" / "v1").iterdir() if p.is_file()}
+    stale = sorted(
+        name for name in fresh.keys() | checked_in.keys() if fresh.get(name) != checked_in.get(name)
+    )
+    assert not stale, (
+        f"src/jitdyn/v1 is stale for {stale}: run `python scripts/gen_proto.py` and commit the result"
+    )
 
 
 def test_buf_lint_is_clean() -> None:

@@ -60,23 +60,40 @@ def test_a_client_from_proto_alone_registers_and_runs_a_session(server: Any, tmp
     protos.mkdir(parents=True)
     for source in (ROOT / "proto" / "jitdyn" / "v1").glob("*.proto"):
         # A foreign client files the protos under its own path; the imports follow it.
-        protos.joinpath(source.name).write_text(source.read_text().replace('import "jitdyn/v1/', 'import "contract/v1/'))
+        protos.joinpath(source.name).write_text(
+            source.read_text().replace('import "jitdyn/v1/', 'import "contract/v1/')
+        )
     from grpc_tools import protoc
 
     include = Path(protoc.__file__).parent / "_proto"
     out = tmp_path / "generated"
     out.mkdir()
     generate = subprocess.run(
-        [sys.executable, "-m", "grpc_tools.protoc", f"-I{tmp_path / 'protos'}", f"-I{include}",
-         f"--python_out={out}", f"--grpc_python_out={out}",
-         *[str(p.relative_to(tmp_path / "protos")) for p in protos.glob("*.proto")]],
-        capture_output=True, text=True, check=False,
+        [
+            sys.executable,
+            "-m",
+            "grpc_tools.protoc",
+            f"-I{tmp_path / 'protos'}",
+            f"-I{include}",
+            f"--python_out={out}",
+            f"--grpc_python_out={out}",
+            *[str(p.relative_to(tmp_path / "protos")) for p in protos.glob("*.proto")],
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
     )
     assert generate.returncode == 0, generate.stderr
     for package in (out / "contract", out / "contract" / "v1"):
         (package / "__init__.py").write_text("")
     (out / "foreign_client.py").write_text(FOREIGN_CLIENT)
-    run = subprocess.run([sys.executable, str(out / "foreign_client.py"), server.address],
-                         capture_output=True, text=True, cwd=out, timeout=120, check=False)
+    run = subprocess.run(
+        [sys.executable, str(out / "foreign_client.py"), server.address],
+        capture_output=True,
+        text=True,
+        cwd=out,
+        timeout=120,
+        check=False,
+    )
     assert run.returncode == 0, run.stdout + run.stderr
     assert "foreign client ok" in run.stdout

@@ -15,8 +15,8 @@ import grpc
 import pytest
 import sqlalchemy as sa
 
-from registry import ModelRegistry, RegistryLimits
-from storage.db import open_index
+from jitdyn.registry import ModelRegistry, RegistryLimits
+from jitdyn.storage.db import open_index
 
 POSTGRES_URL = "postgresql+psycopg://root@127.0.0.1:5432/test"
 # The test server's limits: small enough to go over cheaply, big enough for myoHand.
@@ -69,11 +69,13 @@ def served_registry(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ModelR
 
 
 @pytest.fixture(scope="module")
-def registry_stub(served_registry: ModelRegistry, tenant_interceptor: grpc.aio.ServerInterceptor) -> Iterator[Any]:
+def registry_stub(
+    served_registry: ModelRegistry, tenant_interceptor: grpc.aio.ServerInterceptor
+) -> Iterator[Any]:
     """A synchronous ModelRegistryService stub to a grpc.aio server on 127.0.0.1:0, in its own
     event-loop thread, serving `served_registry`."""
+    from jitdyn.server.transport.registry_service import ModelRegistryServicer
     from jitdyn.v1 import model_registry_pb2_grpc
-    from server.registry_service import ModelRegistryServicer
 
     options = [
         ("grpc.max_receive_message_length", MESSAGE_BYTES),

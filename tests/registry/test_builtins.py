@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from registry import BUILTIN_NAMES, builtin_model_path, builtin_models
+from jitdyn.registry import BUILTIN_NAMES, builtin_model_path, builtin_models
 
 
 def load(name: str) -> mujoco.MjModel:

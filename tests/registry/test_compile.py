@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
-from registry import ModelCompiler, RegistryLimits, compile_model
-from registry.compile import check_request
+from jitdyn.registry import ModelCompiler, RegistryLimits, compile_model
+from jitdyn.registry.compile import check_request
 
 PENDULUM = """<mujoco>
   <worldbody>

@@ -7,9 +7,9 @@ import datetime
 import pytest
 
 from jitdyn.errors import InvalidArgument
+from jitdyn.registry import ESTIMATOR_SETTINGS, SCENARIOS, ActuatorInfo, JointInfo, ModelInfo
+from jitdyn.server.transport.model_messages import metadata_from_message, model_message
 from jitdyn.v1 import common_pb2, model_registry_pb2
-from registry import ESTIMATOR_SETTINGS, SCENARIOS, ActuatorInfo, JointInfo, ModelInfo
-from server.model_messages import metadata_from_message, model_message
 
 
 def scenario_defaults(scenario: int, **settings: object) -> model_registry_pb2.ScenarioDefaults:

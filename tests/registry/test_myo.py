@@ -9,9 +9,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from client.myo import myo_model_names, pack_myo_model
+from jitdyn.client.myo import myo_model_names, pack_myo_model
+from jitdyn.registry import RegistryLimits, compile_model
 from jitdyn.v1 import model_registry_pb2
-from registry import RegistryLimits, compile_model
 
 # Where file names sit in the name buffer: the packed model's files have other names.
 _IGNORED = frozenset({"mesh_pathadr", "tex_pathadr", "hfield_pathadr", "skin_pathadr"})

@@ -9,9 +9,9 @@ import mujoco
 import pytest
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
-from registry import ModelCompiler, RegistryLimits
-from registry.compile import _Worker
-from registry.references import check_asset_names, check_model
+from jitdyn.registry import ModelCompiler, RegistryLimits
+from jitdyn.registry.compile import _Worker
+from jitdyn.registry.references import check_asset_names, check_model
 
 # A tetrahedron: the smallest mesh MuJoCo accepts.
 OBJ = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"

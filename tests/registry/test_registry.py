@@ -12,8 +12,8 @@ import pytest
 import sqlalchemy as sa
 
 from jitdyn.errors import InvalidArgument, NotFound
-from registry import BUILTIN_NAMES, ModelMetadata, ModelRegistry, content_id
-from storage.schema import models
+from jitdyn.registry import BUILTIN_NAMES, ModelMetadata, ModelRegistry, content_id
+from jitdyn.storage.schema import models
 
 OBJ = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
 

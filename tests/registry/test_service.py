@@ -8,8 +8,8 @@ from typing import Any
 import grpc
 import pytest
 
+from jitdyn.registry import BUILTIN_NAMES, ModelRegistry
 from jitdyn.v1 import common_pb2, model_registry_pb2
-from registry import BUILTIN_NAMES, ModelRegistry
 
 PENDULUM = """<mujoco>
   <compiler angle="radian"/>

@@ -8,11 +8,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from client import FrameData, SessionOptions, SyncSample, TickResult
-from server.clock import ClockSync
+from jitdyn.client import FrameData, SessionOptions, SyncSample, TickResult
+from jitdyn.server.runtime.clock import ClockSync
 
 
-def _exchange(sync: ClockSync, probe: int, *, t1: float, offset: float, up: float, down: float, hold: float = 0.001) -> float:
+def _exchange(
+    sync: ClockSync, probe: int, *, t1: float, offset: float, up: float, down: float, hold: float = 0.001
+) -> float:
     """One probe answered; returns t4, the client's receive time of the answer."""
     t2 = t1 + up + offset
     t3 = t2 + hold
@@ -24,8 +26,14 @@ def test_offset_and_round_trip_of_a_symmetric_exchange() -> None:
     sync = ClockSync()
     t4 = _exchange(sync, 1, t1=0.0, offset=0.25, up=0.01, down=0.01)
     assert sync.offset == 0.0 and sync.round_trip == 0.0  # nothing complete yet
-    sync.on_probe(probe_id=2, client_send_time=t4 + 0.1, server_receive_time=9.0, server_send_time=9.0,
-                  previous_id=1, previous_receive_time=t4)
+    sync.on_probe(
+        probe_id=2,
+        client_send_time=t4 + 0.1,
+        server_receive_time=9.0,
+        server_send_time=9.0,
+        previous_id=1,
+        previous_receive_time=t4,
+    )
     assert sync.offset == pytest.approx(0.25, abs=1e-12)
     assert sync.round_trip == pytest.approx(0.02, abs=1e-12)
 
@@ -35,12 +43,22 @@ def test_the_smallest_round_trip_wins_and_bounds_the_error() -> None:
     previous: tuple[int, float] | None = None
     for probe, (up, down) in enumerate([(0.05, 0.001), (0.002, 0.002), (0.001, 0.09)], start=1):
         t1 = probe * 1.0
-        kwargs = {} if previous is None else {"previous_id": previous[0], "previous_receive_time": previous[1]}
+        kwargs = (
+            {} if previous is None else {"previous_id": previous[0], "previous_receive_time": previous[1]}
+        )
         t2 = t1 + up - 0.3
-        sync.on_probe(probe_id=probe, client_send_time=t1, server_receive_time=t2, server_send_time=t2, **kwargs)
+        sync.on_probe(
+            probe_id=probe, client_send_time=t1, server_receive_time=t2, server_send_time=t2, **kwargs
+        )
         previous = (probe, t2 + 0.3 + down)
-    sync.on_probe(probe_id=99, client_send_time=10.0, server_receive_time=0.0, server_send_time=0.0,
-                  previous_id=previous[0], previous_receive_time=previous[1])
+    sync.on_probe(
+        probe_id=99,
+        client_send_time=10.0,
+        server_receive_time=0.0,
+        server_send_time=0.0,
+        previous_id=previous[0],
+        previous_receive_time=previous[1],
+    )
     assert sync.round_trip == pytest.approx(0.004)
     assert sync.offset == pytest.approx(-0.3, abs=sync.round_trip / 2)
 
@@ -48,10 +66,22 @@ def test_the_smallest_round_trip_wins_and_bounds_the_error() -> None:
 def test_implausible_reports_do_not_move_the_clock() -> None:
     sync = ClockSync()
     _exchange(sync, 1, t1=5.0, offset=0.0, up=0.01, down=0.01)
-    sync.on_probe(probe_id=2, client_send_time=6.0, server_receive_time=6.0, server_send_time=6.0,
-                  previous_id=1, previous_receive_time=4.0)  # answer received before the probe was sent
-    sync.on_probe(probe_id=3, client_send_time=7.0, server_receive_time=7.0, server_send_time=7.0,
-                  previous_id=42, previous_receive_time=7.5)  # a probe the server never saw
+    sync.on_probe(
+        probe_id=2,
+        client_send_time=6.0,
+        server_receive_time=6.0,
+        server_send_time=6.0,
+        previous_id=1,
+        previous_receive_time=4.0,
+    )  # answer received before the probe was sent
+    sync.on_probe(
+        probe_id=3,
+        client_send_time=7.0,
+        server_receive_time=7.0,
+        server_send_time=7.0,
+        previous_id=42,
+        previous_receive_time=7.5,
+    )  # a probe the server never saw
     assert (sync.offset, sync.round_trip) == (0.0, 0.0)
 
 
@@ -75,5 +105,7 @@ def test_sync_over_the_stream_and_the_half_round_trip_horizon(client: Any) -> No
     assert samples[-1].server_round_trip > 0.0
     assert all(abs(s.offset) < 0.05 for s in samples)
     measured = [r for r in results if r.source == "MEASURED"]
-    assert measured and all(r.horizon == pytest.approx(samples[-1].server_round_trip / 2, rel=0.5) for r in measured[1:])
+    assert measured and all(
+        r.horizon == pytest.approx(samples[-1].server_round_trip / 2, rel=0.5) for r in measured[1:]
+    )
     assert all(r.t == pytest.approx(r.seq * 0.05 + r.horizon) for r in results)

@@ -18,7 +18,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from client import Client, FrameData, SessionOptions, TickResult
+from jitdyn.client import Client, FrameData, SessionOptions, TickResult
 
 
 class ServerProcess:
@@ -26,7 +26,18 @@ class ServerProcess:
 
     def __init__(self, data: Path, env: dict[str, str]) -> None:
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "jitdyn.cli", "serve", "--address", "127.0.0.1:0", "--data", str(data), "--workers", "1"],
+            [
+                sys.executable,
+                "-m",
+                "jitdyn.cli",
+                "serve",
+                "--address",
+                "127.0.0.1:0",
+                "--data",
+                str(data),
+                "--workers",
+                "1",
+            ],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -69,7 +80,13 @@ def env(tmp_path: Path) -> Iterator[dict[str, str]]:
 
 def _truth(ticks: int) -> list[tuple[np.ndarray, np.ndarray]]:
     t = np.arange(ticks) * 0.05
-    return [(np.array([0.3 * np.cos(x), 0.1 * np.sin(x), 0.0]), np.array([-0.3 * np.sin(x), 0.1 * np.cos(x), 0.0])) for x in t]
+    return [
+        (
+            np.array([0.3 * np.cos(x), 0.1 * np.sin(x), 0.0]),
+            np.array([-0.3 * np.sin(x), 0.1 * np.cos(x), 0.0]),
+        )
+        for x in t
+    ]
 
 
 def test_kill_9_loses_no_durable_frame(tmp_path: Path, env: dict[str, str]) -> None:
@@ -79,10 +96,16 @@ def test_kill_9_loses_no_durable_frame(tmp_path: Path, env: dict[str, str]) -> N
     truth = _truth(400)
     try:
         client = Client(server.address, timeout=30)
-        session = client.open_session(SessionOptions(model_name="pendulum_3", dt=0.05, subject_id="patient-4711"))
+        session = client.open_session(
+            SessionOptions(model_name="pendulum_3", dt=0.05, subject_id="patient-4711")
+        )
         session_id = session.opened.session_id
         for k, (q, v) in enumerate(truth):
-            answer = session.skip(k) if k % 7 == 3 else session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
+            answer = (
+                session.skip(k)
+                if k % 7 == 3
+                else session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
+            )
             assert isinstance(answer, TickResult)
             if answer.durable_seq is not None:
                 durable = max(durable, answer.durable_seq)
@@ -113,11 +136,26 @@ def test_kill_9_loses_no_durable_frame(tmp_path: Path, env: dict[str, str]) -> N
     cli = [sys.executable, "-m", "jitdyn.cli", "sessions", "--data", str(data)]
     listing = subprocess.run([*cli, "list"], capture_output=True, text=True, env=env, check=True).stdout
     assert session_id in listing and "RECOVERED" in listing
-    count = subprocess.run([*cli, "query", f"SELECT count(*) AS n FROM frames WHERE session_id = '{session_id}' AND kind = 'result'"],
-                           capture_output=True, text=True, env=env, check=True).stdout
+    count = subprocess.run(
+        [
+            *cli,
+            "query",
+            f"SELECT count(*) AS n FROM frames WHERE session_id = '{session_id}' AND kind = 'result'",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=True,
+    ).stdout
     assert str(len(stored)) in count
     sto = tmp_path / "session.sto"
-    subprocess.run([*cli, "export", session_id, "--format", "sto", "--out", str(sto)], capture_output=True, text=True, env=env, check=True)
+    subprocess.run(
+        [*cli, "export", session_id, "--format", "sto", "--out", str(sto)],
+        capture_output=True,
+        text=True,
+        env=env,
+        check=True,
+    )
     header = sto.read_text().splitlines()
     assert "inDegrees=no" in header and "endheader" in header
     # Nothing identifies the subject anywhere under the data folder.

@@ -1,4 +1,4 @@
-"""The IEEE 1278 dead-reckoning baselines (server/deadreckoning.py)."""
+"""The IEEE 1278 dead-reckoning baselines (server/estimation/deadreckoning.py)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from server.deadreckoning import DeadReckoning
-from server.estimator import EstimatorConfig, Measurement, resolve_config
+from jitdyn.server.estimation.deadreckoning import DeadReckoning
+from jitdyn.server.estimation.estimator import EstimatorConfig, Measurement, resolve_config
 
 # Two slides: generalized coordinates are plain positions, so every formula can be checked exactly.
 SLIDES = """

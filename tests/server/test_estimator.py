@@ -1,5 +1,5 @@
 """Estimator settings (presets, precedence, checks), the factory, and LOCKSTEP-like skip sequences
-driven straight on the estimators against MuJoCo's ground truth (server/estimator.py)."""
+driven straight on the estimators against MuJoCo's ground truth (server/estimation/estimator.py)."""
 
 from __future__ import annotations
 
@@ -11,18 +11,18 @@ import numpy as np
 import pytest
 
 from jitdyn.errors import InvalidArgument
-from server.deadreckoning import DeadReckoning
-from server.estimator import (
+from jitdyn.server.estimation.deadreckoning import DeadReckoning
+from jitdyn.server.estimation.estimator import (
     Estimator,
     EstimatorConfig,
     Measurement,
     is_pendulum_like,
-    make_estimator,
     preset_values,
     resolve_config,
 )
-from server.pool import WorkerPool
-from server.ukf import UnscentedFilter
+from jitdyn.server.estimation.factory import make_estimator
+from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.estimation.ukf import UnscentedFilter
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 

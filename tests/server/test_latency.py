@@ -11,9 +11,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from client import FrameData, Rejection, SessionOptions, SyncSample, TickResult
+from jitdyn.client import FrameData, Rejection, SessionOptions, SyncSample, TickResult
 from jitdyn.errors import InvalidArgument
-from registry import builtin_model_path
+from jitdyn.registry import builtin_model_path
 
 
 def _truth(name: str, ticks: int, dt: float, *, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -29,7 +29,9 @@ def _truth(name: str, ticks: int, dt: float, *, seed: int) -> list[tuple[np.ndar
     return states
 
 
-def _gap_errors(client: Any, name: str, estimator: str, truth: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+def _gap_errors(
+    client: Any, name: str, estimator: str, truth: list[tuple[np.ndarray, np.ndarray]]
+) -> np.ndarray:
     """Max |q error| over every PREDICTED tick of 4-tick (200 ms) gaps every 10 ticks."""
     options = SessionOptions(model_name=name, dt=0.05, estimator={"estimator": estimator})
     errors = []
@@ -54,7 +56,9 @@ def test_ukf_predictions_track_the_truth_far_better_than_dead_reckoning(client: 
     assert ukf.max() < 0.1 * constant_velocity.max(), (ukf.max(), constant_velocity.max())
 
 
-def _filter_states(client: Any, truth: list[tuple[np.ndarray, np.ndarray]], *, late: int | None, delay: int) -> dict[int, TickResult]:
+def _filter_states(
+    client: Any, truth: list[tuple[np.ndarray, np.ndarray]], *, late: int | None, delay: int
+) -> dict[int, TickResult]:
     options = SessionOptions(model_name="pendulum_3", dt=0.05, outputs=("INVERSE_DYNAMICS", "FILTER_STATE"))
     results: dict[int, TickResult] = {}
     with client.open_session(options) as session:
@@ -140,7 +144,9 @@ def test_realtime_answers_every_tick_by_its_deadline_while_frames_are_delayed(cl
         ({"kappa": -100.0}, "kappa"),
     ],
 )
-def test_hostile_settings_never_crash_the_server(client: Any, settings: dict[str, float], refused: str | None) -> None:
+def test_hostile_settings_never_crash_the_server(
+    client: Any, settings: dict[str, float], refused: str | None
+) -> None:
     truth = _truth("pendulum_3", 30, 0.05, seed=4)
     options = SessionOptions(model_name="pendulum_3", dt=0.05, estimator=settings)
     if refused is not None:
@@ -150,7 +156,11 @@ def test_hostile_settings_never_crash_the_server(client: Any, settings: dict[str
         return
     with client.open_session(options) as session:
         for k, (q, v) in enumerate(truth):
-            answer = session.skip(k) if k % 3 == 2 else session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
+            answer = (
+                session.skip(k)
+                if k % 3 == 2
+                else session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
+            )
             assert isinstance(answer, TickResult)
             assert np.isfinite(answer.qpos).all() and np.isfinite(answer.qfrc_inverse).all()
         session.close()
@@ -176,8 +186,12 @@ def test_a_free_joint_is_estimated_on_its_manifold(client: Any) -> None:
         truth.append((data.qpos.copy(), data.qvel.copy()))
         for _ in range(5):
             mujoco.mj_step(model, data)
-    options = SessionOptions(inline_mjcf=FREE_BODY, inline_name="tumbler", dt=5 * model.opt.timestep,
-                             outputs=("INVERSE_DYNAMICS", "FILTER_STATE"))
+    options = SessionOptions(
+        inline_mjcf=FREE_BODY,
+        inline_name="tumbler",
+        dt=5 * model.opt.timestep,
+        outputs=("INVERSE_DYNAMICS", "FILTER_STATE"),
+    )
     with client.open_session(options) as session:
         assert session.opened.state_dimension == 12
         for k, (q, v) in enumerate(truth):
@@ -199,14 +213,24 @@ def test_a_free_joint_is_estimated_on_its_manifold(client: Any) -> None:
 def test_thesis_weights_at_n_46_on_myohand_do_not_crash_the_server(client: Any) -> None:
     """kappa = 3 - n with alpha = 0.001 at n = 46: weights of order 1e7 (reference: indefinite
     covariances). The server repairs, guards, and keeps answering."""
-    from client.myo import pack_myo_model
+    from jitdyn.client.myo import pack_myo_model
 
     mjcf, assets = pack_myo_model("myohand")
     model, _ = client.register_model(name="myohand", mjcf=mjcf, assets=assets)
     truth = mujoco.MjModel.from_xml_string(mjcf, assets)
     data = mujoco.MjData(truth)
-    options = SessionOptions(model_name="myohand", dt=0.002, scenario="EXTERNAL", estimator={
-        "preset": "THESIS", "sigma_points": "MERWE", "alpha": 0.001, "beta": 2.0, "kappa": 3.0 - 46})
+    options = SessionOptions(
+        model_name="myohand",
+        dt=0.002,
+        scenario="EXTERNAL",
+        estimator={
+            "preset": "THESIS",
+            "sigma_points": "MERWE",
+            "alpha": 0.001,
+            "beta": 2.0,
+            "kappa": 3.0 - 46,
+        },
+    )
     with client.open_session(options) as session:
         assert session.opened.state_dimension == 46
         for k in range(40):
@@ -222,4 +246,6 @@ def test_thesis_weights_at_n_46_on_myohand_do_not_crash_the_server(client: Any) 
     assert summary.ticks == 40
     # The server is fine: the next session opens and answers.
     with client.open_session(SessionOptions(model_id=model.id, dt=0.002, scenario="EXTERNAL")) as session:
-        assert isinstance(session.send_frame(FrameData(seq=0, t=0.0, qpos=data.qpos, qvel=data.qvel)), TickResult)
+        assert isinstance(
+            session.send_frame(FrameData(seq=0, t=0.0, qpos=data.qpos, qvel=data.qvel)), TickResult
+        )

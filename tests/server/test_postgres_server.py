@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import sqlalchemy as sa
 
-from client import Client, FrameData, SessionOptions
-from server.background import BackgroundServer
+from jitdyn.client import Client, FrameData, SessionOptions
+from jitdyn.server.transport.background import BackgroundServer
 
 POSTGRES_URL = "postgresql+psycopg://root@127.0.0.1:5432/test"
 SUBJECT = "patient-4711"
@@ -34,10 +34,16 @@ def pg_server(tmp_path: Any, make_config: Callable[..., Any]) -> Iterator[tuple[
 
 
 @pytest.mark.postgres
-def test_a_session_indexed_in_postgres_keeps_no_identifying_byte(pg_server: tuple[BackgroundServer, str]) -> None:
+def test_a_session_indexed_in_postgres_keeps_no_identifying_byte(
+    pg_server: tuple[BackgroundServer, str],
+) -> None:
     server, schema = pg_server
-    options = SessionOptions(model_name="pendulum_2", dt=0.05, subject_id=SUBJECT,
-                             subject_attributes={"name": NAME, "side": "left", "height_m": "1.71"})
+    options = SessionOptions(
+        model_name="pendulum_2",
+        dt=0.05,
+        subject_id=SUBJECT,
+        subject_attributes={"name": NAME, "side": "left", "height_m": "1.71"},
+    )
     with Client(server.address) as client, client.open_session(options) as session:
         assert session.opened.dropped_attributes == ("name",)
         for k in range(20):

@@ -1,4 +1,4 @@
-"""Batched sigma-point propagation (server/propagate.py) on the shared pool (server/pool.py):
+"""Batched sigma-point propagation (server/estimation/propagate.py) on the shared pool (server/estimation/pool.py):
 both back-ends, any worker count, give exactly what a plain mj_step loop over one MjData gives."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from server.pool import Backend, WorkerPool
-from server.propagate import Inputs, Propagator, process_model
+from jitdyn.server.estimation.pool import Backend, WorkerPool
+from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
 
 PENDULUM_2 = """
 <mujoco>

@@ -13,17 +13,19 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from client import FrameData, Rejection, SessionOptions, TickResult
+from jitdyn.client import FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.errors import InvalidArgument, NotFound
+from jitdyn.registry import builtin_model_path
 from jitdyn.v1 import dynamics_pb2, dynamics_pb2_grpc
-from registry import builtin_model_path
 
 
 def _model(name: str) -> mujoco.MjModel:
     return mujoco.MjModel.from_xml_path(str(builtin_model_path(name)))
 
 
-def _trajectory(model: mujoco.MjModel, ticks: int, dt: float, *, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _trajectory(
+    model: mujoco.MjModel, ticks: int, dt: float, *, seed: int = 0
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Truth of a passive chain from a seeded displacement: (qpos, qvel, qacc) per tick."""
     data = mujoco.MjData(model)
     data.qpos[:] = np.random.default_rng(seed).uniform(-0.8, 0.8, model.nq)
@@ -68,11 +70,16 @@ def test_qacc_by_finite_difference_when_the_frame_has_none(client: Any) -> None:
     model = _model("pendulum_2")
     truth = _trajectory(model, 5, 0.05, seed=3)
     with client.open_session(SessionOptions(model_name="pendulum_2", dt=0.05)) as session:
-        results = [session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v)) for k, (q, v, _) in enumerate(truth)]
+        results = [
+            session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
+            for k, (q, v, _) in enumerate(truth)
+        ]
     for k in range(1, 5):
         expected = (truth[k][1] - truth[k - 1][1]) / 0.05
         np.testing.assert_allclose(results[k].qacc, expected, atol=1e-12)
-        np.testing.assert_allclose(results[k].qfrc_inverse, _inverse(model, truth[k][0], truth[k][1], expected), atol=1e-9)
+        np.testing.assert_allclose(
+            results[k].qfrc_inverse, _inverse(model, truth[k][0], truth[k][1], expected), atol=1e-9
+        )
 
 
 def _send_and_expect(session: Any, frame: dynamics_pb2.Frame, reason: str, text: str) -> None:
@@ -93,20 +100,44 @@ def test_every_rejection_reason_and_the_session_goes_on(client: Any) -> None:
         bad_crc.checksum ^= 0xFFFF
         _send_and_expect(session, bad_crc, "BAD_CHECKSUM", "frame 1: checksum is 0x")
 
-        _send_and_expect(session, FrameData(seq=1, t=0.05, qpos=[0.2, 0.1], qvel=[0.0]).to_message(),
-                         "BAD_SHAPE", "frame 1: qpos must have 1 values, got 2")
-        _send_and_expect(session, FrameData(seq=1, t=0.05, qpos=[0.2], qvel=[0.0], qacc=[1.0]).to_message(),
-                         "BAD_SHAPE", "frame 1: qacc must be empty")
-        _send_and_expect(session, FrameData(seq=1, t=0.05, qpos=[math.nan], qvel=[0.0]).to_message(),
-                         "NOT_FINITE", "frame 1: qpos[0] must be finite, got nan")
-        _send_and_expect(session, FrameData(seq=0, t=0.0, qpos=[0.2], qvel=[0.0]).to_message(),
-                         "DUPLICATE", "frame 0: tick 0 already has a frame")
-        _send_and_expect(session, FrameData(seq=9, t=0.45, qpos=[0.2], qvel=[0.0]).to_message(),
-                         "OUT_OF_ORDER", "LOCKSTEP expects the next tick 1")
+        _send_and_expect(
+            session,
+            FrameData(seq=1, t=0.05, qpos=[0.2, 0.1], qvel=[0.0]).to_message(),
+            "BAD_SHAPE",
+            "frame 1: qpos must have 1 values, got 2",
+        )
+        _send_and_expect(
+            session,
+            FrameData(seq=1, t=0.05, qpos=[0.2], qvel=[0.0], qacc=[1.0]).to_message(),
+            "BAD_SHAPE",
+            "frame 1: qacc must be empty",
+        )
+        _send_and_expect(
+            session,
+            FrameData(seq=1, t=0.05, qpos=[math.nan], qvel=[0.0]).to_message(),
+            "NOT_FINITE",
+            "frame 1: qpos[0] must be finite, got nan",
+        )
+        _send_and_expect(
+            session,
+            FrameData(seq=0, t=0.0, qpos=[0.2], qvel=[0.0]).to_message(),
+            "DUPLICATE",
+            "frame 0: tick 0 already has a frame",
+        )
+        _send_and_expect(
+            session,
+            FrameData(seq=9, t=0.45, qpos=[0.2], qvel=[0.0]).to_message(),
+            "OUT_OF_ORDER",
+            "LOCKSTEP expects the next tick 1",
+        )
         for k in range(1, 6):
             assert session.skip(k).source == "PREDICTED"
-        _send_and_expect(session, FrameData(seq=1, t=0.05, qpos=[0.2], qvel=[0.0]).to_message(),
-                         "TOO_OLD", "late frames are applied back to tick 3 (history 3 ticks), got 1")
+        _send_and_expect(
+            session,
+            FrameData(seq=1, t=0.05, qpos=[0.2], qvel=[0.0]).to_message(),
+            "TOO_OLD",
+            "late frames are applied back to tick 3 (history 3 ticks), got 1",
+        )
         skip_again = session.skip(2)
         assert isinstance(skip_again, Rejection) and skip_again.reason == "DUPLICATE"
         late = session.send_frame(FrameData(seq=4, t=0.2, qpos=[0.1], qvel=[0.0]))
@@ -154,18 +185,38 @@ def test_second_open_is_invalid_argument(server: Any) -> None:
     ("options", "error", "text"),
     [
         (SessionOptions(model_name="no_such_model", dt=0.05), NotFound, "no_such_model"),
-        (SessionOptions(model_name="pendulum_1", dt=0.0), InvalidArgument, "open.dt must be in (0, 10.0] seconds, got 0.0"),
-        (SessionOptions(model_name="pendulum_1", dt=0.06), InvalidArgument,
-         "open.dt must be a whole multiple of the model's timestep 0.025 s, got 0.06"),
-        (SessionOptions(model_name="pendulum_1", dt=0.05, scenario="CONTROLLED", measured=("qpos", "qvel")),
-         InvalidArgument, "open.measured must include CHANNEL_CTRL in SCENARIO_CONTROLLED"),
-        (SessionOptions(model_name="pendulum_1", dt=0.05, history=20000), InvalidArgument,
-         "open.history must be at most 10000 ticks, got 20000"),
-        (SessionOptions(model_name="pendulum_1", dt=0.05, horizon="HALF_ROUND_TRIP"), InvalidArgument,
-         "needs open.clock CLOCK_REALTIME"),
+        (
+            SessionOptions(model_name="pendulum_1", dt=0.0),
+            InvalidArgument,
+            "open.dt must be in (0, 10.0] seconds, got 0.0",
+        ),
+        (
+            SessionOptions(model_name="pendulum_1", dt=0.06),
+            InvalidArgument,
+            "open.dt must be a whole multiple of the model's timestep 0.025 s, got 0.06",
+        ),
+        (
+            SessionOptions(
+                model_name="pendulum_1", dt=0.05, scenario="CONTROLLED", measured=("qpos", "qvel")
+            ),
+            InvalidArgument,
+            "open.measured must include CHANNEL_CTRL in SCENARIO_CONTROLLED",
+        ),
+        (
+            SessionOptions(model_name="pendulum_1", dt=0.05, history=20000),
+            InvalidArgument,
+            "open.history must be at most 10000 ticks, got 20000",
+        ),
+        (
+            SessionOptions(model_name="pendulum_1", dt=0.05, horizon="HALF_ROUND_TRIP"),
+            InvalidArgument,
+            "needs open.clock CLOCK_REALTIME",
+        ),
     ],
 )
-def test_bad_open_is_refused_with_a_precise_status(client: Any, options: SessionOptions, error: type, text: str) -> None:
+def test_bad_open_is_refused_with_a_precise_status(
+    client: Any, options: SessionOptions, error: type, text: str
+) -> None:
     with pytest.raises(error) as caught:
         client.open_session(options)
     assert text in str(caught.value)
@@ -174,7 +225,12 @@ def test_bad_open_is_refused_with_a_precise_status(client: Any, options: Session
 def test_the_session_is_stored_as_parquet_and_indexed(server: Any, client: Any) -> None:
     model = _model("pendulum_3")
     truth = _trajectory(model, 12, 0.05, seed=5)
-    options = SessionOptions(model_name="pendulum_3", dt=0.05, subject_id="patient-4711", subject_attributes={"side": "left", "name": "Erika"})
+    options = SessionOptions(
+        model_name="pendulum_3",
+        dt=0.05,
+        subject_id="patient-4711",
+        subject_attributes={"side": "left", "name": "Erika"},
+    )
     with client.open_session(options) as session:
         assert session.opened.dropped_attributes == ("name",)
         for k, (q, v, _) in enumerate(truth):
@@ -194,7 +250,10 @@ def test_the_session_is_stored_as_parquet_and_indexed(server: Any, client: Any) 
     assert [r["source"] for r in results].count("PREDICTED") == 2
     np.testing.assert_allclose(results[0]["frame_qpos"], truth[0][0])
     with sqlite3.connect(data_root / "index.sqlite") as db:
-        row = db.execute("SELECT status, ticks, measured, predicted, location, subject_pseudonym FROM sessions WHERE session_id = ?", (session_id,)).fetchone()
+        row = db.execute(
+            "SELECT status, ticks, measured, predicted, location, subject_pseudonym FROM sessions WHERE session_id = ?",
+            (session_id,),
+        ).fetchone()
     assert row[:5] == ("COMPLETE", 12, 10, 2, summary.location)
     assert len(row[5]) == 64 and "4711" not in row[5]
 

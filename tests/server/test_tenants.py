@@ -11,10 +11,10 @@ import grpc
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from client import Client, FrameData, SessionOptions
+from jitdyn.client import Client, FrameData, SessionOptions
 from jitdyn.errors import InvalidArgument, NotFound, Unauthenticated
-from server.app import ServerConfig, create_server
-from server.background import BackgroundServer
+from jitdyn.server.transport.app import ServerConfig, create_server
+from jitdyn.server.transport.background import BackgroundServer
 
 KEY_A = "a" * 24
 KEY_B = "b" * 24
@@ -22,7 +22,9 @@ SLIDER = '<mujoco><worldbody><body><joint name="x" type="slide"/><geom size=".1"
 
 
 @pytest.fixture(scope="module")
-def keyed_server(tmp_path_factory: pytest.TempPathFactory, make_config: Callable[..., Any]) -> Iterator[BackgroundServer]:
+def keyed_server(
+    tmp_path_factory: pytest.TempPathFactory, make_config: Callable[..., Any]
+) -> Iterator[BackgroundServer]:
     keys = tmp_path_factory.mktemp("keys") / "api-keys"
     keys.write_text(f"# key tenant\n{KEY_A} lab-a\n{KEY_B} lab-b\n")
     with BackgroundServer(make_config(tmp_path_factory.mktemp("data"), api_keys=keys)) as running:
@@ -38,7 +40,9 @@ def test_no_key_is_unauthenticated_but_health_answers(keyed_server: BackgroundSe
     with Client(keyed_server.address, api_key="x" * 24) as wrong, pytest.raises(Unauthenticated):
         list(wrong.list_models())
     with grpc.insecure_channel(keyed_server.address) as channel:
-        status = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service="jitdyn.v1.DynamicsService"))
+        status = health_pb2_grpc.HealthStub(channel).Check(
+            health_pb2.HealthCheckRequest(service="jitdyn.v1.DynamicsService")
+        )
     assert status.status == health_pb2.HealthCheckResponse.SERVING
 
 

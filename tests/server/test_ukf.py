@@ -1,5 +1,5 @@
-"""The unscented filter (server/ukf.py) and its parts: sigma points (server/sigma.py), manifold
-states (server/manifold.py), checked against plain filterpy and against MuJoCo's ground truth."""
+"""The unscented filter (server/estimation/ukf.py) and its parts: sigma points (server/estimation/sigma.py), manifold
+states (server/estimation/manifold.py), checked against plain filterpy and against MuJoCo's ground truth."""
 
 from __future__ import annotations
 
@@ -14,10 +14,10 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import MerweScaledSigmaPoints, SimplexSigmaPoints, UnscentedKalmanFilter
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from server.estimator import EstimatorConfig, Measurement, resolve_config
-from server.manifold import SplitManifold
-from server.pool import Backend, WorkerPool
-from server.sigma import (
+from jitdyn.server.estimation.estimator import EstimatorConfig, Measurement, resolve_config
+from jitdyn.server.estimation.manifold import SplitManifold
+from jitdyn.server.estimation.pool import Backend, WorkerPool
+from jitdyn.server.estimation.sigma import (
     MerweScaled,
     RobustCholesky,
     Simplex,
@@ -25,7 +25,7 @@ from server.sigma import (
     make_sigma_points,
     nearest_positive_definite,
 )
-from server.ukf import DIVERGENCE_TICKS, UnscentedFilter, process_noise
+from jitdyn.server.estimation.ukf import DIVERGENCE_TICKS, UnscentedFilter, process_noise
 
 
 def pendulum(n: int) -> mujoco.MjModel:
@@ -355,13 +355,17 @@ def test_filter_equals_plain_filterpy_with_a_per_point_mj_step(scenario: str, pr
         for (x, P), (x0, P0) in zip(run, reference_run, strict=True):
             np.testing.assert_array_equal(x, x0, err_msg=str(key))
             np.testing.assert_array_equal(P, P0, err_msg=str(key))
-    atol = 1e-12 if preset == "JITDYN" or scenario == "CONTROLLED" else 1e-8
+    # THESIS weights are of order 1/alpha^2 = 1e6: filterpy's own order of summation differs from
+    # ours in the last bits, amplified to ~1e-8 (1.7e-8 on a 3.6 rad/s velocity with numpy 2.4.6);
+    # the same-sums comparison below, which pins the maths, stays at 1e-12.
+    atol = 1e-12 if preset == "JITDYN" or scenario == "CONTROLLED" else 5e-8
+    rtol = 0.0
     same_sums = plain_filterpy_run(model, config, frames, skipped, product_cross_variance=True)
     for k, ((x, P), (x_ref, P_ref), (x_same, P_same)) in enumerate(
         zip(reference_run, expected, same_sums, strict=True)
     ):
-        np.testing.assert_allclose(x, x_ref, rtol=0, atol=atol, err_msg=f"x at tick {k}")
-        np.testing.assert_allclose(P, P_ref, rtol=0, atol=atol, err_msg=f"P at tick {k}")
+        np.testing.assert_allclose(x, x_ref, rtol=rtol, atol=atol, err_msg=f"x at tick {k}")
+        np.testing.assert_allclose(P, P_ref, rtol=rtol, atol=atol, err_msg=f"P at tick {k}")
         np.testing.assert_allclose(x, x_same, rtol=0, atol=1e-12, err_msg=f"x at tick {k}, same sums")
         np.testing.assert_allclose(P, P_same, rtol=0, atol=1e-12, err_msg=f"P at tick {k}, same sums")
 

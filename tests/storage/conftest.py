@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 import sqlalchemy as sa
 
-from storage.db import open_index
-from storage.index import SessionIndex
-from storage.records import SessionHeader, TickRecord
+from jitdyn.storage.db import open_index
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.records import SessionHeader, TickRecord
 
 POSTGRES_URL = "postgresql+psycopg://root@127.0.0.1:5432/test"
 
@@ -170,8 +170,8 @@ def make_records() -> Callable[..., list[TickRecord]]:
 def session_server(index: SessionIndex, tenant_interceptor: grpc.aio.ServerInterceptor) -> Iterator[str]:
     """A grpc.aio server with the SessionServicer on 127.0.0.1:0, in its own event-loop thread;
     yields its address."""
+    from jitdyn.server.transport.session_service import SessionServicer
     from jitdyn.v1 import session_pb2_grpc
-    from server.session_service import SessionServicer
 
     loop = asyncio.new_event_loop()
     started = threading.Event()

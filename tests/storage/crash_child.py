@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.db import open_index
-from storage.index import SessionIndex
-from storage.recorder import SessionRecorder
-from storage.records import SessionHeader, TickRecord
+from jitdyn.storage.db import open_index
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.recorder import SessionRecorder
+from jitdyn.storage.records import SessionHeader, TickRecord
 
 
 def main() -> None:

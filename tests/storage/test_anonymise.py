@@ -15,11 +15,11 @@ import pytest
 import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
-from storage.index import SessionIndex
-from storage.recorder import SessionRecorder
-from storage.records import SessionHeader
-from storage.schema import sessions
+from jitdyn.storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.recorder import SessionRecorder
+from jitdyn.storage.records import SessionHeader
+from jitdyn.storage.schema import sessions
 
 SECRET = bytes(range(32))
 

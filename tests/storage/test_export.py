@@ -13,10 +13,10 @@ import pytest
 import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
-from storage.export import export_session
-from storage.index import SessionIndex
-from storage.recorder import SessionRecorder
-from storage.records import SessionHeader, TickRecord
+from jitdyn.storage.export import export_session
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.recorder import SessionRecorder
+from jitdyn.storage.records import SessionHeader, TickRecord
 
 
 def vec(*values: float) -> np.ndarray:

@@ -12,10 +12,10 @@ import pytest
 import sqlalchemy as sa
 
 from jitdyn.errors import InvalidArgument
-from storage.index import SessionIndex
-from storage.query import run_query
-from storage.recorder import SessionRecorder
-from storage.records import SessionHeader, TickRecord
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.query import run_query
+from jitdyn.storage.recorder import SessionRecorder
+from jitdyn.storage.records import SessionHeader, TickRecord
 
 
 def record(

@@ -16,10 +16,10 @@ import pyarrow.parquet as pq
 import pytest
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from storage.columns import ARRAY_FIELDS, SCALAR_FIELDS
-from storage.index import SessionIndex
-from storage.recorder import SessionRecorder
-from storage.records import SessionHeader, SessionSummaryInfo, TickRecord
+from jitdyn.storage.columns import ARRAY_FIELDS, SCALAR_FIELDS
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.recorder import SessionRecorder
+from jitdyn.storage.records import SessionHeader, SessionSummaryInfo, TickRecord
 
 
 def assert_rows_equal(rows: list[dict[str, Any]], records: list[TickRecord]) -> None:

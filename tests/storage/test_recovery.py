@@ -16,14 +16,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from storage.columns import records_to_batch
-from storage.db import open_index
-from storage.index import SessionIndex
-from storage.layout import log_location
-from storage.log import LogWriter, read_log
-from storage.parquet import header_to_json
-from storage.recorder import SessionRecorder, recover_unfinished
-from storage.records import SessionHeader, TickRecord
+from jitdyn.storage.columns import records_to_batch
+from jitdyn.storage.db import open_index
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.layout import log_location
+from jitdyn.storage.log import LogWriter, read_log
+from jitdyn.storage.parquet import header_to_json
+from jitdyn.storage.recorder import SessionRecorder, recover_unfinished
+from jitdyn.storage.records import SessionHeader, TickRecord
 
 CHILD = Path(__file__).with_name("crash_child.py")
 REPO = Path(__file__).resolve().parents[2]

@@ -12,10 +12,10 @@ from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
-from storage.db import upgrade
-from storage.index import SessionIndex, SessionRow
-from storage.records import SessionHeader, SessionSummaryInfo
-from storage.schema import metadata
+from jitdyn.storage.db import upgrade
+from jitdyn.storage.index import SessionIndex, SessionRow
+from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
+from jitdyn.storage.schema import metadata
 
 T0 = dt.datetime(2026, 11, 21, 10, 0, 0, tzinfo=dt.UTC)
 

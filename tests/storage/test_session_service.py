@@ -10,10 +10,10 @@ import grpc
 import pytest
 from google.protobuf import timestamp_pb2
 
+from jitdyn.server.transport.session_service import estimator_to_pb
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
 from jitdyn.v1 import common_pb2, session_pb2, session_pb2_grpc
-from server.session_service import estimator_to_pb
-from storage.index import SessionIndex
-from storage.records import SessionHeader, SessionSummaryInfo
 
 T0 = dt.datetime(2026, 11, 21, 10, 0, 0, tzinfo=dt.UTC)
 Metadata = Callable[[str], list[tuple[str, str]]]

@@ -1,0 +1,241 @@
+"""`jitdyn demo`: one REALTIME session of a simulated research object over an emulated network.
+
+The truth is simulated by MuJoCo on the client side; frames reach the server through a seeded
+delaying sender (latency, jitter, loss), so some arrive after their tick's deadline: the server
+answers those ticks PREDICTED by its estimator and CORRECTED when the frame comes. The summary
+compares the predictions with the truth and says where the session is stored.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+import mujoco
+import numpy as np
+from tqdm import tqdm
+
+from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, SyncSample, TickResult
+from jitdyn.experiments.netem import DelayedSender, NetworkProfile
+from jitdyn.registry import builtin_model_path
+
+__all__ = ["DemoSettings", "run_demo"]
+
+
+@dataclass(frozen=True)
+class DemoSettings:
+    model: str = "pendulum_3"
+    scenario: str = "PASSIVE"
+    seconds: float = 10.0
+    dt: float | None = None  # None: 50 ms for pendulums, else 10 model timesteps
+    latency: float = 0.035  # s, one way
+    jitter: float = 0.010  # s
+    loss: float = 0.05
+    seed: int = 0
+    estimator: str = "UKF"
+
+
+def _truth_model(name: str) -> mujoco.MjModel:
+    path = builtin_model_path(name)
+    return mujoco.MjModel.from_xml_path(str(path))
+
+
+def run_demo(
+    address: str, settings: DemoSettings, *, out: TextIO, progress: bool = True
+) -> dict[str, object]:
+    """Run the demo session against the server at `address`; print and return its summary."""
+    model = _truth_model(settings.model)
+    data = mujoco.MjData(model)
+    # A deterministic start away from rest, so that gravity moves the chain.
+    rng = np.random.default_rng(settings.seed)
+    data.qpos[:] = model.qpos0 + rng.uniform(0.3, 0.8, model.nq) * np.sign(rng.standard_normal(model.nq))
+    mujoco.mj_forward(model, data)
+    dt = settings.dt or (0.05 if settings.model.startswith("pendulum") else 10 * model.opt.timestep)
+    steps = max(1, round(dt / model.opt.timestep))
+    ticks = max(1, round(settings.seconds / dt))
+    profile = NetworkProfile(latency=settings.latency, jitter=settings.jitter, loss=settings.loss)
+    controlled = settings.scenario.upper() == "CONTROLLED"
+    options = SessionOptions(
+        model_name=settings.model,
+        scenario=settings.scenario.upper(),
+        dt=dt,
+        clock="REALTIME",
+        estimator={"estimator": settings.estimator},
+        measured=("qpos", "qvel", "ctrl") if controlled else ("qpos", "qvel"),
+        outputs=("INVERSE_DYNAMICS",),
+    )
+    truth: list[np.ndarray] = []
+    results: dict[int, TickResult] = {}
+    corrected: list[TickResult] = []
+    rejections: list[Rejection] = []
+    syncs: list[SyncSample] = []
+    with Client(address) as client:
+        client.wait_ready()
+        session = client.open_session(options)
+        print(
+            f"session {session.opened.session_id}: {settings.model} ({session.opened.model.nq} dof), "
+            f"{settings.scenario.lower()}, dt {dt * 1e3:g} ms, {ticks} ticks, estimator {settings.estimator}, "
+            f"grace {session.opened.grace * 1e3:g} ms",
+            file=out,
+        )
+        if settings.latency > session.opened.grace:
+            print(
+                f"frames take {settings.latency * 1e3:g} ms to arrive and the server answers each tick "
+                f"{session.opened.grace * 1e3:g} ms after it is due: expect most ticks PREDICTED by the "
+                "estimator, then CORRECTED when their frame arrives",
+                file=out,
+            )
+        print(
+            f"network: latency {settings.latency * 1e3:g} ms, jitter {settings.jitter * 1e3:g} ms, "
+            f"loss {settings.loss:.0%} (seeded {settings.seed})",
+            file=out,
+        )
+
+        def collect(answers: list[TickResult | Rejection | SyncSample]) -> None:
+            for answer in answers:
+                if isinstance(answer, TickResult):
+                    if answer.source == "CORRECTED":
+                        corrected.append(answer)
+                    else:
+                        results[answer.seq] = answer
+                elif isinstance(answer, Rejection):
+                    rejections.append(answer)
+                else:
+                    syncs.append(answer)
+
+        bar = tqdm(
+            total=ticks,
+            desc="ticks answered",
+            unit="tick",
+            disable=not progress,
+            file=out,
+            leave=False,
+            mininterval=0.5,
+        )
+        lost = 0
+        with DelayedSender(session.send, profile, seed=settings.seed) as network:
+            for k in range(ticks):
+                if k % 20 == 0:
+                    session.sync()
+                # Frame k is measured at k * dt on the session clock.
+                wait = k * dt - session.now()
+                if wait > 0:
+                    time.sleep(wait)
+                ctrl = np.zeros(model.nu)
+                truth.append(np.concatenate([data.qpos, data.qvel]).copy())
+                frame = FrameData(
+                    seq=k,
+                    t=k * dt,
+                    qpos=data.qpos.copy(),
+                    qvel=data.qvel.copy(),
+                    ctrl=ctrl if controlled else None,
+                )
+                if not math.isfinite(network.submit(frame)):
+                    lost += 1
+                data.ctrl[:] = ctrl
+                for _ in range(steps):
+                    mujoco.mj_step(model, data)
+                collect(session.poll())
+                bar.update(min(len(results), ticks) - bar.n)
+        # Every tick is answered by its deadline; wait for the last ones, then close.
+        deadline = time.monotonic() + 2.0 + 4 * dt
+        while any(k not in results for k in range(ticks)) and time.monotonic() < deadline:
+            collect(session.poll())
+            time.sleep(dt / 4)
+        summary = session.close()
+        bar.update(min(len(results), ticks) - bar.n)
+        bar.close()
+        # Ticks the server's clock answered between the last frame and `close`.
+        for seq in [seq for seq in results if seq >= ticks]:
+            del results[seq]
+    return _report(
+        settings=settings,
+        model=model,
+        dt=dt,
+        ticks=ticks,
+        lost=lost,
+        truth=truth,
+        results=results,
+        corrected=corrected,
+        rejections=rejections,
+        syncs=syncs,
+        summary=summary,
+        out=out,
+    )
+
+
+def _report(
+    *,
+    settings: DemoSettings,
+    model: mujoco.MjModel,
+    dt: float,
+    ticks: int,
+    lost: int,
+    truth: list[np.ndarray],
+    results: dict[int, TickResult],
+    corrected: list[TickResult],
+    rejections: list[Rejection],
+    syncs: list[SyncSample],
+    summary: object,
+    out: TextIO,
+) -> dict[str, object]:
+    nq = model.nq
+    by_source: dict[str, int] = {}
+    for r in results.values():
+        by_source[r.source] = by_source.get(r.source, 0) + 1
+    # Ticks due before any frame had arrived are answered from the model's rest pose: the
+    # estimator has nothing to start from yet, so they say nothing about it.
+    arrived = [r.seq for r in [*results.values(), *corrected] if r.source != "PREDICTED"]
+    first_frame = min(arrived) if arrived else ticks
+    predicted_errors = [
+        float(np.max(np.abs(r.qpos - truth[r.seq][:nq])))
+        for r in results.values()
+        if r.source == "PREDICTED" and first_frame < r.seq < len(truth)
+    ]
+    torques = np.array([r.qfrc_inverse for r in results.values() if r.qfrc_inverse.size])
+    delays = np.array([r.receive_to_send_us for r in results.values()]) / 1e3
+    lines = [
+        "",
+        f"frames sent {ticks}, lost on the emulated network {lost}, rejected {len(rejections)}",
+        f"results {len(results)} of {ticks} ticks: "
+        + ", ".join(f"{k.lower()} {v}" for k, v in sorted(by_source.items()))
+        + f"; corrected later {len(corrected)}",
+    ]
+    if predicted_errors:
+        lines.append(
+            f"predicted ticks after the first frame: |q error| vs truth median {np.median(predicted_errors):.2e} rad, "
+            f"max {np.max(predicted_errors):.2e} rad"
+        )
+    if torques.size:
+        lo, hi = torques.min(axis=0), torques.max(axis=0)
+        ranges = ", ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in zip(lo, hi, strict=True))
+        lines.append(f"qfrc_inverse range per dof (N m): {ranges}")
+    if delays.size:
+        lines.append(
+            f"server deadline-to-send: median {np.median(delays):.2f} ms, max {np.max(delays):.2f} ms"
+        )
+    if syncs:
+        best = min(syncs, key=lambda s: s.round_trip)
+        lines.append(
+            f"clock sync: round trip {best.round_trip * 1e3:.2f} ms, offset {best.offset * 1e3:+.2f} ms"
+        )
+    location = getattr(summary, "location", "")
+    lines.append(f"stored: {location}")
+    print("\n".join(lines), file=out)
+    return {
+        "ticks": ticks,
+        "results": len(results),
+        "by_source": by_source,
+        "corrected": len(corrected),
+        "lost": lost,
+        "rejected": len(rejections),
+        "location": location,
+        "predicted_errors": predicted_errors,
+    }
+
+
+def default_data_root() -> Path:
+    return Path("jitdyn-data")

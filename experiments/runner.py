@@ -1,0 +1,285 @@
+"""Runs one research object through a real jitdyn session and records what the server answered
+beside the truth::
+
+    spec = RunSpec("pendulum_3", Scenario.PASSIVE, seconds=10, preset="THESIS")
+    trace = run_lockstep(client, spec)             # every tick: truth, filter state, covariance, source
+    trace.truth_state, trace.estimate, trace.covariance
+
+LOCKSTEP runs are deterministic: the network is emulated in virtual time by client.netem, so the
+server sees the same frames, skips and late frames in the same order every time.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, TickResult
+from jitdyn.experiments.netem import PERFECT, NetworkProfile, Schedule, gap_schedule, lockstep_schedule
+from jitdyn.experiments.objects import ResearchObject, Scenario, TrueState, UnstableSimulation, make_object
+
+__all__ = ["ModelCache", "RunSpec", "Trace", "estimate_of", "run_lockstep"]
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One session: an object in a scenario, an estimator, a network, a length."""
+
+    object: str  # "pendulum_1".."pendulum_3", "biped", "myoelbow", "myohand"
+    scenario: Scenario
+    seconds: float
+    estimator: str = "UKF"  # UKF | STATIC | CONSTANT_VELOCITY | CONSTANT_ACCELERATION
+    preset: str = "JITDYN"  # JITDYN | THESIS
+    seed: int = 0
+    network: NetworkProfile = PERFECT
+    grace: float = 0.0  # s: a frame later than this after its tick is late (LOCKSTEP emulation)
+    gaps: tuple[int, int] | None = None  # (gap ticks, period ticks): deterministic gaps instead of `network`
+    overrides: Mapping[str, float] = field(default_factory=dict)  # estimator settings beyond the preset
+
+    @property
+    def label(self) -> str:
+        estimator = self.preset if self.estimator == "UKF" else self.estimator
+        extra = "".join(f",{k}={v:g}" for k, v in sorted(self.overrides.items()))
+        return f"{self.object}/{self.scenario.value}/{estimator}{extra}"
+
+
+@dataclass(frozen=True)
+class Trace:
+    """What happened, tick by tick. T ticks, state dimension nx ([q, qd] or [q, qd, qdd])."""
+
+    spec: RunSpec
+    dt: float
+    nq: int
+    nv: int
+    joint_names: tuple[str, ...]
+    settings: Mapping[str, object]  # the estimator settings in force, as the server reported them
+    measurement_dim: int  # components of the measurement (NIS degrees of freedom)
+    t: np.ndarray  # (T,)
+    truth_state: np.ndarray  # (T, nx) the true state in the filter's layout
+    estimate: np.ndarray  # (T, nx) the filter state the server answered at the tick
+    covariance: np.ndarray | None  # (T, nx, nx); None for the dead-reckoning estimators
+    corrected: np.ndarray  # (T, nx) the filter state after late frames were applied
+    ctrl: np.ndarray  # (T, nu) the control that acted over the interval ending at each tick
+    source: tuple[str, ...]  # (T,) MEASURED | PREDICTED (answer at the tick)
+    received: np.ndarray  # (T,) bool: the frame was there when the tick was answered
+    nis: np.ndarray  # (T,) NaN where no measurement was used
+    compute_us: np.ndarray  # (T,) server compute time of the tick's answer
+    reinitialised: int  # ticks where the divergence guard re-initialised the filter
+    rejected: int
+    corrected_ticks: int
+    wall_seconds: float
+    stopped: tuple[float, str] | None = (
+        None  # (t, why) when the truth became unstable and the run ended early
+    )
+
+    @property
+    def nx(self) -> int:
+        return int(self.estimate.shape[1])
+
+    def component(self, which: str, *, corrected: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(truth, estimate) of one block: "q", "qd" or "qdd"; each (T, nv)."""
+        blocks = {"q": 0, "qd": 1, "qdd": 2}
+        if which not in blocks:
+            raise ValueError(f"which must be one of {list(blocks)}, got {which!r}")
+        start = blocks[which] * self.nv
+        if start + self.nv > self.nx:
+            raise ValueError(f"the state of this run has no {which!r} block (dimension {self.nx})")
+        estimate = self.corrected if corrected else self.estimate
+        return self.truth_state[:, start : start + self.nv], estimate[:, start : start + self.nv]
+
+
+class ModelCache:
+    """Registers MyoSuite models once per server; built-in models are opened by name."""
+
+    def __init__(self, client: Client) -> None:
+        self._client = client
+        self._ids: dict[str, str] = {}
+
+    def options(self, obj: ResearchObject) -> dict[str, Any]:
+        source = obj.source
+        if source.builtin:
+            return {"model_name": source.name}
+        if source.name not in self._ids:
+            model, _ = self._client.register_model(
+                name=source.name,
+                mjcf=source.mjcf,
+                assets=source.assets,
+                description=f"MyoSuite {source.name}",
+            )
+            self._ids[source.name] = model.id
+        return {"model_id": self._ids[source.name]}
+
+
+def estimate_of(result: TickResult, nq: int, nv: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (qpos, qvel) a controller should use: the filter's state, else the answered state."""
+    if result.filter_state.size >= nq + nv:
+        return np.asarray(result.filter_state[:nq]), np.asarray(result.filter_state[nq : nq + nv])
+    return np.asarray(result.qpos), np.asarray(result.qvel)
+
+
+def _measured(scenario: Scenario) -> tuple[str, ...]:
+    # The thesis' measurement vector is the whole state: [q, qd] or, controlled, [q, qd, qdd];
+    # a controlled frame carries the control that acted too (not a measurement: an input).
+    if scenario is Scenario.CONTROLLED:
+        return ("qpos", "qvel", "qacc", "ctrl")
+    return ("qpos", "qvel")
+
+
+def _frame(seq: int, truth: TrueState, scenario: Scenario) -> FrameData:
+    controlled = scenario is Scenario.CONTROLLED
+    return FrameData(
+        seq=seq,
+        t=truth.t,
+        qpos=truth.qpos,
+        qvel=truth.qvel,
+        qacc=truth.qacc if controlled else None,
+        ctrl=truth.ctrl if controlled else None,
+    )
+
+
+def _schedule(spec: RunSpec, ticks: int, dt: float) -> Schedule:
+    if spec.gaps is not None:
+        gap_ticks, period = spec.gaps
+        return gap_schedule(ticks, dt=dt, gap_ticks=gap_ticks, period=period)
+    return lockstep_schedule(ticks, dt=dt, profile=spec.network, seed=spec.seed, grace=spec.grace)
+
+
+def run_lockstep(
+    client: Client,
+    spec: RunSpec,
+    *,
+    models: ModelCache | None = None,
+    obj: ResearchObject | None = None,
+    progress: bool = True,
+) -> Trace:
+    """Runs `spec` as one LOCKSTEP session and returns its trace.
+
+    Tick k: the truth is at time k dt; the server gets frame k (or a skip, and later the late frame,
+    as the schedule says); a CONTROLLED object then gets the control its law computes from the
+    latest answer's filter state, held until tick k + 1, and frame k + 1 reports it.
+    """
+    obj = obj or make_object(spec.object, spec.scenario)
+    models = models or ModelCache(client)
+    dt = obj.dt
+    ticks = max(2, round(spec.seconds / dt))
+    schedule = _schedule(spec, ticks, dt)
+    settings: dict[str, object] = {"estimator": spec.estimator, "preset": spec.preset, **spec.overrides}
+    options = SessionOptions(
+        **models.options(obj),
+        scenario=spec.scenario.value,
+        dt=dt,
+        clock="LOCKSTEP",
+        estimator=settings,
+        measured=_measured(spec.scenario),
+        outputs=("FILTER_STATE",),
+        # Every late frame of the emulated network is applied: a history as long as the run.
+        history=min(10_000, ticks + 1),
+    )
+    by_tick: dict[int, list[Any]] = {}
+    for delivery in schedule.deliveries:
+        by_tick.setdefault(delivery.tick, []).append(delivery)
+
+    truths: list[TrueState] = [obj.reset(spec.seed)]
+    answers: dict[int, TickResult] = {}
+    finals: dict[int, TickResult] = {}
+    rejected = 0
+    corrected = 0
+    stopped: tuple[float, str] | None = None
+    started = time.perf_counter()
+    bar = tqdm(total=ticks, desc=spec.label, unit="tick", leave=False, disable=not progress)
+    with client.open_session(options) as session:
+        opened = session.opened
+        nq, nv = obj.nq, obj.nv
+
+        def deliver(kind: str, seq: int) -> TickResult | None:
+            nonlocal rejected
+            if kind == "skip":
+                answer = session.skip(seq)
+            else:
+                answer = session.send_frame(_frame(seq, truths[seq], spec.scenario))
+            if isinstance(answer, Rejection):
+                rejected += 1
+                return None
+            return answer
+
+        for j in range(ticks + 1):
+            for d in by_tick.get(j, ()):
+                if d.late_ticks > 0:
+                    late = deliver("frame", d.seq)
+                    if late is not None:
+                        corrected += 1
+                        finals[late.seq] = late
+            if j == ticks:
+                break
+            kind = (
+                "frame"
+                if any(d.seq == j and d.late_ticks == 0 and d.kind == "frame" for d in by_tick[j])
+                else "skip"
+            )
+            answer = deliver(kind, j)
+            if answer is None:
+                raise RuntimeError(
+                    f"{spec.label}: the server rejected tick {j}'s {kind}; see the session log"
+                )
+            answers[j] = finals[j] = answer
+            try:
+                if spec.scenario is Scenario.CONTROLLED:
+                    q, qd = estimate_of(answer, nq, nv)
+                    truths.append(obj.step(obj.control(truths[j].t, q, qd)))
+                else:
+                    truths.append(obj.step())
+            except UnstableSimulation as error:
+                # A law fed a diverged estimate can throw the truth itself off the rails; the run
+                # ends there, and the trace says when.
+                stopped = (error.t, str(error))
+                ticks = j + 1
+                break
+            bar.update(1)
+    bar.close()
+    wall = time.perf_counter() - started
+
+    nx = opened.state_dimension
+    layout = 3 if nx == 3 * nv else 2
+    truth_state = np.array([np.concatenate([s.qpos, s.qvel, s.qacc][:layout]) for s in truths[:ticks]])
+    estimate = np.array([_state(answers[k], nx) for k in range(ticks)])
+    final = np.array([_state(finals[k], nx) for k in range(ticks)])
+    covariances = [answers[k].covariance for k in range(ticks)]
+    covariance = None if any(c is None for c in covariances) else np.array(covariances)
+    measured_channels = [c for c in opened.measured if c in ("qpos", "qvel", "qacc")]
+    return Trace(
+        spec=spec,
+        dt=dt,
+        nq=nq,
+        nv=nv,
+        joint_names=tuple(opened.model.joint_names),
+        settings=dict(opened.estimator),
+        measurement_dim=len(measured_channels) * nv,
+        t=np.arange(ticks) * dt,
+        truth_state=truth_state,
+        estimate=estimate,
+        covariance=covariance,
+        corrected=final,
+        ctrl=np.array([s.ctrl for s in truths[:ticks]]),
+        source=tuple(answers[k].source for k in range(ticks)),
+        received=np.array([answers[k].frame_received for k in range(ticks)]),
+        nis=np.array([np.nan if answers[k].nis is None else answers[k].nis for k in range(ticks)]),
+        compute_us=np.array([answers[k].compute_us for k in range(ticks)], dtype=float),
+        reinitialised=sum(1 for k in range(ticks) if answers[k].reinitialised),
+        rejected=rejected,
+        corrected_ticks=corrected,
+        wall_seconds=wall,
+        stopped=stopped,
+    )
+
+
+def _state(result: TickResult, nx: int) -> np.ndarray:
+    if result.filter_state.size == nx:
+        return np.asarray(result.filter_state, dtype=float)
+    # Before the first frame there is no filter state; NaN keeps the tick out of the metrics.
+    return np.full(nx, math.nan)

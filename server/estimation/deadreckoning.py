@@ -1,0 +1,170 @@
+"""The dead-reckoning extrapolators of distributed interactive simulation (IEEE 1278.1), behind the
+same `Estimator` protocol as the UKF, as baselines for the experiments.
+
+Each frame re-anchors the extrapolation; ticks without one extrapolate from the anchor over the
+time since it, in generalized coordinates (quaternions of ball and free joints move by
+mj_integratePos):
+
+- STATIC: the last measured state is held (q, qd and qdd as measured).
+- CONSTANT_VELOCITY: q(t) = q0 + qd0 t; qd = qd0; qdd = 0.
+- CONSTANT_ACCELERATION: q(t) = q0 + qd0 t + qdd0 t^2 / 2; qd = qd0 + qdd0 t; qdd = qdd0.
+
+Channels a client does not measure come from the last two frames as DIS does: qd0 from the
+difference of positions, qdd0 from the difference of velocities, over the time between the frames
+(zero until there are two). No covariance, no NIS, no divergence guard: nothing can diverge.
+
+    estimator = DeadReckoning(model, config)          # config.estimator = "CONSTANT_VELOCITY"
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.server.estimation.estimator import (
+    Estimate,
+    EstimatorConfig,
+    EstimatorKind,
+    Measurement,
+    check_against_model,
+    check_measurement,
+    derivative_order,
+    read_only,
+)
+
+__all__ = ["DeadReckoning"]
+
+
+@dataclass(frozen=True)
+class _Anchor:
+    """The state a frame fixed (read-only arrays): qpos (nq,), qvel (nv,), qacc (nv,)."""
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    qacc: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    owner: int
+    anchor: _Anchor | None
+    elapsed: int  # ticks since the anchor
+
+
+class DeadReckoning:
+    """An IEEE 1278 extrapolator (see the module docstring). Implements `Estimator`."""
+
+    def __init__(self, model: mujoco.MjModel, config: EstimatorConfig) -> None:
+        if config.estimator == EstimatorKind.UKF:
+            raise InvalidArgument("config.estimator must be a dead-reckoning estimator, got UKF")
+        check_against_model(model, config)
+        self._model = model
+        self._config = config
+        self._kind = EstimatorKind(config.estimator)
+        self._order = derivative_order(config.scenario)
+        self._nq, self._nv = int(model.nq), int(model.nv)
+        self._anchor: _Anchor | None = None
+        self._elapsed = 0
+
+    @property
+    def config(self) -> EstimatorConfig:
+        return self._config
+
+    @property
+    def state_dimension(self) -> int:
+        return self._order * self._nv
+
+    @property
+    def state_size(self) -> int:
+        return self._nq + (self._order - 1) * self._nv
+
+    def initialise(self, m: Measurement) -> None:
+        m = check_measurement(m, self._model, self._config.measured)
+        zeros = read_only(np.zeros(self._nv))
+        self._anchor = _Anchor(
+            qpos=m.qpos,
+            qvel=m.qvel if m.qvel is not None else zeros,
+            qacc=m.qacc if m.qacc is not None else zeros,
+        )
+        self._elapsed = 0
+
+    def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
+        anchor = self._require_anchor("predict")
+        self._elapsed += 1
+        return self._at(anchor, self._elapsed * self._config.dt)
+
+    def update(self, m: Measurement) -> Estimate:
+        anchor = self._require_anchor("update")
+        m = check_measurement(m, self._model, self._config.measured)
+        gap = self._elapsed * self._config.dt
+        if m.qvel is not None:
+            qvel = m.qvel
+        elif gap > 0.0:
+            qvel = np.empty(self._nv)
+            mujoco.mj_differentiatePos(self._model, qvel, gap, anchor.qpos, m.qpos)
+            qvel = read_only(qvel)
+        else:
+            qvel = anchor.qvel
+        if m.qacc is not None:
+            qacc = m.qacc
+        elif gap > 0.0:
+            qacc = read_only((qvel - anchor.qvel) / gap)
+        else:
+            qacc = anchor.qacc
+        self._anchor = _Anchor(qpos=m.qpos, qvel=qvel, qacc=qacc)
+        self._elapsed = 0
+        return self._at(self._anchor, 0.0)
+
+    def extrapolate(self, seconds: float) -> Estimate:
+        anchor = self._require_anchor("extrapolate")
+        if (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float))
+            or not 0.0 <= seconds < float("inf")
+        ):
+            raise InvalidArgument(f"seconds must be finite and >= 0, got {seconds!r}")
+        return self._at(anchor, self._elapsed * self._config.dt + seconds)
+
+    def snapshot(self) -> _Snapshot:
+        return _Snapshot(owner=id(self), anchor=self._anchor, elapsed=self._elapsed)
+
+    def restore(self, snap: object) -> None:
+        if not isinstance(snap, _Snapshot) or snap.owner != id(self):
+            raise InvalidArgument(f"snap must be a snapshot of this estimator, got {type(snap).__name__}")
+        self._anchor = snap.anchor
+        self._elapsed = snap.elapsed
+
+    def _require_anchor(self, what: str) -> _Anchor:
+        if self._anchor is None:
+            raise FailedPrecondition(
+                f"{what} needs an initialised estimator: call initialise() with the first frame"
+            )
+        return self._anchor
+
+    def _at(self, anchor: _Anchor, t: float) -> Estimate:
+        """The extrapolation t seconds after the anchor."""
+        qpos = anchor.qpos.copy()
+        if self._kind == EstimatorKind.STATIC or t == 0.0:
+            qvel, qacc = anchor.qvel, anchor.qacc
+            if self._kind == EstimatorKind.CONSTANT_VELOCITY:
+                qacc = np.zeros(self._nv)
+        elif self._kind == EstimatorKind.CONSTANT_VELOCITY:
+            mujoco.mj_integratePos(self._model, qpos, anchor.qvel, t)
+            qvel, qacc = anchor.qvel, np.zeros(self._nv)
+        else:
+            displacement = anchor.qvel + 0.5 * t * anchor.qacc  # times t: qd0 t + qdd0 t^2 / 2
+            mujoco.mj_integratePos(self._model, qpos, displacement, t)
+            qvel, qacc = anchor.qvel + t * anchor.qacc, anchor.qacc
+        parts = [qpos, qvel] + ([qacc] if self._order == 3 else [])
+        return Estimate(
+            qpos=read_only(qpos),
+            qvel=read_only(qvel),
+            qacc=read_only(qacc),
+            state=read_only(np.concatenate(parts)),
+            covariance=None,
+            nis=None,
+            reinitialised=False,
+        )

@@ -1,0 +1,424 @@
+"""What the session runtime needs from a state estimator, and how one is configured
+(`estimation/factory.py` makes one).
+
+A session resolves its settings once (`resolve_config`: the request, then the model's defaults,
+then a preset), makes its estimator from them on the shared worker pool, and then drives it one
+tick at a time::
+
+    config = resolve_config(model=model, scenario="PASSIVE", dt=0.05, requested={"r": 0.02},
+                            model_defaults={}, preset="JITDYN", measured={"qpos", "qvel"})
+    estimator = make_estimator(model, config, pool=pool)
+    estimator.initialise(first)                       # tick 0
+    estimator.predict(ctrl=None)                      # every later tick ...
+    estimate = estimator.update(frame)                # ... and, when its frame is there
+
+Estimators: the unscented Kalman filter (estimation/ukf.py) and the dead-reckoning extrapolators of
+IEEE 1278 (estimation/deadreckoning.py). State layouts: x = [q (nq), qd (nv)] in PASSIVE and EXTERNAL,
+[q, qd, qdd (nv)] in CONTROLLED; covariances live in the tangent space, (k nv, k nv) with k = 2 or 3,
+which differs from len(x) only for models with ball or free joints (estimation/manifold.py).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Final, Protocol, TypeVar, runtime_checkable
+
+import mujoco
+import numpy as np
+
+from jitdyn.errors import InvalidArgument
+
+__all__ = [
+    "CHANNELS",
+    "LARGE_STATE",
+    "Channel",
+    "Estimate",
+    "Estimator",
+    "EstimatorConfig",
+    "EstimatorKind",
+    "Measurement",
+    "Preset",
+    "Scenario",
+    "SigmaScheme",
+    "check_against_model",
+    "check_measurement",
+    "check_vector",
+    "derivative_order",
+    "is_pendulum_like",
+    "preset_values",
+    "read_only",
+    "resolve_config",
+    "state_dimension",
+    "steps_per_tick",
+]
+
+
+class EstimatorKind(enum.StrEnum):
+    UKF = "UKF"
+    STATIC = "STATIC"
+    CONSTANT_VELOCITY = "CONSTANT_VELOCITY"
+    CONSTANT_ACCELERATION = "CONSTANT_ACCELERATION"
+
+
+class Scenario(enum.StrEnum):
+    PASSIVE = "PASSIVE"
+    CONTROLLED = "CONTROLLED"
+    EXTERNAL = "EXTERNAL"
+
+
+class SigmaScheme(enum.StrEnum):
+    MERWE = "MERWE"
+    SIMPLEX = "SIMPLEX"
+    UNIFORM = "UNIFORM"
+
+
+class Preset(enum.StrEnum):
+    JITDYN = "JITDYN"
+    THESIS = "THESIS"
+
+
+class Channel(enum.StrEnum):
+    QPOS = "qpos"
+    QVEL = "qvel"
+    QACC = "qacc"
+    CTRL = "ctrl"
+
+
+CHANNELS: Final = frozenset(c.value for c in Channel)
+
+# The JITDYN preset switches to simplex points (n + 1 instead of 2n + 1) from this state dimension
+# on: myoHand's 46 states at a 2 ms tick need it to stay inside the tick (benchmarks/RESULTS.md).
+LARGE_STATE: Final = 32
+
+# Settings a request or a model's metadata may set, and their types.
+_FIELDS: Final = ("estimator", "sigma_points", "alpha", "beta", "kappa", "p0", "q_var", "r")
+
+
+_E = TypeVar("_E", bound=enum.StrEnum)
+
+
+def _enum(kind: type[_E], value: object, name: str) -> _E:
+    if isinstance(value, str):
+        try:
+            return kind(value)
+        except ValueError:
+            pass
+    raise InvalidArgument(f"{name} must be one of {[k.value for k in kind]}, got {value!r}")
+
+
+def _real(value: object, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise InvalidArgument(f"{name} must be a number, got {value!r}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise InvalidArgument(f"{name} must be finite, got {number}")
+    return number
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Every estimator setting of one session, complete and checked.
+
+    Strings are accepted for the enum fields and become the enums (which compare equal to them).
+    Checks that need the model (n + kappa > 0, dt against the timestep) are `resolve_config`'s
+    and `make_estimator`'s.
+    """
+
+    estimator: EstimatorKind
+    scenario: Scenario
+    sigma_points: SigmaScheme
+    alpha: float  # spread of the sigma points, (0, 1]
+    beta: float  # prior knowledge of the distribution (2: Gaussian)
+    kappa: float  # secondary scaling; n + kappa > 0 for Merwe points
+    p0: float  # P0 = p0 I, > 0
+    q_var: float  # variance of the discrete white-noise process model, >= 0
+    r: float  # R = r I over the measured channels, > 0
+    dt: float  # tick, s
+    steps_per_tick: int  # physics steps per tick: dt / model timestep
+    measured: frozenset[str] = field(default_factory=lambda: frozenset({"qpos", "qvel"}))
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__  # frozen: normalise through the back door, once, here
+        set_(self, "estimator", _enum(EstimatorKind, self.estimator, "estimator"))
+        set_(self, "scenario", _enum(Scenario, self.scenario, "scenario"))
+        set_(self, "sigma_points", _enum(SigmaScheme, self.sigma_points, "sigma_points"))
+        for name in ("alpha", "beta", "kappa", "p0", "q_var", "r", "dt"):
+            set_(self, name, _real(getattr(self, name), name))
+        if not 0.0 < self.alpha <= 1.0:
+            raise InvalidArgument(f"alpha must be in (0, 1], got {self.alpha}")
+        if self.p0 <= 0.0:
+            raise InvalidArgument(f"p0 must be > 0, got {self.p0}")
+        if self.q_var < 0.0:
+            raise InvalidArgument(f"q_var must be >= 0, got {self.q_var}")
+        if self.r <= 0.0:
+            # R = 0 makes the innovation covariance singular as soon as P collapses onto the
+            # measurement: the gain is then undefined.
+            raise InvalidArgument(f"r must be > 0, got {self.r}")
+        if self.dt <= 0.0:
+            raise InvalidArgument(f"dt must be > 0 seconds, got {self.dt}")
+        steps = self.steps_per_tick
+        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+            raise InvalidArgument(f"steps_per_tick must be an integer >= 1, got {steps!r}")
+        set_(self, "steps_per_tick", int(steps))
+        if isinstance(self.measured, str):
+            raise InvalidArgument(
+                f"measured must be a set of channel names, got the string {self.measured!r}"
+            )
+        measured = frozenset(str(c).lower() for c in self.measured)
+        if not measured <= CHANNELS:
+            raise InvalidArgument(f"measured must be a subset of {sorted(CHANNELS)}, got {sorted(measured)}")
+        if Channel.QPOS not in measured:
+            raise InvalidArgument(f"measured must include 'qpos', got {sorted(measured)}")
+        set_(self, "measured", measured)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One frame's measured channels: qpos (nq,), qvel (nv,), qacc (nv,), ctrl (nu,); None when the
+    channel is not measured. Estimators check shapes and finiteness themselves.
+    """
+
+    qpos: np.ndarray
+    qvel: np.ndarray | None = None
+    qacc: np.ndarray | None = None
+    ctrl: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """An estimator's answer for one tick. Every array is a read-only copy.
+
+    qpos (nq,), qvel (nv,), qacc (nv,); state: the estimator's own mean, [q, qd] or [q, qd, qdd]
+    (len nq + 1 or 2 nv); covariance (n, n) in the tangent space, None for dead reckoning; nis:
+    normalised innovation squared of the measurement just used, None when none was (or it was not
+    finite); reinitialised: the divergence guard restarted the estimator from a measurement.
+    """
+
+    qpos: np.ndarray
+    qvel: np.ndarray
+    qacc: np.ndarray
+    state: np.ndarray
+    covariance: np.ndarray | None
+    nis: float | None = None
+    reinitialised: bool = False
+
+
+def check_vector(value: object, size: int, name: str) -> np.ndarray:
+    """A private, read-only float64 copy of `value`, which must be finite with shape (size,)."""
+    try:
+        array = np.array(value, dtype=np.float64)  # a private copy: the caller may reuse its buffer
+    except (TypeError, ValueError):
+        raise InvalidArgument(f"{name} must be an array of {size} numbers, got {value!r}") from None
+    if array.shape != (size,):
+        raise InvalidArgument(f"{name} must have shape ({size},), got {array.shape}")
+    if not np.isfinite(array).all():
+        raise InvalidArgument(f"{name} must be finite, got {array.tolist()}")
+    array.flags.writeable = False
+    return array
+
+
+def check_measurement(m: Measurement, model: mujoco.MjModel, measured: frozenset[str]) -> Measurement:
+    """A checked, private, read-only copy of `m`: shapes, finiteness, and every measured state
+    channel present (ctrl may be absent: a controller on the server may supply it)."""
+    missing = sorted(c for c in measured & {"qvel", "qacc"} if getattr(m, c) is None)
+    if missing:
+        raise InvalidArgument(f"measurement must have the measured channels {missing}, got None")
+
+    def channel(value: np.ndarray | None, size: int, name: str) -> np.ndarray | None:
+        return None if value is None else check_vector(value, size, f"measurement.{name}")
+
+    qpos = check_vector(m.qpos, model.nq, "measurement.qpos")
+    return Measurement(
+        qpos=qpos,
+        qvel=channel(m.qvel, model.nv, "qvel"),
+        qacc=channel(m.qacc, model.nv, "qacc"),
+        ctrl=channel(m.ctrl, model.nu, "ctrl"),
+    )
+
+
+def read_only(array: np.ndarray) -> np.ndarray:
+    """A read-only copy of `array`, to hand out."""
+    copy = np.array(array, dtype=np.float64)
+    copy.flags.writeable = False
+    return copy
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """One session's state estimator, driven one tick at a time from one thread."""
+
+    @property
+    def state_dimension(self) -> int:
+        """Side of the covariance: 2 nv, or 3 nv in CONTROLLED (tangent space)."""
+        ...
+
+    @property
+    def state_size(self) -> int:
+        """len(Estimate.state): nq + nv, or nq + 2 nv in CONTROLLED."""
+        ...
+
+    def initialise(self, m: Measurement) -> None:
+        """Start from the first frame: x0 from it, P0 = p0 I."""
+        ...
+
+    def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
+        """Advance one tick (steps_per_tick physics steps). ctrl (nu,): the control over this tick
+        in CONTROLLED (None holds the last one); ignored in the other scenarios."""
+        ...
+
+    def update(self, m: Measurement) -> Estimate:
+        """Correct the tick just predicted with its frame; may re-initialise (divergence guard)."""
+        ...
+
+    def extrapolate(self, seconds: float) -> Estimate:
+        """The estimate `seconds` ahead (rounded to physics steps), without changing the estimator;
+        0 gives the current estimate."""
+        ...
+
+    def snapshot(self) -> object:
+        """Everything needed to come back to this point (timewarp); immutable, cheap."""
+        ...
+
+    def restore(self, snap: object) -> None:
+        """Return to a snapshot of this estimator: replaying the same inputs then gives the same
+        states, bit for bit."""
+        ...
+
+
+def derivative_order(scenario: Scenario | str) -> int:
+    """How many derivatives of q the state holds per dof: 2 ([q, qd]) or 3 ([q, qd, qdd])."""
+    return 3 if scenario == Scenario.CONTROLLED else 2
+
+
+def state_dimension(model: mujoco.MjModel, scenario: Scenario | str) -> int:
+    """The tangent dimension of the state: 2 nv, or 3 nv in CONTROLLED."""
+    return derivative_order(scenario) * int(model.nv)
+
+
+def is_pendulum_like(model: mujoco.MjModel) -> bool:
+    """The thesis' pendulums, as a rule for any model: hinge joints only and no activation state.
+
+    The thesis used Julier's kappa = 3 - n and Q variance 0.2 (controlled) for its 1-3 link
+    pendulums, and kappa = 0, Q variance 5 (controlled) for everything else it ran (the biped, with
+    slide joints and contact; myoElbow and myoHand, with muscle activations). Hinges-only and
+    na = 0 separates the two exactly on the thesis' models.
+    """
+    hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+    return bool(model.na == 0 and model.njnt > 0 and all(int(t) == hinge for t in model.jnt_type))
+
+
+def preset_values(
+    preset: Preset | str, *, model: mujoco.MjModel, scenario: Scenario | str
+) -> dict[str, object]:
+    """Every setting of `preset` for this model and scenario.
+
+    THESIS: reference/thesis-experiments.md exactly: Merwe points, alpha 0.001, beta 2, P0 0.2 I,
+    R 0.01 I; kappa = 3 - n (n = state dimension: 3 - 2 dof passive and external, 3 - 3 dof
+    controlled) for pendulum-like models and 0 for the others (`is_pendulum_like`); Q variance 0.1
+    passive, 0.2 controlled (5 for models that are not pendulum-like: the biped), 50 external.
+
+    JITDYN: the thesis' noise model (P0, Q variance, R) with sigma points that stay numerically
+    sound at any n: alpha = 1, beta = 2 and kappa = 3 - n only while that is positive (n < 3),
+    else 0. Then lambda = kappa >= 0 and every Merwe weight is O(1) (Wm0 = kappa / (n + kappa),
+    Wi = 1 / (2 (n + kappa)) ~ 0.011 at n = 46, Wc0 = Wm0 + 2), where the thesis' alpha = 0.001,
+    kappa = 3 - n gives Wm0 ~ -n / (3 alpha^2) ~ -1.5e7 at n = 46 and an indefinite covariance
+    (server/estimation/sigma.py, MerweScaled). From n = LARGE_STATE on, simplex points (n + 1, all weights
+    1 / (n + 1)) halve the physics work, which keeps myoHand's cycle inside its 2 ms tick.
+    """
+    preset = _enum(Preset, preset, "preset")
+    scenario = _enum(Scenario, scenario, "scenario")
+    n = state_dimension(model, scenario)
+    pendulum = is_pendulum_like(model)
+    q_var = {
+        Scenario.PASSIVE: 0.1,
+        Scenario.CONTROLLED: 0.2 if pendulum else 5.0,
+        Scenario.EXTERNAL: 50.0,
+    }[scenario]
+    common: dict[str, object] = {"estimator": "UKF", "beta": 2.0, "p0": 0.2, "q_var": q_var, "r": 0.01}
+    if preset == Preset.THESIS:
+        return {**common, "sigma_points": "MERWE", "alpha": 0.001, "kappa": float(3 - n) if pendulum else 0.0}
+    return {
+        **common,
+        "sigma_points": "SIMPLEX" if n >= LARGE_STATE else "MERWE",
+        "alpha": 1.0,
+        "kappa": float(max(0, 3 - n)),
+    }
+
+
+def _check_settings(values: Mapping[str, object], name: str) -> None:
+    unknown = sorted(set(values) - set(_FIELDS))
+    if unknown:
+        raise InvalidArgument(f"{name} has unknown settings {unknown}; expected some of {list(_FIELDS)}")
+
+
+def steps_per_tick(model: mujoco.MjModel, dt: float) -> int:
+    """dt / timestep, which must be a whole number >= 1."""
+    dt = _real(dt, "dt")
+    timestep = float(model.opt.timestep)
+    steps = round(dt / timestep)
+    if dt <= 0.0 or steps < 1 or abs(steps * timestep - dt) > 1e-9 * max(dt, 1.0):
+        raise InvalidArgument(
+            f"dt must be a whole multiple (>= 1) of the model's timestep {timestep} s, got {dt}"
+        )
+    return int(steps)
+
+
+def check_against_model(model: mujoco.MjModel, config: EstimatorConfig) -> None:
+    """The checks of `config` that need the model."""
+    expected = steps_per_tick(model, config.dt)
+    if config.steps_per_tick != expected:
+        raise InvalidArgument(
+            f"steps_per_tick must be dt / timestep = {expected}, got {config.steps_per_tick}"
+        )
+    n = state_dimension(model, config.scenario)
+    if (
+        config.estimator == EstimatorKind.UKF
+        and config.sigma_points == SigmaScheme.MERWE
+        and n + config.kappa <= 0
+    ):
+        raise InvalidArgument(
+            f"kappa must make n + kappa > 0 for Merwe sigma points (state dimension n = {n}), "
+            f"got kappa = {config.kappa}"
+        )
+
+
+def resolve_config(
+    *,
+    model: mujoco.MjModel,
+    scenario: Scenario | str,
+    dt: float,
+    requested: Mapping[str, object],
+    model_defaults: Mapping[str, object],
+    preset: Preset | str = Preset.JITDYN,
+    measured: Iterable[str],
+) -> EstimatorConfig:
+    """The complete settings of a session: each field from the request if set there, else from the
+    model's defaults for the scenario, else from the preset (`preset_values`).
+
+    requested, model_defaults: some of estimator, sigma_points, alpha, beta, kappa, p0, q_var, r.
+    Raises InvalidArgument naming the first bad field.
+    """
+    _check_settings(requested, "requested")
+    _check_settings(model_defaults, "model_defaults")
+    if isinstance(measured, str):
+        raise InvalidArgument(f"measured must be a set of channel names, got the string {measured!r}")
+    values = {**preset_values(preset, model=model, scenario=scenario), **model_defaults, **requested}
+    config = EstimatorConfig(
+        estimator=values["estimator"],  # type: ignore[arg-type]
+        scenario=scenario,  # type: ignore[arg-type]
+        sigma_points=values["sigma_points"],  # type: ignore[arg-type]
+        alpha=values["alpha"],  # type: ignore[arg-type]
+        beta=values["beta"],  # type: ignore[arg-type]
+        kappa=values["kappa"],  # type: ignore[arg-type]
+        p0=values["p0"],  # type: ignore[arg-type]
+        q_var=values["q_var"],  # type: ignore[arg-type]
+        r=values["r"],  # type: ignore[arg-type]
+        dt=dt,
+        steps_per_tick=steps_per_tick(model, dt),
+        measured=frozenset(measured),
+    )
+    check_against_model(model, config)
+    return config

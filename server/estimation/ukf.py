@@ -1,0 +1,584 @@
+"""jitdyn's unscented Kalman filter: filterpy's UnscentedKalmanFilter, built whole from an
+`EstimatorConfig`, with MuJoCo as the process model and the sigma points propagated in one batched
+call (server/estimation/propagate.py) instead of filterpy's per-point loop.
+
+    estimator = UnscentedFilter(model, config, pool=pool)
+    estimator.initialise(Measurement(qpos=q0, qvel=v0))
+    prior = estimator.predict(ctrl=None)
+    posterior = estimator.update(Measurement(qpos=q1, qvel=v1))      # posterior.nis
+
+The scenarios are the thesis' (reference/thesis-experiments.md):
+- PASSIVE, x = [q, qd]: the sigma points move under the model's own forces, no control.
+- CONTROLLED, x = [q, qd, qdd]: the control of the tick acts; qdd of a propagated point is the
+  qacc MuJoCo computed in its last physics step (the qdd it started with plays no part).
+- EXTERNAL, x = [q, qd]: the generalized force that acted is restored by mj_inverse from the
+  latest frame (qacc from the frame, else the backward difference of qvel over the ticks since the
+  frame before) and held, as qfrc_applied, over every prediction until the next frame. Actuators
+  are off in the process model: their forces are part of the restored force.
+
+Muscle activations (act, na of them) are physics state but not filter state: every sigma point
+starts a tick from the same act, and the filter keeps the weighted mean of the propagated acts
+(clipped to the actuators' ranges). In EXTERNAL, with actuation off, act simply stays.
+
+Numerics: P is symmetrised after every step and repaired (nearest positive definite matrix by
+eigenvalue clipping) when its Cholesky factorisation fails; a divergence guard re-initialises from
+the last measurement when the state turns non-finite, when the NIS stays absurd for
+DIVERGENCE_TICKS updates in a row, or when a posterior variance passes COVARIANCE_LIMIT, and says
+so in the estimate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Final
+
+import mujoco
+import numpy as np
+from filterpy.common import Q_discrete_white_noise
+from filterpy.kalman import UnscentedKalmanFilter, unscented_transform
+
+from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.server.estimation.estimator import (
+    Estimate,
+    EstimatorConfig,
+    EstimatorKind,
+    Measurement,
+    Scenario,
+    check_against_model,
+    check_measurement,
+    check_vector,
+    derivative_order,
+    read_only,
+)
+from jitdyn.server.estimation.manifold import SplitManifold, has_manifold
+from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
+from jitdyn.server.estimation.sigma import (
+    RobustCholesky,
+    cholesky_upper,
+    make_sigma_points,
+    nearest_positive_definite,
+)
+
+__all__ = [
+    "COVARIANCE_LIMIT",
+    "DIVERGENCE_TICKS",
+    "NIS_LIMIT_PER_DIMENSION",
+    "UnscentedFilter",
+    "process_noise",
+]
+
+# The divergence guard. An NIS of 1e6 per measured dimension is an innovation a thousand standard
+# deviations out; one such tick can be a bad frame, DIVERGENCE_TICKS in a row is a filter that has
+# lost track. A posterior variance of 1e14 (rad^2, m^2, (rad/s^2)^2, ...) is no estimate at all,
+# and beyond it P - K S K^T loses every digit of R = 0.01.
+NIS_LIMIT_PER_DIMENSION: Final = 1e6
+DIVERGENCE_TICKS: Final = 10
+COVARIANCE_LIMIT: Final = 1e14
+
+
+def process_noise(*, order: int, dt: float, var: float, nv: int) -> np.ndarray:
+    """filterpy's discrete white-noise Q, one block per dof, in jitdyn's layout.
+
+    filterpy's order_by_dim=True lays a dof's derivatives together, [q0, qd0, q1, qd1, ...];
+    jitdyn's state is [q0, q1, ..., qd0, qd1, ...], which is filterpy's order_by_dim=False (its
+    "order by derivative" permutation). Returns (order nv, order nv).
+    """
+    return np.asarray(
+        Q_discrete_white_noise(dim=order, dt=dt, var=var, block_size=nv, order_by_dim=False), dtype=np.float64
+    )
+
+
+class _BatchedUKF(UnscentedKalmanFilter):  # type: ignore[misc]
+    """filterpy's filter with its two per-point Python loops over the state replaced: the process
+    model runs on the whole sigma set at once, and the cross-covariance is one matrix product.
+    The maths is filterpy's, unchanged (tests/server/test_ukf.py runs both side by side).
+    """
+
+    def __init__(self, *, propagate: _Propagate, vector: bool, **kwargs: object) -> None:
+        super().__init__(**kwargs)
+        self._propagate = propagate
+        self._vector = vector
+
+    def compute_process_sigmas(self, dt: float, fx: object = None, **fx_args: object) -> None:
+        sigmas = self.points_fn.sigma_points(self.x, self.P)
+        self.sigmas_f = self._propagate(sigmas, nstep=None)
+
+    def cross_variance(
+        self, x: np.ndarray, z: np.ndarray, sigmas_f: np.ndarray, sigmas_h: np.ndarray
+    ) -> np.ndarray:
+        if self._vector:
+            dx = sigmas_f - x
+            dz = sigmas_h - z
+        else:
+            dx = self.residual_x(sigmas_f, x)
+            dz = self.residual_z(sigmas_h, z)
+        return np.asarray(dx.T @ (self.Wc[:, None] * dz))
+
+
+def _tangent_unscented_transform(
+    sigmas: np.ndarray,
+    Wm: np.ndarray,
+    Wc: np.ndarray,
+    noise_cov: np.ndarray | None,
+    mean_fn: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    residual_fn: Callable[[np.ndarray, np.ndarray], np.ndarray],
+) -> tuple[np.ndarray, np.ndarray]:
+    """filterpy's unscented transform for points on a manifold: points (nsigma, dim) give a mean
+    (dim,) but a covariance in the tangent space (n, n), which filterpy's own cannot shape."""
+    mean = mean_fn(sigmas, Wm)
+    spread = residual_fn(sigmas, mean)
+    P = spread.T @ (Wc[:, None] * spread)
+    if noise_cov is not None:
+        P = P + noise_cov
+    return mean, P
+
+
+class _Propagate:
+    """The process model over a whole sigma set: (nsigma, len x) -> (nsigma, len x)."""
+
+    def __init__(self, owner: UnscentedFilter) -> None:
+        self._owner = owner
+
+    def __call__(self, sigmas: np.ndarray, *, nstep: int | None) -> np.ndarray:
+        return self._owner._propagate_sigmas(sigmas, nstep=nstep)
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    """An UnscentedFilter's whole mutable state; arrays are read-only copies."""
+
+    owner: int  # id() of the filter it came from
+    initialised: bool
+    x: np.ndarray
+    P: np.ndarray
+    sigmas_f: np.ndarray  # the prior's sigma points, which update() uses
+    act: np.ndarray
+    ctrl: np.ndarray
+    qfrc: np.ndarray
+    last: Measurement | None
+    last_qvel: np.ndarray
+    ticks_since_update: int
+    nis_run: int
+
+
+class UnscentedFilter:
+    """The UKF estimator of one session (see the module docstring). Implements `Estimator`."""
+
+    def __init__(self, model: mujoco.MjModel, config: EstimatorConfig, *, pool: WorkerPool) -> None:
+        if config.estimator != EstimatorKind.UKF:
+            raise InvalidArgument(
+                f"config.estimator must be UKF for an UnscentedFilter, got {config.estimator}"
+            )
+        check_against_model(model, config)
+        self._config = config
+        self._scenario = Scenario(config.scenario)
+        self._model = process_model(model, scenario=self._scenario)
+        self._data = mujoco.MjData(self._model)  # for mj_forward / mj_inverse at single states
+        m = self._model
+        self._nq, self._nv, self._na, self._nu = int(m.nq), int(m.nv), int(m.na), int(m.nu)
+        self._order = derivative_order(self._scenario)
+        self._n = self._order * self._nv  # tangent dimension: filterpy's dim_x
+        self._size = self._nq + (self._order - 1) * self._nv  # len(x)
+        self._controlled = self._scenario == Scenario.CONTROLLED
+
+        # The measurement: qpos, then qvel, then qacc (CONTROLLED only: the other states have no
+        # qdd), each a slice of the state.
+        nq, nv = self._nq, self._nv
+        index = list(range(nq))
+        z_tangent = nv
+        if "qvel" in config.measured:
+            index += range(nq, nq + nv)
+            z_tangent += nv
+        if self._controlled and "qacc" in config.measured:
+            index += range(nq + nv, nq + 2 * nv)
+            z_tangent += nv
+        # A slice when the measured entries are contiguous (qpos and qvel): cheaper than fancy
+        # indexing in filterpy's per-point measurement loop.
+        contiguous = index == list(range(len(index)))
+        self._z_index: slice | np.ndarray = slice(0, len(index)) if contiguous else np.array(index)
+        self._z_tangent = z_tangent
+
+        manifold = has_manifold(m)
+        self._x_manifold = SplitManifold(m, rest=self._size - nq) if manifold else None
+        z_manifold = SplitManifold(m, rest=len(index) - nq) if manifold else None
+        self._sqrt = RobustCholesky()
+        self._points = make_sigma_points(
+            config.sigma_points,
+            n=self._n,
+            alpha=config.alpha,
+            beta=config.beta,
+            kappa=config.kappa,
+            sqrt=self._sqrt,
+            add=self._x_manifold.add if self._x_manifold is not None else None,
+        )
+        inputs = {
+            Scenario.PASSIVE: Inputs.NONE,
+            Scenario.CONTROLLED: Inputs.CTRL,
+            Scenario.EXTERNAL: Inputs.QFRC,
+        }
+        self._propagator = Propagator(
+            m,
+            pool=pool,
+            nsigma=self._points.num_sigmas(),
+            nstep=config.steps_per_tick,
+            inputs=inputs[self._scenario],
+            want_qacc=self._controlled,
+        )
+        self._kf = _BatchedUKF(
+            propagate=_Propagate(self),
+            vector=not manifold,
+            dim_x=self._n,
+            dim_z=z_tangent,
+            dt=config.dt,
+            hx=self._hx,
+            fx=None,
+            points=self._points,
+            sqrt_fn=self._sqrt,
+            x_mean_fn=self._x_manifold.mean if self._x_manifold is not None else None,
+            z_mean_fn=z_manifold.mean if z_manifold is not None else None,
+            residual_x=self._x_manifold.residual if self._x_manifold is not None else None,
+            residual_z=z_manifold.residual if z_manifold is not None else None,
+            state_add=self._x_manifold.add if self._x_manifold is not None else None,
+        )
+        self._Q = process_noise(order=self._order, dt=config.dt, var=config.q_var, nv=nv)
+        self._kf.Q = self._Q
+        self._kf.R = config.r * np.eye(z_tangent)
+        self._P0 = config.p0 * np.eye(self._n)
+        # Plain vectors keep filterpy's own transform (and its arithmetic, bit for bit).
+        self._ut = unscented_transform if not manifold else _tangent_unscented_transform
+        self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
+        self._act_bounds = self._activation_bounds()
+
+        # Mutable state; snapshot() copies all of it.
+        self._initialised = False
+        self._kf.x = np.zeros(self._size)
+        self._kf.x[:nq] = m.qpos0
+        self._kf.P = self._P0.copy()
+        self._act = np.zeros(self._na)
+        self._propagated_act = np.zeros(self._na)
+        self._ctrl = np.zeros(self._nu)
+        self._qfrc = np.zeros(nv)
+        self._last: Measurement | None = None
+        self._last_qvel = np.zeros(nv)
+        self._ticks_since_update = 0
+        self._nis_run = 0
+
+    # -- Estimator ------------------------------------------------------------------------------
+
+    @property
+    def config(self) -> EstimatorConfig:
+        return self._config
+
+    @property
+    def state_dimension(self) -> int:
+        return self._n
+
+    @property
+    def state_size(self) -> int:
+        return self._size
+
+    @property
+    def nsigma(self) -> int:
+        return int(self._points.num_sigmas())
+
+    @property
+    def covariance_repairs(self) -> int:
+        """How often an indefinite covariance had to be repaired, since construction."""
+        return self._sqrt.repairs
+
+    def initialise(self, m: Measurement) -> None:
+        m = check_measurement(m, self._model, self._config.measured)
+        self._act = np.zeros(self._na)
+        self._ctrl = m.ctrl.copy() if m.ctrl is not None else np.zeros(self._nu)
+        self._qfrc = np.zeros(self._nv)
+        self._start_from(m, qvel_fallback=np.zeros(self._nv))
+        if self._scenario == Scenario.EXTERNAL and m.qacc is not None:
+            self._qfrc = self._inverse(m.qpos, self._last_qvel, m.qacc)
+        self._initialised = True
+
+    def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
+        self._require_initialised("predict")
+        if self._controlled and ctrl is not None:
+            self._ctrl = check_vector(ctrl, self._nu, "ctrl").copy()
+        self._kf.predict(UT=self._ut)
+        self._act = self._clip_act(self._propagated_act)
+        self._ticks_since_update += 1
+        reinitialised = False
+        if self._finite():
+            self._kf.P = _symmetric(self._kf.P)
+            self._repair_if_indefinite()
+        if not self._finite() or self._blown_up():
+            # No new measurement to start from: the last one is the best that is known.
+            if self._last is None:
+                raise RuntimeError("unreachable: an initialised filter has a last measurement")
+            self._reinitialise(self._last)
+            reinitialised = True
+        return self._estimate(reinitialised=reinitialised)
+
+    def update(self, m: Measurement) -> Estimate:
+        self._require_initialised("update")
+        m = check_measurement(m, self._model, self._config.measured)
+        z = np.concatenate([m.qpos] + [getattr(m, c) for c in ("qvel", "qacc") if self._measures(c)])
+        try:
+            self._kf.update(z, UT=self._ut)
+            y, SI = self._kf.y, self._kf.SI
+            nis_value = float(y @ SI @ y)
+        except np.linalg.LinAlgError:
+            # An innovation covariance that cannot be inverted: nothing of this update is usable.
+            self._kf.x = np.full(self._size, np.nan)
+            nis_value = float("nan")
+        nis = nis_value if np.isfinite(nis_value) else None
+        reinitialised = False
+        if self._finite():
+            self._kf.P = _symmetric(self._kf.P)
+            self._repair_if_indefinite()
+        if nis is not None and nis <= NIS_LIMIT_PER_DIMENSION * self._z_tangent:
+            self._nis_run = 0
+        else:
+            self._nis_run += 1
+        if not self._finite() or self._nis_run >= DIVERGENCE_TICKS or self._blown_up():
+            self._reinitialise(m)
+            reinitialised = True
+        else:
+            qvel = m.qvel if m.qvel is not None else self._kf.x[self._nq : self._nq + self._nv]
+            if self._scenario == Scenario.EXTERNAL:
+                self._qfrc = self._restored_force(m, qvel)
+            self._last = m
+            self._last_qvel = np.array(qvel)
+            self._ticks_since_update = 0
+        if m.ctrl is not None:
+            self._ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
+        return self._estimate(nis=nis, reinitialised=reinitialised)
+
+    def extrapolate(self, seconds: float) -> Estimate:
+        self._require_initialised("extrapolate")
+        if (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float))
+            or not 0.0 <= seconds < float("inf")
+        ):
+            raise InvalidArgument(f"seconds must be finite and >= 0, got {seconds!r}")
+        timestep = float(self._model.opt.timestep)
+        nstep = round(seconds / timestep)
+        if nstep == 0:
+            return self._estimate()
+        Q = self._extrapolation_Q.get(nstep)
+        if Q is None:
+            Q = process_noise(order=self._order, dt=nstep * timestep, var=self._config.q_var, nv=self._nv)
+            self._extrapolation_Q = {self._config.steps_per_tick: self._Q, nstep: Q}
+        sigmas = self._points.sigma_points(self._kf.x, self._kf.P)
+        propagated = self._propagate_sigmas(sigmas, nstep=nstep)
+        x, P = self._ut(propagated, self._points.Wm, self._points.Wc, Q, self._kf.x_mean, self._kf.residual_x)
+        P = _symmetric(P)
+        act = self._clip_act(self._propagated_act)
+        return self._make_estimate(x, P, act=act)
+
+    def snapshot(self) -> _Snapshot:
+        kf = self._kf
+        return _Snapshot(
+            owner=id(self),
+            initialised=self._initialised,
+            x=read_only(kf.x),
+            P=read_only(kf.P),
+            sigmas_f=read_only(kf.sigmas_f),
+            act=read_only(self._act),
+            ctrl=read_only(self._ctrl),
+            qfrc=read_only(self._qfrc),
+            last=self._last,  # immutable: check_measurement made it read-only
+            last_qvel=read_only(self._last_qvel),
+            ticks_since_update=self._ticks_since_update,
+            nis_run=self._nis_run,
+        )
+
+    def restore(self, snap: object) -> None:
+        if not isinstance(snap, _Snapshot) or snap.owner != id(self):
+            raise InvalidArgument(f"snap must be a snapshot of this estimator, got {type(snap).__name__}")
+        kf = self._kf
+        kf.x, kf.P, kf.sigmas_f = snap.x.copy(), snap.P.copy(), snap.sigmas_f.copy()
+        self._initialised = snap.initialised
+        self._act, self._ctrl, self._qfrc = snap.act.copy(), snap.ctrl.copy(), snap.qfrc.copy()
+        self._last = snap.last
+        self._last_qvel = snap.last_qvel.copy()
+        self._ticks_since_update = snap.ticks_since_update
+        self._nis_run = snap.nis_run
+
+    # -- internals ------------------------------------------------------------------------------
+
+    def _measures(self, channel: str) -> bool:
+        if channel == "qacc":
+            return self._controlled and "qacc" in self._config.measured
+        return channel in self._config.measured
+
+    def _hx(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(x[self._z_index])
+
+    def _require_initialised(self, what: str) -> None:
+        if not self._initialised:
+            raise FailedPrecondition(
+                f"{what} needs an initialised estimator: call initialise() with the first frame"
+            )
+
+    def _finite(self) -> bool:
+        return bool(np.isfinite(self._kf.x).all() and np.isfinite(self._kf.P).all())
+
+    def _blown_up(self) -> bool:
+        return float(self._kf.P.diagonal().max()) > COVARIANCE_LIMIT
+
+    def _repair_if_indefinite(self) -> None:
+        if cholesky_upper(self._kf.P) is None:
+            self._sqrt.repairs += 1
+            self._kf.P = nearest_positive_definite(self._kf.P)
+
+    def _propagate_sigmas(self, sigmas: np.ndarray, *, nstep: int | None) -> np.ndarray:
+        """The process model on a sigma set (nsigma, len x) -> (nsigma, len x).
+
+        In CONTROLLED, qdd does not enter the dynamics, so points that differ from the first only
+        in qdd propagate exactly as it does (with Merwe points and an upper Cholesky factor, the
+        last 2 nv of them): each distinct (q, qd) is stepped once and its result shared, which
+        gives the same numbers with 2 nv fewer points stepped.
+        """
+        nq, nv = self._nq, self._nv
+        head = sigmas[:, : nq + nv]
+        shared: np.ndarray | None = None
+        if self._controlled:
+            same = (head == head[0]).all(axis=1)
+            same[0] = False
+            if same.any():
+                shared = same
+                head = head[~same]
+        out = self._propagator(
+            head[:, :nq], head[:, nq:], act=self._act, ctrl=self._ctrl, qfrc=self._qfrc, nstep=nstep
+        )
+        stepped = np.empty((head.shape[0], self._size))
+        stepped[:, :nq] = out.qpos
+        stepped[:, nq : nq + nv] = out.qvel
+        if self._controlled:
+            stepped[:, nq + nv :] = out.qacc
+        act = out.act
+        if shared is None:
+            propagated = stepped
+        else:
+            propagated = np.empty((sigmas.shape[0], self._size))
+            propagated[~shared] = stepped
+            propagated[shared] = stepped[0]
+            if self._na:
+                act = np.empty((sigmas.shape[0], self._na))
+                act[~shared] = out.act
+                act[shared] = out.act[0]
+        if self._na:
+            self._propagated_act = self._points.Wm @ act
+        return propagated
+
+    def _activation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        low = np.full(self._na, -np.inf)
+        high = np.full(self._na, np.inf)
+        m = self._model
+        for i in range(m.nu):
+            adr = int(m.actuator_actadr[i])
+            if adr < 0:
+                continue
+            num = int(m.actuator_actnum[i])
+            limited = bool(m.actuator_actlimited[i]) or int(m.actuator_dyntype[i]) == int(
+                mujoco.mjtDyn.mjDYN_MUSCLE
+            )
+            if limited:
+                # Muscles clamp their activation to [0, 1] in MuJoCo whatever actlimited says.
+                bounds = m.actuator_actrange[i] if m.actuator_actlimited[i] else (0.0, 1.0)
+                low[adr : adr + num], high[adr : adr + num] = bounds
+        return low, high
+
+    def _clip_act(self, act: np.ndarray) -> np.ndarray:
+        # Negative Merwe weights can put a weighted mean of activations outside their range.
+        return np.clip(act, *self._act_bounds) if self._na else act
+
+    def _start_from(self, m: Measurement, *, qvel_fallback: np.ndarray) -> None:
+        """x from the measurement (unmeasured qvel: qvel_fallback), P = P0."""
+        nq, nv = self._nq, self._nv
+        qvel = m.qvel if m.qvel is not None else qvel_fallback
+        x = np.empty(self._size)
+        x[:nq] = m.qpos
+        x[nq : nq + nv] = qvel
+        if self._controlled:
+            x[nq + nv :] = m.qacc if m.qacc is not None else self._forward(m.qpos, qvel, self._act)
+        self._kf.x = x
+        self._kf.P = self._P0.copy()
+        self._kf.sigmas_f = self._points.sigma_points(self._kf.x, self._kf.P)
+        self._last = m
+        self._last_qvel = np.array(qvel)
+        self._ticks_since_update = 0
+        self._nis_run = 0
+
+    def _reinitialise(self, m: Measurement) -> None:
+        """The divergence guard: back to the measurement, with what is still finite of the rest."""
+        qvel = self._kf.x[self._nq : self._nq + self._nv]
+        fallback = qvel.copy() if np.all(np.isfinite(qvel)) else np.zeros(self._nv)
+        for name in ("_act", "_ctrl", "_qfrc"):
+            value = getattr(self, name)
+            if not np.all(np.isfinite(value)):
+                setattr(self, name, np.zeros_like(value))
+        self._start_from(m, qvel_fallback=fallback)
+
+    def _restored_force(self, m: Measurement, qvel: np.ndarray) -> np.ndarray:
+        """EXTERNAL: the generalized force that produced the frame's motion (mj_inverse)."""
+        if m.qacc is not None:
+            qacc = m.qacc
+        elif self._ticks_since_update > 0:
+            qacc = (qvel - self._last_qvel) / (self._ticks_since_update * self._config.dt)
+        else:
+            return self._qfrc  # a second frame for the same tick: nothing new to difference
+        force = self._inverse(m.qpos, qvel, qacc)
+        return force if np.all(np.isfinite(force)) else self._qfrc
+
+    def _inverse(self, qpos: np.ndarray, qvel: np.ndarray, qacc: np.ndarray) -> np.ndarray:
+        d = self._data
+        d.qpos[:], d.qvel[:], d.qacc[:], d.act[:] = qpos, qvel, qacc, self._act
+        mujoco.mj_inverse(self._model, d)
+        return np.array(d.qfrc_inverse)
+
+    def _forward(self, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray) -> np.ndarray:
+        """qacc at a state under the scenario's inputs (warm start is off: no hidden state)."""
+        d = self._data
+        d.qpos[:], d.qvel[:], d.act[:] = qpos, qvel, act
+        d.ctrl[:] = self._ctrl if self._controlled else 0.0
+        d.qfrc_applied[:] = self._qfrc if self._scenario == Scenario.EXTERNAL else 0.0
+        mujoco.mj_forward(self._model, d)
+        return np.array(d.qacc)
+
+    def _estimate(self, *, nis: float | None = None, reinitialised: bool = False) -> Estimate:
+        return self._make_estimate(
+            self._kf.x, self._kf.P, act=self._act, nis=nis, reinitialised=reinitialised
+        )
+
+    def _make_estimate(
+        self,
+        x: np.ndarray,
+        P: np.ndarray,
+        *,
+        act: np.ndarray,
+        nis: float | None = None,
+        reinitialised: bool = False,
+    ) -> Estimate:
+        nq, nv = self._nq, self._nv
+        state = read_only(x)
+        qpos, qvel = state[:nq], state[nq : nq + nv]  # views of a read-only copy are read-only
+        if self._controlled:
+            qacc = state[nq + nv :]
+        elif np.isfinite(state).all():
+            qacc = read_only(self._forward(qpos, qvel, act))
+        else:
+            qacc = read_only(np.full(nv, np.nan))
+        return Estimate(
+            qpos=qpos,
+            qvel=qvel,
+            qacc=qacc,
+            state=state,
+            covariance=read_only(P),
+            nis=nis,
+            reinitialised=reinitialised,
+        )
+
+
+def _symmetric(P: np.ndarray) -> np.ndarray:
+    return np.asarray(0.5 * (P + P.T))

@@ -1,0 +1,37 @@
+"""What a session runs on: a checked frame (`FrameIn`) and why a frame was not used (`Rejection`).
+The transport builds them from the wire (`transport/frame_check.py`); the runtime never sees protobuf.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["CHANNELS", "FrameIn", "Rejection"]
+
+# Frame fields in the order of the contract; ctrl and sensordata are channels too.
+CHANNELS = ("qpos", "qvel", "qacc", "ctrl", "sensordata")
+
+
+@dataclass(frozen=True, slots=True)
+class FrameIn:
+    """A checked frame. Arrays are read-only; a channel the session does not measure is None."""
+
+    seq: int
+    t: float
+    qpos: np.ndarray  # (nq,)
+    qvel: np.ndarray | None  # (nv,)
+    qacc: np.ndarray | None  # (nv,)
+    ctrl: np.ndarray | None  # (nu,)
+    sensordata: np.ndarray | None  # (nsensordata,)
+    received: float  # server time of arrival (s)
+
+
+@dataclass(frozen=True, slots=True)
+class Rejection:
+    """Why a frame or skip was not used."""
+
+    seq: int
+    reason: str  # RejectReason name without its prefix, e.g. "BAD_SHAPE"
+    message: str

@@ -1,0 +1,68 @@
+"""What the servicers share: the registry, the index, the anonymiser, the worker pool, the limits.
+
+Built once by server/transport/app.py; `admit` and `release` count open sessions against the limits.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from jitdyn.errors import ResourceExhausted
+from jitdyn.registry import ModelRegistry
+from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.storage.anonymise import Anonymiser
+from jitdyn.storage.index import SessionIndex
+
+__all__ = ["DEFAULT_SESSION_LIMITS", "Services", "SessionLimits"]
+
+
+@dataclass(frozen=True)
+class SessionLimits:
+    """Limits on sessions; each has a `jitdyn serve` flag."""
+
+    max_sessions: int = 64
+    max_sessions_per_tenant: int = 16
+    max_state_dimension: int = 200  # nv of a session's model
+
+
+DEFAULT_SESSION_LIMITS = SessionLimits()
+
+
+@dataclass
+class Services:
+    registry: ModelRegistry
+    index: SessionIndex
+    anonymiser: Anonymiser
+    pool: WorkerPool
+    data_root: Path
+    limits: SessionLimits = DEFAULT_SESSION_LIMITS
+    _open: Counter[str] = field(default_factory=Counter)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def admit(self, tenant: str) -> None:
+        """Count a new session, or raise ResourceExhausted naming the limit."""
+        with self._lock:
+            total = sum(self._open.values())
+            if total >= self.limits.max_sessions:
+                raise ResourceExhausted(
+                    f"the jitdyn.server has {total} open sessions, its limit (--max-sessions {self.limits.max_sessions})"
+                )
+            if self._open[tenant] >= self.limits.max_sessions_per_tenant:
+                raise ResourceExhausted(
+                    f"this tenant has {self._open[tenant]} open sessions, the limit per tenant "
+                    f"(--max-sessions-per-tenant {self.limits.max_sessions_per_tenant})"
+                )
+            self._open[tenant] += 1
+
+    def release(self, tenant: str) -> None:
+        with self._lock:
+            if self._open[tenant] > 0:
+                self._open[tenant] -= 1
+
+    @property
+    def open_sessions(self) -> int:
+        with self._lock:
+            return sum(self._open.values())

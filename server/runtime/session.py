@@ -1,0 +1,302 @@
+"""The session runtime: ticks, frames, skips, late frames and the timewarp, free of gRPC.
+
+One `SessionRuntime` per session. Every tick k gets one outcome: MEASURED when its frame is there,
+PREDICTED when not. A frame that arrives after its tick was answered rolls the estimator back to its
+state before that tick, applies the frame, replays the later ticks with the inputs they had
+(timewarp, as in distributed simulation) and yields a CORRECTED outcome for that tick. Because the
+replay uses the same inputs in the same order, the estimator ends exactly where a run in which the
+frame came on time would be.
+
+Calls are synchronous and CPU-bound; the servicer runs them off the event loop, one at a time.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from jitdyn.server.estimation.dynamics import Dynamics, DynamicsResult
+from jitdyn.server.estimation.estimator import Estimate, Estimator, Measurement
+from jitdyn.server.runtime.frames import FrameIn, Rejection
+
+__all__ = ["SessionCounts", "SessionRuntime", "TickOutcome"]
+
+
+@dataclass(frozen=True, slots=True)
+class TickOutcome:
+    """The answer for one tick, before it becomes a message and a stored row."""
+
+    seq: int
+    t: float  # the tick's time on the client clock, plus the horizon (s)
+    source: str  # "MEASURED" | "PREDICTED" | "CORRECTED"
+    qpos: np.ndarray  # (nq,)
+    qvel: np.ndarray  # (nv,)
+    qacc: np.ndarray  # (nv,)
+    dynamics: DynamicsResult
+    estimate: Estimate | None  # None before the first frame
+    frame: FrameIn | None
+    late_ticks: int
+    compute_us: int
+    horizon: float
+
+
+@dataclass(slots=True)
+class SessionCounts:
+    """What happened so far; becomes the session summary."""
+
+    ticks: int = 0
+    frames: int = 0
+    measured: int = 0
+    predicted: int = 0
+    corrected: int = 0
+    rejected: int = 0
+    late: int = 0
+    compute_us_total: int = 0
+    compute_us_max: int = 0
+    results: int = 0
+    qfrc_min: np.ndarray | None = None
+    qfrc_max: np.ndarray | None = None
+
+    def add_result(self, outcome: TickOutcome) -> None:
+        self.results += 1
+        self.compute_us_total += outcome.compute_us
+        self.compute_us_max = max(self.compute_us_max, outcome.compute_us)
+        qfrc = outcome.dynamics.qfrc_inverse
+        if qfrc is not None:
+            if self.qfrc_min is None or self.qfrc_max is None:
+                self.qfrc_min, self.qfrc_max = qfrc.copy(), qfrc.copy()
+            else:
+                np.minimum(self.qfrc_min, qfrc, out=self.qfrc_min)
+                np.maximum(self.qfrc_max, qfrc, out=self.qfrc_max)
+
+
+@dataclass(slots=True)
+class _Tick:
+    """What the timewarp needs to redo a tick: the estimator before it and its inputs."""
+
+    seq: int
+    before: object | None  # estimator snapshot before this tick; None: not yet initialised
+    frame: FrameIn | None
+    ctrl: np.ndarray | None  # the control the prediction of this tick used (CONTROLLED)
+    outcome_source: str = field(default="PREDICTED")
+
+
+class SessionRuntime:
+    """Ticks of one session. `history` ticks are kept for late frames."""
+
+    def __init__(
+        self,
+        *,
+        model: mujoco.MjModel,
+        estimator: Estimator,
+        dynamics: Dynamics,
+        dt: float,
+        scenario: str,
+        history: int,
+    ) -> None:
+        self._model = model
+        self._estimator = estimator
+        self._dynamics = dynamics
+        self._dt = dt
+        self._controlled = scenario == "CONTROLLED"
+        self._history = history
+        self._ticks: OrderedDict[int, _Tick] = OrderedDict()
+        self._initialised = False
+        self._next = 0
+        self.counts = SessionCounts()
+        self._zero_ctrl = np.zeros(model.nu)
+        self._qpos0 = model.qpos0.copy()
+        self._zero_nv = np.zeros(model.nv)
+
+    @property
+    def next_tick(self) -> int:
+        """The first tick not yet answered."""
+        return self._next
+
+    def classify(self, seq: int) -> str:
+        """Where a frame for `seq` belongs: "next", "future", "late", "duplicate" or "too_old"."""
+        if seq >= self._next:
+            return "next" if seq == self._next else "future"
+        tick = self._ticks.get(seq)
+        if tick is None:
+            return "too_old"
+        return "duplicate" if tick.frame is not None else "late"
+
+    def reject(self, rejection: Rejection) -> Rejection:
+        self.counts.rejected += 1
+        return rejection
+
+    def advance(self, frame: FrameIn | None, *, horizon: float = 0.0) -> TickOutcome:
+        """Answer the next tick, with its frame or without one."""
+        started = time.perf_counter_ns()
+        seq = self._next
+        ctrl = self._control_for(seq, frame)
+        tick = _Tick(seq=seq, before=self._snapshot(), frame=frame, ctrl=ctrl)
+        estimate = self._run_tick(tick)
+        self._ticks[seq] = tick
+        while len(self._ticks) > self._history:
+            self._ticks.popitem(last=False)
+        self._next += 1
+        self.counts.ticks += 1
+        if frame is not None:
+            self.counts.frames += 1
+            self.counts.measured += 1
+            tick.outcome_source = "MEASURED"
+        else:
+            self.counts.predicted += 1
+        outcome = self._outcome(tick, estimate, late_ticks=0, started=started, horizon=horizon)
+        self.counts.add_result(outcome)
+        return outcome
+
+    def apply_late(self, frame: FrameIn) -> TickOutcome:
+        """Apply a frame whose tick was answered PREDICTED; returns its CORRECTED outcome."""
+        started = time.perf_counter_ns()
+        target = self._ticks[frame.seq]
+        if target.frame is not None:
+            raise ValueError(f"tick {frame.seq} already has a frame")
+        target.frame = frame
+        self._restore(target.before)
+        corrected: Estimate | None = None
+        previous_ctrl = self._ctrl_before(frame.seq)
+        for seq in range(frame.seq, self._next):
+            tick = self._ticks[seq]
+            tick.before = self._snapshot()
+            tick.ctrl = self._pick_ctrl(tick.frame, previous_ctrl)
+            previous_ctrl = tick.ctrl
+            estimate = self._run_tick(tick)
+            if seq == frame.seq:
+                corrected = estimate
+        target.outcome_source = "CORRECTED"
+        # Ticks answered since this one was due, itself included: 1 = just missed its deadline.
+        late_ticks = self._next - frame.seq
+        self.counts.frames += 1
+        self.counts.corrected += 1
+        self.counts.late += 1
+        outcome = self._outcome(target, corrected, late_ticks=late_ticks, started=started, horizon=0.0)
+        self.counts.add_result(outcome)
+        return outcome
+
+    def extrapolated(self, seconds: float) -> Estimate | None:
+        """The current estimate carried `seconds` ahead, without changing the estimator."""
+        if not self._initialised or seconds <= 0.0:
+            return None
+        return self._estimator.extrapolate(seconds)
+
+    # The timewarp's building blocks.
+
+    def _snapshot(self) -> object | None:
+        return self._estimator.snapshot() if self._initialised else None
+
+    def _restore(self, snapshot: object | None) -> None:
+        if snapshot is None:
+            self._initialised = False
+        else:
+            self._estimator.restore(snapshot)
+            self._initialised = True
+
+    def _ctrl_before(self, seq: int) -> np.ndarray | None:
+        previous = self._ticks.get(seq - 1)
+        return previous.ctrl if previous is not None else None
+
+    def _control_for(self, seq: int, frame: FrameIn | None) -> np.ndarray | None:
+        return self._pick_ctrl(frame, self._ctrl_before(seq))
+
+    def _pick_ctrl(self, frame: FrameIn | None, previous: np.ndarray | None) -> np.ndarray | None:
+        # A tick without a frame holds the control of the tick before it.
+        if not self._controlled:
+            return frame.ctrl if frame is not None else previous
+        if frame is not None and frame.ctrl is not None:
+            return frame.ctrl
+        return previous if previous is not None else self._zero_ctrl
+
+    def _measurement(self, tick: _Tick) -> Measurement:
+        frame = tick.frame
+        if frame is None:
+            raise ValueError("a measurement needs a frame")
+        return Measurement(qpos=frame.qpos, qvel=frame.qvel, qacc=frame.qacc, ctrl=frame.ctrl)
+
+    def _run_tick(self, tick: _Tick) -> Estimate | None:
+        """Advance the estimator through one tick; None while it has no frame to start from."""
+        if tick.frame is None:
+            if not self._initialised:
+                return None
+            return self._estimator.predict(ctrl=tick.ctrl if self._controlled else None)
+        measurement = self._measurement(tick)
+        if not self._initialised:
+            self._estimator.initialise(measurement)
+            self._initialised = True
+            return self._estimator.extrapolate(0.0)
+        self._estimator.predict(ctrl=tick.ctrl if self._controlled else None)
+        return self._estimator.update(measurement)
+
+    def _frame_qacc(self, tick: _Tick, estimate: Estimate | None) -> np.ndarray:
+        """qacc of a measured tick: the frame's, else the backward difference of qvel, else the estimate's."""
+        frame = tick.frame
+        if frame is None:
+            raise ValueError("a measured tick needs a frame")
+        if frame.qacc is not None:
+            return frame.qacc
+        previous = self._ticks.get(tick.seq - 1)
+        if (
+            frame.qvel is not None
+            and previous is not None
+            and previous.frame is not None
+            and previous.frame.qvel is not None
+        ):
+            return np.asarray((frame.qvel - previous.frame.qvel) / self._dt)
+        if estimate is not None:
+            return estimate.qacc
+        qvel = frame.qvel if frame.qvel is not None else self._zero_nv
+        return self._dynamics.forward_acceleration(qpos=frame.qpos, qvel=qvel, ctrl=tick.ctrl)
+
+    def _outcome(
+        self,
+        tick: _Tick,
+        estimate: Estimate | None,
+        *,
+        late_ticks: int,
+        started: int,
+        horizon: float,
+    ) -> TickOutcome:
+        frame = tick.frame
+        if frame is not None:
+            qpos = frame.qpos
+            qvel = (
+                frame.qvel
+                if frame.qvel is not None
+                else (estimate.qvel if estimate is not None else self._zero_nv)
+            )
+            qacc = self._frame_qacc(tick, estimate)
+            source = "CORRECTED" if late_ticks else "MEASURED"
+            horizon = 0.0 if late_ticks else horizon
+        elif estimate is not None:
+            qpos, qvel, qacc = estimate.qpos, estimate.qvel, estimate.qacc
+            source = "PREDICTED"
+        else:
+            qpos, qvel, qacc = self._qpos0, self._zero_nv, self._zero_nv
+            source = "PREDICTED"
+        if horizon > 0.0 and self._initialised:
+            ahead = self._estimator.extrapolate(horizon)
+            qpos, qvel, qacc = ahead.qpos, ahead.qvel, ahead.qacc
+        else:
+            horizon = 0.0
+        dynamics = self._dynamics.compute(qpos=qpos, qvel=qvel, qacc=qacc, ctrl=tick.ctrl)
+        compute_us = (time.perf_counter_ns() - started) // 1000
+        return TickOutcome(
+            seq=tick.seq,
+            t=tick.seq * self._dt + horizon,
+            source=source,
+            qpos=qpos,
+            qvel=qvel,
+            qacc=qacc,
+            dynamics=dynamics,
+            estimate=estimate,
+            frame=frame,
+            late_ticks=late_ticks,
+            compute_us=int(compute_us),
+            horizon=horizon,
+        )

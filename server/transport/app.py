@@ -1,0 +1,200 @@
+"""The jitdyn server: building it (`create_server`, which tests bind to port 0) and running it
+(`serve`, for `jitdyn serve`), as gRPC's own examples split them::
+
+    server, port, services = await create_server(ServerConfig(address="127.0.0.1:0", data_root=tmp))
+    await server.start()
+    ...
+    await shutdown(server, services)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import logging
+import os
+import signal
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from jitdyn.errors import InvalidArgument
+from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
+from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
+from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
+from jitdyn.server.transport.dynamics_service import DynamicsServicer
+from jitdyn.server.transport.registry_service import ModelRegistryServicer
+from jitdyn.server.transport.session_service import SessionServicer
+from jitdyn.storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
+from jitdyn.storage.db import default_index_url, open_index
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.recorder import recover_unfinished
+from jitdyn.v1 import (
+    dynamics_pb2,
+    dynamics_pb2_grpc,
+    model_registry_pb2,
+    model_registry_pb2_grpc,
+    session_pb2,
+    session_pb2_grpc,
+)
+
+__all__ = ["MAX_MESSAGE_BYTES", "SERVICE_NAMES", "ServerConfig", "create_server", "serve", "shutdown"]
+
+_log = logging.getLogger(__name__)
+
+# Large enough for a MyoSuite hand with its meshes in one RegisterModel request.
+MAX_MESSAGE_BYTES = 128 * 1024 * 1024
+
+SERVICE_NAMES = (
+    model_registry_pb2.DESCRIPTOR.services_by_name["ModelRegistryService"].full_name,
+    dynamics_pb2.DESCRIPTOR.services_by_name["DynamicsService"].full_name,
+    session_pb2.DESCRIPTOR.services_by_name["SessionService"].full_name,
+)
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Everything `jitdyn serve` can be told; defaults are the embedded, loopback set-up."""
+
+    address: str = "127.0.0.1:50051"
+    data_root: Path = Path("jitdyn-data")
+    index_url: str | None = None  # None: a SQLite file in the data root
+    index_schema: str | None = None  # PostgreSQL schema (tests isolate runs this way)
+    workers: int = 2
+    secret_file: Path | None = None
+    allowed_attributes: frozenset[str] = DEFAULT_ALLOWED_ATTRIBUTES
+    registry_limits: RegistryLimits = DEFAULT_LIMITS
+    session_limits: SessionLimits = DEFAULT_SESSION_LIMITS
+    max_message_bytes: int = MAX_MESSAGE_BYTES
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    api_keys: Path | None = None  # `KEY TENANT` lines; None: everyone is the default tenant
+    insecure: bool = False
+    shutdown_grace: float = 5.0
+    environ: dict[str, str] = field(default_factory=lambda: dict(os.environ))
+
+
+def _is_loopback(address: str) -> bool:
+    host = address.rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _check_security(config: ServerConfig) -> None:
+    if ":" not in config.address:
+        raise InvalidArgument(f"--address must be HOST:PORT, got {config.address!r}")
+    if bool(config.tls_cert) != bool(config.tls_key):
+        raise InvalidArgument("--tls-cert and --tls-key must be given together")
+    if not _is_loopback(config.address) and not config.insecure and not (config.tls_cert and config.api_keys):
+        raise InvalidArgument(
+            f"--address {config.address} is not a loopback address: serving beyond this machine needs "
+            "--tls-cert, --tls-key and --api-keys (or --insecure, on a network you trust)"
+        )
+
+
+async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Services]:
+    """Build the server and everything it serves with; not started. Returns the bound port."""
+    _check_security(config)
+    if config.api_keys:
+        load_api_keys(config.api_keys)  # refuse a bad key file before touching any data
+    data_root = config.data_root.resolve()
+    data_root.mkdir(parents=True, exist_ok=True)
+    secret = load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
+    engine = await asyncio.to_thread(
+        open_index, config.index_url or default_index_url(data_root), schema=config.index_schema
+    )
+    index = SessionIndex(engine)
+    recovered = await asyncio.to_thread(recover_unfinished, data_root=data_root, index=index)
+    if recovered:
+        _log.warning(
+            "recovered %d unfinished session(s) to Parquet: %s", len(recovered), ", ".join(recovered)
+        )
+    registry = ModelRegistry(engine=engine, data_root=data_root, limits=config.registry_limits)
+    await asyncio.to_thread(registry.register_builtins)
+    services = Services(
+        registry=registry,
+        index=index,
+        anonymiser=Anonymiser(secret, allowed_attributes=config.allowed_attributes),
+        pool=WorkerPool(config.workers),
+        data_root=data_root,
+        limits=config.session_limits,
+    )
+    options = [
+        ("grpc.max_receive_message_length", config.max_message_bytes),
+        ("grpc.max_send_message_length", config.max_message_bytes),
+        ("grpc.so_reuseport", 0),
+        # A client that vanishes without closing its connection (a prosthesis losing power) is
+        # found by keepalive pings within about a minute, and its session is stored and released.
+        ("grpc.keepalive_time_ms", 30_000),
+        ("grpc.keepalive_timeout_ms", 10_000),
+        ("grpc.keepalive_permit_without_calls", 1),
+        ("grpc.http2.min_ping_interval_without_data_ms", 10_000),
+    ]
+    interceptors = [ApiKeyInterceptor(load_api_keys(config.api_keys))] if config.api_keys else []
+    server = grpc.aio.server(options=options, interceptors=interceptors)
+    model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(
+        ModelRegistryServicer(registry), server
+    )
+    dynamics_pb2_grpc.add_DynamicsServiceServicer_to_server(DynamicsServicer(services), server)
+    session_pb2_grpc.add_SessionServiceServicer_to_server(SessionServicer(index), server)
+    health_servicer = health.aio.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    for name in ("", *SERVICE_NAMES):
+        await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
+    reflection.enable_server_reflection(
+        (*SERVICE_NAMES, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME),
+        server,
+    )
+    if config.tls_cert and config.tls_key:
+        credentials = grpc.ssl_server_credentials(
+            [(config.tls_key.read_bytes(), config.tls_cert.read_bytes())]
+        )
+        port = server.add_secure_port(config.address, credentials)
+    else:
+        port = server.add_insecure_port(config.address)
+    if port == 0:
+        raise InvalidArgument(f"cannot listen on {config.address}: the address is in use or not valid here")
+    server.health = health_servicer  # type: ignore[attr-defined]
+    return server, port, services
+
+
+async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float = 5.0) -> None:
+    """Stop taking RPCs, let open sessions end within `grace` seconds (they are stored either way)."""
+    health_servicer = getattr(server, "health", None)
+    if health_servicer is not None:
+        await health_servicer.enter_graceful_shutdown()
+    await server.stop(grace)
+    services.pool.close()
+    services.registry.close()
+    services.index.engine.dispose()
+
+
+async def serve(config: ServerConfig, *, announce: Callable[[str], None] = print) -> None:
+    """Run until SIGINT or SIGTERM, then shut down gracefully."""
+    server, port, services = await create_server(config)
+    await server.start()
+    host = config.address.rsplit(":", 1)[0]
+    announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")
+    announce(
+        f"data in {services.data_root} (index: {config.index_url or default_index_url(services.data_root)})"
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stop.set)
+    waiter = asyncio.create_task(server.wait_for_termination())
+    stopper = asyncio.create_task(stop.wait())
+    await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
+    announce("jitdyn shutting down: open sessions are being stored")
+    await shutdown(server, services, grace=config.shutdown_grace)
+    stopper.cancel()
+    waiter.cancel()

@@ -1,0 +1,549 @@
+"""DynamicsService.StreamSession: one bidirectional stream is one session.
+
+The servicer reads the stream, hands frames to the session runtime (server/runtime/session.py) off the event
+loop, writes one response per request in order (LOCKSTEP) or one result per tick at its deadline
+(REALTIME), and records every answer through the session recorder before it is sent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import math
+import time
+import uuid
+from collections.abc import AsyncIterator
+from datetime import UTC, datetime
+
+import grpc
+import mujoco
+
+from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, ResourceExhausted
+from jitdyn.registry import ModelInfo
+from jitdyn.server.estimation.dynamics import Dynamics
+from jitdyn.server.estimation.estimator import resolve_config
+from jitdyn.server.estimation.factory import make_estimator
+from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
+from jitdyn.server.runtime.frames import FrameIn, Rejection
+from jitdyn.server.runtime.services import Services
+from jitdyn.server.runtime.session import SessionRuntime, TickOutcome
+from jitdyn.server.transport.auth import tenant_of
+from jitdyn.server.transport.frame_check import check_frame
+from jitdyn.server.transport.messages import (
+    rejected_message,
+    rejection_record,
+    result_message,
+    summary_info,
+    tick_record,
+)
+from jitdyn.server.transport.model_messages import metadata_from_message, model_message, settings_message
+from jitdyn.server.transport.opening import SessionPlan, plan_session
+from jitdyn.server.transport.session_service import summary_to_pb
+from jitdyn.server.transport.status import abort
+from jitdyn.storage.recorder import SessionRecorder
+from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
+from jitdyn.v1 import common_pb2, dynamics_pb2, dynamics_pb2_grpc
+
+__all__ = ["DynamicsServicer"]
+
+_log = logging.getLogger(__name__)
+
+Response = dynamics_pb2.StreamSessionResponse
+_Context = grpc.aio.ServicerContext[dynamics_pb2.StreamSessionRequest, Response]
+
+# REALTIME: how far ahead of the clock a frame may arrive and wait for its tick.
+_MAX_TICKS_AHEAD = 1000
+
+
+class _Stream:
+    """One open session on one stream: the runtime, the recorder, the clock."""
+
+    def __init__(
+        self,
+        *,
+        services: Services,
+        plan: SessionPlan,
+        runtime: SessionRuntime,
+        recorder: SessionRecorder,
+        sizes: dict[str, int],
+        clock: MonotonicClock,
+    ) -> None:
+        self.services = services
+        self.plan = plan
+        self.runtime = runtime
+        self.recorder = recorder
+        self.sizes = sizes
+        self.clock = clock
+        self.sync = ClockSync()
+        self.lock = asyncio.Lock()
+        self.pending: dict[int, FrameIn] = {}
+        self.closed = False
+
+    # Everything below runs in a worker thread, under `lock`.
+
+    def frame_delay(self, frame: FrameIn | None) -> float | None:
+        if frame is None:
+            return None
+        if self.plan.clock != "REALTIME":
+            return 0.0
+        return frame.received - self.sync.to_server(frame.seq * self.plan.dt)
+
+    def record_result(self, outcome: TickOutcome, *, arrived: float) -> dynamics_pb2.Result:
+        now = self.clock.now()
+        receive_to_send = max(0, int((now - arrived) * 1e6))
+        delay = self.frame_delay(outcome.frame)
+        self.recorder.append(
+            tick_record(outcome, server_time=now, frame_delay=delay, receive_to_send_us=receive_to_send)
+        )
+        return result_message(
+            outcome,
+            outputs=self.plan.outputs,
+            frame_delay=delay or 0.0,
+            receive_to_send_us=receive_to_send,
+            durable_seq=self.recorder.durable_seq,
+        )
+
+    def record_rejection(self, rejection: Rejection) -> dynamics_pb2.Rejected:
+        self.runtime.reject(rejection)
+        self.recorder.append(
+            rejection_record(rejection, server_time=self.clock.now(), t=rejection.seq * self.plan.dt)
+        )
+        return rejected_message(rejection)
+
+    def horizon(self) -> float:
+        if self.plan.horizon == "HALF_ROUND_TRIP":
+            return self.sync.round_trip / 2.0
+        return 0.0
+
+    def on_frame(self, message: dynamics_pb2.Frame, arrived: float) -> list[Response]:
+        checked = check_frame(message, sizes=self.sizes, measured=self.plan.measured, received=arrived)
+        if isinstance(checked, Rejection):
+            return [Response(rejected=self.record_rejection(checked))]
+        seq = checked.seq
+        place = self.runtime.classify(seq)
+        lockstep = self.plan.clock == "LOCKSTEP"
+        if place == "next" and lockstep:
+            outcome = self.runtime.advance(checked)
+            return [Response(result=self.record_result(outcome, arrived=arrived))]
+        if place in ("next", "future") and not lockstep:
+            if seq in self.pending:
+                return [
+                    Response(
+                        rejected=self.record_rejection(
+                            Rejection(
+                                seq,
+                                "DUPLICATE",
+                                f"frame {seq}: tick {seq} already has a frame waiting for its deadline",
+                            )
+                        )
+                    )
+                ]
+            if seq - self.runtime.next_tick >= _MAX_TICKS_AHEAD:
+                return [
+                    Response(
+                        rejected=self.record_rejection(
+                            Rejection(
+                                seq,
+                                "OUT_OF_ORDER",
+                                f"frame {seq}: seq must be less than {self.runtime.next_tick + _MAX_TICKS_AHEAD} "
+                                f"(the clock is at tick {self.runtime.next_tick}), got {seq}",
+                            )
+                        )
+                    )
+                ]
+            self.pending[seq] = checked
+            return []
+        if place == "future":
+            return [
+                Response(
+                    rejected=self.record_rejection(
+                        Rejection(
+                            seq,
+                            "OUT_OF_ORDER",
+                            f"frame {seq}: LOCKSTEP expects the next tick {self.runtime.next_tick} or a skipped tick "
+                            f"within the history, got {seq}",
+                        )
+                    )
+                )
+            ]
+        if place == "duplicate":
+            return [
+                Response(
+                    rejected=self.record_rejection(
+                        Rejection(seq, "DUPLICATE", f"frame {seq}: tick {seq} already has a frame")
+                    )
+                )
+            ]
+        if place == "too_old":
+            oldest = max(0, self.runtime.next_tick - self.plan.history)
+            return [
+                Response(
+                    rejected=self.record_rejection(
+                        Rejection(
+                            seq,
+                            "TOO_OLD",
+                            f"frame {seq}: late frames are applied back to tick {oldest} (history {self.plan.history} ticks), got {seq}",
+                        )
+                    )
+                )
+            ]
+        outcome = self.runtime.apply_late(checked)
+        return [Response(result=self.record_result(outcome, arrived=arrived))]
+
+    def on_skip(self, seq: int, arrived: float) -> Response:
+        if self.plan.clock != "LOCKSTEP":
+            return Response(
+                rejected=self.record_rejection(
+                    Rejection(
+                        seq,
+                        "WRONG_CLOCK",
+                        f"skip {seq}: skip is for CLOCK_LOCKSTEP sessions; this session is CLOCK_REALTIME",
+                    )
+                )
+            )
+        expected = self.runtime.next_tick
+        if seq != expected:
+            reason = "DUPLICATE" if seq < expected else "OUT_OF_ORDER"
+            return Response(
+                rejected=self.record_rejection(
+                    Rejection(seq, reason, f"skip {seq}: skip must name the next tick {expected}, got {seq}")
+                )
+            )
+        outcome = self.runtime.advance(None)
+        return Response(result=self.record_result(outcome, arrived=arrived))
+
+    def on_deadline(self, deadline: float) -> Response:
+        """REALTIME: answer the next tick with its frame if it came, else predicted."""
+        seq = self.runtime.next_tick
+        frame = self.pending.pop(seq, None)
+        outcome = self.runtime.advance(frame, horizon=self.horizon())
+        return Response(result=self.record_result(outcome, arrived=deadline))
+
+    def drain(self) -> list[Response]:
+        """REALTIME close: answer every tick up to the last frame that is waiting, at once."""
+        responses = []
+        while self.pending:
+            responses.append(self.on_deadline(self.clock.now()))
+        return responses
+
+
+class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
+    """Serves StreamSession."""
+
+    def __init__(self, services: Services) -> None:
+        self._services = services
+
+    # grpc.aio also takes a stream handler that writes through `context.write` and returns None,
+    # which the generated servicer's signature (iterators of responses) does not describe.
+    async def StreamSession(  # type: ignore[override]
+        self,
+        request_iterator: AsyncIterator[dynamics_pb2.StreamSessionRequest],
+        context: _Context,
+    ) -> None:
+        try:
+            first = await anext(aiter(request_iterator), None)
+        except StopAsyncIteration:  # pragma: no cover
+            first = None
+        if first is None:
+            return
+        kind = first.WhichOneof("payload")
+        if kind != "open":
+            await abort(
+                context, FailedPrecondition(f"the first message of a session must be `open`, got `{kind}`")
+            )
+        tenant = tenant_of(context)
+        try:
+            stream, opened = await self._open(first.open, tenant)
+        except JitdynError as error:
+            await abort(context, error)
+        await context.write(Response(opened=opened))
+        status = "FAILED"
+        try:
+            if stream.plan.clock == "REALTIME":
+                await self._realtime(stream, request_iterator, context)
+            else:
+                await self._lockstep(stream, request_iterator, context)
+            status = "COMPLETE"
+        except JitdynError as error:
+            await self._finish_quietly(stream, "FAILED")
+            await abort(context, error)
+        finally:
+            if not stream.closed:
+                # The client went away or the server is stopping: what arrived is stored.
+                await asyncio.shield(self._finish_quietly(stream, status))
+
+    async def _open(
+        self, request: dynamics_pb2.OpenSession, tenant: str
+    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        services = self._services
+        services.admit(tenant)
+        try:
+            return await asyncio.to_thread(self._open_sync, request, tenant)
+        except BaseException:
+            services.release(tenant)
+            raise
+
+    def _open_sync(
+        self, request: dynamics_pb2.OpenSession, tenant: str
+    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        services = self._services
+        registry = services.registry
+        which = request.WhichOneof("model")
+        if which is None:
+            raise InvalidArgument("open.model must be set: model_id, model_name or inline_model")
+        if which != "model_name" and request.model_version:
+            raise InvalidArgument(
+                f"open.model_version must be 0 with open.{which}, got {request.model_version}"
+            )
+        if which == "model_id":
+            info = registry.get(tenant=tenant, model_id=request.model_id)
+        elif which == "model_name":
+            info = registry.get(tenant=tenant, name=request.model_name, version=request.model_version)
+        else:
+            inline = request.inline_model
+            info, _ = registry.register(
+                name=inline.name,
+                mjcf=inline.mjcf,
+                assets=dict(inline.assets),
+                metadata=metadata_from_message(inline.metadata),
+                tenant=tenant,
+            )
+        model = registry.load(info.id, tenant=tenant)
+        plan = plan_session(request, timestep=info.timestep)
+        if model.nv > services.limits.max_state_dimension:
+            raise ResourceExhausted(
+                f"model {info.name!r} has nv = {model.nv}; this server allows at most "
+                f"{services.limits.max_state_dimension} (--max-state-dimension)"
+            )
+        config = resolve_config(
+            model=model,
+            scenario=plan.scenario,
+            dt=plan.dt,
+            requested=plan.estimator_request,
+            model_defaults=info.defaults.get(plan.scenario, {}),
+            preset=plan.preset,
+            measured=plan.measured,
+        )
+        estimator = make_estimator(model, config, pool=services.pool)
+        settings = {
+            k: v
+            for k, v in dataclasses.asdict(config).items()
+            if k in ("estimator", "sigma_points", "alpha", "beta", "kappa", "p0", "q_var", "r")
+        }
+        settings["preset"] = plan.preset
+        pseudonym = services.anonymiser.pseudonym(plan.subject_id) if plan.subject_id else ""
+        kept, dropped = services.anonymiser.filter_attributes(plan.subject_attributes)
+        session_id = str(uuid.uuid4())
+        header = SessionHeader(
+            session_id=session_id,
+            tenant=tenant,
+            model_id=info.id,
+            model_name=info.name,
+            model_version=info.version,
+            joint_names=tuple(j.name for j in info.joints),
+            dof_names=_dof_names(model, info),
+            nq=model.nq,
+            nv=model.nv,
+            nu=model.nu,
+            nsensordata=model.nsensordata,
+            timestep=info.timestep,
+            dt=plan.dt,
+            scenario=plan.scenario,
+            clock=plan.clock,
+            estimator=settings,
+            subject_pseudonym=pseudonym,
+            subject_attributes=kept,
+            started_at=datetime.now(UTC),
+            joint_types=tuple(j.type for j in info.joints),
+            actuator_names=tuple(a.name for a in info.actuators),
+        )
+        recorder = SessionRecorder(data_root=services.data_root, index=services.index, header=header)
+        runtime = SessionRuntime(
+            model=model,
+            estimator=estimator,
+            dynamics=Dynamics(model, outputs=plan.outputs),
+            dt=plan.dt,
+            scenario=plan.scenario,
+            history=plan.history,
+        )
+        sizes = {
+            "qpos": model.nq,
+            "qvel": model.nv,
+            "qacc": model.nv,
+            "ctrl": model.nu,
+            "sensordata": model.nsensordata,
+        }
+        stream = _Stream(
+            services=services,
+            plan=plan,
+            runtime=runtime,
+            recorder=recorder,
+            sizes=sizes,
+            clock=MonotonicClock(),
+        )
+        opened = dynamics_pb2.SessionOpened(
+            session_id=session_id,
+            model=model_message(info),
+            estimator=settings_message(settings),
+            state_dimension=estimator.state_dimension,
+            measured=[common_pb2.Channel.Value("CHANNEL_" + c.upper()) for c in sorted(plan.measured)],
+            outputs=[common_pb2.Output.Value("OUTPUT_" + o) for o in sorted(plan.outputs)],
+            grace=plan.grace,
+            history=plan.history,
+            dropped_attributes=sorted(dropped),
+            subject_pseudonym=pseudonym,
+            dt=plan.dt,
+            steps_per_tick=plan.steps_per_tick,
+        )
+        return stream, opened
+
+    async def _lockstep(
+        self,
+        stream: _Stream,
+        requests: AsyncIterator[dynamics_pb2.StreamSessionRequest],
+        context: _Context,
+    ) -> None:
+        async for request in requests:
+            arrived = stream.clock.now()
+            kind = request.WhichOneof("payload")
+            if kind == "frame":
+                for response in await asyncio.to_thread(stream.on_frame, request.frame, arrived):
+                    await context.write(response)
+            elif kind == "skip":
+                await context.write(await asyncio.to_thread(stream.on_skip, request.skip.seq, arrived))
+            elif kind == "sync":
+                await context.write(self._pong(stream, request.sync, arrived))
+            elif kind == "close":
+                await context.write(await self._close(stream))
+                return
+            else:
+                raise InvalidArgument(_unexpected(kind))
+
+    async def _realtime(
+        self,
+        stream: _Stream,
+        requests: AsyncIterator[dynamics_pb2.StreamSessionRequest],
+        context: _Context,
+    ) -> None:
+        write_lock = asyncio.Lock()
+
+        async def write(response: Response) -> None:
+            async with write_lock:
+                await context.write(response)
+
+        async def ticker() -> None:
+            loop = asyncio.get_running_loop()
+            while True:
+                seq = stream.runtime.next_tick
+                deadline = stream.sync.to_server(seq * stream.plan.dt) + stream.plan.grace
+                wait = stream.clock.to_monotonic(deadline) - time.monotonic()
+                if wait > 0:
+                    await asyncio.sleep(wait)
+                async with stream.lock:
+                    if stream.closed:
+                        return
+                    response = await loop.run_in_executor(None, stream.on_deadline, max(deadline, 0.0))
+                await write(response)
+
+        tick_task = asyncio.create_task(ticker())
+        try:
+            async for request in requests:
+                if tick_task.done():
+                    tick_task.result()  # surfaces a failure of the clock
+                arrived = stream.clock.now()
+                kind = request.WhichOneof("payload")
+                if kind == "frame":
+                    async with stream.lock:
+                        responses = await asyncio.to_thread(stream.on_frame, request.frame, arrived)
+                    for response in responses:
+                        await write(response)
+                elif kind == "skip":
+                    async with stream.lock:
+                        response = await asyncio.to_thread(stream.on_skip, request.skip.seq, arrived)
+                    await write(response)
+                elif kind == "sync":
+                    await write(self._pong(stream, request.sync, arrived))
+                elif kind == "close":
+                    tick_task.cancel()
+                    async with stream.lock:
+                        responses = await asyncio.to_thread(stream.drain)
+                    for response in responses:
+                        await write(response)
+                    await write(await self._close(stream))
+                    return
+                else:
+                    raise InvalidArgument(_unexpected(kind))
+        finally:
+            tick_task.cancel()
+            # The clock's own end (cancelled, or failed while the stream ends) is not news here.
+            await asyncio.gather(tick_task, return_exceptions=True)
+
+    def _pong(self, stream: _Stream, ping: dynamics_pb2.SyncPing, arrived: float) -> Response:
+        if not math.isfinite(ping.client_send_time):
+            raise InvalidArgument(f"sync.client_send_time must be finite, got {ping.client_send_time}")
+        sent = stream.clock.now()
+        stream.sync.on_probe(
+            probe_id=ping.id,
+            client_send_time=ping.client_send_time,
+            server_receive_time=arrived,
+            server_send_time=sent,
+            previous_id=ping.previous_id if ping.HasField("previous_receive_time") else None,
+            previous_receive_time=ping.previous_receive_time
+            if ping.HasField("previous_receive_time")
+            else None,
+        )
+        return Response(
+            sync=dynamics_pb2.SyncPong(
+                id=ping.id,
+                client_send_time=ping.client_send_time,
+                server_receive_time=arrived,
+                server_send_time=sent,
+                offset=stream.sync.offset,
+                round_trip=stream.sync.round_trip,
+            )
+        )
+
+    async def _close(self, stream: _Stream) -> Response:
+        summary, location = await self._finish(stream, "COMPLETE")
+        return Response(closed=dynamics_pb2.SessionClosed(summary=summary_to_pb(summary, location=location)))
+
+    async def _finish_quietly(self, stream: _Stream, status: str) -> None:
+        """End a session that is ending anyway; a store that fails now keeps its log, which the
+        next start recovers, so the failure is logged rather than raised over the first error."""
+        try:
+            await self._finish(stream, status)
+        except Exception:  # noqa: BLE001 (any failure: logged with its traceback, as the docstring says)
+            _log.exception(
+                "session %s could not be closed; its log is recovered at the next start",
+                stream.recorder.header.session_id,
+            )
+
+    async def _finish(self, stream: _Stream, status: str) -> tuple[SessionSummaryInfo, str]:
+        async with stream.lock:
+            if stream.closed:
+                raise FailedPrecondition("the session is already closed")
+            stream.closed = True
+        summary = summary_info(stream.runtime.counts, duration=stream.clock.now())
+        try:
+            location = await asyncio.to_thread(stream.recorder.close, summary, status=status)
+        finally:
+            self._services.release(stream.recorder.header.tenant)
+        return summary, location
+
+
+def _unexpected(kind: str | None) -> str:
+    if kind == "open":
+        return "open must be sent once, as the first message; got a second `open`"
+    return f"a request must carry one of open, frame, skip, sync, close; got {kind or 'nothing'}"
+
+
+def _dof_names(model: mujoco.MjModel, info: ModelInfo) -> tuple[str, ...]:
+    """One name per degree of freedom: the joint's name, suffixed for multi-dof joints."""
+    names: list[str] = []
+    for joint in info.joints:
+        ndof = {"free": 6, "ball": 3}.get(joint.type, 1)
+        names.extend([joint.name] if ndof == 1 else [f"{joint.name}_{i}" for i in range(ndof)])
+    if len(names) != model.nv:
+        names = [f"dof{i}" for i in range(model.nv)]
+    return tuple(names)

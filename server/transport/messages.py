@@ -1,0 +1,175 @@
+"""Conversions at the edge of server/: tick outcomes into `Result` messages and stored rows.
+
+Inside server/ code works on numpy arrays and frozen dataclasses; these small free functions are the
+only place that knows both sides.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jitdyn.server.runtime.frames import Rejection
+from jitdyn.server.runtime.session import SessionCounts, TickOutcome
+from jitdyn.storage.records import SessionSummaryInfo, TickRecord
+from jitdyn.v1 import dynamics_pb2
+
+__all__ = ["rejected_message", "rejection_record", "result_message", "summary_info", "tick_record"]
+
+_SOURCES = {
+    "MEASURED": dynamics_pb2.SOURCE_MEASURED,
+    "PREDICTED": dynamics_pb2.SOURCE_PREDICTED,
+    "CORRECTED": dynamics_pb2.SOURCE_CORRECTED,
+}
+
+
+def result_message(
+    outcome: TickOutcome,
+    *,
+    outputs: frozenset[str],
+    frame_delay: float,
+    receive_to_send_us: int,
+    durable_seq: int | None,
+) -> dynamics_pb2.Result:
+    """The `Result` of one tick."""
+    estimate = outcome.estimate
+    result = dynamics_pb2.Result(
+        seq=outcome.seq,
+        t=outcome.t,
+        source=_SOURCES[outcome.source],
+        qpos=outcome.qpos,
+        qvel=outcome.qvel,
+        qacc=outcome.qacc,
+        frame_received=outcome.frame is not None,
+        late_ticks=outcome.late_ticks,
+        frame_delay=frame_delay,
+        compute_us=min(outcome.compute_us, 2**32 - 1),
+        receive_to_send_us=min(receive_to_send_us, 2**32 - 1),
+        horizon=outcome.horizon,
+    )
+    dyn = outcome.dynamics
+    if dyn.qfrc_inverse is not None:
+        result.qfrc_inverse[:] = dyn.qfrc_inverse
+    if dyn.qacc_forward is not None:
+        result.qacc_forward[:] = dyn.qacc_forward
+    if dyn.actuator_force is not None:
+        result.actuator_force[:] = dyn.actuator_force
+    if dyn.sensordata is not None:
+        result.sensordata[:] = dyn.sensordata
+    if estimate is not None:
+        if estimate.covariance is not None:
+            result.covariance_diagonal[:] = np.diagonal(estimate.covariance)
+            if "FILTER_STATE" in outputs:
+                result.covariance[:] = estimate.covariance.ravel()
+        if "FILTER_STATE" in outputs:
+            result.filter_state[:] = estimate.state
+        if estimate.nis is not None and outcome.source != "PREDICTED":
+            result.nis = estimate.nis
+        result.reinitialised = estimate.reinitialised
+    if durable_seq is not None:
+        result.durable_seq = durable_seq
+    return result
+
+
+def rejected_message(rejection: Rejection) -> dynamics_pb2.Rejected:
+    return dynamics_pb2.Rejected(
+        seq=rejection.seq,
+        reason=dynamics_pb2.RejectReason.Value(f"REJECT_REASON_{rejection.reason}"),
+        message=rejection.message,
+    )
+
+
+def tick_record(
+    outcome: TickOutcome, *, server_time: float, frame_delay: float | None, receive_to_send_us: int
+) -> TickRecord:
+    """The stored row of one tick's answer, with what arrived."""
+    frame = outcome.frame
+    estimate = outcome.estimate
+    dyn = outcome.dynamics
+    covariance = estimate.covariance if estimate is not None else None
+    return TickRecord(
+        kind="result",
+        seq=outcome.seq,
+        source=outcome.source,
+        t=outcome.t,
+        server_time=server_time,
+        frame_received=frame is not None,
+        frame_t=frame.t if frame is not None else None,
+        frame_qpos=frame.qpos if frame is not None else None,
+        frame_qvel=frame.qvel if frame is not None else None,
+        frame_qacc=frame.qacc if frame is not None else None,
+        frame_ctrl=frame.ctrl if frame is not None else None,
+        frame_sensordata=frame.sensordata if frame is not None else None,
+        late_ticks=outcome.late_ticks,
+        frame_delay=frame_delay,
+        qpos=outcome.qpos,
+        qvel=outcome.qvel,
+        qacc=outcome.qacc,
+        qfrc_inverse=dyn.qfrc_inverse,
+        qacc_forward=dyn.qacc_forward,
+        actuator_force=dyn.actuator_force,
+        sensordata=dyn.sensordata,
+        covariance_diagonal=np.diagonal(covariance).copy() if covariance is not None else None,
+        filter_state=estimate.state if estimate is not None else None,
+        nis=estimate.nis if estimate is not None and outcome.source != "PREDICTED" else None,
+        reinitialised=bool(estimate.reinitialised) if estimate is not None else False,
+        compute_us=outcome.compute_us,
+        receive_to_send_us=receive_to_send_us,
+        reject_reason="",
+        reject_message="",
+    )
+
+
+def rejection_record(rejection: Rejection, *, server_time: float, t: float) -> TickRecord:
+    """The stored row of a rejected frame (its values are not kept: they were not used)."""
+    return TickRecord(
+        kind="rejected",
+        # The column is int64; a hostile seq is kept whole in the message.
+        seq=min(rejection.seq, 2**63 - 1),
+        source="",
+        t=t,
+        server_time=server_time,
+        frame_received=True,
+        frame_t=None,
+        frame_qpos=None,
+        frame_qvel=None,
+        frame_qacc=None,
+        frame_ctrl=None,
+        frame_sensordata=None,
+        late_ticks=0,
+        frame_delay=None,
+        qpos=None,
+        qvel=None,
+        qacc=None,
+        qfrc_inverse=None,
+        qacc_forward=None,
+        actuator_force=None,
+        sensordata=None,
+        covariance_diagonal=None,
+        filter_state=None,
+        nis=None,
+        reinitialised=False,
+        compute_us=0,
+        receive_to_send_us=0,
+        reject_reason=rejection.reason,
+        reject_message=rejection.message,
+    )
+
+
+def summary_info(counts: SessionCounts, *, duration: float) -> SessionSummaryInfo:
+    stats: dict[str, object] = {}
+    if counts.qfrc_min is not None and counts.qfrc_max is not None:
+        stats["qfrc_inverse_min"] = counts.qfrc_min.tolist()
+        stats["qfrc_inverse_max"] = counts.qfrc_max.tolist()
+    return SessionSummaryInfo(
+        ticks=counts.ticks,
+        frames=counts.frames + counts.rejected,
+        measured=counts.measured,
+        predicted=counts.predicted,
+        corrected=counts.corrected,
+        rejected=counts.rejected,
+        late=counts.late,
+        mean_compute_us=counts.compute_us_total / counts.results if counts.results else 0.0,
+        max_compute_us=float(counts.compute_us_max),
+        duration=duration,
+        stats=stats,
+    )

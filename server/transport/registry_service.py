@@ -1,0 +1,101 @@
+"""The ModelRegistryService servicer (grpc.aio): RegisterModel, GetModel, ListModels.
+
+Each RPC runs the registry's blocking work (SQL, disk, compiling in a worker process) in a thread,
+so the event loop keeps serving other RPCs and session ticks meanwhile.
+
+    model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(
+        ModelRegistryServicer(registry), server)
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import grpc
+
+from jitdyn.errors import InvalidArgument
+from jitdyn.registry import DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, ModelRegistry
+from jitdyn.server.transport.auth import tenant_of
+from jitdyn.server.transport.model_messages import metadata_from_message, model_message
+from jitdyn.server.transport.status import translate_errors
+from jitdyn.v1 import model_registry_pb2, model_registry_pb2_grpc
+
+__all__ = ["ModelRegistryServicer"]
+
+
+class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer):
+    """Serves `jitdyn.registry` to the tenant of each RPC (server.auth.tenant_of)."""
+
+    def __init__(self, registry: ModelRegistry) -> None:
+        self._registry = registry
+
+    @translate_errors
+    async def RegisterModel(
+        self,
+        request: model_registry_pb2.RegisterModelRequest,
+        context: grpc.aio.ServicerContext[
+            model_registry_pb2.RegisterModelRequest, model_registry_pb2.RegisterModelResponse
+        ],
+    ) -> model_registry_pb2.RegisterModelResponse:
+        tenant = tenant_of(context)
+        metadata = metadata_from_message(request.metadata)
+        info, created = await asyncio.to_thread(
+            self._registry.register,
+            name=request.name,
+            mjcf=request.mjcf,
+            assets=dict(request.assets),
+            metadata=metadata,
+            tenant=tenant,
+        )
+        return model_registry_pb2.RegisterModelResponse(model=model_message(info), created=created)
+
+    @translate_errors
+    async def GetModel(
+        self,
+        request: model_registry_pb2.GetModelRequest,
+        context: grpc.aio.ServicerContext[
+            model_registry_pb2.GetModelRequest, model_registry_pb2.GetModelResponse
+        ],
+    ) -> model_registry_pb2.GetModelResponse:
+        tenant = tenant_of(context)
+        if request.model_id and (request.name or request.version):
+            raise InvalidArgument(
+                "GetModelRequest: give model_id, or name (and version), not both; got model_id "
+                f"{request.model_id!r}, name {request.name!r}, version {request.version}"
+            )
+        if not request.model_id and not request.name:
+            raise InvalidArgument("GetModelRequest: give model_id, or name (and version); got neither")
+        info = await asyncio.to_thread(
+            self._registry.get,
+            tenant=tenant,
+            model_id=request.model_id or None,
+            name=request.name or None,
+            version=request.version,
+        )
+        return model_registry_pb2.GetModelResponse(model=model_message(info))
+
+    @translate_errors
+    async def ListModels(
+        self,
+        request: model_registry_pb2.ListModelsRequest,
+        context: grpc.aio.ServicerContext[
+            model_registry_pb2.ListModelsRequest, model_registry_pb2.ListModelsResponse
+        ],
+    ) -> model_registry_pb2.ListModelsResponse:
+        tenant = tenant_of(context)
+        page_size = request.page_size or DEFAULT_PAGE_SIZE
+        if page_size > MAX_PAGE_SIZE:
+            raise InvalidArgument(
+                f"page_size must be at most {MAX_PAGE_SIZE} (0: {DEFAULT_PAGE_SIZE}), got {page_size}"
+            )
+        infos, next_page_token = await asyncio.to_thread(
+            self._registry.list,
+            tenant=tenant,
+            name=request.name or None,
+            tag=request.tag or None,
+            page_size=page_size,
+            page_token=request.page_token,
+        )
+        return model_registry_pb2.ListModelsResponse(
+            models=[model_message(info) for info in infos], next_page_token=next_page_token
+        )

@@ -1,0 +1,108 @@
+"""The `jitdyn` command line, run as a user runs it: a separate process against a real server."""
+
+from __future__ import annotations
+
+import os
+import re
+import secrets
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+MJCF = """<mujoco model="arm">
+  <compiler meshdir="meshes"/>
+  <asset><mesh name="box" file="box.obj"/></asset>
+  <include file="parts.xml"/>
+  <worldbody><body><joint name="elbow" type="hinge" axis="0 1 0"/><geom type="mesh" mesh="box" mass="1"/></body></worldbody>
+</mujoco>
+"""
+OBJ = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+
+
+def jitdyn(*args: str, cwd: Path | None = None, check: bool = True) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, JITDYN_SECRET=secrets.token_hex(32))
+    result = subprocess.run(
+        [sys.executable, "-m", "jitdyn.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=300,
+        check=False,
+    )
+    if check:
+        assert result.returncode == 0, result.stdout + result.stderr
+    return result
+
+
+@pytest.fixture()
+def arm(tmp_path: Path) -> Path:
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "box.obj").write_text(OBJ)
+    (tmp_path / "meshes" / "unrelated.txt").write_text("not sent")
+    (tmp_path / "parts.xml").write_text("<mujoco><default/></mujoco>")
+    (tmp_path / "arm.xml").write_text(MJCF)
+    return tmp_path / "arm.xml"
+
+
+def test_models_register_list_show(server: Any, arm: Path) -> None:
+    first = jitdyn("models", "--server", server.address, "register", str(arm), "--tag", "lab")
+    assert "registering 'arm': 2 assets" in first.stderr
+    assert first.stdout.startswith("registered: sha256:")
+    again = jitdyn("models", "--server", server.address, "register", str(arm))
+    assert again.stdout.startswith("already registered (identical content)")
+    listing = jitdyn("models", "--server", server.address, "list", "--tag", "lab").stdout
+    assert re.search(r"sha256:[0-9a-f]{64}  arm v1  nq=1 nv=1 nu=0", listing), listing
+    shown = jitdyn("models", "--server", server.address, "show", "arm:1").stdout
+    assert '"name": "elbow"' in shown and '"type": "JOINT_TYPE_HINGE"' in shown
+
+
+def test_models_register_refuses_a_file_outside_the_asset_folder(server: Any, tmp_path: Path) -> None:
+    evil = tmp_path / "evil.xml"
+    evil.write_text('<mujoco><asset><hfield name="h" file="../../etc/hostname"/></asset></mujoco>')
+    result = jitdyn("models", "--server", server.address, "register", str(evil), check=False)
+    assert result.returncode == 2
+    assert (
+        "InvalidArgument: hfield 'h' (line 1) attribute file refers to file '../../etc/hostname'"
+        in result.stderr
+    )
+
+
+def test_unknown_model_is_a_clear_error(server: Any) -> None:
+    result = jitdyn("models", "--server", server.address, "show", "no_such_model", check=False)
+    assert result.returncode == 2 and "NotFound" in result.stderr and "no_such_model" in result.stderr
+
+
+def test_demo_against_a_running_server(server: Any) -> None:
+    out = jitdyn(
+        "demo", "--server", server.address, "--seconds", "1.5", "--model", "pendulum_2", "--latency", "20ms"
+    ).stdout
+    assert "results 30 of 30 ticks" in out, out
+    assert re.search(r"stored: frames/model=pendulum_2/date=\d{4}-\d\d-\d\d/[0-9a-f-]{36}\.parquet", out), out
+
+
+def test_demo_starts_its_own_server_and_stores_locally(tmp_path: Path) -> None:
+    out = jitdyn("demo", "--seconds", "1", "--data", str(tmp_path / "data")).stdout
+    assert "starting a local jitdyn server" in out
+    stored = re.search(r"stored: (\S+\.parquet)", out)
+    assert stored and (tmp_path / "data" / stored.group(1)).is_file(), out
+    listing = jitdyn("sessions", "--data", str(tmp_path / "data"), "list").stdout
+    assert "COMPLETE" in listing and "pendulum_3" in listing
+
+
+@pytest.mark.parametrize(
+    "command", [[], ["serve"], ["models"], ["demo"], ["sessions"], ["sessions", "query"]]
+)
+def test_every_command_explains_itself(command: list[str]) -> None:
+    assert "usage: jitdyn" in jitdyn(*command, "--help").stdout
+
+
+def test_bad_flags_say_what_was_expected() -> None:
+    result = jitdyn("demo", "--latency", "fast", check=False)
+    assert result.returncode == 2
+    assert "expected a duration like 35ms, 0.5s or 0.035, got 'fast'" in result.stderr
+    result = jitdyn("sessions", "--data", "/nonexistent/jitdyn", "list", check=False)
+    assert result.returncode == 2 and "no jitdyn data in /nonexistent/jitdyn" in result.stderr

@@ -1,0 +1,86 @@
+"""`jitdyn experiments --quick` end to end against an in-process server: every report file is there
+and every number in it is finite."""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from pathlib import Path
+
+import pytest
+
+from jitdyn.experiments import EXPERIMENTS, main
+
+
+def _cells(path: Path) -> list[str]:
+    with path.open(encoding="utf-8") as f:
+        rows = list(csv.reader(f))
+    assert len(rows) >= 2, f"{path.name} has no rows"
+    return [cell for row in rows[1:] for cell in row]
+
+
+def _numbers(cells: list[str]) -> list[float]:
+    out = []
+    for cell in cells:
+        for part in cell.split(";"):
+            try:
+                out.append(float(part))
+            except ValueError:
+                continue
+    return out
+
+
+@pytest.mark.timeout(240)
+def test_quick_run_writes_every_table_and_plot_with_finite_numbers(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    started = time.perf_counter()
+    assert main(["--quick", "--no-progress", "--out", str(out)]) == 0
+    elapsed = time.perf_counter() - started
+    report = (out / "report.md").read_text(encoding="utf-8")
+    for experiment in EXPERIMENTS.values():
+        assert experiment.name in report or experiment.title in report
+    csvs = sorted(out.glob("*.csv"))
+    pngs = sorted(out.glob("*.png"))
+    assert {p.stem for p in csvs} >= {
+        "table_4_2",
+        "table_4_4",
+        "table_4_6",
+        "table_4_8",
+        "table_4_8_nees",
+        "table_4_9",
+        "table_4_9_nees",
+        "table_4_10",
+        "myohand",
+        "fig_4_16",
+        "fig_4_17",
+        "gaps",
+        "network",
+    }
+    assert len(pngs) >= 12
+    for path in csvs:
+        assert not [c for c in _cells(path) if "np." in c], f"{path.name} holds numpy reprs, not numbers"
+        numbers = _numbers(_cells(path))
+        assert numbers, f"{path.name} holds no numbers"
+        bad = [x for x in numbers if not math.isfinite(x)]
+        assert not bad, f"{path.name} holds non-finite numbers {bad[:5]}"
+    for path in pngs:
+        assert path.stat().st_size > 1000
+    # CI budget: the quick run is meant to stay under a minute on two cores.
+    assert elapsed < 120, f"the quick run took {elapsed:.0f} s"
+
+
+def test_help_names_every_experiment(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    for name in EXPERIMENTS:
+        assert name in text
+
+
+def test_unknown_experiment_is_refused_by_name(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["table_9_9"])
+    assert exit_info.value.code == 2
+    assert "unknown experiment(s) ['table_9_9']" in capsys.readouterr().err

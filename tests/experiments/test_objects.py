@@ -1,0 +1,148 @@
+"""client.objects: the research objects are deterministic with a seed and move as documented."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jitdyn.experiments.objects import Biped, Pendulum, Scenario, UnstableSimulation, load_source, make_object
+
+
+def _run(obj, seed, ticks):
+    states = [obj.reset(seed)]
+    for _ in range(ticks):
+        s = states[-1]
+        ctrl = obj.control(s.t, s.qpos, s.qvel) if obj.scenario is Scenario.CONTROLLED else None
+        states.append(obj.step(ctrl))
+    return np.array([np.concatenate([s.qpos, s.qvel, s.qacc, s.ctrl]) for s in states])
+
+
+@pytest.mark.parametrize(
+    ("name", "scenario", "ticks"),
+    [
+        ("pendulum_1", Scenario.PASSIVE, 20),
+        ("pendulum_3", Scenario.CONTROLLED, 20),
+        ("pendulum_2", Scenario.EXTERNAL, 20),
+        ("biped", Scenario.EXTERNAL, 100),
+    ],
+)
+def test_same_seed_same_trajectory_other_seed_another(name, scenario, ticks):
+    a = _run(make_object(name, scenario), 3, ticks)
+    b = _run(make_object(name, scenario), 3, ticks)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, _run(make_object(name, scenario), 4, ticks))
+
+
+def test_reset_replays_the_same_run_on_the_same_object():
+    obj = make_object("pendulum_2", Scenario.PASSIVE)
+    np.testing.assert_array_equal(_run(obj, 0, 10), _run(obj, 0, 10))
+
+
+def test_time_ctrl_and_acceleration_of_a_state():
+    obj = Pendulum(1, Scenario.PASSIVE, jitter=0.0)
+    s0 = obj.reset(0)
+    assert s0.t == 0.0 and s0.qpos[0] == pytest.approx(np.pi / 4)
+    np.testing.assert_array_equal(s0.ctrl, [0.0])
+    # A thin rod about its end: I = m l^2 / 3, so qacc = -(m g l / 2) sin(q) / I = -1.5 g sin(q); the
+    # capsule's round caps put some mass beyond the ends, which makes it 3.5 % less.
+    assert s0.qacc[0] == pytest.approx(-1.5 * 9.81 * np.sin(np.pi / 4), rel=0.05)
+    s1 = obj.step()
+    assert s1.t == pytest.approx(0.05)
+    assert s1.qpos[0] < s0.qpos[0]  # it falls
+
+
+def test_controlled_pendulum_reaches_the_symmetrical_position_every_second():
+    obj = Pendulum(1, Scenario.EXTERNAL)
+    obj.reset(0)
+    q = {}
+    for k in range(1, 61):
+        q[k] = obj.step().qpos[0]
+    # -theta0 at t = 0: near +theta0 just before t = 1 s, near -theta0 just before t = 2 s, ...
+    assert q[20] == pytest.approx(np.pi / 4, abs=0.12)
+    assert q[40] == pytest.approx(-np.pi / 4, abs=0.12)
+    assert q[60] == pytest.approx(np.pi / 4, abs=0.12)
+
+
+def test_the_controlled_frame_carries_the_control_that_acted():
+    obj = Pendulum(2, Scenario.CONTROLLED)
+    s = obj.reset(0)
+    u = obj.control(s.t, s.qpos, s.qvel)
+    np.testing.assert_array_equal(obj.step(u).ctrl, u)
+
+
+def test_biped_keeps_rocking_on_its_feet():
+    obj = Biped(Scenario.EXTERNAL)
+    s = obj.reset(0)
+    xs = []
+    for _ in range(800):  # 4 s
+        s = obj.step()
+        xs.append(s.qpos[0])
+    assert -0.1 < s.qpos[1] < 0.1  # the hip neither fell nor flew
+    assert max(xs) - min(xs) > 0.2  # and it moved
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (lambda: Pendulum(1, Scenario.PASSIVE).step(), "step before reset: call reset"),
+        (lambda: Biped(Scenario.PASSIVE), "the biped cannot move passively"),
+        (lambda: make_object("pendulum_9", Scenario.PASSIVE), "object must be one of"),
+        (lambda: load_source("nope"), "model must be one of"),
+        (
+            lambda: Pendulum(1, Scenario.PASSIVE, dt=0.06),
+            "dt must be a positive whole multiple of the model's timestep 0.025, got 0.06",
+        ),
+    ],
+)
+def test_misuse_is_refused_with_a_precise_message(call, message):
+    with pytest.raises((ValueError, RuntimeError), match=message):
+        call()
+
+
+def test_ctrl_is_required_in_controlled_and_refused_otherwise():
+    controlled = Pendulum(1, Scenario.CONTROLLED)
+    controlled.reset(0)
+    with pytest.raises(ValueError, match="ctrl is required in the CONTROLLED scenario"):
+        controlled.step()
+    with pytest.raises(ValueError, match=r"ctrl must have shape \(1,\), got \(2,\)"):
+        controlled.step(np.zeros(2))
+    external = Pendulum(1, Scenario.EXTERNAL)
+    external.reset(0)
+    with pytest.raises(ValueError, match="ctrl must be None in the EXTERNAL scenario"):
+        external.step(np.zeros(1))
+
+
+def test_a_truth_that_blows_up_says_so_instead_of_resetting():
+    obj = Pendulum(1, Scenario.CONTROLLED)
+    obj.reset(0)
+    with pytest.raises(UnstableSimulation, match=r"the simulation became unstable by t = 0.05 s") as error:
+        obj.step(np.array([1e12]))
+    assert error.value.t == pytest.approx(0.05)
+
+
+def test_myoelbow_raises_and_lowers_the_forearm_deterministically():
+    from jitdyn.experiments.objects import MyoElbow
+
+    def run(seed):
+        obj = MyoElbow()
+        obj.reset(seed)
+        return np.array([obj.step().qpos[0] for _ in range(1000)])  # 2 s: up to the top
+
+    a = run(1)
+    np.testing.assert_array_equal(a, run(1))
+    assert not np.array_equal(a, run(2))
+    assert a[-1] - a[0] > 0.8  # raised from 0.3 towards 1.5 rad
+
+
+def test_myohand_bends_the_index_first():
+    from jitdyn.experiments.objects import MyoHand
+
+    obj = MyoHand()
+    obj.reset(0)
+    index = obj.model.joint("mcp2_flexion_r").qposadr[0]
+    for _ in range(200):  # 0.4 s: the index's flexion peaks at a quarter period
+        s = obj.step()
+    assert s.qpos[index] > 1.0
+    assert obj.scenario is Scenario.EXTERNAL
+    with pytest.raises(ValueError, match="myohand runs only in the EXTERNAL scenario, got CONTROLLED"):
+        MyoHand(Scenario.CONTROLLED)
