@@ -8,7 +8,8 @@ Frames are pendulum_3-sized results (nq = nv = nu = 3) as the session runtime re
 frame's qpos and qvel, the estimate, qacc, qfrc_inverse, the covariance diagonal and the filter
 state (6 values each), NIS and timings, on a smooth trajectory so that compression sees realistic
 data. "append" is what the event loop pays per frame; "durable" counts until the last frame is
-fsynced. Target (issue 5): >= 100k frames/s.
+fsynced. Target: >= 100k frames/s. The many-sessions case compares one group committer for all the
+sessions of a process against one per session, side by side.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.db import open_index
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.recorder import SessionRecorder
@@ -161,6 +163,54 @@ def paced(root: Path, index: SessionIndex, rate: float, seconds: float) -> dict[
     }
 
 
+def many_sessions(
+    root: Path, index: SessionIndex, *, sessions: int, rate: float, seconds: float, shared: bool
+) -> dict[str, float]:
+    """`sessions` recorders, each appended at `rate` frames/s, their ticks spread over the period
+    as a server's sessions are, from one thread (the event loop). `shared`: one GroupCommitter for
+    all of them (the server's); else one per session (a commit thread and an fsync per session,
+    as before group commit across sessions). CPU is this process's, every thread included."""
+    trajectory = Trajectory(int(rate * seconds) + 1, seed=3)
+    committers = [GroupCommitter()] if shared else []
+    recorders = []
+    for _ in range(sessions):
+        if not shared:
+            committers.append(GroupCommitter())
+        recorders.append(
+            SessionRecorder(data_root=root, index=index, header=header(), committer=committers[-1])
+        )
+    period = 1.0 / rate
+    ticks = int(rate * seconds)
+    lags: list[float] = []
+    cpu0 = time.process_time()
+    started = time.perf_counter()
+    for k in range(ticks):
+        for i, recorder in enumerate(recorders):
+            due = started + k * period + i * period / sessions
+            pause = due - time.perf_counter()
+            if pause > 0:
+                time.sleep(pause)
+            recorder.append(trajectory.record(k))
+        durable = recorders[0].durable_seq
+        lags.append((k - (-1 if durable is None else durable)) * period * 1e3)
+    for recorder in recorders:
+        recorder.flush()
+    cpu = time.process_time() - cpu0
+    syncs = sum(c.stats().syncs for c in committers)
+    commit_cpu = sum(c.stats().cpu_seconds for c in committers)
+    for recorder in recorders:
+        recorder.close()
+    for committer in committers:
+        committer.close()
+    records = sessions * ticks
+    return {
+        "cpu_us_per_record": cpu / records * 1e6,
+        "commit_cpu_us_per_record": commit_cpu / records * 1e6,
+        "syncs_per_s": syncs / seconds,
+        "lag_p99_ms": float(np.percentile(lags, 99)),
+    }
+
+
 def compaction(root: Path, index: SessionIndex, frames: int) -> dict[str, float]:
     trajectory = Trajectory(frames, seed=1)
     recorder = SessionRecorder(data_root=root, index=index, header=header(), commit_every=4096)
@@ -189,6 +239,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compact-frames", type=int, default=1_000_000, help="frames to compact (1000000)")
     parser.add_argument("--rate", type=float, default=100_000, help="paced run: frames/s (100000)")
     parser.add_argument("--seconds", type=float, default=3.0, help="paced run: length in seconds (3)")
+    parser.add_argument("--sessions", type=int, default=200, help="many-sessions run: sessions (200)")
+    parser.add_argument("--session-rate", type=float, default=20.0, help="many-sessions run: Hz each (20)")
     parser.add_argument("--dir", type=Path, default=None, help="data root (default: a temporary folder)")
     args = parser.parse_args(argv)
 
@@ -199,6 +251,14 @@ def main(argv: list[str] | None = None) -> int:
         t = throughput(root, index, args.frames)
         p = paced(root, index, args.rate, args.seconds)
         c = compaction(root, index, args.compact_frames)
+        # Side by side, alternating, so that a noisy moment of the shared machine hits both.
+        many = {True: [], False: []}
+        for shared in (True, False, True, False):
+            many[shared].append(
+                many_sessions(
+                    root, index, sessions=args.sessions, rate=args.session_rate, seconds=2.0, shared=shared
+                )
+            )
         engine.dispose()
 
     print(
@@ -225,6 +285,22 @@ def main(argv: list[str] | None = None) -> int:
     ]
     for name, value in rows:
         print(f"{name:<52}{value:>20}")
+    grouped = min(m["cpu_us_per_record"] for m in many[True])
+    alone = min(m["cpu_us_per_record"] for m in many[False])
+    print(
+        f"\n{args.sessions} sessions at {args.session_rate:g} Hz, appended as a server's event loop does (best of 2):"
+    )
+    print(f"{'commit':<40}{'CPU us/record':>15}{'of it commit':>14}{'syncs/s':>10}{'lag p99 ms':>12}")
+    for label, runs in (
+        ("one committer for all (the server's)", many[True]),
+        ("one committer per session (before)", many[False]),
+    ):
+        best = min(runs, key=lambda m: m["cpu_us_per_record"])
+        print(
+            f"{label:<40}{best['cpu_us_per_record']:>15.1f}{best['commit_cpu_us_per_record']:>14.1f}"
+            f"{best['syncs_per_s']:>10.0f}{best['lag_p99_ms']:>12.1f}"
+        )
+    print(f"CPU per record, per-session / shared: {alone / grouped:.1f}x")
     target = 100_000
     verdict = "meets" if t["durable_rate"] >= target else "MISSES"
     print(f"target >= {target:,} durable frames/s: {verdict} ({t['durable_rate'] / target:.2f}x)")

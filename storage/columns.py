@@ -24,6 +24,7 @@ __all__ = [
     "ID_COLUMNS",
     "LOG_SCHEMA",
     "SCALAR_FIELDS",
+    "check_lengths",
     "expected_lengths",
     "records_to_batch",
 ]
@@ -100,6 +101,38 @@ def expected_lengths(header: SessionHeader) -> dict[str, int]:
         "actuator_force": nu,
         "sensordata": ns,
     }
+
+
+_CHECKED: Final = tuple(
+    (name, operator.attrgetter(name))
+    for name in (
+        "frame_qpos",
+        "frame_qvel",
+        "frame_qacc",
+        "frame_ctrl",
+        "frame_sensordata",
+        "qpos",
+        "qvel",
+        "qacc",
+        "qfrc_inverse",
+        "qacc_forward",
+        "actuator_force",
+        "sensordata",
+    )
+)
+
+
+def check_lengths(records: Sequence[TickRecord], lengths: dict[str, int]) -> None:
+    """Raise InvalidArgument naming the column when a present array of `records` has the wrong
+    length for its session (`lengths` from `expected_lengths`)."""
+    for position, record in enumerate(records):
+        for name, getter in _CHECKED:
+            array = getter(record)
+            if array is not None and name in lengths and len(array) != lengths[name]:
+                raise InvalidArgument(
+                    f"{name} must have {lengths[name]} values in every record, got {len(array)} "
+                    f"in the record at position {position} of the batch"
+                )
 
 
 def _list_column(name: str, arrays: list[object], expected: int | None) -> pa.Array:

@@ -69,10 +69,19 @@ class LogWriter:
         self.bytes_written = os.fstat(self._file.fileno()).st_size
 
     def write(self, batch: pa.RecordBatch) -> None:
-        """Append `batch` and fsync it."""
+        """Append `batch` and fsync it (tools and tests; the recorder appends through its committer)."""
         self._writer.write_batch(batch)
         os.fsync(self._file.fileno())
-        self.bytes_written = os.fstat(self._file.fileno()).st_size
+
+    def fileno(self) -> int:
+        """The descriptor the group committer appends serialised batches to: an encapsulated IPC
+        message (`RecordBatch.serialize()`) is exactly what the stream writer would write, in one
+        write call instead of one per buffer."""
+        return self._file.fileno()
+
+    def size(self) -> int:
+        """Bytes of the log on disk so far."""
+        return os.fstat(self._file.fileno()).st_size if not self._file.closed else self.bytes_written
 
     def finish(self) -> None:
         """Write the end-of-stream marker and fsync; the lock is kept until `release`."""

@@ -5,8 +5,9 @@
         result.durable_seq = recorder.durable_seq
         location = recorder.close(summary) # blocking: compaction; run it in a thread
 
-`append` only queues the record; a commit thread turns what has queued into one record batch,
-appends it to the session's log and fsyncs (group commit), every `commit_every` records or
+`append` only queues the record; the process's commit thread (storage/commit.py, shared by every
+session) appends what has queued to the session's log and makes it durable together with the other
+sessions' records of the same window (group commit), every `commit_every` records or
 `commit_interval` seconds after the first queued one, whichever comes first. `close` compacts the
 log to Parquet, marks the session ended in the index in one transaction, then deletes the log. On
 start, `recover_unfinished` does the same for every session whose server died.
@@ -18,7 +19,6 @@ import enum
 import logging
 import os
 import threading
-import time
 from pathlib import Path
 from types import TracebackType
 from typing import Self
@@ -26,7 +26,8 @@ from typing import Self
 import pyarrow as pa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
-from jitdyn.storage.columns import expected_lengths, records_to_batch
+from jitdyn.storage.columns import expected_lengths
+from jitdyn.storage.commit import GroupCommitter, default_committer
 from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.layout import frames_location, fsync_dir, log_location, make_dirs
 from jitdyn.storage.log import LogWriter, read_log, try_lock
@@ -83,6 +84,7 @@ class SessionRecorder:
         header: SessionHeader,
         commit_every: int = 64,
         commit_interval: float = 0.010,
+        committer: GroupCommitter | None = None,
     ) -> None:
         if commit_every < 1:
             raise InvalidArgument(f"commit_every must be >= 1, got {commit_every}")
@@ -91,18 +93,12 @@ class SessionRecorder:
         self._data_root = data_root
         self._index = index
         self._header = header
-        self._commit_every = commit_every
-        self._commit_interval = commit_interval
-        self._lengths = expected_lengths(header)
+        self._committer = committer if committer is not None else default_committer()
 
         self._cond = threading.Condition()
-        self._pending: list[TickRecord] = []
-        self._first_pending_at = 0.0
         self._appended = 0
         self._committed = 0
         self._commits = 0
-        self._flush_now = False
-        self._stopping = False
         self._failure: JitdynError | None = None
         self._durable_seq: int | None = None
         self._state = _State.OPEN
@@ -121,10 +117,16 @@ class SessionRecorder:
             self._writer.release()
             _delete_log(self._log_path)
             raise
-        self._thread = threading.Thread(
-            target=self._run_guarded, name=f"recorder-{header.session_id[:8]}", daemon=True
+        self._key = self._committer.register(
+            name=header.session_id,
+            fd=self._writer.fileno(),
+            lengths=expected_lengths(header),
+            commit_every=commit_every,
+            commit_interval=commit_interval,
+            on_durable=self._on_durable,
+            on_failure=self._on_failure,
         )
-        self._thread.start()
+        self._registered = True
 
     @property
     def header(self) -> SessionHeader:
@@ -143,7 +145,7 @@ class SessionRecorder:
     @property
     def log_bytes(self) -> int:
         """Bytes of the log on disk so far."""
-        return self._writer.bytes_written
+        return self._writer.size()
 
     def append(self, record: TickRecord) -> None:
         """Queue a record for the next group commit. Never waits for the disk.
@@ -158,20 +160,17 @@ class SessionRecorder:
                 )
             if self._failure is not None:
                 raise self._failure
-            self._pending.append(record)
             self._appended += 1
-            if len(self._pending) == 1:
-                self._first_pending_at = time.monotonic()
-                self._cond.notify()
-            elif len(self._pending) >= self._commit_every:
-                self._cond.notify()
+            # Under the recorder's lock, so that `close` cannot unregister in between (the commit
+            # thread never takes this lock while holding the committer's: no inversion).
+            self._committer.append(self._key, record)
 
     def flush(self, timeout: float | None = None) -> None:
         """Commit what is queued now and wait until it is durable (for tests and shutdown)."""
         with self._cond:
             target = self._appended
-            self._flush_now = True
-            self._cond.notify_all()
+        self._committer.request_flush(self._key)
+        with self._cond:
             if not self._cond.wait_for(
                 lambda: self._committed >= target or self._failure is not None, timeout=timeout
             ):
@@ -181,75 +180,25 @@ class SessionRecorder:
             if self._failure is not None:
                 raise self._failure
 
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._pending and not self._stopping and not self._flush_now:
-                    self._cond.wait()
-                deadline = self._first_pending_at + self._commit_interval
-                while len(self._pending) < self._commit_every and not self._stopping and not self._flush_now:
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0:
-                        break
-                    self._cond.wait(remaining)
-                batch, self._pending = self._pending, []
-                self._flush_now = False
-                stop = self._stopping
-            if batch:
-                self._commit(batch)
-            with self._cond:
-                self._cond.notify_all()
-                if stop and not self._pending:
-                    return
-
-    def _commit(self, batch: list[TickRecord]) -> None:
-        if self._failure is not None:
-            return
-        session = self._header.session_id
-        failure: JitdynError
-        try:
-            arrow = records_to_batch(batch, lengths=self._lengths)
-        except InvalidArgument as exc:
-            failure = InvalidArgument(f"session {session}: {exc}")
-        except (TypeError, ValueError, pa.ArrowException) as exc:
-            # A field of the wrong type (a string for a seq, a ragged array): the runtime's bug.
-            failure = InvalidArgument(f"session {session}: a record cannot be stored: {exc}")
-        else:
-            try:
-                self._writer.write(arrow)
-            except (OSError, pa.ArrowException) as exc:
-                failure = Unavailable(f"session {session}: its log cannot be written: {exc}")
-            else:
-                seqs = [r.seq for r in batch if r.kind == "result"]
-                with self._cond:
-                    self._committed += len(batch)
-                    self._commits += 1
-                    if seqs:
-                        top = max(seqs)
-                        if self._durable_seq is None or top > self._durable_seq:
-                            self._durable_seq = top
-                return
-        _log.error("%s", failure)
+    def _on_durable(self, records: int, top_seq: int | None) -> None:
+        # On the commit thread, once this session's rows of a window are on disk.
         with self._cond:
-            self._failure = failure
-
-    def _run_guarded(self) -> None:
-        try:
-            self._run()
-        except Exception as exc:  # noqa: BLE001 - any bug here must reach the caller, not hang it
-            # Never leave flush() waiting on a thread that died.
-            _log.exception("the commit thread of session %s died", self._header.session_id)
-            with self._cond:
-                self._failure = Unavailable(
-                    f"session {self._header.session_id}: its commit thread died: {exc!r}"
-                )
-                self._cond.notify_all()
-
-    def _stop_thread(self) -> None:
-        with self._cond:
-            self._stopping = True
+            self._committed += records
+            self._commits += 1
+            if top_seq is not None and (self._durable_seq is None or top_seq > self._durable_seq):
+                self._durable_seq = top_seq
             self._cond.notify_all()
-        self._thread.join()
+
+    def _on_failure(self, failure: JitdynError) -> None:
+        with self._cond:
+            if self._failure is None:
+                self._failure = failure
+            self._cond.notify_all()
+
+    def _stop_committing(self) -> None:
+        if self._registered:
+            self._registered = False
+            self._committer.unregister(self._key)
 
     def close(self, summary: SessionSummaryInfo | None = None, *, status: str = "COMPLETE") -> str:
         """End the session: commit what is queued, compact the log to Parquet, mark the session
@@ -264,7 +213,7 @@ class SessionRecorder:
                     raise self._close_error
                 return self._location
             self._state = _State.CLOSED
-        self._stop_thread()
+        self._stop_committing()
         try:
             if self._failure is not None:
                 # The log holds what was durable; the session stays OPEN, and the next start

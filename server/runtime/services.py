@@ -1,4 +1,5 @@
-"""What the servicers share: the registry, the index, the anonymiser, the worker pool, the limits.
+"""What the servicers share: the registry, the index, the anonymiser, the worker pool, the group
+committer of the session logs, the limits.
 
 Built once by server/transport/app.py; `admit` and `release` count open sessions against the limits.
 """
@@ -14,6 +15,7 @@ from jitdyn.errors import ResourceExhausted
 from jitdyn.registry import ModelRegistry
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.storage.anonymise import Anonymiser
+from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.index import SessionIndex
 
 __all__ = ["DEFAULT_SESSION_LIMITS", "Services", "SessionLimits"]
@@ -39,6 +41,8 @@ class Services:
     pool: WorkerPool
     data_root: Path
     limits: SessionLimits = DEFAULT_SESSION_LIMITS
+    # One commit thread and one flush to disk per window for every session of this process.
+    committer: GroupCommitter = field(default_factory=GroupCommitter)
     _open: Counter[str] = field(default_factory=Counter)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -48,7 +52,7 @@ class Services:
             total = sum(self._open.values())
             if total >= self.limits.max_sessions:
                 raise ResourceExhausted(
-                    f"the jitdyn.server has {total} open sessions, its limit (--max-sessions {self.limits.max_sessions})"
+                    f"the server has {total} open sessions, its limit (--max-sessions {self.limits.max_sessions})"
                 )
             if self._open[tenant] >= self.limits.max_sessions_per_tenant:
                 raise ResourceExhausted(

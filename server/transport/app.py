@@ -173,6 +173,7 @@ async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float 
     if health_servicer is not None:
         await health_servicer.enter_graceful_shutdown()
     await server.stop(grace)
+    await asyncio.to_thread(services.committer.close)
     services.pool.close()
     services.registry.close()
     services.index.engine.dispose()

@@ -1,0 +1,345 @@
+"""Group commit across sessions: one commit thread and one flush to disk per commit window for every
+session a process records, as a database's write-ahead log does.
+
+A session's ticks come `dt` apart (50 ms at 20 Hz), so a per-session commit thread had nothing to
+group: each tick cost an Arrow batch of one row, a thread wake-up and an fsync. Here the records
+that every session queued in a window become one Arrow batch (column by column, for all of them at
+once), each session's rows are appended to its own log as one zero-copy slice in one write, and one
+`syncfs` makes them all durable (one `fsync` when a single log has new rows). Each session keeps
+its own log, so recovery, compaction and the per-log flock are unchanged.
+
+    committer = GroupCommitter()                    # one per process (Services owns it)
+    recorder = SessionRecorder(..., committer=committer)
+    ...
+    committer.close()
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Final, Self
+
+import pyarrow as pa
+
+from jitdyn.errors import InvalidArgument, JitdynError, Unavailable
+from jitdyn.storage.columns import check_lengths, records_to_batch
+from jitdyn.storage.records import TickRecord
+
+__all__ = ["CommitStats", "GroupCommitter", "default_committer"]
+
+_log = logging.getLogger(__name__)
+
+_libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+_syncfs: Final = getattr(_libc, "syncfs", None)
+
+
+def _sync_all(fds: list[int]) -> None:
+    """Make everything written to `fds` durable: one fsync for one file, else one syncfs of the
+    file system they are on (Linux), else an fsync each."""
+    if len(fds) == 1 or _syncfs is None:
+        for fd in fds:
+            os.fsync(fd)
+        return
+    if _syncfs(fds[0]) != 0:
+        error = ctypes.get_errno()
+        raise OSError(error, os.strerror(error))
+
+
+@dataclass
+class _Session:
+    """One registered log: where its rows go and what the recorder wants to know."""
+
+    name: str
+    fd: int
+    lengths: dict[str, int]
+    commit_every: int
+    commit_interval: float
+    on_durable: Callable[[int, int | None], None]  # (records committed, highest result seq)
+    on_failure: Callable[[JitdynError], None]
+    pending: list[TickRecord] = field(default_factory=list)
+    first_pending_at: float = 0.0
+    flush: bool = False
+    in_flight: bool = False  # taken by the thread, not yet durable
+    failed: bool = False
+    bytes_written: int = 0
+
+    def due(self, now: float) -> bool:
+        return bool(self.pending) and (
+            self.flush
+            or len(self.pending) >= self.commit_every
+            or now >= self.first_pending_at + self.commit_interval
+        )
+
+    def next_due(self) -> float:
+        return self.first_pending_at + self.commit_interval
+
+
+@dataclass(frozen=True)
+class CommitStats:
+    """Counters of a committer, for metrics and benchmarks."""
+
+    commits: int  # windows written and made durable
+    records: int
+    syncs: int
+    sessions: int  # logs registered now
+    cpu_seconds: float  # the commit thread's CPU, writing and syncing
+
+
+class GroupCommitter:
+    """The commit thread of a process. Thread-safe; `close` is safe to call twice."""
+
+    def __init__(self, *, name: str = "jitdyn-commit") -> None:
+        self._cond = threading.Condition()
+        self._sessions: dict[int, _Session] = {}
+        self._next_key = 0
+        self._stopping = False
+        self._commits = 0
+        self._records = 0
+        self._syncs = 0
+        self._cpu = 0.0
+        self._thread = threading.Thread(target=self._run_guarded, name=name, daemon=True)
+        self._thread.start()
+
+    # Registration, from the recorders.
+
+    def register(
+        self,
+        *,
+        name: str,
+        fd: int,
+        lengths: dict[str, int],
+        commit_every: int,
+        commit_interval: float,
+        on_durable: Callable[[int, int | None], None],
+        on_failure: Callable[[JitdynError], None],
+    ) -> int:
+        """Add a log open for appending on `fd`; returns the key `append`, `flush` and `unregister` take."""
+        with self._cond:
+            if self._stopping:
+                raise Unavailable("the commit thread is stopped; the server is shutting down")
+            key = self._next_key
+            self._next_key += 1
+            self._sessions[key] = _Session(
+                name=name,
+                fd=fd,
+                lengths=lengths,
+                commit_every=commit_every,
+                commit_interval=commit_interval,
+                on_durable=on_durable,
+                on_failure=on_failure,
+            )
+            return key
+
+    def append(self, key: int, record: TickRecord) -> None:
+        """Queue `record` for the log `key`. Never waits for the disk."""
+        with self._cond:
+            session = self._sessions[key]
+            session.pending.append(record)
+            if len(session.pending) == 1:
+                session.first_pending_at = time.monotonic()
+                self._cond.notify()
+            elif len(session.pending) >= session.commit_every:
+                self._cond.notify()
+
+    def request_flush(self, key: int) -> None:
+        """Commit what log `key` has queued now, without waiting for its window."""
+        with self._cond:
+            session = self._sessions.get(key)
+            if session is not None and session.pending:
+                session.flush = True
+                self._cond.notify()
+
+    def unregister(self, key: int) -> None:
+        """Commit what log `key` has queued and forget it (its recorder is closing)."""
+        with self._cond:
+            session = self._sessions.get(key)
+            if session is None:
+                return
+            session.flush = True
+            self._cond.notify_all()
+            self._cond.wait_for(
+                lambda: (
+                    (not session.pending and not session.in_flight)
+                    or session.failed
+                    or not self._thread.is_alive()
+                )
+            )
+            del self._sessions[key]
+
+    def stats(self) -> CommitStats:
+        with self._cond:
+            return CommitStats(
+                commits=self._commits,
+                records=self._records,
+                syncs=self._syncs,
+                sessions=len(self._sessions),
+                cpu_seconds=self._cpu,
+            )
+
+    def close(self) -> None:
+        """Commit everything queued and stop the thread."""
+        with self._cond:
+            self._stopping = True
+            for session in self._sessions.values():
+                session.flush = True
+            self._cond.notify_all()
+        self._thread.join()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # The thread.
+
+    def _take_due(self) -> list[tuple[_Session, list[TickRecord]]] | None:
+        """Wait until some log is due; take its records, and those of every log half-way through
+        its window (they share the flush). None when stopping with nothing left."""
+        with self._cond:
+            while True:
+                now = time.monotonic()
+                due = [s for s in self._sessions.values() if not s.failed and s.due(now)]
+                if due:
+                    break
+                if self._stopping and not any(s.pending for s in self._sessions.values() if not s.failed):
+                    return None
+                waiting = [s.next_due() for s in self._sessions.values() if s.pending and not s.failed]
+                self._cond.wait(None if not waiting else max(0.0, min(waiting) - now))
+            chosen = set(map(id, due))
+            for s in self._sessions.values():
+                if (
+                    id(s) not in chosen
+                    and s.pending
+                    and not s.failed
+                    and now >= s.first_pending_at + s.commit_interval / 2
+                ):
+                    due.append(s)
+            taken = []
+            for s in due:
+                taken.append((s, s.pending))
+                s.pending = []
+                s.flush = False
+                s.in_flight = True
+            return taken
+
+    def _run(self) -> None:
+        while True:
+            taken = self._take_due()
+            if taken is None:
+                return
+            cpu_started = time.thread_time()
+            written = self._write(taken)
+            durable: list[tuple[_Session, list[TickRecord]]] = []
+            if written:
+                try:
+                    _sync_all([s.fd for s, _ in written])
+                except OSError as exc:
+                    for s, _ in written:
+                        self._fail(s, Unavailable(f"session {s.name}: its log cannot be made durable: {exc}"))
+                else:
+                    durable = written
+            with self._cond:
+                self._commits += 1 if durable else 0
+                self._syncs += 1 if durable else 0
+                self._records += sum(len(r) for _, r in durable)
+            for s, records in durable:
+                seqs = [r.seq for r in records if r.kind == "result"]
+                s.on_durable(len(records), max(seqs) if seqs else None)
+            with self._cond:
+                for s, _ in taken:
+                    s.in_flight = False
+                self._cpu += time.thread_time() - cpu_started
+                self._cond.notify_all()
+
+    def _write(
+        self, taken: list[tuple[_Session, list[TickRecord]]]
+    ) -> list[tuple[_Session, list[TickRecord]]]:
+        """Append each session's records to its log; the sessions whose rows are written."""
+        good: list[tuple[_Session, list[TickRecord]]] = []
+        for s, records in taken:
+            try:
+                check_lengths(records, s.lengths)
+            except InvalidArgument as exc:
+                self._fail(s, InvalidArgument(f"session {s.name}: {exc}"))
+                continue
+            except TypeError as exc:
+                self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
+                continue
+            good.append((s, records))
+        if not good:
+            return []
+        everything = [r for _, records in good for r in records]
+        try:
+            batch = records_to_batch(everything)
+        except (TypeError, ValueError, pa.ArrowException, InvalidArgument):
+            # One session's record is of the wrong type: find whose, and let the others through.
+            return [w for w in (self._write_one(s, r, None) for s, r in good) if w is not None]
+        written = []
+        offset = 0
+        for s, records in good:
+            part = batch.slice(offset, len(records))
+            offset += len(records)
+            one = self._write_one(s, records, part)
+            if one is not None:
+                written.append(one)
+        return written
+
+    def _write_one(
+        self, s: _Session, records: list[TickRecord], batch: pa.RecordBatch | None
+    ) -> tuple[_Session, list[TickRecord]] | None:
+        if batch is None:
+            try:
+                batch = records_to_batch(records)
+            except (TypeError, ValueError, pa.ArrowException, InvalidArgument) as exc:
+                self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
+                return None
+        try:
+            data = batch.serialize()
+            written = os.write(s.fd, data)
+            if written != data.size:
+                raise OSError(f"short write: {written} of {data.size} bytes")
+        except (OSError, pa.ArrowException) as exc:
+            self._fail(s, Unavailable(f"session {s.name}: its log cannot be written: {exc}"))
+            return None
+        s.bytes_written += data.size
+        return s, records
+
+    def _fail(self, s: _Session, failure: JitdynError) -> None:
+        _log.error("%s", failure)
+        with self._cond:
+            s.failed = True
+            s.pending = []
+        s.on_failure(failure)
+
+    def _run_guarded(self) -> None:
+        try:
+            self._run()
+        except Exception as exc:  # noqa: BLE001 - any bug here must reach the recorders, not hang them
+            _log.exception("the commit thread died")
+            with self._cond:
+                sessions = list(self._sessions.values())
+            for s in sessions:
+                s.on_failure(Unavailable(f"session {s.name}: the commit thread died: {exc!r}"))
+            with self._cond:
+                self._cond.notify_all()
+
+
+_default: GroupCommitter | None = None
+_default_lock = threading.Lock()
+
+
+def default_committer() -> GroupCommitter:
+    """The process's shared committer, for recorders made without one (tools, tests)."""
+    global _default
+    with _default_lock:
+        if _default is None or not _default._thread.is_alive():
+            _default = GroupCommitter(name="jitdyn-commit-default")
+        return _default
