@@ -278,6 +278,7 @@ class TickResult:
     reinitialised: bool
     horizon: float
     received_at: float  # client monotonic time the result arrived
+    late_compute: bool = False  # answered on time without the estimator (an overloaded server)
 
     @classmethod
     def from_message(cls, result: dynamics_pb2.Result, *, received_at: float) -> TickResult:
@@ -313,6 +314,7 @@ class TickResult:
             reinitialised=result.reinitialised,
             horizon=result.horizon,
             received_at=received_at,
+            late_compute=result.late_compute,
         )
 
 

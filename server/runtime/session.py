@@ -7,11 +7,13 @@ state before that tick, applies the frame, replays the later ticks with the inpu
 replay uses the same inputs in the same order, the estimator ends exactly where a run in which the
 frame came on time would be.
 
-Calls are synchronous and CPU-bound; the servicer runs them off the event loop, one at a time.
+Calls are synchronous and CPU-bound, one at a time: LOCKSTEP sessions run them in a worker thread,
+REALTIME sessions on the event loop (their deadlines are its timers).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -42,6 +44,7 @@ class TickOutcome:
     late_ticks: int
     compute_us: int
     horizon: float
+    late_compute: bool = False  # answered from what the runtime had, without running the estimator
 
 
 @dataclass(slots=True)
@@ -55,6 +58,7 @@ class SessionCounts:
     corrected: int = 0
     rejected: int = 0
     late: int = 0
+    late_compute: int = 0  # ticks answered without the estimator (overload)
     compute_us_total: int = 0
     compute_us_max: int = 0
     results: int = 0
@@ -83,6 +87,7 @@ class _Tick:
     frame: FrameIn | None
     ctrl: np.ndarray | None  # the control the prediction of this tick used (CONTROLLED)
     outcome_source: str = field(default="PREDICTED")
+    shed: bool = False  # answered without the estimator: no timewarp may start here
 
 
 class SessionRuntime:
@@ -111,6 +116,9 @@ class SessionRuntime:
         self._zero_ctrl = np.zeros(model.nu)
         self._qpos0 = model.qpos0.copy()
         self._zero_nv = np.zeros(model.nv)
+        self._last: TickOutcome | None = None
+        # After a shed tick the estimator is a tick behind: the next frame re-initialises it.
+        self._stale = False
 
     @property
     def next_tick(self) -> int:
@@ -122,7 +130,7 @@ class SessionRuntime:
         if seq >= self._next:
             return "next" if seq == self._next else "future"
         tick = self._ticks.get(seq)
-        if tick is None:
+        if tick is None or tick.shed:
             return "too_old"
         return "duplicate" if tick.frame is not None else "late"
 
@@ -132,6 +140,8 @@ class SessionRuntime:
 
     def advance(self, frame: FrameIn | None, *, horizon: float = 0.0) -> TickOutcome:
         """Answer the next tick, with its frame or without one."""
+        if self._stale:
+            return self.shed(frame)
         started = time.perf_counter_ns()
         seq = self._next
         ctrl = self._control_for(seq, frame)
@@ -150,7 +160,58 @@ class SessionRuntime:
             self.counts.predicted += 1
         outcome = self._outcome(tick, estimate, late_ticks=0, started=started, horizon=horizon)
         self.counts.add_result(outcome)
+        self._last = outcome
         return outcome
+
+    def shed(self, frame: FrameIn | None) -> TickOutcome:
+        """Answer the next tick without running the estimator, for a server that cannot finish it by
+        the deadline: from the frame when it came (the estimator re-initialised from it, a cheap
+        reset), else the last answer repeated. The history is dropped: the estimator skipped a
+        tick, so no late frame may be replayed across it."""
+        started = time.perf_counter_ns()
+        seq = self._next
+        ctrl = self._control_for(seq, frame)
+        tick = _Tick(seq=seq, before=None, frame=frame, ctrl=ctrl, shed=True)
+        self._ticks.clear()
+        estimate: Estimate | None = None
+        if frame is not None:
+            self._estimator.initialise(self._measurement(tick))
+            self._initialised = True
+            self._stale = False
+            estimate = dataclasses.replace(self._estimator.extrapolate(0.0), reinitialised=True)
+            tick.outcome_source = "MEASURED"
+        else:
+            self._stale = self._initialised
+        self._ticks[seq] = tick
+        self._next += 1
+        self.counts.ticks += 1
+        self.counts.late_compute += 1
+        if frame is not None:
+            self.counts.frames += 1
+            self.counts.measured += 1
+            outcome = self._outcome(tick, estimate, late_ticks=0, started=started, horizon=0.0)
+        else:
+            self.counts.predicted += 1
+            outcome = self._repeat_last(tick, started=started)
+        outcome = dataclasses.replace(outcome, late_compute=True)
+        self.counts.add_result(outcome)
+        self._last = outcome
+        return outcome
+
+    def _repeat_last(self, tick: _Tick, *, started: int) -> TickOutcome:
+        last = self._last
+        if last is None or last.estimate is None and last.frame is None:
+            return self._outcome(tick, None, late_ticks=0, started=started, horizon=0.0)
+        return dataclasses.replace(
+            last,
+            seq=tick.seq,
+            t=tick.seq * self._dt,
+            source="PREDICTED",
+            frame=None,
+            late_ticks=0,
+            horizon=0.0,
+            compute_us=int((time.perf_counter_ns() - started) // 1000),
+        )
 
     def apply_late(self, frame: FrameIn) -> TickOutcome:
         """Apply a frame whose tick was answered PREDICTED; returns its CORRECTED outcome."""

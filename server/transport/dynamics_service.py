@@ -54,6 +54,10 @@ _Context = grpc.aio.ServicerContext[dynamics_pb2.StreamSessionRequest, Response]
 
 # REALTIME: how far ahead of the clock a frame may arrive and wait for its tick.
 _MAX_TICKS_AHEAD = 1000
+# REALTIME: a tick whose deadline passed this long ago before the event loop got to it (the
+# process is overloaded, or a timewarp held the loop) is answered at once from what the session
+# has, flagged `late_compute`, instead of late after running the estimator (seconds).
+SHED_AFTER = 0.002
 
 
 class _Stream:
@@ -213,11 +217,15 @@ class _Stream:
         outcome = self.runtime.advance(None)
         return Response(result=self.record_result(outcome, arrived=arrived))
 
-    def on_deadline(self, deadline: float) -> Response:
-        """REALTIME: answer the next tick with its frame if it came, else predicted."""
+    def on_deadline(self, deadline: float, *, shed: bool = False) -> Response:
+        """REALTIME: answer the next tick with its frame if it came, else predicted; `shed`: without
+        running the estimator (the deadline has passed already)."""
         seq = self.runtime.next_tick
         frame = self.pending.pop(seq, None)
-        outcome = self.runtime.advance(frame, horizon=self.horizon())
+        if shed:
+            outcome = self.runtime.shed(frame)
+        else:
+            outcome = self.runtime.advance(frame, horizon=self.horizon())
         return Response(result=self.record_result(outcome, arrived=deadline))
 
     def drain(self) -> list[Response]:
@@ -358,7 +366,9 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             joint_types=tuple(j.type for j in info.joints),
             actuator_names=tuple(a.name for a in info.actuators),
         )
-        recorder = SessionRecorder(data_root=services.data_root, index=services.index, header=header)
+        recorder = SessionRecorder(
+            data_root=services.data_root, index=services.index, header=header, committer=services.committer
+        )
         runtime = SessionRuntime(
             model=model,
             estimator=estimator,
@@ -432,18 +442,22 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             async with write_lock:
                 await context.write(response)
 
+        # REALTIME runs on the event loop itself: a tick's work (a few hundred microseconds for most
+        # models) costs less than the two thread hand-offs per tick it replaced (profiled: the
+        # executor's wake-ups and GIL hand-overs were a third of a tick's CPU), and one loop per
+        # process (`jitdyn serve --processes`) keeps every deadline in one queue, earliest first.
         async def ticker() -> None:
-            loop = asyncio.get_running_loop()
+            dt, grace = stream.plan.dt, stream.plan.grace
             while True:
                 seq = stream.runtime.next_tick
-                deadline = stream.sync.to_server(seq * stream.plan.dt) + stream.plan.grace
+                deadline = stream.sync.to_server(seq * dt) + grace
                 wait = stream.clock.to_monotonic(deadline) - time.monotonic()
                 if wait > 0:
                     await asyncio.sleep(wait)
-                async with stream.lock:
-                    if stream.closed:
-                        return
-                    response = await loop.run_in_executor(None, stream.on_deadline, max(deadline, 0.0))
+                if stream.closed:
+                    return
+                late = stream.clock.now() - deadline
+                response = stream.on_deadline(max(deadline, 0.0), shed=late > SHED_AFTER)
                 await write(response)
 
         tick_task = asyncio.create_task(ticker())
@@ -454,21 +468,15 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 arrived = stream.clock.now()
                 kind = request.WhichOneof("payload")
                 if kind == "frame":
-                    async with stream.lock:
-                        responses = await asyncio.to_thread(stream.on_frame, request.frame, arrived)
-                    for response in responses:
+                    for response in stream.on_frame(request.frame, arrived):
                         await write(response)
                 elif kind == "skip":
-                    async with stream.lock:
-                        response = await asyncio.to_thread(stream.on_skip, request.skip.seq, arrived)
-                    await write(response)
+                    await write(stream.on_skip(request.skip.seq, arrived))
                 elif kind == "sync":
                     await write(self._pong(stream, request.sync, arrived))
                 elif kind == "close":
                     tick_task.cancel()
-                    async with stream.lock:
-                        responses = await asyncio.to_thread(stream.drain)
-                    for response in responses:
+                    for response in stream.drain():
                         await write(response)
                     await write(await self._close(stream))
                     return

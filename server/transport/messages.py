@@ -45,6 +45,7 @@ def result_message(
         compute_us=min(outcome.compute_us, 2**32 - 1),
         receive_to_send_us=min(receive_to_send_us, 2**32 - 1),
         horizon=outcome.horizon,
+        late_compute=outcome.late_compute,
     )
     dyn = outcome.dynamics
     if dyn.qfrc_inverse is not None:

@@ -677,6 +677,7 @@ class Result(_message.Message):
     HORIZON_FIELD_NUMBER: _builtins.int
     FILTER_STATE_FIELD_NUMBER: _builtins.int
     COVARIANCE_FIELD_NUMBER: _builtins.int
+    LATE_COMPUTE_FIELD_NUMBER: _builtins.int
     seq: _builtins.int
     """The tick index."""
     t: _builtins.float
@@ -711,6 +712,13 @@ class Result(_message.Message):
     """The divergence guard re-initialised the estimator from the last measurement at this tick."""
     horizon: _builtins.float
     """The horizon the estimate is extrapolated by (seconds)."""
+    late_compute: _builtins.bool
+    """REALTIME: the server could not run the estimator for this tick by its deadline (it was
+    overloaded, or a late frame's timewarp was still running), so it answered on time from what it
+    already had instead of late: the frame itself when it had arrived (MEASURED; the estimator is
+    then re-initialised from it, and `reinitialised` is set), else the last estimate repeated
+    (PREDICTED). The estimator skips the tick; late frames older than it are rejected TOO_OLD.
+    """
     @_builtins.property
     def qpos(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """Estimated generalized positions (nq)."""
@@ -783,10 +791,11 @@ class Result(_message.Message):
         horizon: _builtins.float = ...,
         filter_state: _abc.Iterable[_builtins.float] | None = ...,
         covariance: _abc.Iterable[_builtins.float] | None = ...,
+        late_compute: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "durable_seq", b"durable_seq", "nis", b"nis"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "actuator_force", b"actuator_force", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "actuator_force", b"actuator_force", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__durable_seq: _TypeAlias = _typing.Literal["durable_seq"]  # noqa: Y015
     _WhichOneofArgType__durable_seq: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq"]  # noqa: Y015

@@ -1,0 +1,116 @@
+"""Shedding a tick: what an overloaded REALTIME server answers on time instead of late, without
+running the estimator, and how the session carries on (server/runtime/session.py `shed`)."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from jitdyn.registry import builtin_model_path
+from jitdyn.server.estimation.dynamics import Dynamics
+from jitdyn.server.estimation.estimator import resolve_config
+from jitdyn.server.estimation.factory import make_estimator
+from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.runtime.frames import FrameIn
+from jitdyn.server.runtime.session import SessionRuntime
+
+DT = 0.05
+
+
+def _frames(model: mujoco.MjModel, ticks: int) -> list[FrameIn]:
+    data = mujoco.MjData(model)
+    data.qpos[:] = [0.5, -0.3, 0.2]
+    steps = round(DT / model.opt.timestep)
+    frames = []
+    for k in range(ticks):
+        frames.append(
+            FrameIn(
+                seq=k,
+                t=k * DT,
+                qpos=data.qpos.copy(),
+                qvel=data.qvel.copy(),
+                qacc=None,
+                ctrl=None,
+                sensordata=None,
+                received=k * DT,
+            )
+        )
+        for _ in range(steps):
+            mujoco.mj_step(model, data)
+    return frames
+
+
+def test_a_shed_tick_answers_from_the_frame_or_the_last_answer_and_the_session_recovers() -> None:
+    model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
+    frames = _frames(model, 12)
+    config = resolve_config(
+        model=model,
+        scenario="PASSIVE",
+        dt=DT,
+        requested={},
+        model_defaults={},
+        preset="JITDYN",
+        measured={"qpos", "qvel"},
+    )
+    with WorkerPool(1) as pool:
+        runtime = SessionRuntime(
+            model=model,
+            estimator=make_estimator(model, config, pool=pool),
+            dynamics=Dynamics(model, outputs=frozenset({"INVERSE_DYNAMICS"})),
+            dt=DT,
+            scenario="PASSIVE",
+            history=50,
+        )
+        for k in range(4):
+            assert not runtime.advance(frames[k]).late_compute
+        predicted = runtime.advance(None)  # tick 4, the estimator's own prediction
+        assert predicted.source == "PREDICTED" and not predicted.late_compute
+
+        # Tick 5 shed without a frame: tick 4's answer repeated, nothing computed.
+        repeated = runtime.shed(None)
+        assert (repeated.seq, repeated.source, repeated.late_compute) == (5, "PREDICTED", True)
+        np.testing.assert_array_equal(repeated.qpos, predicted.qpos)
+        assert repeated.t == 5 * DT
+        # The history is gone: no late frame may be replayed across a tick the estimator skipped.
+        assert runtime.classify(4) == "too_old" and runtime.classify(5) == "too_old"
+        # Stale until a frame comes: tick 6 without one is shed too, even through `advance`.
+        assert runtime.advance(None).late_compute
+
+        # A frame re-initialises the estimator from itself: MEASURED, flagged, on the frame's state.
+        measured = runtime.advance(frames[7])
+        assert (measured.source, measured.late_compute) == ("MEASURED", True)
+        assert measured.estimate is not None and measured.estimate.reinitialised
+        np.testing.assert_array_equal(measured.qpos, frames[7].qpos)
+        # From there the estimator runs again, on time, and predicts near the truth.
+        assert not runtime.advance(frames[8]).late_compute
+        ahead = runtime.advance(None)
+        assert ahead.source == "PREDICTED" and not ahead.late_compute
+        assert np.max(np.abs(ahead.qpos - frames[9].qpos)) < 0.05
+
+        counts = runtime.counts
+        assert (counts.ticks, counts.late_compute, counts.measured, counts.predicted) == (10, 3, 6, 4)
+
+
+def test_shedding_before_the_first_frame_answers_the_rest_pose() -> None:
+    model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_1")))
+    config = resolve_config(
+        model=model,
+        scenario="PASSIVE",
+        dt=DT,
+        requested={},
+        model_defaults={},
+        preset="JITDYN",
+        measured={"qpos", "qvel"},
+    )
+    with WorkerPool(1) as pool:
+        runtime = SessionRuntime(
+            model=model,
+            estimator=make_estimator(model, config, pool=pool),
+            dynamics=Dynamics(model, outputs=frozenset({"INVERSE_DYNAMICS"})),
+            dt=DT,
+            scenario="PASSIVE",
+            history=50,
+        )
+        first = runtime.shed(None)
+        assert (first.seq, first.source, first.late_compute) == (0, "PREDICTED", True)
+        np.testing.assert_array_equal(first.qpos, model.qpos0)
