@@ -94,6 +94,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="threads propagating sigma points, shared by all sessions (env JITDYN_WORKERS; default: the CPU count)",
     )
     serve.add_argument(
+        "--processes",
+        type=int,
+        default=int(_env("JITDYN_PROCESSES", str(os.cpu_count() or 1))),
+        help="server processes on the one port (SO_REUSEPORT), each with its own event loop and "
+        "worker pool, sharing the data folder and index (env JITDYN_PROCESSES; default: the CPU count)",
+    )
+    serve.add_argument(
         "--secret-file",
         type=Path,
         default=os.environ.get("JITDYN_SECRET_FILE"),
@@ -223,7 +230,12 @@ def _serve(args: argparse.Namespace) -> int:
             max_state_dimension=args.max_state_dimension,
         ),
     )
-    asyncio.run(serve(config, announce=lambda line: print(line, flush=True)))
+    if args.processes > 1:
+        from jitdyn.server.transport.processes import run_processes
+
+        run_processes(config, processes=args.processes, announce=lambda line: print(line, flush=True))
+    else:
+        asyncio.run(serve(config, announce=lambda line: print(line, flush=True)))
     return 0
 
 

@@ -20,6 +20,7 @@ import dataclasses
 import datetime
 import hashlib
 import json
+import logging
 import threading
 from collections.abc import Mapping
 from pathlib import Path
@@ -29,7 +30,7 @@ from typing import Any, Self
 import mujoco
 import sqlalchemy as sa
 
-from jitdyn.errors import InvalidArgument, NotFound
+from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
 from jitdyn.registry.builtins import builtin_models
 from jitdyn.registry.compile import ModelCompiler, check_request
 from jitdyn.registry.content_id import check_content_id, content_id
@@ -49,6 +50,8 @@ from jitdyn.registry.store import read_blob, write_blob
 from jitdyn.storage.schema import models
 
 __all__ = ["DEFAULT_PAGE_SIZE", "MAX_PAGE_SIZE", "ModelRegistry"]
+
+_log = logging.getLogger(__name__)
 
 DEFAULT_PAGE_SIZE = 50
 MAX_PAGE_SIZE = 1000
@@ -443,7 +446,19 @@ class ModelRegistry:
                 with self._cache_lock:
                     model = self._cache.get(model_id)
                 if model is None:
-                    mjcf, assets = read_blob(self._data_root, row.blob_path)
+                    try:
+                        mjcf, assets = read_blob(self._data_root, row.blob_path)
+                    except FileNotFoundError:
+                        # The index is shared (PostgreSQL) but this server's data folder lacks the
+                        # blob: a deployment fault to name, never a server path to leak.
+                        _log.error(
+                            "model %s: %s is missing under %s", model_id, row.blob_path, self._data_root
+                        )
+                        raise FailedPrecondition(
+                            f"model {model_id} is registered in the index but its MJCF and assets are "
+                            "not in this server's data folder (servers sharing an index must share the "
+                            "data folder too)"
+                        ) from None
                     stored = content_id(mjcf, assets)
                     if stored != model_id:
                         raise RuntimeError(

@@ -6,7 +6,10 @@ engine = open_index("postgresql+psycopg://127.0.0.1/test")      # several server
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import sqlalchemy as sa
@@ -34,9 +37,41 @@ def _alembic_config(engine: sa.Engine) -> Config:
     return config
 
 
+# Any constant shared by every jitdyn process: the key of the PostgreSQL advisory lock that
+# serialises migrations ("jitdyn" in ASCII).
+_MIGRATION_LOCK_KEY = 0x6A6974647966
+
+
+@contextlib.contextmanager
+def _migration_lock(engine: sa.Engine) -> Iterator[None]:
+    """Held while migrating, so that servers starting together (the processes of one `jitdyn serve
+    --processes N`, or several servers on one PostgreSQL index) migrate one after the other: the
+    second finds the schema at head. Without it, both inserted into alembic_version and one died
+    with a UniqueViolation."""
+    database = engine.url.database or ""
+    if engine.dialect.name == "postgresql":
+        with engine.connect() as conn:
+            conn.execute(sa.text("SELECT pg_advisory_lock(:key)"), {"key": _MIGRATION_LOCK_KEY})
+            try:
+                yield
+            finally:
+                conn.execute(sa.text("SELECT pg_advisory_unlock(:key)"), {"key": _MIGRATION_LOCK_KEY})
+                conn.commit()
+    elif engine.dialect.name == "sqlite" and database not in ("", ":memory:"):
+        with open(f"{database}.migrate.lock", "a+b") as lock:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(lock.fileno(), fcntl.LOCK_UN)
+    else:
+        yield
+
+
 def upgrade(engine: sa.Engine) -> None:
-    """Apply every migration not yet applied (idempotent)."""
-    command.upgrade(_alembic_config(engine), "head")
+    """Apply every migration not yet applied (idempotent; safe when processes start together)."""
+    with _migration_lock(engine):
+        command.upgrade(_alembic_config(engine), "head")
 
 
 def open_index(url: str, *, schema: str | None = None) -> sa.Engine:
@@ -68,8 +103,10 @@ def open_index(url: str, *, schema: str | None = None) -> sa.Engine:
             cursor.execute("PRAGMA synchronous=FULL")
             cursor.close()
 
-    if schema is not None:
-        with engine.begin() as conn:
-            conn.execute(sa.text(f'CREATE SCHEMA IF NOT EXISTS "{schema}"'))
-    upgrade(engine)
+    with _migration_lock(engine):
+        if schema is not None:
+            # Under the lock too: CREATE SCHEMA IF NOT EXISTS races (a unique violation) as well.
+            with engine.begin() as conn:
+                conn.execute(sa.text(f'CREATE SCHEMA IF NOT EXISTS "{schema}"'))
+        command.upgrade(_alembic_config(engine), "head")
     return engine

@@ -43,7 +43,15 @@ from jitdyn.v1 import (
     session_pb2_grpc,
 )
 
-__all__ = ["MAX_MESSAGE_BYTES", "SERVICE_NAMES", "ServerConfig", "create_server", "serve", "shutdown"]
+__all__ = [
+    "MAX_MESSAGE_BYTES",
+    "SERVICE_NAMES",
+    "ServerConfig",
+    "create_server",
+    "prepare_data",
+    "serve",
+    "shutdown",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -77,6 +85,10 @@ class ServerConfig:
     insecure: bool = False
     shutdown_grace: float = 5.0
     environ: dict[str, str] = field(default_factory=lambda: dict(os.environ))
+    # What happens once per data folder at start (migrations, recovery, built-ins); the children of
+    # `jitdyn serve --processes N` leave it to their parent.
+    startup_tasks: bool = True
+    reuse_port: bool = False  # SO_REUSEPORT: several processes serve one port
 
 
 def _is_loopback(address: str) -> bool:
@@ -101,6 +113,33 @@ def _check_security(config: ServerConfig) -> None:
         )
 
 
+def prepare_data(config: ServerConfig, *, recover_only: bool = False) -> tuple[Path, str]:
+    """What happens once per data folder before serving: the folder, the secret checked, the index
+    migrated, sessions a dead server left open recovered (only logs no live process holds), the
+    built-in models registered. Returns the data root and the index URL. Blocking."""
+    _check_security(config)
+    if config.api_keys:
+        load_api_keys(config.api_keys)  # refuse a bad key file before touching any data
+    data_root = config.data_root.resolve()
+    data_root.mkdir(parents=True, exist_ok=True)
+    load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
+    url = config.index_url or default_index_url(data_root)
+    engine = open_index(url, schema=config.index_schema)
+    try:
+        index = SessionIndex(engine)
+        recovered = recover_unfinished(data_root=data_root, index=index)
+        if recovered:
+            _log.warning(
+                "recovered %d unfinished session(s) to Parquet: %s", len(recovered), ", ".join(recovered)
+            )
+        if not recover_only:
+            with ModelRegistry(engine=engine, data_root=data_root, limits=config.registry_limits) as registry:
+                registry.register_builtins()
+    finally:
+        engine.dispose()
+    return data_root, url
+
+
 async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Services]:
     """Build the server and everything it serves with; not started. Returns the bound port."""
     _check_security(config)
@@ -113,13 +152,15 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
         open_index, config.index_url or default_index_url(data_root), schema=config.index_schema
     )
     index = SessionIndex(engine)
-    recovered = await asyncio.to_thread(recover_unfinished, data_root=data_root, index=index)
-    if recovered:
-        _log.warning(
-            "recovered %d unfinished session(s) to Parquet: %s", len(recovered), ", ".join(recovered)
-        )
+    if config.startup_tasks:
+        recovered = await asyncio.to_thread(recover_unfinished, data_root=data_root, index=index)
+        if recovered:
+            _log.warning(
+                "recovered %d unfinished session(s) to Parquet: %s", len(recovered), ", ".join(recovered)
+            )
     registry = ModelRegistry(engine=engine, data_root=data_root, limits=config.registry_limits)
-    await asyncio.to_thread(registry.register_builtins)
+    if config.startup_tasks:
+        await asyncio.to_thread(registry.register_builtins)
     services = Services(
         registry=registry,
         index=index,
@@ -131,7 +172,7 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
     options = [
         ("grpc.max_receive_message_length", config.max_message_bytes),
         ("grpc.max_send_message_length", config.max_message_bytes),
-        ("grpc.so_reuseport", 0),
+        ("grpc.so_reuseport", 1 if config.reuse_port else 0),
         # A client that vanishes without closing its connection (a prosthesis losing power) is
         # found by keepalive pings within about a minute, and its session is stored and released.
         ("grpc.keepalive_time_ms", 30_000),
@@ -179,8 +220,11 @@ async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float 
     services.index.engine.dispose()
 
 
-async def serve(config: ServerConfig, *, announce: Callable[[str], None] = print) -> None:
-    """Run until SIGINT or SIGTERM, then shut down gracefully."""
+async def serve(
+    config: ServerConfig, *, announce: Callable[[str], None] = print, process_index: int | None = None
+) -> None:
+    """Run until SIGINT or SIGTERM, then shut down gracefully. `process_index`: this is one of the
+    processes of `jitdyn serve --processes N` (server/transport/processes.py)."""
     server, port, services = await create_server(config)
     await server.start()
     host = config.address.rsplit(":", 1)[0]

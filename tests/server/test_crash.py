@@ -24,7 +24,7 @@ from jitdyn.client import Client, FrameData, SessionOptions, TickResult
 class ServerProcess:
     """`jitdyn serve` in a child process on a loopback port 0."""
 
-    def __init__(self, data: Path, env: dict[str, str]) -> None:
+    def __init__(self, data: Path, env: dict[str, str], *, processes: int = 1) -> None:
         self.process = subprocess.Popen(
             [
                 sys.executable,
@@ -37,6 +37,8 @@ class ServerProcess:
                 str(data),
                 "--workers",
                 "1",
+                "--processes",
+                str(processes),
             ],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
@@ -89,9 +91,11 @@ def _truth(ticks: int) -> list[tuple[np.ndarray, np.ndarray]]:
     ]
 
 
-def test_kill_9_loses_no_durable_frame(tmp_path: Path, env: dict[str, str]) -> None:
+@pytest.mark.parametrize("processes", [1, 2])
+def test_kill_9_loses_no_durable_frame(tmp_path: Path, env: dict[str, str], processes: int) -> None:
+    # With several processes, kill -9 of `jitdyn serve` takes its serving processes with it.
     data = tmp_path / "data"
-    server = ServerProcess(data, env)
+    server = ServerProcess(data, env, processes=processes)
     durable = -1
     truth = _truth(400)
     try:
@@ -119,7 +123,7 @@ def test_kill_9_loses_no_durable_frame(tmp_path: Path, env: dict[str, str]) -> N
     client.close()
     assert durable >= 300, f"durable_seq lagged far behind: {durable}"
 
-    restarted = ServerProcess(data, env)
+    restarted = ServerProcess(data, env, processes=processes)
     log = restarted.stop()
     assert "recovered 1 unfinished session" in log, log
     files = list((data / "frames").rglob(f"{session_id}.parquet"))

@@ -1,0 +1,647 @@
+"""Real time under load: N concurrent REALTIME sessions against one `jitdyn serve`.
+
+The load comes from separate client processes (`--clients`, default 2), each holding its share of
+the sessions on one grpc.aio channel and sending every frame on its tick time, pre-serialised, so
+the generator spends as little of the shared CPU as it can. Over every tick of every session it
+reports:
+
+    answered    ticks with at least one result / ticks sent
+    measured    ticks whose first result is MEASURED / ticks sent
+    late p50/p99/max   the first result's arrival after the tick's deadline (k dt + grace on the
+                client's session clock; loopback transit included), ms; early answers count as 0
+    cpu/tick    server CPU (user + system of every server process) / ticks answered, us
+    ukf cycle   the same model's predict + update, measured in this run on one worker, us
+
+    python -m benchmarks.load --model pendulum_3 --rate 20 --sessions 100 --seconds 20
+    python -m benchmarks.load --sweep                 # the four targets of RESULTS.md, largest N each
+    python -m benchmarks.load --server 127.0.0.1:50051 --model biped --scenario CONTROLLED --rate 200 --sessions 6
+
+Without --server it starts `jitdyn serve` with default settings on a free port and a temporary
+data folder, and stops it after each run (a fresh server per trial in a sweep).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import math
+import multiprocessing as mp
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+GRACE_FRACTION = 0.5  # the server's default grace, dt / 2
+TARGET_P99_MS = 5.0
+TARGET_MEASURED = 0.99
+
+
+@dataclass(frozen=True)
+class Target:
+    """One row of the issue's targets: `sessions` of `model` in `scenario` at `rate` Hz."""
+
+    model: str
+    scenario: str
+    rate: float
+    sessions: int
+    aim: int
+    seconds: float
+
+
+TARGETS = (
+    Target("pendulum_3", "PASSIVE", 20.0, 100, 200, 20.0),
+    Target("biped", "CONTROLLED", 200.0, 6, 12, 20.0),
+    Target("myoelbow", "EXTERNAL", 500.0, 6, 12, 20.0),
+    Target("myohand", "EXTERNAL", 500.0, 1, 1, 60.0),
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# The trajectory every session replays.
+
+
+def trajectory(model: str, scenario: str, rate: float, ticks: int) -> dict[str, np.ndarray]:
+    """qpos, qvel, ctrl of the research object `model` driven as the experiments drive it, at `rate`."""
+    from jitdyn.experiments import objects
+    from jitdyn.experiments.objects import Scenario
+
+    dt = 1.0 / rate
+    kinds = {
+        "pendulum_1": (objects.Pendulum, (1,)),
+        "pendulum_2": (objects.Pendulum, (2,)),
+        "pendulum_3": (objects.Pendulum, (3,)),
+        "biped": (objects.Biped, ()),
+        "myoelbow": (objects.MyoElbow, ()),
+        "myohand": (objects.MyoHand, ()),
+    }
+    if model not in kinds:
+        raise SystemExit(f"--model must be one of {sorted(kinds)}, got {model!r}")
+    cls, args = kinds[model]
+    obj = cls(*args, Scenario(scenario), dt=dt)
+    states = [obj.reset(seed=0)] + [obj.step() for _ in range(ticks - 1)]
+    return {
+        "qpos": np.array([s.qpos for s in states]),
+        "qvel": np.array([s.qvel for s in states]),
+        "ctrl": np.array([s.ctrl for s in states]),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Client processes.
+
+
+@dataclass
+class WorkerSpec:
+    address: str
+    open_bytes: bytes
+    frames_path: str
+    sessions: int
+    dt: float
+    ticks: int
+    start_spread: float
+    index: int
+
+
+@dataclass
+class WorkerResult:
+    ticks_sent: int = 0
+    answered: int = 0
+    measured: int = 0
+    lateness_ms: list[float] = field(default_factory=list)
+    opened: int = 0
+    refused: list[str] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+
+
+def _frames(spec: WorkerSpec, measured: Sequence[str]) -> list[bytes]:
+    from jitdyn.checksum import frame_checksum
+    from jitdyn.v1 import dynamics_pb2
+
+    data = np.load(spec.frames_path)
+    out = []
+    for k in range(spec.ticks):
+        channels = {
+            "qpos": data["qpos"][k],
+            "qvel": data["qvel"][k] if "qvel" in measured else np.empty(0),
+            "qacc": np.empty(0),
+            "ctrl": data["ctrl"][k] if "ctrl" in measured else np.empty(0),
+            "sensordata": np.empty(0),
+        }
+        t = k * spec.dt
+        frame = dynamics_pb2.Frame(
+            seq=k,
+            t=t,
+            qpos=channels["qpos"].tolist(),
+            qvel=channels["qvel"].tolist(),
+            ctrl=channels["ctrl"].tolist(),
+            checksum=frame_checksum(seq=k, t=t, **channels),
+        )
+        out.append(dynamics_pb2.StreamSessionRequest(frame=frame).SerializeToString())
+    return out
+
+
+async def _session(
+    stub_call: object, spec: WorkerSpec, frames: list[bytes], delay: float, result: WorkerResult
+) -> None:
+    import grpc
+
+    from jitdyn.v1 import dynamics_pb2
+
+    await asyncio.sleep(delay)
+    call = stub_call(wait_for_ready=True)  # type: ignore[operator]
+    try:
+        await call.write(spec.open_bytes)
+        first = dynamics_pb2.StreamSessionResponse.FromString(await call.read())
+    except grpc.aio.AioRpcError as error:
+        text = f"{error.code().name}: {error.details()}"
+        (result.refused if error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED else result.errors).append(text)
+        return
+    if not first.HasField("opened"):
+        result.errors.append(f"first answer is not `opened`: {first.WhichOneof('payload')}")
+        return
+    result.opened += 1
+    start = time.monotonic()
+    grace = first.opened.grace or spec.dt * GRACE_FRACTION
+    first_answer: dict[int, tuple[float, int]] = {}
+    probe = 0
+    last_probe: tuple[int, float] | None = None
+
+    async def read() -> None:
+        nonlocal last_probe
+        while True:
+            raw = await call.read()
+            if raw is grpc.aio.EOF:
+                return
+            now = time.monotonic()
+            response = dynamics_pb2.StreamSessionResponse.FromString(raw)
+            kind = response.WhichOneof("payload")
+            if kind == "result":
+                seq = response.result.seq
+                if seq not in first_answer:
+                    first_answer[seq] = (now - start, response.result.source)
+            elif kind == "sync":
+                last_probe = (response.sync.id, now - start)
+
+    async def ping() -> None:
+        nonlocal probe
+        probe += 1
+        message = dynamics_pb2.SyncPing(id=probe, client_send_time=time.monotonic() - start)
+        if last_probe is not None:
+            message.previous_id, message.previous_receive_time = last_probe
+        await call.write(dynamics_pb2.StreamSessionRequest(sync=message).SerializeToString())
+
+    reader = asyncio.create_task(read())
+    try:
+        await ping()
+        next_sync = 1.0
+        for k, frame in enumerate(frames):
+            wait = start + k * spec.dt - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            await call.write(frame)
+            if k * spec.dt >= next_sync:
+                await ping()
+                next_sync += 1.0
+        # Let the last tick's deadline pass before closing (close answers pending ticks at once).
+        await asyncio.sleep(max(0.0, start + (len(frames) - 1) * spec.dt + grace + 0.05 - time.monotonic()))
+        await call.write(
+            dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()).SerializeToString()
+        )
+        await call.done_writing()
+        await asyncio.wait_for(reader, timeout=30)
+    except (grpc.aio.AioRpcError, TimeoutError) as error:
+        result.errors.append(repr(error)[:200])
+        reader.cancel()
+    result.ticks_sent += len(frames)
+    measured_source = dynamics_pb2.SOURCE_MEASURED
+    for k in range(len(frames)):
+        answer = first_answer.get(k)
+        if answer is None:
+            continue
+        result.answered += 1
+        arrived, source = answer
+        result.measured += source == measured_source
+        result.lateness_ms.append(max(0.0, (arrived - (k * spec.dt + grace)) * 1e3))
+
+
+async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResult:
+    import grpc
+
+    frames = _frames(spec, measured)
+    result = WorkerResult()
+    options = [("grpc.max_receive_message_length", 64 * 1024 * 1024)]
+    # One connection per session, as every device has its own: the kernel spreads connections, not
+    # streams, over the server's processes (SO_REUSEPORT).
+    channels = [grpc.aio.insecure_channel(spec.address, options=options) for _ in range(spec.sessions)]
+    try:
+        tasks = [
+            _session(
+                channel.stream_stream(
+                    "/jitdyn.v1.DynamicsService/StreamSession",
+                    request_serializer=None,
+                    response_deserializer=None,
+                ),
+                spec,
+                frames,
+                spec.start_spread * i / max(1, spec.sessions),
+                result,
+            )
+            for i, channel in enumerate(channels)
+        ]
+        await asyncio.gather(*tasks)
+    finally:
+        for channel in channels:
+            await channel.close()
+    return result
+
+
+def _worker(spec: WorkerSpec, measured: Sequence[str], queue: mp.Queue) -> None:  # type: ignore[type-arg]
+    try:
+        queue.put(asdict(asyncio.run(_worker_main(spec, measured))))
+    except BaseException as error:  # noqa: BLE001 - reported to the parent, which fails the run
+        queue.put({"fatal": repr(error)})
+
+
+# ---------------------------------------------------------------------------------------------
+# The server and its CPU.
+
+
+def _process_tree(pid: int) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+                children.setdefault(int(fields[1]), []).append(int(entry))
+    tree, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        tree.append(current)
+        todo.extend(children.get(current, []))
+    return tree
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU of `pid` and its descendants so far, in seconds."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    total = 0
+    for p in _process_tree(pid):
+        with contextlib.suppress(OSError):
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])
+    return total / ticks
+
+
+@contextlib.contextmanager
+def local_server(extra: Sequence[str] = ()) -> Iterator[tuple[str, int]]:
+    """`jitdyn serve` on a free port and a temporary data folder: (address, pid)."""
+    with tempfile.TemporaryDirectory(prefix="jitdyn-load-") as data:
+        env = dict(os.environ, JITDYN_SECRET="ab" * 32)
+        process = subprocess.Popen(
+            [sys.executable, "-m", "jitdyn.cli", "serve", "--address", "127.0.0.1:0", "--data", data, *extra],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
+        assert process.stdout is not None
+        address = None
+        for line in process.stdout:
+            if line.startswith("jitdyn listening on"):
+                address = line.split()[3]
+                break
+        if address is None:
+            process.wait()
+            raise SystemExit("jitdyn serve did not start")
+        try:
+            yield address, process.pid
+        finally:
+            process.terminate()
+            try:
+                process.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+def _server_pid(address: str) -> int | None:
+    """The pid listening on `address` (for --server), from /proc/net/tcp; None if not ours to see."""
+    port = int(address.rsplit(":", 1)[1])
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with contextlib.suppress(OSError):
+            for line in Path(table).read_text().splitlines()[1:]:
+                parts = line.split()
+                if int(parts[1].rsplit(":", 1)[1], 16) == port and parts[3] == "0A":
+                    inodes.add(parts[9])
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                for fd in os.listdir(f"/proc/{entry}/fd"):
+                    link = os.readlink(f"/proc/{entry}/fd/{fd}")
+                    if link.startswith("socket:[") and link[8:-1] in inodes:
+                        return int(entry)
+    return None
+
+
+# ---------------------------------------------------------------------------------------------
+# One run.
+
+
+@dataclass
+class RunReport:
+    model: str
+    scenario: str
+    rate: float
+    sessions: int
+    opened: int
+    refused: int
+    errors: list[str]
+    ticks_sent: int
+    answered: float
+    measured: float
+    late_p50_ms: float
+    late_p99_ms: float
+    late_max_ms: float
+    cpu_per_tick_us: float
+    ukf_cycle_us: float
+
+    def meets(self) -> bool:
+        return (
+            self.opened == self.sessions
+            and not self.errors
+            and self.answered >= 1.0
+            and self.measured >= TARGET_MEASURED
+            and self.late_p99_ms <= TARGET_P99_MS
+        )
+
+    def line(self) -> str:
+        verdict = "MEETS" if self.meets() else "misses"
+        return (
+            f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
+            f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "
+            f"measured {100 * self.measured:6.2f} % | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
+            f"max {self.late_max_ms:8.2f} ms | cpu/tick {self.cpu_per_tick_us:6.0f} us "
+            f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}) | {verdict}"
+        )
+
+
+def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
+    """Median predict + update of the default estimator for `model`, one worker, this process."""
+    from jitdyn.experiments.objects import load_source
+    from jitdyn.server.estimation.estimator import Measurement, resolve_config
+    from jitdyn.server.estimation.factory import make_estimator
+    from jitdyn.server.estimation.pool import WorkerPool
+
+    mj = load_source(model).compile()
+    measured = {"qpos", "qvel", "ctrl"} if scenario == "CONTROLLED" else {"qpos", "qvel"}
+    config = resolve_config(
+        model=mj,
+        scenario=scenario,
+        dt=1.0 / rate,
+        requested={},
+        model_defaults={},
+        preset="JITDYN",
+        measured=measured,
+    )
+    with WorkerPool(1) as pool:
+        estimator = make_estimator(mj, config, pool=pool)
+
+        def measurement(k: int) -> Measurement:
+            return Measurement(
+                qpos=states["qpos"][k],
+                qvel=states["qvel"][k],
+                ctrl=states["ctrl"][k] if scenario == "CONTROLLED" else None,
+            )
+
+        estimator.initialise(measurement(0))
+        samples = []
+        n = min(len(states["qpos"]), 400)
+        for k in range(1, n):
+            ctrl = states["ctrl"][k] if scenario == "CONTROLLED" else None
+            started = time.perf_counter()
+            estimator.predict(ctrl=ctrl)
+            estimator.update(measurement(k))
+            samples.append(time.perf_counter() - started)
+    return statistics.median(samples) * 1e6
+
+
+def run(
+    *,
+    model: str,
+    scenario: str,
+    rate: float,
+    sessions: int,
+    seconds: float,
+    clients: int,
+    server: str | None,
+    serve_args: Sequence[str] = (),
+    states: dict[str, np.ndarray] | None = None,
+    ukf_us: float | None = None,
+) -> RunReport:
+    from jitdyn.client import Client, SessionOptions
+
+    dt = 1.0 / rate
+    ticks = max(2, round(seconds * rate))
+    if states is None:
+        states = trajectory(model, scenario, rate, ticks)
+    if ukf_us is None:
+        ukf_us = ukf_cycle_us(model, scenario, rate, states)
+    with contextlib.ExitStack() as stack:
+        if server is None:
+            address, pid = stack.enter_context(local_server(serve_args))
+        else:
+            address, found = server, _server_pid(server)
+            if found is None:
+                raise SystemExit(f"cannot see the process serving {server}; run the server as this user")
+            pid = found
+        folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="jitdyn-load-frames-")))
+        frames_path = folder / "frames.npz"
+        np.savez(frames_path, **states)
+        options: dict[str, object] = {"scenario": scenario, "dt": dt, "clock": "REALTIME"}
+        from jitdyn.experiments.objects import load_source
+
+        source = load_source(model)
+        with Client(address) as client:
+            if source.builtin:
+                options["model_name"] = source.name
+            else:
+                info, _ = client.register_model(name=source.name, mjcf=source.mjcf, assets=source.assets)
+                options["model_id"] = info.id
+        open_message = SessionOptions(**options)  # type: ignore[arg-type]
+        measured = ["qpos", "qvel", "ctrl"] if scenario == "CONTROLLED" else ["qpos", "qvel"]
+        from jitdyn.v1 import dynamics_pb2
+
+        open_bytes = dynamics_pb2.StreamSessionRequest(open=open_message.to_message()).SerializeToString()
+        per_client = [sessions // clients + (1 if i < sessions % clients else 0) for i in range(clients)]
+        context = mp.get_context("spawn")
+        queue = context.Queue()
+        spread = min(2.0, seconds / 4)
+        workers = [
+            context.Process(
+                target=_worker,
+                args=(
+                    WorkerSpec(address, open_bytes, str(frames_path), n, dt, ticks, spread, i),
+                    measured,
+                    queue,
+                ),
+            )
+            for i, n in enumerate(per_client)
+            if n
+        ]
+        cpu_before = cpu_seconds(pid)
+        for worker in workers:
+            worker.start()
+        results = [queue.get() for _ in workers]
+        for worker in workers:
+            worker.join()
+        cpu_used = cpu_seconds(pid) - cpu_before
+    fatal = [r["fatal"] for r in results if "fatal" in r]
+    if fatal:
+        raise SystemExit(f"a client process failed: {fatal[0]}")
+    merged = WorkerResult()
+    for r in results:
+        merged.ticks_sent += r["ticks_sent"]
+        merged.answered += r["answered"]
+        merged.measured += r["measured"]
+        merged.lateness_ms.extend(r["lateness_ms"])
+        merged.opened += r["opened"]
+        merged.refused.extend(r["refused"])
+        merged.errors.extend(r["errors"])
+    expected = sessions * ticks
+    late = np.array(merged.lateness_ms) if merged.lateness_ms else np.array([math.inf])
+    return RunReport(
+        model=model,
+        scenario=scenario,
+        rate=rate,
+        sessions=sessions,
+        opened=merged.opened,
+        refused=len(merged.refused),
+        errors=merged.errors[:5] + merged.refused[:2],
+        ticks_sent=merged.ticks_sent,
+        answered=merged.answered / expected,
+        measured=merged.measured / expected,
+        late_p50_ms=float(np.percentile(late, 50)),
+        late_p99_ms=float(np.percentile(late, 99)),
+        late_max_ms=float(late.max()),
+        cpu_per_tick_us=cpu_used / max(1, merged.answered) * 1e6,
+        ukf_cycle_us=ukf_us,
+    )
+
+
+def sweep(
+    target: Target, *, clients: int, server: str | None, serve_args: Sequence[str], seconds: float | None
+) -> list[RunReport]:
+    """The largest N meeting the targets: the required N first, then up towards the aim, or down."""
+    length = seconds or target.seconds
+    ticks = max(2, round(length * target.rate))
+    states = trajectory(target.model, target.scenario, target.rate, ticks)
+    ukf_us = ukf_cycle_us(target.model, target.scenario, target.rate, states)
+    reports: list[RunReport] = []
+
+    def trial(n: int) -> RunReport:
+        report = run(
+            model=target.model,
+            scenario=target.scenario,
+            rate=target.rate,
+            sessions=n,
+            seconds=length,
+            clients=clients,
+            server=server,
+            serve_args=serve_args,
+            states=states,
+            ukf_us=ukf_us,
+        )
+        print(report.line(), flush=True)
+        reports.append(report)
+        return report
+
+    n = target.sessions
+    if trial(n).meets():
+        while n < target.aim:
+            bigger = min(target.aim, max(n + 1, round(n * 1.5)))
+            if not trial(bigger).meets():
+                break
+            n = bigger
+    else:
+        while n > 1:
+            n = max(1, n // 2)
+            if trial(n).meets():
+                break
+    return reports
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0],
+        epilog=__doc__.split("\n\n", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--model", default="pendulum_3", help="pendulum_1..3, biped, myoelbow, myohand")
+    parser.add_argument("--scenario", default="PASSIVE", choices=("PASSIVE", "CONTROLLED", "EXTERNAL"))
+    parser.add_argument("--rate", type=float, default=20.0, help="frames per second (Hz)")
+    parser.add_argument("--sessions", type=int, default=10)
+    parser.add_argument(
+        "--seconds", type=float, default=None, help="session length (default 20; 60 for myohand in a sweep)"
+    )
+    parser.add_argument("--clients", type=int, default=2, help="client processes generating the load")
+    parser.add_argument("--server", help="ADDRESS of a running server (default: start `jitdyn serve`)")
+    parser.add_argument("--serve-args", default="", help="extra `jitdyn serve` flags, e.g. '--processes 1'")
+    parser.add_argument("--sweep", action="store_true", help="find the largest N of each target")
+    parser.add_argument(
+        "--targets", nargs="*", default=None, help="with --sweep: models to sweep (default all four)"
+    )
+    parser.add_argument("--json", type=Path, help="also write every report here")
+    args = parser.parse_args(argv)
+    serve_args = args.serve_args.split()
+    print(
+        f"# {os.cpu_count()} CPUs; server {'at ' + args.server if args.server else 'started per run'} "
+        f"{' '.join(serve_args)}; {args.clients} client processes",
+        flush=True,
+    )
+    if args.sweep:
+        reports = []
+        for target in TARGETS:
+            if args.targets and target.model not in args.targets:
+                continue
+            found = sweep(
+                target, clients=args.clients, server=args.server, serve_args=serve_args, seconds=args.seconds
+            )
+            reports.extend(found)
+            best = max((r.sessions for r in found if r.meets()), default=0)
+            verdict = "met" if best >= target.sessions else "MISSED"
+            print(
+                f"=> {target.model} {target.scenario} {target.rate:g} Hz: largest N on time {best} "
+                f"(target >= {target.sessions}, aim {target.aim}): {verdict}\n",
+                flush=True,
+            )
+    else:
+        report = run(
+            model=args.model,
+            scenario=args.scenario,
+            rate=args.rate,
+            sessions=args.sessions,
+            seconds=args.seconds or 20.0,
+            clients=args.clients,
+            server=args.server,
+            serve_args=serve_args,
+        )
+        print(report.line())
+        for error in report.errors:
+            print(f"  {error}")
+        reports = [report]
+    if args.json:
+        args.json.write_text(json.dumps([asdict(r) for r in reports], indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

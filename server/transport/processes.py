@@ -1,0 +1,173 @@
+"""`jitdyn serve --processes N`: N server processes on one port, gRPC's documented pattern for
+using every core from Python (each process its own event loop, GIL and worker pool; the kernel
+spreads connections over them with SO_REUSEPORT).
+
+    run_processes(config, processes=2, announce=print)    # blocks until SIGINT or SIGTERM
+
+The parent does what must happen once, before any child serves: it migrates the index, recovers
+sessions a dead server left open and registers the built-in models; it reserves the port; then it
+starts the children and waits. The children share the data folder, the registry and the index. A
+session's log is flock'ed by the process writing it, so its lock is the lease a killed process
+loses: when a child dies, the parent recovers that child's sessions (only unlocked logs are
+touched) and starts a new child in its place.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ctypes
+import ctypes.util
+import dataclasses
+import logging
+import multiprocessing as mp
+import os
+import queue
+import signal
+import socket
+import time
+from collections.abc import Callable, Iterator
+from multiprocessing.process import BaseProcess
+from typing import Any
+
+from jitdyn.errors import InvalidArgument
+from jitdyn.server.transport.app import ServerConfig, prepare_data, serve
+
+__all__ = ["run_processes"]
+
+_log = logging.getLogger(__name__)
+
+_READY_TIMEOUT = 120.0  # s: a child compiles the built-ins' cache lazily, so starting is quick
+
+
+@contextlib.contextmanager
+def _reserved_port(address: str) -> Iterator[int]:
+    """Bind `address` with SO_REUSEPORT without listening, so that port 0 becomes one concrete port
+    every child can bind too, and no other program takes it meanwhile."""
+    host, _, port = address.rpartition(":")
+    host = host.strip("[]")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+        try:
+            sock.bind((host, int(port)))
+        except OSError as exc:
+            raise InvalidArgument(f"cannot listen on {address}: {exc.strerror}") from None
+        yield sock.getsockname()[1]
+    finally:
+        sock.close()
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGKILL this process when its parent dies, so that `kill -9` of `jitdyn serve` ends
+    every serving process (their logs' locks go with them and the next start recovers the
+    sessions) instead of leaving orphans serving a port nobody supervises."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+    pr_set_pdeathsig = 1
+    libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
+
+
+def _child(config: ServerConfig, index: int, ready: Any, parent: int) -> None:
+    """One serving process (spawned): serve until SIGTERM, reporting readiness to the parent."""
+    _die_with_parent()
+    if os.getppid() != parent:  # the parent died before the line above took effect
+        return
+    logging.basicConfig(
+        level=logging.WARNING, format=f"%(levelname)s [process {index}] %(name)s: %(message)s"
+    )
+
+    def announce(line: str) -> None:
+        if line.startswith("jitdyn listening"):
+            ready.put(("ready", index))
+
+    try:
+        asyncio.run(serve(config, announce=announce, process_index=index))
+    except Exception as exc:  # reported to the parent, which says it in one line
+        ready.put(("failed", f"process {index}: {type(exc).__name__}: {exc}"))
+        raise
+
+
+def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[str], None] = print) -> None:
+    """Serve `config` from `processes` processes until SIGINT or SIGTERM."""
+    if processes < 1:
+        raise InvalidArgument(f"--processes must be at least 1, got {processes}")
+    data_root, index_url = prepare_data(config)
+    with _reserved_port(config.address) as port:
+        host = config.address.rpartition(":")[0]
+        child_config = dataclasses.replace(
+            config, address=f"{host}:{port}", data_root=data_root, startup_tasks=False, reuse_port=True
+        )
+        context = mp.get_context("spawn")
+        ready = context.Queue()
+        children: dict[int, BaseProcess] = {}
+
+        def start(index: int) -> None:
+            child = context.Process(
+                target=_child,
+                args=(child_config, index, ready, os.getpid()),
+                name=f"jitdyn-serve-{index}",
+                daemon=False,
+            )
+            child.start()
+            children[index] = child
+
+        stop = False
+
+        def on_signal(signum: int, _frame: object) -> None:
+            nonlocal stop
+            stop = True
+
+        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            for index in range(processes):
+                start(index)
+            waiting = set(range(processes))
+            deadline = time.monotonic() + _READY_TIMEOUT
+            while waiting and not stop:
+                try:
+                    kind, detail = ready.get(timeout=0.2)
+                except queue.Empty:
+                    pass
+                else:
+                    if kind == "failed":
+                        raise InvalidArgument(str(detail))
+                    waiting.discard(detail)
+                if time.monotonic() > deadline:
+                    raise InvalidArgument(
+                        f"{len(waiting)} server process(es) did not start within {_READY_TIMEOUT:g} s"
+                    )
+                dead = [i for i in waiting if not children[i].is_alive()]
+                if dead:
+                    raise InvalidArgument(
+                        f"server process {dead[0]} exited while starting (see its messages above)"
+                    )
+            if stop:
+                return
+            announce(
+                f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'}, {processes} processes)"
+            )
+            announce(f"data in {data_root} (index: {index_url})")
+            while not stop:
+                time.sleep(0.2)
+                for index, child in list(children.items()):
+                    if not child.is_alive() and not stop:
+                        _log.warning(
+                            "server process %d exited (code %s); recovering its sessions and restarting it",
+                            index,
+                            child.exitcode,
+                        )
+                        with contextlib.suppress(Exception):
+                            prepare_data(child_config, recover_only=True)
+                        start(index)
+            announce("jitdyn shutting down: open sessions are being stored")
+        finally:
+            for child in children.values():
+                if child.is_alive():
+                    child.terminate()  # SIGTERM: each child shuts down gracefully
+            for child in children.values():
+                child.join(timeout=config.shutdown_grace + 30)
+                if child.is_alive():
+                    child.kill()
+            for s, handler in previous.items():
+                signal.signal(s, handler)

@@ -1,0 +1,236 @@
+"""`jitdyn serve --processes 2`: several processes on one port share the registry, the index and
+the data folder; a killed serving process loses its sessions' leases, and its parent recovers them
+and starts a new process in its place. Also what sharing one index needs: migrations that servers
+starting together do not race, and a clear error when a data folder lacks a model the index has."""
+
+from __future__ import annotations
+
+import os
+import re
+import secrets
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jitdyn.client import Client, FrameData, SessionOptions, TickResult
+from jitdyn.errors import FailedPrecondition
+from jitdyn.storage.db import open_index
+from jitdyn.v1 import session_pb2
+
+INLINE = """<mujoco model="slider"><worldbody><body><joint name="s" type="slide" axis="1 0 0"/>
+<geom type="box" size="0.1 0.1 0.1" mass="2"/></body></worldbody></mujoco>"""
+
+
+class Serve:
+    """`jitdyn serve --processes N` as a user runs it."""
+
+    def __init__(self, data: Path, *, processes: int, extra: tuple[str, ...] = ()) -> None:
+        env = dict(os.environ, JITDYN_SECRET=secrets.token_hex(32))
+        env.pop("JITDYN_INDEX_URL", None)
+        self.process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "jitdyn.cli",
+                "serve",
+                "--address",
+                "127.0.0.1:0",
+                "--data",
+                str(data),
+                "--workers",
+                "1",
+                "--processes",
+                str(processes),
+                *extra,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            env=env,
+        )
+        assert self.process.stdout is not None
+        self.lines: list[str] = []
+        for line in self.process.stdout:
+            self.lines.append(line)
+            match = re.search(r"listening on (127\.0\.0\.1:\d+) \(plaintext(?:, (\d+) processes)?\)", line)
+            if match:
+                self.address = match.group(1)
+                assert int(match.group(2) or 1) == processes
+                return
+        raise RuntimeError("the server did not start:\n" + "".join(self.lines))
+
+    def children(self) -> list[int]:
+        found = []
+        for entry in os.listdir("/proc"):
+            if entry.isdigit():
+                try:
+                    stat = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+                except OSError:
+                    continue
+                if int(stat[1]) == self.process.pid:
+                    found.append(int(entry))
+        return found
+
+    def stop(self) -> str:
+        self.process.send_signal(signal.SIGTERM)
+        out, _ = self.process.communicate(timeout=120)
+        return "".join(self.lines) + out
+
+
+@pytest.fixture()
+def serve(tmp_path: Path) -> Iterator[Serve]:
+    server = Serve(tmp_path / "data", processes=2)
+    try:
+        yield server
+    finally:
+        if server.process.poll() is None:
+            server.stop()
+
+
+def _serving_children(server: Serve, expected: int) -> list[int]:
+    """The serving processes (multiprocessing's spawned children, not its resource tracker)."""
+    deadline = time.monotonic() + 60
+    serving: list[int] = []
+    while time.monotonic() < deadline:
+        serving = []
+        for pid in server.children():
+            try:
+                cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"spawn_main" in cmdline and b"resource_tracker" not in cmdline:
+                serving.append(pid)
+        if len(serving) == expected:
+            return serving
+        time.sleep(0.2)
+    raise AssertionError(f"expected {expected} serving processes, found {serving}")
+
+
+def test_a_model_registered_through_one_process_opens_through_all(serve: Serve) -> None:
+    assert len(_serving_children(serve, 2)) == 2
+    with Client(serve.address) as client:
+        model, created = client.register_model(name="slider", mjcf=INLINE)
+        assert created
+
+    def open_and_step(i: int) -> float:
+        # A new connection each: the kernel spreads connections over the processes.
+        with (
+            Client(serve.address) as client,
+            client.open_session(
+                SessionOptions(model_id=model.id, dt=0.01, measured=("qpos", "qvel", "qacc"))
+            ) as session,
+        ):
+            answer = session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.1 * i], qvel=[0.0], qacc=[3.0]))
+            assert isinstance(answer, TickResult)
+            return float(answer.qfrc_inverse[0])
+
+    with ThreadPoolExecutor(8) as pool:
+        forces = list(pool.map(open_and_step, range(16)))
+    np.testing.assert_allclose(forces, 6.0)  # 2 kg at 3 m/s^2, whichever process answered
+
+
+def test_a_killed_process_is_recovered_and_replaced(serve: Serve) -> None:
+    children = _serving_children(serve, 2)
+    client = Client(serve.address, timeout=30)
+    sessions = []
+    for _ in range(4):
+        session = Client(serve.address, timeout=30).open_session(
+            SessionOptions(model_name="pendulum_1", dt=0.05)
+        )
+        for k in range(20):
+            assert isinstance(
+                session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=[0.2], qvel=[0.0])), TickResult
+            )
+        sessions.append(session)
+    time.sleep(0.1)  # a group commit after the last frame
+    ids = [s.opened.session_id for s in sessions]
+    for pid in children:
+        os.kill(pid, signal.SIGKILL)
+    for s in sessions:
+        s.cancel()
+    # The parent recovers every session the dead processes held and starts new ones.
+    deadline = time.monotonic() + 60
+    statuses: list[str] = []
+    while time.monotonic() < deadline:
+        try:
+            statuses = [session_pb2.SessionStatus.Name(client.get_session(i).status) for i in ids]
+        except Exception:  # noqa: BLE001 - the new processes are starting
+            time.sleep(0.3)
+            continue
+        if all(status == "SESSION_STATUS_RECOVERED" for status in statuses):
+            break
+        time.sleep(0.3)
+    assert statuses == ["SESSION_STATUS_RECOVERED"] * 4
+    replaced = _serving_children(serve, 2)
+    assert not set(replaced) & set(children)
+    with client.open_session(SessionOptions(model_name="pendulum_1", dt=0.05)) as session:
+        assert isinstance(session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.2], qvel=[0.0])), TickResult)
+    client.close()
+    log = serve.stop()
+    assert "exited (code -9); recovering its sessions and restarting it" in log, log
+
+
+@pytest.mark.postgres
+def test_servers_starting_together_on_one_postgresql_index_do_not_race(tmp_path: Path) -> None:
+    import sqlalchemy as sa
+
+    schema = f"race_{secrets.token_hex(4)}"
+    url = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+    try:
+        with ThreadPoolExecutor(4) as pool:
+            engines = list(pool.map(lambda _: open_index(url, schema=schema), range(4)))
+        with engines[0].connect() as conn:
+            versions = conn.execute(sa.text(f'SELECT count(*) FROM "{schema}".alembic_version')).scalar()
+        assert versions == 1
+    finally:
+        engine = sa.create_engine(url)
+        with engine.begin() as conn:
+            conn.execute(sa.text(f'DROP SCHEMA IF EXISTS "{schema}" CASCADE'))
+        engine.dispose()
+        for e in locals().get("engines", []):
+            e.dispose()
+
+
+def test_sqlite_migrations_of_processes_starting_together_do_not_race(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'index.sqlite'}"
+    code = f"from jitdyn.storage.db import open_index; open_index({url!r}).dispose(); print('ok')"
+    runs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for _ in range(4)
+    ]
+    outputs = [r.communicate(timeout=120) for r in runs]
+    assert [r.returncode for r in runs] == [0] * 4, outputs
+
+
+def test_a_model_missing_from_the_data_folder_is_a_clear_error(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    server = Serve(data, processes=1)
+    try:
+        with Client(server.address) as client:
+            model, _ = client.register_model(name="slider", mjcf=INLINE)
+            (blob,) = (data / "models").glob(f"{model.id.split(':', 1)[1]}.zip")
+            blob.unlink()
+            # The registry caches compiled models: a fresh server process shows the fault.
+    finally:
+        server.stop()
+    server = Serve(data, processes=1)
+    try:
+        with Client(server.address) as client, pytest.raises(FailedPrecondition) as error:
+            client.open_session(SessionOptions(model_id=model.id, dt=0.01))
+        message = str(error.value)
+        assert message == (
+            f"model {model.id} is registered in the index but its MJCF and assets are not in this "
+            "server's data folder (servers sharing an index must share the data folder too)"
+        )
+        assert str(tmp_path) not in message
+    finally:
+        server.stop()
