@@ -29,6 +29,7 @@ import json
 import math
 import multiprocessing as mp
 import os
+import queue as queue_module
 import statistics
 import subprocess
 import sys
@@ -120,6 +121,10 @@ class WorkerResult:
     opened: int = 0
     refused: list[str] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
+    cpu_seconds: float = 0.0
+    shed: int = 0  # answers flagged late_compute
+    arrivals: list[float] = field(default_factory=list)  # monotonic time of each first answer
+    server_late_ms: list[float] = field(default_factory=list)  # deadline to send, server clock
 
 
 def _frames(spec: WorkerSpec, measured: Sequence[str]) -> list[bytes]:
@@ -171,7 +176,7 @@ async def _session(
     result.opened += 1
     start = time.monotonic()
     grace = first.opened.grace or spec.dt * GRACE_FRACTION
-    first_answer: dict[int, tuple[float, int]] = {}
+    first_answer: dict[int, tuple[float, int, bool, int]] = {}
     probe = 0
     last_probe: tuple[int, float] | None = None
 
@@ -187,7 +192,8 @@ async def _session(
             if kind == "result":
                 seq = response.result.seq
                 if seq not in first_answer:
-                    first_answer[seq] = (now - start, response.result.source)
+                    r = response.result
+                    first_answer[seq] = (now - start, r.source, r.late_compute, r.receive_to_send_us)
             elif kind == "sync":
                 last_probe = (response.sync.id, now - start)
 
@@ -228,9 +234,12 @@ async def _session(
         if answer is None:
             continue
         result.answered += 1
-        arrived, source = answer
+        arrived, source, shed, server_late_us = answer
+        result.server_late_ms.append(server_late_us / 1e3)
         result.measured += source == measured_source
+        result.shed += shed
         result.lateness_ms.append(max(0.0, (arrived - (k * spec.dt + grace)) * 1e3))
+        result.arrivals.append(start + arrived)
 
 
 async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResult:
@@ -238,6 +247,7 @@ async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResul
 
     frames = _frames(spec, measured)
     result = WorkerResult()
+    cpu_started = time.process_time()
     options = [("grpc.max_receive_message_length", 64 * 1024 * 1024)]
     # One connection per session, as every device has its own: the kernel spreads connections, not
     # streams, over the server's processes (SO_REUSEPORT).
@@ -261,6 +271,7 @@ async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResul
     finally:
         for channel in channels:
             await channel.close()
+    result.cpu_seconds = time.process_time() - cpu_started
     return result
 
 
@@ -373,6 +384,9 @@ class RunReport:
     late_max_ms: float
     cpu_per_tick_us: float
     ukf_cycle_us: float
+    client_cpu_per_tick_us: float
+    shed: float = 0.0  # share of ticks answered late_compute
+    server_late_p99_ms: float = 0.0  # deadline to send on the server's clock (Result.receive_to_send_us)
 
     def meets(self) -> bool:
         return (
@@ -388,9 +402,10 @@ class RunReport:
         return (
             f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
             f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "
-            f"measured {100 * self.measured:6.2f} % | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
-            f"max {self.late_max_ms:8.2f} ms | cpu/tick {self.cpu_per_tick_us:6.0f} us "
-            f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}) | {verdict}"
+            f"measured {100 * self.measured:6.2f} % shed {100 * self.shed:5.2f} % | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
+            f"max {self.late_max_ms:8.2f} ms (server {self.server_late_p99_ms:5.2f}) | cpu/tick {self.cpu_per_tick_us:6.0f} us "
+            f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}; "
+            f"load generator {self.client_cpu_per_tick_us:4.0f} us) | {verdict}"
         )
 
 
@@ -497,18 +512,31 @@ def run(
             for i, n in enumerate(per_client)
             if n
         ]
-        cpu_before = cpu_seconds(pid)
+        # Server CPU over the steady part of the run: every session open, before the first closes.
+        started = time.monotonic()
+        window = (started + spread + 1.0, started + max(spread + 2.0, seconds - 1.0))
         for worker in workers:
             worker.start()
-        results = [queue.get() for _ in workers]
+        samples: dict[int, tuple[float, float]] = {}
+        results: list[dict[str, object]] = []
+        for i, at in enumerate(window):
+            while time.monotonic() < at and len(results) < len(workers):
+                with contextlib.suppress(queue_module.Empty):
+                    results.append(queue.get(timeout=min(0.2, max(0.01, at - time.monotonic()))))
+            samples[i] = (time.monotonic(), cpu_seconds(pid))
+        while len(results) < len(workers):
+            results.append(queue.get())
         for worker in workers:
             worker.join()
-        cpu_used = cpu_seconds(pid) - cpu_before
+    (t1, cpu1), (t2, cpu2) = samples[0], samples[1]
     fatal = [r["fatal"] for r in results if "fatal" in r]
     if fatal:
         raise SystemExit(f"a client process failed: {fatal[0]}")
     merged = WorkerResult()
     for r in results:
+        merged.shed += r["shed"]
+        merged.arrivals.extend(r["arrivals"])
+        merged.server_late_ms.extend(r["server_late_ms"])
         merged.ticks_sent += r["ticks_sent"]
         merged.answered += r["answered"]
         merged.measured += r["measured"]
@@ -516,6 +544,7 @@ def run(
         merged.opened += r["opened"]
         merged.refused.extend(r["refused"])
         merged.errors.extend(r["errors"])
+        merged.cpu_seconds += r["cpu_seconds"]
     expected = sessions * ticks
     late = np.array(merged.lateness_ms) if merged.lateness_ms else np.array([math.inf])
     return RunReport(
@@ -532,8 +561,11 @@ def run(
         late_p50_ms=float(np.percentile(late, 50)),
         late_p99_ms=float(np.percentile(late, 99)),
         late_max_ms=float(late.max()),
-        cpu_per_tick_us=cpu_used / max(1, merged.answered) * 1e6,
+        cpu_per_tick_us=(cpu2 - cpu1) / max(1, sum(t1 <= a < t2 for a in merged.arrivals)) * 1e6,
+        shed=merged.shed / expected,
+        server_late_p99_ms=float(np.percentile(merged.server_late_ms or [math.inf], 99)),
         ukf_cycle_us=ukf_us,
+        client_cpu_per_tick_us=merged.cpu_seconds / max(1, merged.answered) * 1e6,
     )
 
 

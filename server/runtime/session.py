@@ -87,7 +87,6 @@ class _Tick:
     frame: FrameIn | None
     ctrl: np.ndarray | None  # the control the prediction of this tick used (CONTROLLED)
     outcome_source: str = field(default="PREDICTED")
-    shed: bool = False  # answered without the estimator: no timewarp may start here
 
 
 class SessionRuntime:
@@ -117,8 +116,9 @@ class SessionRuntime:
         self._qpos0 = model.qpos0.copy()
         self._zero_nv = np.zeros(model.nv)
         self._last: TickOutcome | None = None
-        # After a shed tick the estimator is a tick behind: the next frame re-initialises it.
-        self._stale = False
+        # The first tick shed without a frame: from it on the estimator is behind, until a frame
+        # re-initialises it or a late frame at or before it replays the ticks properly.
+        self._stale_since: int | None = None
 
     @property
     def next_tick(self) -> int:
@@ -130,7 +130,7 @@ class SessionRuntime:
         if seq >= self._next:
             return "next" if seq == self._next else "future"
         tick = self._ticks.get(seq)
-        if tick is None or tick.shed:
+        if tick is None:
             return "too_old"
         return "duplicate" if tick.frame is not None else "late"
 
@@ -140,7 +140,7 @@ class SessionRuntime:
 
     def advance(self, frame: FrameIn | None, *, horizon: float = 0.0) -> TickOutcome:
         """Answer the next tick, with its frame or without one."""
-        if self._stale:
+        if self._stale_since is not None:
             return self.shed(frame)
         started = time.perf_counter_ns()
         seq = self._next
@@ -166,23 +166,25 @@ class SessionRuntime:
     def shed(self, frame: FrameIn | None) -> TickOutcome:
         """Answer the next tick without running the estimator, for a server that cannot finish it by
         the deadline: from the frame when it came (the estimator re-initialised from it, a cheap
-        reset), else the last answer repeated. The history is dropped: the estimator skipped a
-        tick, so no late frame may be replayed across it."""
+        reset), else the last answer repeated (the estimator is then a tick behind: the next frame
+        re-initialises it). The tick stays in the history with the estimator's state before it, so
+        a late frame for it or an earlier tick replays it properly and repairs the estimate."""
         started = time.perf_counter_ns()
         seq = self._next
         ctrl = self._control_for(seq, frame)
-        tick = _Tick(seq=seq, before=None, frame=frame, ctrl=ctrl, shed=True)
-        self._ticks.clear()
+        tick = _Tick(seq=seq, before=self._snapshot(), frame=frame, ctrl=ctrl)
         estimate: Estimate | None = None
         if frame is not None:
             self._estimator.initialise(self._measurement(tick))
             self._initialised = True
-            self._stale = False
+            self._stale_since = None
             estimate = dataclasses.replace(self._estimator.extrapolate(0.0), reinitialised=True)
             tick.outcome_source = "MEASURED"
-        else:
-            self._stale = self._initialised
+        elif self._initialised and self._stale_since is None:
+            self._stale_since = seq
         self._ticks[seq] = tick
+        while len(self._ticks) > self._history:
+            self._ticks.popitem(last=False)
         self._next += 1
         self.counts.ticks += 1
         self.counts.late_compute += 1
@@ -231,6 +233,8 @@ class SessionRuntime:
             estimate = self._run_tick(tick)
             if seq == frame.seq:
                 corrected = estimate
+        if self._stale_since is not None and frame.seq <= self._stale_since:
+            self._stale_since = None  # every skipped tick was just replayed properly
         target.outcome_source = "CORRECTED"
         # Ticks answered since this one was due, itself included: 1 = just missed its deadline.
         late_ticks = self._next - frame.seq

@@ -57,7 +57,10 @@ _MAX_TICKS_AHEAD = 1000
 # REALTIME: a tick whose deadline passed this long ago before the event loop got to it (the
 # process is overloaded, or a timewarp held the loop) is answered at once from what the session
 # has, flagged `late_compute`, instead of late after running the estimator (seconds).
-SHED_AFTER = 0.002
+SHED_AFTER = 0.003
+# REALTIME: a frame is answered as it arrives once its tick's time has come, give or take this
+# much error of the clock offset (seconds).
+_EARLY_TOLERANCE = 0.002
 
 
 class _Stream:
@@ -157,7 +160,7 @@ class _Stream:
                     )
                 ]
             self.pending[seq] = checked
-            return []
+            return self.answer_ready()
         if place == "future":
             return [
                 Response(
@@ -217,22 +220,49 @@ class _Stream:
         outcome = self.runtime.advance(None)
         return Response(result=self.record_result(outcome, arrived=arrived))
 
-    def on_deadline(self, deadline: float, *, shed: bool = False) -> Response:
-        """REALTIME: answer the next tick with its frame if it came, else predicted; `shed`: without
-        running the estimator (the deadline has passed already)."""
-        seq = self.runtime.next_tick
-        frame = self.pending.pop(seq, None)
+    def deadline(self, seq: int) -> float:
+        """REALTIME: tick `seq`'s deadline on the server clock: its time plus the grace."""
+        return self.sync.to_server(seq * self.plan.dt) + self.plan.grace
+
+    def answer(self, frame: FrameIn | None, *, due: float, now: float) -> Response:
+        """REALTIME: answer the next tick; without the estimator (shed) when the loop reached it
+        more than SHED_AFTER after its deadline."""
+        shed = now - self.deadline(self.runtime.next_tick) > SHED_AFTER
         if shed:
             outcome = self.runtime.shed(frame)
         else:
             outcome = self.runtime.advance(frame, horizon=self.horizon())
-        return Response(result=self.record_result(outcome, arrived=deadline))
+        return Response(result=self.record_result(outcome, arrived=due))
+
+    def answer_ready(self) -> list[Response]:
+        """REALTIME: answer, at once, every next tick whose frame is here and whose time has come
+        (on an on-time client, as its frame arrives: well before the deadline, which only a tick
+        without a frame waits for)."""
+        responses = []
+        now = self.clock.now()
+        while (seq := self.runtime.next_tick) in self.pending and now >= self.sync.to_server(
+            seq * self.plan.dt
+        ) - _EARLY_TOLERANCE:
+            frame = self.pending.pop(seq)
+            responses.append(self.answer(frame, due=frame.received, now=now))
+        return responses
+
+    def on_deadline(self, deadline: float) -> list[Response]:
+        """REALTIME: the next tick's deadline: predicted when its frame did not come, then every
+        following tick whose frame is already here."""
+        frame = self.pending.pop(self.runtime.next_tick, None)
+        responses = [self.answer(frame, due=deadline, now=self.clock.now())]
+        responses.extend(self.answer_ready())
+        return responses
 
     def drain(self) -> list[Response]:
         """REALTIME close: answer every tick up to the last frame that is waiting, at once."""
         responses = []
         while self.pending:
-            responses.append(self.on_deadline(self.clock.now()))
+            frame = self.pending.pop(self.runtime.next_tick, None)
+            now = self.clock.now()
+            outcome = self.runtime.advance(frame, horizon=self.horizon())
+            responses.append(Response(result=self.record_result(outcome, arrived=now)))
         return responses
 
 
@@ -447,18 +477,26 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         # executor's wake-ups and GIL hand-overs were a third of a tick's CPU), and one loop per
         # process (`jitdyn serve --processes`) keeps every deadline in one queue, earliest first.
         async def ticker() -> None:
-            dt, grace = stream.plan.dt, stream.plan.grace
+            dt = stream.plan.dt
             while True:
                 seq = stream.runtime.next_tick
-                deadline = stream.sync.to_server(seq * dt) + grace
-                wait = stream.clock.to_monotonic(deadline) - time.monotonic()
+                # A tick whose frame is here waits only for its own time; one without, for its deadline.
+                due = stream.sync.to_server(seq * dt) if seq in stream.pending else stream.deadline(seq)
+                wait = stream.clock.to_monotonic(due) - time.monotonic()
                 if wait > 0:
                     await asyncio.sleep(wait)
                 if stream.closed:
                     return
-                late = stream.clock.now() - deadline
-                response = stream.on_deadline(max(deadline, 0.0), shed=late > SHED_AFTER)
-                await write(response)
+                if stream.runtime.next_tick != seq:
+                    continue  # answered meanwhile, as its frame arrived
+                if seq in stream.pending:
+                    responses = stream.answer_ready()
+                elif stream.clock.now() >= stream.deadline(seq):
+                    responses = stream.on_deadline(stream.deadline(seq))
+                else:
+                    continue  # a clock probe moved the deadline later
+                for response in responses:
+                    await write(response)
 
         tick_task = asyncio.create_task(ticker())
         try:

@@ -42,7 +42,7 @@ def _frames(model: mujoco.MjModel, ticks: int) -> list[FrameIn]:
 
 def test_a_shed_tick_answers_from_the_frame_or_the_last_answer_and_the_session_recovers() -> None:
     model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
-    frames = _frames(model, 12)
+    frames = _frames(model, 14)
     config = resolve_config(
         model=model,
         scenario="PASSIVE",
@@ -71,24 +71,33 @@ def test_a_shed_tick_answers_from_the_frame_or_the_last_answer_and_the_session_r
         assert (repeated.seq, repeated.source, repeated.late_compute) == (5, "PREDICTED", True)
         np.testing.assert_array_equal(repeated.qpos, predicted.qpos)
         assert repeated.t == 5 * DT
-        # The history is gone: no late frame may be replayed across a tick the estimator skipped.
-        assert runtime.classify(4) == "too_old" and runtime.classify(5) == "too_old"
-        # Stale until a frame comes: tick 6 without one is shed too, even through `advance`.
+        # The shed tick stays in the history: a late frame may still repair it.
+        assert runtime.classify(4) == "late" and runtime.classify(5) == "late"
+        # The estimator is behind until then: tick 6 without a frame is shed too, even through `advance`.
         assert runtime.advance(None).late_compute
 
-        # A frame re-initialises the estimator from itself: MEASURED, flagged, on the frame's state.
-        measured = runtime.advance(frames[7])
+        # Tick 5's frame, late: the timewarp replays ticks 5 and 6 properly, and the estimator is
+        # where it would be had nothing been shed.
+        corrected = runtime.apply_late(frames[5])
+        assert (corrected.source, corrected.late_ticks) == ("CORRECTED", 2)
+        ahead = runtime.advance(None)  # tick 7
+        assert ahead.source == "PREDICTED" and not ahead.late_compute
+        assert np.max(np.abs(ahead.qpos - frames[7].qpos)) < 0.05
+
+        # Shed with a frame: MEASURED from the frame, the estimator re-initialised from it.
+        measured = runtime.shed(frames[8])
         assert (measured.source, measured.late_compute) == ("MEASURED", True)
         assert measured.estimate is not None and measured.estimate.reinitialised
-        np.testing.assert_array_equal(measured.qpos, frames[7].qpos)
+        np.testing.assert_array_equal(measured.qpos, frames[8].qpos)
         # From there the estimator runs again, on time, and predicts near the truth.
-        assert not runtime.advance(frames[8]).late_compute
+        assert not runtime.advance(frames[9]).late_compute
         ahead = runtime.advance(None)
         assert ahead.source == "PREDICTED" and not ahead.late_compute
-        assert np.max(np.abs(ahead.qpos - frames[9].qpos)) < 0.05
+        assert np.max(np.abs(ahead.qpos - frames[10].qpos)) < 0.05
 
         counts = runtime.counts
-        assert (counts.ticks, counts.late_compute, counts.measured, counts.predicted) == (10, 3, 6, 4)
+        assert (counts.ticks, counts.late_compute, counts.corrected) == (11, 3, 1)
+        assert (counts.measured, counts.predicted) == (6, 5)
 
 
 def test_shedding_before_the_first_frame_answers_the_rest_pose() -> None:
