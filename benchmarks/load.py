@@ -123,6 +123,8 @@ class WorkerResult:
     errors: list[str] = field(default_factory=list)
     cpu_seconds: float = 0.0
     shed: int = 0  # answers flagged late_compute
+    late_frames: int = 0  # frames that came after their tick was answered (CORRECTED)
+    rejected: int = 0
     arrivals: list[float] = field(default_factory=list)  # monotonic time of each first answer
     server_late_ms: list[float] = field(default_factory=list)  # deadline to send, server clock
 
@@ -196,6 +198,10 @@ async def _session(
                     first_answer[seq] = (now - start, r.source, r.late_compute, r.receive_to_send_us)
             elif kind == "sync":
                 last_probe = (response.sync.id, now - start)
+            elif kind == "closed":
+                result.late_frames += response.closed.summary.late
+            elif kind == "rejected":
+                result.rejected += 1
 
     async def ping() -> None:
         nonlocal probe
@@ -386,6 +392,8 @@ class RunReport:
     ukf_cycle_us: float
     client_cpu_per_tick_us: float
     shed: float = 0.0  # share of ticks answered late_compute
+    late_frames: float = 0.0  # share of frames that came after their tick was answered
+    rejected: int = 0
     server_late_p99_ms: float = 0.0  # deadline to send on the server's clock (Result.receive_to_send_us)
 
     def meets(self) -> bool:
@@ -402,7 +410,8 @@ class RunReport:
         return (
             f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
             f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "
-            f"measured {100 * self.measured:6.2f} % shed {100 * self.shed:5.2f} % | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
+            f"measured {100 * self.measured:6.2f} % shed {100 * self.shed:5.2f} % late frames "
+            f"{100 * self.late_frames:5.2f} % rejected {self.rejected} | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
             f"max {self.late_max_ms:8.2f} ms (server {self.server_late_p99_ms:5.2f}) | cpu/tick {self.cpu_per_tick_us:6.0f} us "
             f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}; "
             f"load generator {self.client_cpu_per_tick_us:4.0f} us) | {verdict}"
@@ -535,6 +544,8 @@ def run(
     merged = WorkerResult()
     for r in results:
         merged.shed += r["shed"]
+        merged.late_frames += r["late_frames"]
+        merged.rejected += r["rejected"]
         merged.arrivals.extend(r["arrivals"])
         merged.server_late_ms.extend(r["server_late_ms"])
         merged.ticks_sent += r["ticks_sent"]
@@ -563,6 +574,8 @@ def run(
         late_max_ms=float(late.max()),
         cpu_per_tick_us=(cpu2 - cpu1) / max(1, sum(t1 <= a < t2 for a in merged.arrivals)) * 1e6,
         shed=merged.shed / expected,
+        late_frames=merged.late_frames / expected,
+        rejected=merged.rejected,
         server_late_p99_ms=float(np.percentile(merged.server_late_ms or [math.inf], 99)),
         ukf_cycle_us=ukf_us,
         client_cpu_per_tick_us=merged.cpu_seconds / max(1, merged.answered) * 1e6,

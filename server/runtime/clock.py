@@ -33,6 +33,10 @@ class MonotonicClock:
     def now(self) -> float:
         return time.monotonic() - self._start
 
+    def restart(self) -> None:
+        """Make now server time 0 (the session's clock starts as `opened` leaves)."""
+        self._start = time.monotonic()
+
     def to_monotonic(self, server_time: float) -> float:
         return self._start + server_time
 

@@ -295,6 +295,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             stream, opened = await self._open(first.open, tenant)
         except JitdynError as error:
             await abort(context, error)
+        # The session clock starts as `opened` leaves, as the client's starts as it arrives: opening
+        # (the log's fsync, the index row) took milliseconds, tens under load, which the client's
+        # clock knows nothing of; counted in, every frame looked late until a clock probe completed.
+        stream.clock.restart()
         await context.write(Response(opened=opened))
         status = "FAILED"
         try:
