@@ -118,9 +118,24 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument(
         "--insecure", action="store_true", help="allow a non-loopback address without TLS and API keys"
     )
-    serve.add_argument("--max-sessions", type=int, default=64, help="open sessions in total (default 64)")
     serve.add_argument(
-        "--max-sessions-per-tenant", type=int, default=16, help="open sessions per tenant (default 16)"
+        "--max-sessions",
+        type=int,
+        default=0,
+        help="open sessions per process, a quota (default 0: no count limit)",
+    )
+    serve.add_argument(
+        "--max-sessions-per-tenant",
+        type=int,
+        default=0,
+        help="open sessions per tenant and process, a quota (default 0: no count limit)",
+    )
+    serve.add_argument(
+        "--tick-budget",
+        type=float,
+        default=0.75,
+        help="share of one core each process may spend on REALTIME ticks; a session whose measured "
+        "cost would exceed it is refused with RESOURCE_EXHAUSTED (default 0.75)",
     )
     serve.add_argument(
         "--max-state-dimension", type=int, default=200, help="largest nv of a session's model (default 200)"
@@ -227,6 +242,7 @@ def _serve(args: argparse.Namespace) -> int:
         session_limits=SessionLimits(
             max_sessions=args.max_sessions,
             max_sessions_per_tenant=args.max_sessions_per_tenant,
+            tick_budget=args.tick_budget,
             max_state_dimension=args.max_state_dimension,
         ),
     )

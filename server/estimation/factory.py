@@ -4,14 +4,23 @@ interface and its settings, so that the implementations can import the interface
 
 from __future__ import annotations
 
+import time
+
 import mujoco
+import numpy as np
 
 from jitdyn.server.estimation.deadreckoning import DeadReckoning
-from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, EstimatorKind, check_against_model
+from jitdyn.server.estimation.estimator import (
+    Estimator,
+    EstimatorConfig,
+    EstimatorKind,
+    Measurement,
+    check_against_model,
+)
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.ukf import UnscentedFilter
 
-__all__ = ["make_estimator"]
+__all__ = ["make_estimator", "measure_cycle"]
 
 
 def make_estimator(model: mujoco.MjModel, config: EstimatorConfig, *, pool: WorkerPool) -> Estimator:
@@ -20,3 +29,28 @@ def make_estimator(model: mujoco.MjModel, config: EstimatorConfig, *, pool: Work
     if config.estimator == EstimatorKind.UKF:
         return UnscentedFilter(model, config, pool=pool)
     return DeadReckoning(model, config)
+
+
+def measure_cycle(
+    model: mujoco.MjModel, config: EstimatorConfig, *, pool: WorkerPool, repeats: int = 3
+) -> float:
+    """Seconds one tick of `config`'s estimator takes here (predict and update), the fastest of
+    `repeats`, on a throwaway estimator started at the model's rest pose: what admission control
+    charges a session before its own ticks are measured."""
+    estimator = make_estimator(model, config, pool=pool)
+    zeros = np.zeros(model.nv)
+    measurement = Measurement(
+        qpos=model.qpos0.copy(),
+        qvel=zeros if "qvel" in config.measured else None,
+        qacc=zeros if "qacc" in config.measured else None,
+        ctrl=np.zeros(model.nu) if "ctrl" in config.measured else None,
+    )
+    estimator.initialise(measurement)
+    ctrl = np.zeros(model.nu) if config.scenario == "CONTROLLED" else None
+    best = float("inf")
+    for _ in range(repeats):
+        started = time.perf_counter()
+        estimator.predict(ctrl=ctrl)
+        estimator.update(measurement)
+        best = min(best, time.perf_counter() - started)
+    return best

@@ -14,6 +14,7 @@ from pathlib import Path
 from jitdyn.errors import ResourceExhausted
 from jitdyn.registry import ModelRegistry
 from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.runtime.admission import DEFAULT_TICK_BUDGET, Admission
 from jitdyn.storage.anonymise import Anonymiser
 from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.index import SessionIndex
@@ -25,9 +26,13 @@ __all__ = ["DEFAULT_SESSION_LIMITS", "Services", "SessionLimits"]
 class SessionLimits:
     """Limits on sessions; each has a `jitdyn serve` flag."""
 
-    max_sessions: int = 64
-    max_sessions_per_tenant: int = 16
+    # 0: no count limit. REALTIME sessions are admitted by their measured cost against each
+    # process's tick budget instead (server/runtime/admission.py), so that one tenant can use the
+    # whole machine; these stay for operators who want a quota.
+    max_sessions: int = 0
+    max_sessions_per_tenant: int = 0
     max_state_dimension: int = 200  # nv of a session's model
+    tick_budget: float = DEFAULT_TICK_BUDGET  # of one core, per process
 
 
 DEFAULT_SESSION_LIMITS = SessionLimits()
@@ -43,6 +48,7 @@ class Services:
     limits: SessionLimits = DEFAULT_SESSION_LIMITS
     # One commit thread and one flush to disk per window for every session of this process.
     committer: GroupCommitter = field(default_factory=GroupCommitter)
+    admission: Admission = field(default_factory=Admission)
     _open: Counter[str] = field(default_factory=Counter)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -50,11 +56,14 @@ class Services:
         """Count a new session, or raise ResourceExhausted naming the limit."""
         with self._lock:
             total = sum(self._open.values())
-            if total >= self.limits.max_sessions:
+            if self.limits.max_sessions and total >= self.limits.max_sessions:
                 raise ResourceExhausted(
                     f"the server has {total} open sessions, its limit (--max-sessions {self.limits.max_sessions})"
                 )
-            if self._open[tenant] >= self.limits.max_sessions_per_tenant:
+            if (
+                self.limits.max_sessions_per_tenant
+                and self._open[tenant] >= self.limits.max_sessions_per_tenant
+            ):
                 raise ResourceExhausted(
                     f"this tenant has {self._open[tenant]} open sessions, the limit per tenant "
                     f"(--max-sessions-per-tenant {self.limits.max_sessions_per_tenant})"

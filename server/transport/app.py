@@ -25,6 +25,7 @@ from grpc_reflection.v1alpha import reflection
 from jitdyn.errors import InvalidArgument
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.runtime.admission import Admission
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
@@ -168,6 +169,7 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
         pool=WorkerPool(config.workers),
         data_root=data_root,
         limits=config.session_limits,
+        admission=Admission(budget=config.session_limits.tick_budget),
     )
     options = [
         ("grpc.max_receive_message_length", config.max_message_bytes),

@@ -22,8 +22,9 @@ import mujoco
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, ResourceExhausted
 from jitdyn.registry import ModelInfo
 from jitdyn.server.estimation.dynamics import Dynamics
-from jitdyn.server.estimation.estimator import resolve_config
-from jitdyn.server.estimation.factory import make_estimator
+from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, resolve_config
+from jitdyn.server.estimation.factory import make_estimator, measure_cycle
+from jitdyn.server.runtime.admission import TRANSPORT_COST, Ticket
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
 from jitdyn.server.runtime.frames import FrameIn, Rejection
 from jitdyn.server.runtime.services import Services
@@ -75,8 +76,10 @@ class _Stream:
         recorder: SessionRecorder,
         sizes: dict[str, int],
         clock: MonotonicClock,
+        ticket: Ticket | None = None,
     ) -> None:
         self.services = services
+        self.ticket = ticket  # REALTIME: this session's share of the process's tick budget
         self.plan = plan
         self.runtime = runtime
         self.recorder = recorder
@@ -232,6 +235,8 @@ class _Stream:
             outcome = self.runtime.shed(frame)
         else:
             outcome = self.runtime.advance(frame, horizon=self.horizon())
+            if self.ticket is not None:
+                self.ticket.observe(outcome.compute_us / 1e6)
         return Response(result=self.record_result(outcome, arrived=due))
 
     def answer_ready(self) -> list[Response]:
@@ -368,6 +373,33 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             measured=plan.measured,
         )
         estimator = make_estimator(model, config, pool=services.pool)
+        ticket: Ticket | None = None
+        if plan.clock == "REALTIME":
+            cycle = measure_cycle(model, config, pool=services.pool)
+            ticket = services.admission.admit(
+                cost_per_tick=cycle + TRANSPORT_COST,
+                dt=plan.dt,
+                what=f"{info.name} ({plan.scenario.lower()}) at {1 / plan.dt:g} Hz",
+            )
+        try:
+            return self._build_stream(request, tenant, info, model, plan, config, estimator, ticket)
+        except BaseException:
+            if ticket is not None:
+                ticket.release()
+            raise
+
+    def _build_stream(
+        self,
+        request: dynamics_pb2.OpenSession,
+        tenant: str,
+        info: ModelInfo,
+        model: mujoco.MjModel,
+        plan: SessionPlan,
+        config: EstimatorConfig,
+        estimator: Estimator,
+        ticket: Ticket | None,
+    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        services = self._services
         settings = {
             k: v
             for k, v in dataclasses.asdict(config).items()
@@ -425,6 +457,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             recorder=recorder,
             sizes=sizes,
             clock=MonotonicClock(),
+            ticket=ticket,
         )
         opened = dynamics_pb2.SessionOpened(
             session_id=session_id,
@@ -579,6 +612,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             location = await asyncio.to_thread(stream.recorder.close, summary, status=status)
         finally:
             self._services.release(stream.recorder.header.tenant)
+            if stream.ticket is not None:
+                stream.ticket.release()
         return summary, location
 
 

@@ -1,0 +1,117 @@
+"""Admission by measured cost: a REALTIME session is admitted only when its ticks fit in what is left
+of this process's tick budget (a fraction of one core: one process runs Python on one core).
+
+    admission = Admission(budget=0.75)
+    ticket = admission.admit(cost_per_tick=probe + TRANSPORT_COST, dt=0.05, what="pendulum_3 at 20 Hz")
+    ...
+    ticket.observe(seconds)          # each tick's measured cost refines the session's estimate
+    ticket.release()                 # when the session ends (safe twice)
+
+A session's load is its cost per tick divided by dt: CPU seconds per second. The process's load is
+the larger of the sum over its sessions and its CPU actually used over the last seconds (which
+also counts what no estimate sees: the gRPC transport of LOCKSTEP sessions, compaction, GC).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Final
+
+from jitdyn.errors import InvalidArgument, ResourceExhausted
+
+__all__ = ["DEFAULT_TICK_BUDGET", "TRANSPORT_COST", "Admission", "Ticket"]
+
+DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
+# Server CPU per tick outside the estimator (receiving the frame, checking it, the result message,
+# sending it, recording it), measured on this project's reference machine (benchmarks/load.py).
+TRANSPORT_COST: Final = 300e-6  # s
+_EWMA: Final = 0.05  # weight of the newest tick in a session's cost
+_CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
+
+
+@dataclass
+class Ticket:
+    """One admitted session's share of the budget."""
+
+    admission: Admission
+    dt: float
+    cost_per_tick: float  # s, the current estimate
+    released: bool = False
+
+    @property
+    def load(self) -> float:
+        return self.cost_per_tick / self.dt
+
+    def observe(self, seconds: float) -> None:
+        """One tick took `seconds` of the estimator and dynamics; the transport is added."""
+        self.cost_per_tick += _EWMA * (seconds + TRANSPORT_COST - self.cost_per_tick)
+
+    def release(self) -> None:
+        self.admission._release(self)
+
+
+@dataclass
+class Admission:
+    """The tick budget of one process. Thread-safe."""
+
+    budget: float = DEFAULT_TICK_BUDGET
+    _by_id: dict[int, Ticket] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _cpu_mark: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
+    _cpu_load: float = 0.0
+    refused: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.budget <= 1.0:
+            raise InvalidArgument(f"the tick budget must be in (0, 1] of a core, got {self.budget}")
+
+    def measured_load(self) -> float:
+        """This process's CPU use over about the last `_CPU_WINDOW` seconds, in cores."""
+        with self._lock:
+            return self._sample_cpu()
+
+    def _sample_cpu(self) -> float:
+        wall, cpu = time.monotonic(), time.process_time()
+        since, used = self._cpu_mark
+        if wall - since >= _CPU_WINDOW:
+            self._cpu_load = (cpu - used) / (wall - since)
+            self._cpu_mark = (wall, cpu)
+        return self._cpu_load
+
+    def load(self) -> float:
+        """The process's load in cores: the larger of its sessions' estimates and its measured CPU."""
+        with self._lock:
+            return max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
+
+    @property
+    def sessions(self) -> int:
+        with self._lock:
+            return len(self._by_id)
+
+    def admit(self, *, cost_per_tick: float, dt: float, what: str) -> Ticket:
+        """A ticket for a session costing `cost_per_tick` seconds every `dt`, or ResourceExhausted
+        saying why (the measured load, the session's estimated cost, the setting that raises it)."""
+        if not dt > 0:
+            raise InvalidArgument(f"dt must be > 0, got {dt}")
+        ticket = Ticket(self, dt=dt, cost_per_tick=cost_per_tick)
+        with self._lock:
+            estimated = sum(t.load for t in self._by_id.values())
+            current = max(estimated, self._sample_cpu())
+            if current + ticket.load > self.budget:
+                self.refused += 1
+                raise ResourceExhausted(
+                    f"this server process is at {100 * current:.0f} % of a core and its tick budget is "
+                    f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}); a session of {what} is "
+                    f"estimated at {1e6 * cost_per_tick:.0f} us per tick, {100 * ticket.load:.1f} % more. "
+                    "Try again later, on another server, or at a lower rate"
+                )
+            self._by_id[id(ticket)] = ticket
+        return ticket
+
+    def _release(self, ticket: Ticket) -> None:
+        with self._lock:
+            if not ticket.released:
+                ticket.released = True
+                self._by_id.pop(id(ticket), None)
