@@ -101,6 +101,12 @@ def build_parser() -> argparse.ArgumentParser:
         "worker pool, sharing the data folder and index (env JITDYN_PROCESSES; default: the CPU count)",
     )
     serve.add_argument(
+        "--metrics-address",
+        default=os.environ.get("JITDYN_METRICS_ADDRESS"),
+        help="HOST:PORT to serve Prometheus metrics on, e.g. 127.0.0.1:9464 (env JITDYN_METRICS_ADDRESS; "
+        "default: none)",
+    )
+    serve.add_argument(
         "--secret-file",
         type=Path,
         default=os.environ.get("JITDYN_SECRET_FILE"),
@@ -239,6 +245,7 @@ def _serve(args: argparse.Namespace) -> int:
         tls_key=args.tls_key,
         api_keys=args.api_keys,
         insecure=args.insecure,
+        metrics_address=args.metrics_address,
         session_limits=SessionLimits(
             max_sessions=args.max_sessions,
             max_sessions_per_tenant=args.max_sessions_per_tenant,

@@ -29,6 +29,7 @@ from jitdyn.server.runtime.admission import Admission
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
+from jitdyn.server.transport.metrics import metrics, serve_metrics
 from jitdyn.server.transport.registry_service import ModelRegistryServicer
 from jitdyn.server.transport.session_service import SessionServicer
 from jitdyn.storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
@@ -90,6 +91,7 @@ class ServerConfig:
     # `jitdyn serve --processes N` leave it to their parent.
     startup_tasks: bool = True
     reuse_port: bool = False  # SO_REUSEPORT: several processes serve one port
+    metrics_address: str | None = None  # HOST:PORT of the Prometheus endpoint; None: none
 
 
 def _is_loopback(address: str) -> bool:
@@ -226,7 +228,11 @@ async def serve(
     config: ServerConfig, *, announce: Callable[[str], None] = print, process_index: int | None = None
 ) -> None:
     """Run until SIGINT or SIGTERM, then shut down gracefully. `process_index`: this is one of the
-    processes of `jitdyn serve --processes N` (server/transport/processes.py)."""
+    processes of `jitdyn serve --processes N` (server/transport/processes.py), whose parent serves
+    the metrics."""
+    metrics().set_process(process_index or 0)
+    if config.metrics_address and process_index is None:
+        serve_metrics(config.metrics_address)
     server, port, services = await create_server(config)
     await server.start()
     host = config.address.rsplit(":", 1)[0]
@@ -234,6 +240,8 @@ async def serve(
     announce(
         f"data in {services.data_root} (index: {config.index_url or default_index_url(services.data_root)})"
     )
+    if config.metrics_address and process_index is None:
+        announce(f"metrics on http://{config.metrics_address}/metrics")
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):

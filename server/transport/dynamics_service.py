@@ -38,6 +38,7 @@ from jitdyn.server.transport.messages import (
     summary_info,
     tick_record,
 )
+from jitdyn.server.transport.metrics import metrics
 from jitdyn.server.transport.model_messages import metadata_from_message, model_message, settings_message
 from jitdyn.server.transport.opening import SessionPlan, plan_session
 from jitdyn.server.transport.session_service import summary_to_pb
@@ -80,6 +81,12 @@ class _Stream:
     ) -> None:
         self.services = services
         self.ticket = ticket  # REALTIME: this session's share of the process's tick budget
+        m, process, model = metrics(), metrics().process, recorder.header.model_name
+        self._m_ticks = {s: m.ticks.labels(process, model, s) for s in ("MEASURED", "PREDICTED", "CORRECTED")}
+        self._m_shed = m.shed.labels(process, model)
+        self._m_compute = m.compute.labels(process, model)
+        self._m_lateness = m.lateness.labels(process, model)
+        self._m_lag = m.durable_lag.labels(process)
         self.plan = plan
         self.runtime = runtime
         self.recorder = recorder
@@ -106,16 +113,24 @@ class _Stream:
         self.recorder.append(
             tick_record(outcome, server_time=now, frame_delay=delay, receive_to_send_us=receive_to_send)
         )
+        durable = self.recorder.durable_seq
+        self._m_ticks[outcome.source].inc()
+        if outcome.late_compute:
+            self._m_shed.inc()
+        else:
+            self._m_compute.observe(outcome.compute_us / 1e6)
+        self._m_lag.observe(outcome.seq - durable if durable is not None else outcome.seq + 1)
         return result_message(
             outcome,
             outputs=self.plan.outputs,
             frame_delay=delay or 0.0,
             receive_to_send_us=receive_to_send,
-            durable_seq=self.recorder.durable_seq,
+            durable_seq=durable,
         )
 
     def record_rejection(self, rejection: Rejection) -> dynamics_pb2.Rejected:
         self.runtime.reject(rejection)
+        metrics().rejections.labels(metrics().process, rejection.reason).inc()
         self.recorder.append(
             rejection_record(rejection, server_time=self.clock.now(), t=rejection.seq * self.plan.dt)
         )
@@ -237,7 +252,9 @@ class _Stream:
             outcome = self.runtime.advance(frame, horizon=self.horizon())
             if self.ticket is not None:
                 self.ticket.observe(outcome.compute_us / 1e6)
-        return Response(result=self.record_result(outcome, arrived=due))
+        response = Response(result=self.record_result(outcome, arrived=due))
+        self._m_lateness.observe(max(0.0, self.clock.now() - self.deadline(outcome.seq)))
+        return response
 
     def answer_ready(self) -> list[Response]:
         """REALTIME: answer, at once, every next tick whose frame is here and whose time has come
@@ -300,6 +317,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             stream, opened = await self._open(first.open, tenant)
         except JitdynError as error:
             await abort(context, error)
+        metrics().open_sessions.labels(metrics().process).inc()
         # The session clock starts as `opened` leaves, as the client's starts as it arrives: opening
         # (the log's fsync, the index row) took milliseconds, tens under load, which the client's
         # clock knows nothing of; counted in, every frame looked late until a clock probe completed.
@@ -376,11 +394,17 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         ticket: Ticket | None = None
         if plan.clock == "REALTIME":
             cycle = measure_cycle(model, config, pool=services.pool)
-            ticket = services.admission.admit(
-                cost_per_tick=cycle + TRANSPORT_COST,
-                dt=plan.dt,
-                what=f"{info.name} ({plan.scenario.lower()}) at {1 / plan.dt:g} Hz",
-            )
+            try:
+                ticket = services.admission.admit(
+                    cost_per_tick=cycle + TRANSPORT_COST,
+                    dt=plan.dt,
+                    what=f"{info.name} ({plan.scenario.lower()}) at {1 / plan.dt:g} Hz",
+                )
+            except ResourceExhausted:
+                metrics().refusals.labels(metrics().process).inc()
+                raise
+            finally:
+                metrics().load.labels(metrics().process).set(services.admission.load())
         try:
             return self._build_stream(request, tenant, info, model, plan, config, estimator, ticket)
         except BaseException:
@@ -612,8 +636,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             location = await asyncio.to_thread(stream.recorder.close, summary, status=status)
         finally:
             self._services.release(stream.recorder.header.tenant)
+            metrics().open_sessions.labels(metrics().process).dec()
             if stream.ticket is not None:
                 stream.ticket.release()
+                metrics().load.labels(metrics().process).set(self._services.admission.load())
         return summary, location
 
 

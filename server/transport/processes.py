@@ -23,15 +23,20 @@ import logging
 import multiprocessing as mp
 import os
 import queue
+import shutil
 import signal
 import socket
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from multiprocessing.process import BaseProcess
 from typing import Any
 
+from prometheus_client import multiprocess as prometheus_multiprocess
+
 from jitdyn.errors import InvalidArgument
 from jitdyn.server.transport.app import ServerConfig, prepare_data, serve
+from jitdyn.server.transport.metrics import MULTIPROCESS_ENV, serve_metrics
 
 __all__ = ["run_processes"]
 
@@ -93,6 +98,10 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
     if processes < 1:
         raise InvalidArgument(f"--processes must be at least 1, got {processes}")
     data_root, index_url = prepare_data(config)
+    metrics_dir = tempfile.mkdtemp(prefix="jitdyn-metrics-")
+    os.environ[MULTIPROCESS_ENV] = metrics_dir  # inherited by the children, before they import metrics
+    if config.metrics_address:
+        serve_metrics(config.metrics_address)
     with _reserved_port(config.address) as port:
         host = config.address.rpartition(":")[0]
         child_config = dataclasses.replace(
@@ -148,6 +157,8 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
                 f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'}, {processes} processes)"
             )
             announce(f"data in {data_root} (index: {index_url})")
+            if config.metrics_address:
+                announce(f"metrics on http://{config.metrics_address}/metrics")
             while not stop:
                 time.sleep(0.2)
                 for index, child in list(children.items()):
@@ -159,6 +170,8 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
                         )
                         with contextlib.suppress(Exception):
                             prepare_data(child_config, recover_only=True)
+                        if child.pid is not None:
+                            prometheus_multiprocess.mark_process_dead(child.pid, metrics_dir)  # type: ignore[no-untyped-call]
                         start(index)
             announce("jitdyn shutting down: open sessions are being stored")
         finally:
@@ -171,3 +184,5 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
                     child.kill()
             for s, handler in previous.items():
                 signal.signal(s, handler)
+            shutil.rmtree(metrics_dir, ignore_errors=True)
+            os.environ.pop(MULTIPROCESS_ENV, None)
