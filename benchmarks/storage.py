@@ -8,7 +8,7 @@ Frames are pendulum_3-sized results (nq = nv = nu = 3) as the session runtime re
 frame's qpos and qvel, the estimate, qacc, qfrc_inverse, the covariance diagonal and the filter
 state (6 values each), NIS and timings, on a smooth trajectory so that compression sees realistic
 data. "append" is what the event loop pays per frame; "durable" counts until the last frame is
-fsynced. Target (issue 5): >= 100k frames/s.
+fsynced. Target: >= 100k frames/s (DESIGN.md, Scale: one fsync per commit window for all sessions).
 """
 
 from __future__ import annotations
