@@ -1,5 +1,5 @@
 """`jitdyn experiments`: the thesis' chapter 4 reproduced through a real jitdyn server, and taken
-further (dead reckoning over gaps, late and lost frames, real-time delay)::
+further (dead reckoning over gaps, late and lost frames, real-time delay); needs jitdyn[experiments]::
 
     jitdyn experiments                          # everything, full length, an in-process server
     jitdyn experiments table_4_2 gaps --quick   # two experiments, CI-sized
@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import logging
 import os
 import platform
 import subprocess
@@ -25,6 +26,8 @@ from pathlib import Path
 
 from jitdyn.experiments.definitions import EXPERIMENTS, Context, Experiment
 from jitdyn.experiments.report import Section, write_report
+from jitdyn.mujoco_log import route_mujoco_messages
+from jitdyn.settings import SettingError, add_arguments, resolve
 
 __all__ = ["EXPERIMENTS", "main", "parser", "run_experiments"]
 
@@ -51,15 +54,18 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--out", type=Path, default=Path("experiments-out"), help="output folder (default: %(default)s)"
     )
-    p.add_argument(
-        "--server", metavar="ADDR", help="run against this server (HOST:PORT) instead of an in-process one"
-    )
+    add_arguments(p, "experiments")  # --server, with JITDYN_SERVER
     p.add_argument("--data", type=Path, help="data root of the in-process server (keeps its sessions)")
     p.add_argument(
         "--workers", type=int, default=2, help="workers of the in-process server (default: %(default)s)"
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the objects' initial states and the network")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bars (they are drawn on stderr, when it is a terminal)",
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="log more")
     return p
 
 
@@ -142,8 +148,15 @@ def run_experiments(
     return sections
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None, *, verbose: bool = False) -> int:
     args = parser().parse_args(argv)
+    try:
+        args.server = resolve({"server": args.server} if "server" in args else {}, os.environ).server
+    except SettingError as error:
+        parser().error(str(error))
+    if args.verbose and not verbose:
+        logging.getLogger().setLevel(logging.INFO)
+    route_mujoco_messages()
     unknown = [n for n in args.names if n not in EXPERIMENTS]
     if unknown:
         parser().error(f"unknown experiment(s) {unknown}; choose from {list(EXPERIMENTS)}")

@@ -13,19 +13,22 @@ from pathlib import Path
 from jitdyn.errors import ResourceExhausted
 from jitdyn.registry import ModelRegistry
 from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.settings import Settings
 from jitdyn.storage.anonymise import Anonymiser
 from jitdyn.storage.index import SessionIndex
 
 __all__ = ["DEFAULT_SESSION_LIMITS", "Services", "SessionLimits"]
 
+_DEFAULTS = Settings()
+
 
 @dataclass(frozen=True)
 class SessionLimits:
-    """Limits on sessions; each has a `jitdyn serve` flag."""
+    """Limits on sessions; each is a setting of `jitdyn serve` (jitdyn.settings), defaults there."""
 
-    max_sessions: int = 64
-    max_sessions_per_tenant: int = 16
-    max_state_dimension: int = 200  # nv of a session's model
+    max_sessions: int = _DEFAULTS.max_sessions
+    max_sessions_per_tenant: int = _DEFAULTS.max_sessions_per_tenant
+    max_state_dimension: int = _DEFAULTS.max_state_dimension  # nv of a session's model
 
 
 DEFAULT_SESSION_LIMITS = SessionLimits()
