@@ -21,8 +21,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 GENERIC = ("server", "client", "registry", "storage", "experiments", "cli", "models")
-# Packages of the extras, which a base install must not pull in.
-EXTRAS_ONLY = ("duckdb", "myo_sim", "matplotlib", "tqdm")
+# Packages of the extras, which a base install must not pull in. (matplotlib is not among them:
+# filterpy, which the server needs, requires it.)
+EXTRAS_ONLY = ("duckdb", "myo_sim", "tqdm")
 NEEDS_EXTRA = (
     (["experiments", "--quick"], "experiments"),
     (["sessions", "query", "SELECT 1", "--data", "."], "query"),
