@@ -9,7 +9,7 @@ frame's qpos and qvel, the estimate, qacc, qfrc_inverse, the covariance diagonal
 state (6 values each), NIS and timings, on a smooth trajectory so that compression sees realistic
 data. "append" is what the event loop pays per frame; "durable" counts until the last frame is
 fsynced. Target: >= 100k frames/s. The many-sessions case compares one group committer for all the
-sessions of a process against one per session, side by side.
+sessions of a process (DESIGN.md, Scale: one fsync per commit window) against one per session.
 """
 
 from __future__ import annotations

@@ -1,7 +1,13 @@
 """The `jitdyn` command line: serve, models, demo, sessions, experiments.
 
-Settings come from flags, then environment variables (JITDYN_ADDRESS, JITDYN_SERVER, JITDYN_DATA,
-JITDYN_INDEX_URL, JITDYN_SECRET_FILE, JITDYN_WORKERS), then defaults. Every subcommand has --help.
+Every option is accepted wherever a user puts it: `-v` and a group's options (`--server` of
+`models`, `--data` of `sessions`) work before or after the action, because each leaf parser takes
+them too (argparse `parents=`, defaults SUPPRESSed so that the last one given wins). Settings come
+from flags, then environment variables, then defaults, all read by jitdyn.settings.
+
+Exit codes: 0 done; 1 the command could not do it (the server refused, a file is missing, a
+needed extra is not installed); 2 a usage error (a bad flag, a bad setting in the environment);
+130 interrupted. Every failure a user can cause prints one line on stderr, never a traceback.
 """
 
 from __future__ import annotations
@@ -10,220 +16,242 @@ import argparse
 import asyncio
 import logging
 import os
-import re
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, NoReturn
 
-from jitdyn.errors import JitdynError
+from jitdyn.cli.extras import MissingExtra, require_extra
+from jitdyn.errors import JitdynError, Unavailable
+from jitdyn.registry.builtins import BUILTIN_NAMES
+from jitdyn.settings import SettingError, Settings, add_arguments, parse_duration, resolve
 
-__all__ = ["main", "parse_duration"]
+__all__ = ["DEFAULT_SERVER", "EXIT_ERROR", "EXIT_USAGE", "build_parser", "main"]
 
-_DURATION = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(us|ms|s)?\s*$")
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+DEFAULT_SERVER = "127.0.0.1:50051"
+
+_EPILOG = "exit codes: 0 done, 1 the command failed (one line on stderr says why), 2 usage error"
 
 
-def parse_duration(text: str) -> float:
-    """'35ms' -> 0.035, '2s' -> 2.0, '0.01' -> 0.01 (seconds)."""
-    match = _DURATION.match(text)
-    if not match:
-        raise argparse.ArgumentTypeError(f"expected a duration like 35ms, 0.5s or 0.035, got {text!r}")
-    value = float(match.group(1))
-    return value * {"us": 1e-6, "ms": 1e-3, "s": 1.0, None: 1.0}[match.group(2)]
+def _argparse(parse: Callable[[str], Any], name: str) -> Callable[[str], Any]:
+    def convert(text: str) -> Any:
+        try:
+            return parse(text)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+
+    convert.__name__ = name
+    return convert
 
 
 def _probability(text: str) -> float:
     try:
         value = float(text.rstrip("%")) / (100.0 if text.endswith("%") else 1.0)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a probability like 0.05 or 5%, got {text!r}") from None
+        raise ValueError(f"expected a probability like 0.05 or 5%, got {text!r}") from None
     if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a probability in [0, 1], got {text!r}")
+        raise ValueError(f"expected a probability in [0, 1], got {text!r}")
     return value
 
 
-def _env(name: str, default: str) -> str:
-    return os.environ.get(name, default)
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"expected a number of seconds > 0, like 10 or 2.5, got {text!r}") from None
+    if not value > 0:
+        raise ValueError(f"expected a number of seconds > 0, got {text!r}")
+    return value
 
 
-def _data_arg(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--data",
-        type=Path,
-        default=Path(_env("JITDYN_DATA", "jitdyn-data")),
-        help="data folder: Parquet frames, model store, default SQLite index (env JITDYN_DATA; default ./jitdyn-data)",
+@dataclass(frozen=True)
+class ModelRef:
+    """What `models show` was given: a content id, or a name and a version (0: the newest)."""
+
+    model_id: str = ""
+    name: str = ""
+    version: int = 0
+
+
+def _model_ref(text: str) -> ModelRef:
+    if text.startswith("sha256:"):
+        return ModelRef(model_id=text)
+    name, colon, version = text.partition(":")
+    if not name or (colon and not (version.isdigit() and int(version) >= 1)):
+        raise ValueError(
+            f"expected a model id (sha256:...), NAME or NAME:VERSION with VERSION a whole number >= 1, got {text!r}"
+        )
+    return ModelRef(name=name, version=int(version or 0))
+
+
+def _common() -> argparse.ArgumentParser:
+    """Options of every parser, top-level and leaves alike."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="log more (server and client)"
     )
+    return common
 
 
-def _index_arg(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--index",
-        default=os.environ.get("JITDYN_INDEX_URL"),
-        help="SQL index URL, e.g. postgresql+psycopg://user@host/db (env JITDYN_INDEX_URL; default: "
-        "a SQLite file in the data folder)",
-    )
-
-
-def _server_arg(parser: argparse.ArgumentParser, *, help_text: str) -> None:
-    parser.add_argument("--server", default=os.environ.get("JITDYN_SERVER"), help=help_text)
+def _settings_parent(command: str) -> argparse.ArgumentParser:
+    parent = argparse.ArgumentParser(add_help=False)
+    add_arguments(parent, command)
+    return parent
 
 
 def build_parser() -> argparse.ArgumentParser:
+    common = _common()
     parser = argparse.ArgumentParser(
         prog="jitdyn",
+        parents=[common],
+        epilog=_EPILOG,
         description="Cloud, just-in-time MuJoCo dynamics of biomechanical models over gRPC, with "
         "Unscented Kalman Filter latency compensation and anonymised Parquet storage.",
     )
-    parser.add_argument("-v", "--verbose", action="store_true", help="log more (server and client)")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    serve = commands.add_parser(
-        "serve", help="run the server", description="Run the jitdyn server until Ctrl-C or SIGTERM."
-    )
-    serve.add_argument(
-        "--address",
-        default=_env("JITDYN_ADDRESS", "127.0.0.1:50051"),
-        help="HOST:PORT to listen on (env JITDYN_ADDRESS; default 127.0.0.1:50051; port 0 picks one). "
-        "A non-loopback address needs --tls-cert/--tls-key or --insecure",
-    )
-    _data_arg(serve)
-    _index_arg(serve)
-    serve.add_argument(
-        "--workers",
-        type=int,
-        default=int(_env("JITDYN_WORKERS", str(os.cpu_count() or 2))),
-        help="threads propagating sigma points, shared by all sessions (env JITDYN_WORKERS; default: the CPU count)",
-    )
-    serve.add_argument(
-        "--processes",
-        type=int,
-        default=int(_env("JITDYN_PROCESSES", str(os.cpu_count() or 1))),
-        help="server processes on the one port (SO_REUSEPORT), each with its own event loop and "
-        "worker pool, sharing the data folder and index (env JITDYN_PROCESSES; default: the CPU count)",
-    )
-    serve.add_argument(
-        "--metrics-address",
-        default=os.environ.get("JITDYN_METRICS_ADDRESS"),
-        help="HOST:PORT to serve Prometheus metrics on, e.g. 127.0.0.1:9464 (env JITDYN_METRICS_ADDRESS; "
-        "default: none)",
-    )
-    serve.add_argument(
-        "--secret-file",
-        type=Path,
-        default=os.environ.get("JITDYN_SECRET_FILE"),
-        help="HMAC key for subject pseudonyms, mode 0600, outside the data folder; created at first "
-        "start (env JITDYN_SECRET_FILE; default ~/.config/jitdyn/secret.key; JITDYN_SECRET=hex overrides)",
-    )
-    serve.add_argument("--tls-cert", type=Path, help="PEM certificate chain, to serve over TLS")
-    serve.add_argument("--tls-key", type=Path, help="PEM private key of --tls-cert")
-    serve.add_argument(
-        "--api-keys",
-        type=Path,
-        help="file of `KEY TENANT` lines: every RPC must then carry "
-        "`authorization: Bearer KEY`, and sees only its tenant's sessions and models",
-    )
-    serve.add_argument(
-        "--insecure", action="store_true", help="allow a non-loopback address without TLS and API keys"
-    )
-    serve.add_argument(
-        "--max-sessions",
-        type=int,
-        default=0,
-        help="open sessions per process, a quota (default 0: no count limit)",
-    )
-    serve.add_argument(
-        "--max-sessions-per-tenant",
-        type=int,
-        default=0,
-        help="open sessions per tenant and process, a quota (default 0: no count limit)",
-    )
-    serve.add_argument(
-        "--tick-budget",
-        type=float,
-        default=0.75,
-        help="share of one core each process may spend on REALTIME ticks; a session whose measured "
-        "cost would exceed it is refused with RESOURCE_EXHAUSTED (default 0.75)",
-    )
-    serve.add_argument(
-        "--max-state-dimension", type=int, default=200, help="largest nv of a session's model (default 200)"
+    def leaf(
+        subparsers: argparse._SubParsersAction[argparse.ArgumentParser], name: str, group: str, **kwargs: Any
+    ) -> argparse.ArgumentParser:
+        return subparsers.add_parser(
+            name, parents=[common, _settings_parent(group)], epilog=_EPILOG, **kwargs
+        )
+
+    leaf(
+        commands,
+        "serve",
+        "serve",
+        help="run the server",
+        description="Run the jitdyn server until Ctrl-C or SIGTERM.",
     )
 
-    models = commands.add_parser(
-        "models", help="register, list and show models", description="The model registry, from the shell."
+    models = leaf(
+        commands,
+        "models",
+        "models",
+        help="register, list and show models",
+        description="The model registry, from the shell.",
     )
-    _server_arg(models, help_text="server ADDRESS (env JITDYN_SERVER; default 127.0.0.1:50051)")
     model_commands = models.add_subparsers(dest="models_command", metavar="ACTION", required=True)
-    register = model_commands.add_parser(
-        "register", help="register an MJCF file, or a MyoSuite model with --myo"
+    register = leaf(
+        model_commands,
+        "register",
+        "models",
+        help="register an MJCF file, or a MyoSuite model with --myo",
+        description="Register an MJCF file with the files it names, or a MyoSuite model (--myo). Content "
+        "already registered is not registered again: it keeps its name, and a different --name or "
+        "--tag is refused (exit 1) rather than dropped silently.",
     )
-    register.add_argument("file", nargs="?", type=Path, help="the MJCF file")
-    register.add_argument("--name", help="name to register under (default: the file's stem)")
+    what = register.add_mutually_exclusive_group(required=True)
+    what.add_argument("file", nargs="?", type=Path, help="the MJCF file")
+    what.add_argument(
+        "--myo",
+        choices=("myoelbow", "myohand"),
+        help="pack a MyoSuite model from myo-sim with its meshes (needs jitdyn[myo])",
+    )
+    register.add_argument(
+        "--name", help="name to register under (default: the file's stem, or the --myo name)"
+    )
     register.add_argument(
         "--asset-dir",
         type=Path,
         help="folder of the meshes, textures and included XML the MJCF refers to "
         "(default: the MJCF's folder, only the files it names)",
     )
-    register.add_argument(
-        "--myo", choices=("myoelbow", "myohand"), help="pack a MyoSuite model from myo-sim with its meshes"
-    )
     register.add_argument("--description", default="", help="free description")
     register.add_argument("--tag", action="append", default=[], help="a tag (repeatable)")
-    listing = model_commands.add_parser("list", help="list registered models")
+    listing = leaf(model_commands, "list", "models", help="list registered models")
     listing.add_argument("--name", default="", help="only this name")
     listing.add_argument("--tag", default="", help="only models with this tag")
-    show = model_commands.add_parser("show", help="show one model (by id, NAME or NAME:VERSION)")
-    show.add_argument("model", help="sha256:... id, a name, or name:version")
+    show = leaf(model_commands, "show", "models", help="show one model (by id, NAME or NAME:VERSION)")
+    show.add_argument(
+        "model", type=_argparse(_model_ref, "model"), help="sha256:... id, a name, or name:version"
+    )
 
-    demo = commands.add_parser(
+    demo = leaf(
+        commands,
+        "demo",
         "demo",
         help="a simulated REALTIME session over an emulated network",
         description="Drive a simulated research object (truth simulated by MuJoCo here) through an emulated "
         "network against a local in-process server (or --server), show progress, and print a summary.",
     )
     demo.add_argument(
-        "--model", default="pendulum_3", help="built-in model: pendulum_1..3 or biped (default pendulum_3)"
+        "--model", default="pendulum_3", choices=BUILTIN_NAMES, help="built-in model (default pendulum_3)"
     )
     demo.add_argument(
         "--scenario", default="passive", choices=("passive", "controlled", "external"), help="default passive"
     )
-    demo.add_argument("--seconds", type=float, default=10.0, help="session length (default 10)")
-    demo.add_argument("--latency", type=parse_duration, default=0.035, help="one-way latency (default 35ms)")
-    demo.add_argument("--jitter", type=parse_duration, default=0.010, help="latency spread (default 10ms)")
-    demo.add_argument("--loss", type=_probability, default=0.05, help="frame loss probability (default 0.05)")
+    demo.add_argument(
+        "--seconds", type=_argparse(_seconds, "seconds"), default=10.0, help="session length, s (default 10)"
+    )
+    demo.add_argument(
+        "--latency",
+        type=_argparse(parse_duration, "duration"),
+        default=0.035,
+        help="one-way latency with a unit: 35ms, 0.1s (default 35ms)",
+    )
+    demo.add_argument(
+        "--jitter",
+        type=_argparse(parse_duration, "duration"),
+        default=0.010,
+        help="latency spread with a unit (default 10ms)",
+    )
+    demo.add_argument(
+        "--loss",
+        type=_argparse(_probability, "probability"),
+        default=0.05,
+        help="frame loss probability: 0.05 or 5%% (default 0.05)",
+    )
     demo.add_argument(
         "--estimator", default="UKF", choices=("UKF", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION")
     )
     demo.add_argument("--seed", type=int, default=0, help="seed of the emulated network and the start state")
-    _server_arg(demo, help_text="use this server instead of starting one in-process (env JITDYN_SERVER)")
-    _data_arg(demo)
 
-    sessions = commands.add_parser(
+    sessions = leaf(
+        commands,
+        "sessions",
         "sessions",
         help="list, show, query and export stored sessions",
-        description="The stored sessions, read from the data folder and the SQL index.",
+        description="The stored sessions, read from the data folder and the SQL index (no server needed).",
     )
-    _data_arg(sessions)
-    _index_arg(sessions)
     session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
-    slist = session_commands.add_parser("list", help="list sessions, newest first")
+    slist = leaf(session_commands, "list", "sessions", help="list sessions, newest first")
     slist.add_argument("--model", help="only this model name")
     slist.add_argument("--status", choices=("OPEN", "COMPLETE", "RECOVERED", "FAILED"))
-    slist.add_argument("--limit", type=int, default=50)
-    sshow = session_commands.add_parser("show", help="show one session")
+    slist.add_argument(
+        "--limit", type=_argparse(_positive, "limit"), default=50, help="at most N (default 50)"
+    )
+    sshow = leaf(session_commands, "show", "sessions", help="show one session")
     sshow.add_argument("session_id")
-    squery = session_commands.add_parser(
-        "query", help="run SQL with DuckDB over the frames (view `frames`) and the index (table `sessions`)"
+    squery = leaf(
+        session_commands,
+        "query",
+        "sessions",
+        help="run SQL with DuckDB over the frames (view `frames`) and the index (table `sessions`)",
+        description="Run SQL with DuckDB (needs jitdyn[query]) over the stored frames (view `frames`, one "
+        "row per answer: a tick answered PREDICTED and later CORRECTED has two rows) and the index "
+        "(table `sessions`).",
     )
     squery.add_argument("sql", help='e.g. "SELECT source, count(*) FROM frames GROUP BY source"')
-    squery.add_argument("--csv", type=Path, help="write the result as CSV here instead of printing it")
-    sexport = session_commands.add_parser("export", help="export one session as CSV or OpenSim .sto")
+    squery.add_argument(
+        "--format",
+        choices=("table", "csv", "json"),
+        default="table",
+        help="an aligned table (default), CSV with a header, or JSON lines (one object per row)",
+    )
+    squery.add_argument("--out", type=Path, help="write the result to this file instead of stdout")
+    sexport = leaf(session_commands, "export", "sessions", help="export one session as CSV or OpenSim .sto")
     sexport.add_argument("session_id")
     sexport.add_argument("--format", choices=("csv", "sto"), default="csv")
     sexport.add_argument("--out", type=Path, help="output file (default <session id>.<format>)")
 
     experiments = commands.add_parser(
         "experiments",
-        help="reproduce the thesis experiments",
+        help="reproduce the thesis experiments (needs jitdyn[experiments])",
         add_help=False,
         description="Reproduce every experiment of the thesis; see `jitdyn experiments --help`.",
     )
@@ -231,95 +259,117 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _serve(args: argparse.Namespace) -> int:
-    from jitdyn.server.runtime.services import SessionLimits
-    from jitdyn.server.transport.app import ServerConfig, serve
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"expected a whole number >= 1, got {text!r}") from None
+    if value < 1:
+        raise ValueError(f"expected a whole number >= 1, got {text!r}")
+    return value
 
-    config = ServerConfig(
-        address=args.address,
-        data_root=args.data,
-        index_url=args.index,
-        workers=args.workers,
-        secret_file=args.secret_file,
-        tls_cert=args.tls_cert,
-        tls_key=args.tls_key,
-        api_keys=args.api_keys,
-        insecure=args.insecure,
-        metrics_address=args.metrics_address,
-        session_limits=SessionLimits(
-            max_sessions=args.max_sessions,
-            max_sessions_per_tenant=args.max_sessions_per_tenant,
-            tick_budget=args.tick_budget,
-            max_state_dimension=args.max_state_dimension,
-        ),
-    )
-    if args.processes > 1:
+
+def _server_config(settings: Settings, **overrides: Any) -> Any:
+    from jitdyn.server.transport.app import ServerConfig
+
+    return ServerConfig.from_settings(settings, **overrides)
+
+
+def _serve(args: argparse.Namespace, settings: Settings) -> int:
+    from jitdyn.server.transport.app import serve
+
+    config = _server_config(settings)
+    if settings.processes > 1:
         from jitdyn.server.transport.processes import run_processes
 
-        run_processes(config, processes=args.processes, announce=lambda line: print(line, flush=True))
+        run_processes(config, processes=settings.processes, announce=lambda line: print(line, flush=True))
     else:
         asyncio.run(serve(config, announce=lambda line: print(line, flush=True)))
     return 0
 
 
-def _models(args: argparse.Namespace) -> int:
-    from jitdyn.client.sdk import Client, ModelRef
+def _models(args: argparse.Namespace, settings: Settings) -> int:
+    from jitdyn.client.sdk import Client
+    from jitdyn.client.sdk import ModelRef as Registered
 
-    def show(model: ModelRef) -> None:
+    def show(model: Registered) -> None:
         print(
             f"{model.id}  {model.name} v{model.version}  nq={model.nq} nv={model.nv} nu={model.nu} "
             f"timestep={model.timestep:g}s{'  builtin' if model.builtin else ''}  tags={','.join(model.tags)}"
         )
 
-    with Client(args.server or "127.0.0.1:50051") as client:
-        if args.models_command == "register":
-            if args.myo:
-                from jitdyn.client.myo import pack_myo_model
+    address = settings.server or DEFAULT_SERVER
+    with Client(address) as client:
+        try:
+            if args.models_command == "register":
+                return _register(client, args, show)
+            if args.models_command == "list":
+                for model in client.list_models(name=args.name, tag=args.tag):
+                    show(model)
+                return 0
+            ref: ModelRef = args.model
+            message = client.get_model_message(model_id=ref.model_id, name=ref.name, version=ref.version)
+        except Unavailable as error:
+            raise Unavailable(
+                f"no jitdyn server answered at {address} (give --server HOST:PORT or JITDYN_SERVER, or start "
+                f"`jitdyn serve`): {error}"
+            ) from None
+    from google.protobuf import json_format
 
-                mjcf, assets = pack_myo_model(args.myo)
-                name = args.name or args.myo
-                from importlib.metadata import version as package_version
-
-                args.tag = args.tag or ["myosuite"]
-                args.description = (
-                    args.description
-                    or f"MyoSuite {args.myo}, packed from myo-sim {package_version('myo-sim')}"
-                )
-
-            else:
-                if args.file is None:
-                    raise SystemExit("jitdyn models register: give an MJCF FILE or --myo NAME")
-                from jitdyn.client.assets import read_model_files
-
-                mjcf, assets = read_model_files(args.file, asset_dir=args.asset_dir)
-                name = args.name or args.file.stem
-            size = len(mjcf.encode()) + sum(len(b) for b in assets.values())
-            print(f"registering {name!r}: {len(assets)} assets, {size / 1e6:.1f} MB", file=sys.stderr)
-            model, created = client.register_model(
-                name=name, mjcf=mjcf, assets=assets, description=args.description, tags=args.tag
-            )
-            print("registered" if created else "already registered (identical content)", end=": ")
-            show(model)
-        elif args.models_command == "list":
-            for model in client.list_models(name=args.name, tag=args.tag):
-                show(model)
-        else:
-            text = args.model
-            if text.startswith("sha256:"):
-                message = client.get_model_message(model_id=text)
-            else:
-                name, _, version = text.partition(":")
-                message = client.get_model_message(name=name, version=int(version or 0))
-            from google.protobuf import json_format
-
-            print(json_format.MessageToJson(message, indent=2))
+    print(json_format.MessageToJson(message, indent=2))
     return 0
 
 
-def _demo(args: argparse.Namespace) -> int:
+def _register(client: Any, args: argparse.Namespace, show: Callable[[Any], None]) -> int:
+    tags: list[str] = args.tag
+    description: str = args.description
+    if args.myo:
+        require_extra("myo_sim", what="myo-sim (MyoSuite models)", extra="myo")
+        from importlib.metadata import version as package_version
+
+        from jitdyn.client.myo import pack_myo_model
+
+        mjcf, assets = pack_myo_model(args.myo)
+        name = args.name or args.myo
+        tags = tags or ["myosuite"]
+        description = description or f"MyoSuite {args.myo}, packed from myo-sim {package_version('myo-sim')}"
+    else:
+        from jitdyn.client.assets import read_model_files
+
+        mjcf, assets = read_model_files(args.file, asset_dir=args.asset_dir)
+        name = args.name or args.file.stem
+    size = len(mjcf.encode()) + sum(len(b) for b in assets.values())
+    print(f"registering {name!r}: {len(assets)} assets, {size / 1e6:.1f} MB", file=sys.stderr)
+    model, created = client.register_model(
+        name=name, mjcf=mjcf, assets=assets, description=description, tags=tags
+    )
+    if created:
+        print("registered", end=": ")
+        show(model)
+        return 0
+    # The registry names each content once (proto: RegisterModel): the stored model comes back as
+    # it is. Whatever was asked beyond it is said to be refused, not dropped silently.
+    missing_tags = [t for t in tags if t not in model.tags]
+    if model.name != name or missing_tags:
+        asked = [f"the name {name!r}"] if model.name != name else []
+        asked += [f"the tag {t!r}" for t in missing_tags]
+        print(
+            f"jitdyn models register: not registered: identical content is already registered as "
+            f"{model.name} v{model.version} ({model.id}), and {' and '.join(asked)} "
+            f"{'was' if len(asked) == 1 else 'were'} not added (the registry keeps one name per content); "
+            f"use `jitdyn models show {model.name}:{model.version}`, or change the content",
+            file=sys.stderr,
+        )
+        return EXIT_ERROR
+    print("already registered (identical content)", end=": ")
+    show(model)
+    return 0
+
+
+def _demo(args: argparse.Namespace, settings: Settings) -> int:
     from jitdyn.experiments.demo import DemoSettings, run_demo
 
-    settings = DemoSettings(
+    demo = DemoSettings(
         model=args.model,
         scenario=args.scenario,
         seconds=args.seconds,
@@ -329,39 +379,94 @@ def _demo(args: argparse.Namespace) -> int:
         seed=args.seed,
         estimator=args.estimator,
     )
-    if args.server:
-        run_demo(args.server, settings, out=sys.stdout)
+    progress = sys.stderr.isatty()
+    if settings.server:
+        run_demo(settings.server, demo, out=sys.stdout, progress=progress, local_data=None)
         return 0
-    from jitdyn.server.transport.app import ServerConfig
     from jitdyn.server.transport.background import BackgroundServer
 
-    print(f"starting a local jitdyn server (data in {args.data.resolve()})", flush=True)
-    with BackgroundServer(ServerConfig(address="127.0.0.1:0", data_root=args.data)) as server:
-        run_demo(server.address, settings, out=sys.stdout)
+    config = _server_config(settings, address="127.0.0.1:0")
+    print(f"starting a local jitdyn server (data in {settings.data.resolve()})", flush=True)
+    with BackgroundServer(config) as server:
+        run_demo(server.address, demo, out=sys.stdout, progress=progress, local_data=settings.data.resolve())
     return 0
 
 
-def _sessions(args: argparse.Namespace) -> int:
+def _sessions(args: argparse.Namespace, settings: Settings) -> int:
     from jitdyn.cli.sessions import run_sessions_command
 
-    return run_sessions_command(args)
+    return run_sessions_command(args, settings)
+
+
+_HANDLERS: dict[str, Callable[[argparse.Namespace, Settings], int]] = {
+    "serve": _serve,
+    "models": _models,
+    "demo": _demo,
+    "sessions": _sessions,
+}
+
+
+def _experiments(argv: list[str], *, verbose: bool) -> int:
+    require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
+    require_extra("myo_sim", what="myo-sim (the MyoSuite objects)", extra="experiments")
+    from jitdyn.experiments.reproduce import main as experiments_main
+
+    return int(experiments_main(argv, verbose=verbose) or 0)
+
+
+def _fail(command: str, message: str, code: int = EXIT_ERROR) -> NoReturn:
+    print(f"jitdyn {command}: {message}", file=sys.stderr)
+    raise SystemExit(code)
+
+
+def _command_name(args: argparse.Namespace) -> str:
+    parts = [args.command]
+    for attr in ("models_command", "sessions_command"):
+        if getattr(args, attr, None):
+            parts.append(getattr(args, attr))
+    return " ".join(parts)
+
+
+def _configure_logging(verbose: bool) -> None:
+    from jitdyn.mujoco_log import route_mujoco_messages
+
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+    )
+    route_mujoco_messages()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["experiments"]:
-        from jitdyn.experiments import main as experiments_main
-
-        return int(experiments_main(argv[1:]) or 0)
+    # `experiments` has its own parser (jitdyn.experiments): hand it everything after the word.
+    leading = 0
+    while leading < len(argv) and argv[leading] in ("-v", "--verbose"):
+        leading += 1
+    if argv[leading : leading + 1] == ["experiments"]:
+        _configure_logging(leading > 0)
+        try:
+            return _experiments(argv[leading + 1 :], verbose=leading > 0)
+        except MissingExtra as error:
+            _fail("experiments", str(error))
+        except JitdynError as error:
+            _fail("experiments", f"{type(error).__name__}: {error}")
+        except KeyboardInterrupt:
+            return 130
     args = build_parser().parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
-    )
+    command = _command_name(args)
     try:
-        handler = {"serve": _serve, "models": _models, "demo": _demo, "sessions": _sessions}[args.command]
-        return handler(args)
+        settings = resolve(args, os.environ)
+    except SettingError as error:
+        _fail(command, str(error), EXIT_USAGE)
+    _configure_logging(getattr(args, "verbose", False))
+    try:
+        return _HANDLERS[args.command](args, settings)
+    except MissingExtra as error:
+        _fail(command, str(error))
     except JitdynError as error:
-        print(f"jitdyn {args.command}: {type(error).__name__}: {error}", file=sys.stderr)
-        return 2
+        _fail(command, f"{type(error).__name__}: {error}")
+    except OSError as error:
+        where = f" {error.filename}" if error.filename else ""
+        _fail(command, f"{error.strerror or error}:{where}")
     except KeyboardInterrupt:
         return 130

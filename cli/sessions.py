@@ -1,46 +1,119 @@
 """`jitdyn sessions list | show | query | export`: the stored sessions, from the data folder and
-the SQL index, without a server."""
+the SQL index, without a server. Counts are shown by storage.summary.format_counts, as the demo
+shows them, so that the two agree.
+"""
 
 from __future__ import annotations
 
 import argparse
+import csv
+import datetime
 import json
+import math
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any, TextIO
 
-import pyarrow.csv as pacsv
+import sqlalchemy as sa
 
+from jitdyn.cli.extras import require_extra
 from jitdyn.errors import FailedPrecondition
+from jitdyn.settings import Settings
 from jitdyn.storage.db import default_index_url, open_index
-from jitdyn.storage.export import export_session
 from jitdyn.storage.index import SessionIndex, SessionRow
-from jitdyn.storage.query import run_query
+from jitdyn.storage.summary import format_counts
 
-__all__ = ["run_sessions_command"]
+__all__ = ["format_table", "run_sessions_command"]
+
+# Lists longer than this are shown as their first elements and a count, in the table format only.
+_LIST_SHOWN = 4
 
 
-def _engine(args: argparse.Namespace):  # type: ignore[no-untyped-def]
-    data_root: Path = args.data
-    if not args.index and not (data_root / "index.sqlite").exists():
+def _engine(settings: Settings) -> sa.Engine:
+    data_root = settings.data
+    if not settings.index_url and not (data_root / "index.sqlite").exists():
         raise FailedPrecondition(
             f"no jitdyn data in {data_root.resolve()}: give --data (or JITDYN_DATA) of a server's data "
             "folder, or --index of its SQL index"
         )
-    return open_index(args.index or default_index_url(data_root))
+    return open_index(settings.index_url or default_index_url(data_root))
 
 
 def _line(row: SessionRow) -> str:
-    s = row.summary
     return (
         f"{row.session_id}  {row.started_at:%Y-%m-%d %H:%M:%S}  {row.status:<9}  {row.model_name} v{row.model_version}  "
-        f"{row.scenario.lower():<10} {row.clock.lower():<8} ticks {s.ticks:>6}  measured {s.measured:>6}  "
-        f"predicted {s.predicted:>5}  corrected {s.corrected:>4}  rejected {s.rejected:>4}"
+        f"{row.scenario.lower():<10} {row.clock.lower():<8} {format_counts(row.summary)}"
     )
 
 
-def run_sessions_command(args: argparse.Namespace) -> int:
-    engine = _engine(args)
-    data_root: Path = args.data
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return "nan" if math.isnan(value) else f"{value:.6g}"
+    if isinstance(value, datetime.datetime):
+        return value.isoformat(sep=" ", timespec="milliseconds")
+    if isinstance(value, list):
+        shown = ", ".join(_cell(v) for v in value[:_LIST_SHOWN])
+        more = f", ... ({len(value)})" if len(value) > _LIST_SHOWN else ""
+        return f"[{shown}{more}]"
+    if isinstance(value, dict):
+        return json.dumps(value, default=str)
+    return str(value)
+
+
+def format_table(columns: list[str], rows: list[list[Any]]) -> Iterator[str]:
+    """Lines of an aligned text table: a header, a rule, the rows; numeric columns right-aligned."""
+    cells = [[_cell(value) for value in row] for row in rows]
+    numeric = [
+        all(
+            isinstance(row[i], (int, float)) and not isinstance(row[i], bool)
+            for row in rows
+            if row[i] is not None
+        )
+        for i in range(len(columns))
+    ]
+    widths = [max([len(c), *(len(r[i]) for r in cells)]) for i, c in enumerate(columns)]
+
+    def line(values: list[str]) -> str:
+        return "  ".join(
+            v.rjust(w) if right else v.ljust(w) for v, w, right in zip(values, widths, numeric, strict=True)
+        ).rstrip()
+
+    yield line(columns)
+    yield "  ".join("-" * w for w in widths)
+    for r in cells:
+        yield line(r)
+
+
+def _write_query(table: Any, fmt: str, out: TextIO) -> None:
+    columns: list[str] = list(table.column_names)
+    rows: list[list[Any]] = [list(row) for row in zip(*(c.to_pylist() for c in table.columns), strict=True)]
+    if fmt == "csv":
+        # Lists and maps (qpos, attributes) as JSON in one cell: CSV has no nested values.
+        writer = csv.writer(out, lineterminator="\n")
+        writer.writerow(columns)
+        for row in rows:
+            writer.writerow(
+                [
+                    json.dumps(v, default=str) if isinstance(v, (list, dict)) else "" if v is None else v
+                    for v in row
+                ]
+            )
+    elif fmt == "json":
+        for row in rows:
+            out.write(json.dumps(dict(zip(columns, row, strict=True)), default=str) + "\n")
+    else:
+        out.writelines(text + "\n" for text in format_table(columns, rows))
+
+
+def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
+    if args.sessions_command == "query":
+        # Checked before reading anything: the query needs DuckDB, an extra.
+        require_extra("duckdb", what="DuckDB", extra="query")
+    engine = _engine(settings)
+    data_root: Path = settings.data
     if args.sessions_command == "list":
         index = SessionIndex(engine)
         rows, _ = index.list(tenant="", model_name=args.model, status=args.status, page_size=args.limit)
@@ -59,26 +132,25 @@ def run_sessions_command(args: argparse.Namespace) -> int:
             "subject_attributes": row.subject_attributes,
             "ended_at": row.ended_at.isoformat() if row.ended_at else None,
             "summary": {k: getattr(row.summary, k) for k in row.summary.__dataclass_fields__},
-            "location": str(data_root / row.location) if row.location else "",
+            "location": str((data_root / row.location).resolve()) if row.location else "",
         }
         print(json.dumps(details, indent=2, default=str))
     elif args.sessions_command == "query":
+        from jitdyn.storage.query import run_query
+
         table = run_query(args.sql, data_root=data_root, engine=engine)
-        if args.csv:
-            pacsv.write_csv(table, args.csv)
-            print(f"{table.num_rows} rows written to {args.csv}", file=sys.stderr)
+        if args.out:
+            with args.out.open("w", encoding="utf-8", newline="") as out:
+                _write_query(table, args.format, out)
+            print(f"{table.num_rows} rows written to {args.out}", file=sys.stderr)
         else:
-            print(table.to_pandas().to_string() if _has_pandas() else table.to_string(preview_cols=20))
+            _write_query(table, args.format, sys.stdout)
     else:
-        out = args.out or Path(f"{args.session_id}.{args.format}")
-        path = export_session(args.session_id, data_root=data_root, engine=engine, fmt=args.format, out=out)
+        from jitdyn.storage.export import export_session
+
+        out_path = args.out or Path(f"{args.session_id}.{args.format}")
+        path = export_session(
+            args.session_id, data_root=data_root, engine=engine, fmt=args.format, out=out_path
+        )
         print(f"exported {args.session_id} as {args.format} to {path}")
     return 0
-
-
-def _has_pandas() -> bool:
-    try:
-        import pandas  # noqa: F401
-    except ImportError:
-        return False
-    return True

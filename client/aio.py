@@ -105,14 +105,18 @@ class AsyncSession:
     async def _open(self) -> None:
         try:
             await self._write_now(self._open_request)
-            opened = _first_answer(await self._next_response(self._timeout))
+            first = await self._get(self._timeout)
+            if first is None:
+                raise FailedPrecondition("the session stream has ended")
+            opened = _first_answer(first[1])
         except BaseException:
             self.cancel()
             await self._reader_done()
             raise
-        # The session clock starts when `opened` arrives: the server's starts as it sends it, so
-        # the two differ by one transit until `sync` exchanges measure the offset.
-        self._clock_start = time.monotonic()
+        # The session clock starts when `opened` arrived (the reader's time of it): the server's
+        # starts as it sends it, so the two differ by one transit until `sync` exchanges measure
+        # the offset.
+        self._clock_start = first[0]
         self.opened = opened
         if self._realtime:
             await self.sync()

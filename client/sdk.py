@@ -15,6 +15,7 @@ the contract's CRC32C checksum unless told otherwise.
 
 from __future__ import annotations
 
+import json
 import math
 import queue
 import threading
@@ -47,7 +48,9 @@ if TYPE_CHECKING:
     _SettingsEnum: TypeAlias = type[common_pb2.Estimator | common_pb2.Preset | common_pb2.SigmaPoints]
 
 __all__ = [
+    "IDEMPOTENT_METHODS",
     "MAX_MESSAGE_BYTES",
+    "RETRY_POLICY",
     "Client",
     "FrameData",
     "ModelRef",
@@ -61,9 +64,41 @@ __all__ = [
 ]
 
 MAX_MESSAGE_BYTES = 128 * 1024 * 1024
+
+# The unary calls that change nothing are retried by gRPC itself (its service-config retry policy)
+# when the server is UNAVAILABLE: a restart, a deploy, a replica going away behind a balancer.
+# RegisterModel is left out: it is content-addressed, but a retry after a lost answer would say
+# `created` false for a model the first attempt created. Streams (sessions) are never retried.
+IDEMPOTENT_METHODS: Final = (
+    ("jitdyn.v1.ModelRegistryService", "GetModel"),
+    ("jitdyn.v1.ModelRegistryService", "ListModels"),
+    ("jitdyn.v1.SessionService", "ListSessions"),
+    ("jitdyn.v1.SessionService", "GetSession"),
+)
+# 5 attempts with backoffs of about 0.25, 0.5, 1 and 2 s (gRPC randomises each): a server that is
+# back within about 3.5 s is not noticed.
+RETRY_POLICY: Final = {
+    "maxAttempts": 5,
+    "initialBackoff": "0.25s",
+    "maxBackoff": "2s",
+    "backoffMultiplier": 2,
+    "retryableStatusCodes": ["UNAVAILABLE"],
+}
+_SERVICE_CONFIG: Final = json.dumps(
+    {
+        "methodConfig": [
+            {
+                "name": [{"service": service, "method": method} for service, method in IDEMPOTENT_METHODS],
+                "retryPolicy": RETRY_POLICY,
+            }
+        ]
+    }
+)
 _CHANNEL_OPTIONS: Final = (
     ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
     ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.enable_retries", 1),
+    ("grpc.service_config", _SERVICE_CONFIG),
 )
 
 _V = TypeVar("_V", bound=int)
@@ -520,11 +555,14 @@ class Session:
         self._call = stub.StreamSession(self._request_iterator(), metadata=tuple(metadata))
         self._reader = threading.Thread(target=self._read, name="jitdyn-session-reader", daemon=True)
         self._reader.start()
-        first = self._next_response(self._timeout)
-        opened = _first_answer(first)
-        # The session clock starts when `opened` arrives: the server's starts as it sends it, so
-        # the two differ by one transit until `sync` exchanges measure the offset.
-        self._clock_start = time.monotonic()
+        first = self._get(self._timeout)
+        if first is None:
+            raise FailedPrecondition("the session stream has ended")
+        opened = _first_answer(first[1])
+        # The session clock starts when `opened` arrived (the reader's time of it, not the time
+        # this thread got to it): the server's starts as it sends it, so the two differ by one
+        # transit until `sync` exchanges measure the offset.
+        self._clock_start = first[0]
         self.opened = opened
         if self._realtime:
             self.sync()

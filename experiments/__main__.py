@@ -2,6 +2,6 @@
 
 import sys
 
-from jitdyn.experiments import main
+from jitdyn.experiments.reproduce import main
 
 sys.exit(main())

@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from jitdyn.client.sdk import Client, FrameData, SessionOptions, SyncSample, TickResult
 from jitdyn.experiments import thesis
@@ -22,6 +21,7 @@ from jitdyn.experiments.analysis import RunMetrics, gap_profile, summarise
 from jitdyn.experiments.metrics import gap_errors
 from jitdyn.experiments.netem import DelayedSender, Distribution, NetworkProfile, sample_delays
 from jitdyn.experiments.objects import Scenario, make_object
+from jitdyn.experiments.progress import track
 from jitdyn.experiments.report import (
     Figure,
     Section,
@@ -777,7 +777,7 @@ def _run_realtime(
             )
         seqs = range(k0, k0 + ticks)
         with DelayedSender(session.send, up, seed=ctx.seed) as uplink:
-            for k in tqdm(seqs, desc=f"{obj_name}/REALTIME", leave=False, disable=not ctx.progress):
+            for k in track(seqs, total=len(seqs), desc=f"{obj_name}/REALTIME", enabled=ctx.progress):
                 wait = k * obj.dt - session.now()
                 if wait > 0:
                     time.sleep(wait)

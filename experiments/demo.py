@@ -3,7 +3,9 @@
 The truth is simulated by MuJoCo on the client side; frames reach the server through a seeded
 delaying sender (latency, jitter, loss), so some arrive after their tick's deadline: the server
 answers those ticks PREDICTED by its estimator and CORRECTED when the frame comes. The summary
-compares the predictions with the truth and says where the session is stored.
+gives the server's counts as `jitdyn sessions list` shows them (storage.summary.format_counts),
+compares the predictions with the truth and says where the session is stored. The progress bar
+goes to stderr, and only when it is a terminal.
 """
 
 from __future__ import annotations
@@ -16,11 +18,12 @@ from typing import TextIO
 
 import mujoco
 import numpy as np
-from tqdm import tqdm
 
-from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, SyncSample, TickResult
+from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, Summary, SyncSample, TickResult
 from jitdyn.experiments.netem import DelayedSender, NetworkProfile
+from jitdyn.experiments.progress import progress_bar
 from jitdyn.registry import builtin_model_path
+from jitdyn.storage.summary import format_counts
 
 __all__ = ["DemoSettings", "run_demo"]
 
@@ -44,9 +47,17 @@ def _truth_model(name: str) -> mujoco.MjModel:
 
 
 def run_demo(
-    address: str, settings: DemoSettings, *, out: TextIO, progress: bool = True
+    address: str,
+    settings: DemoSettings,
+    *,
+    out: TextIO,
+    progress: bool = True,
+    local_data: Path | None = None,
 ) -> dict[str, object]:
-    """Run the demo session against the server at `address`; print and return its summary."""
+    """Run the demo session against the server at `address`; print and return its summary.
+
+    `local_data`: the data folder of a server this process runs, so that the stored file is named
+    by its path here; None for a remote server, whose data folder is its own."""
     model = _truth_model(settings.model)
     data = mujoco.MjData(model)
     # A deterministic start away from rest, so that gravity moves the chain.
@@ -106,15 +117,7 @@ def run_demo(
                 else:
                     syncs.append(answer)
 
-        bar = tqdm(
-            total=ticks,
-            desc="ticks answered",
-            unit="tick",
-            disable=not progress,
-            file=out,
-            leave=False,
-            mininterval=0.5,
-        )
+        bar = progress_bar(total=ticks, desc="ticks answered", unit="tick", enabled=progress)
         lost = 0
         with DelayedSender(session.send, profile, seed=settings.seed) as network:
             for k in range(ticks):
@@ -164,6 +167,8 @@ def run_demo(
         syncs=syncs,
         summary=summary,
         out=out,
+        address=address,
+        local_data=local_data,
     )
 
 
@@ -179,8 +184,10 @@ def _report(
     corrected: list[TickResult],
     rejections: list[Rejection],
     syncs: list[SyncSample],
-    summary: object,
+    summary: Summary,
     out: TextIO,
+    address: str,
+    local_data: Path | None,
 ) -> dict[str, object]:
     nq = model.nq
     by_source: dict[str, int] = {}
@@ -197,13 +204,24 @@ def _report(
     ]
     torques = np.array([r.qfrc_inverse for r in results.values() if r.qfrc_inverse.size])
     delays = np.array([r.receive_to_send_us for r in results.values()]) / 1e3
+    extra = summary.ticks - ticks
     lines = [
         "",
-        f"frames sent {ticks}, lost on the emulated network {lost}, rejected {len(rejections)}",
-        f"results {len(results)} of {ticks} ticks: "
-        + ", ".join(f"{k.lower()} {v}" for k, v in sorted(by_source.items()))
-        + f"; corrected later {len(corrected)}",
+        (
+            f"frames sent {ticks}, lost on the emulated network {lost}, rejected {len(rejections)}; "
+            f"answers received for {len(results)} of the {ticks} ticks"
+        ),
+        f"server's summary, as `jitdyn sessions list` shows it: {format_counts(summary)}",
     ]
+    if extra > 0:
+        lines.append(
+            f"  {summary.ticks} ticks: the {ticks} of the frames sent, and {extra} more that the server's clock "
+            "answered (PREDICTED) between the last frame and `close`"
+        )
+    lines.append(
+        "  a tick answered PREDICTED and then CORRECTED, when its late frame arrived, counts once in "
+        "ticks and once in each of predicted and corrected"
+    )
     if predicted_errors:
         lines.append(
             f"predicted ticks after the first frame: |q error| vs truth median {np.median(predicted_errors):.2e} rad, "
@@ -220,13 +238,20 @@ def _report(
     if syncs:
         best = min(syncs, key=lambda s: s.round_trip)
         lines.append(
-            f"clock sync: round trip {best.round_trip * 1e3:.2f} ms, offset {best.offset * 1e3:+.2f} ms"
+            f"clock sync: round trip {best.round_trip * 1e3:.2f} ms, offset {best.offset * 1e3:+.2f} ms "
+            "(the server's session clock minus this client's: each starts its clock at `opened`, the "
+            "server as it sends it, the client as it arrives, so on one host the offset is that "
+            "message's transit and handling, not a clock error; the server places frames by it)"
         )
-    location = getattr(summary, "location", "")
-    lines.append(f"stored: {location}")
+    location = summary.location
+    if local_data is not None and location:
+        lines.append(f"stored: {local_data / location}")
+    else:
+        lines.append(f"stored: {location} (in the data folder of the server at {address})")
     print("\n".join(lines), file=out)
     return {
         "ticks": ticks,
+        "stored_ticks": summary.ticks,
         "results": len(results),
         "by_source": by_source,
         "corrected": len(corrected),

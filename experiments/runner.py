@@ -18,11 +18,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.experiments.netem import PERFECT, NetworkProfile, Schedule, gap_schedule, lockstep_schedule
 from jitdyn.experiments.objects import ResearchObject, Scenario, TrueState, UnstableSimulation, make_object
+from jitdyn.experiments.progress import progress_bar
 
 __all__ = ["ModelCache", "RunSpec", "Trace", "estimate_of", "run_lockstep"]
 
@@ -192,7 +192,7 @@ def run_lockstep(
     corrected = 0
     stopped: tuple[float, str] | None = None
     started = time.perf_counter()
-    bar = tqdm(total=ticks, desc=spec.label, unit="tick", leave=False, disable=not progress)
+    bar = progress_bar(total=ticks, desc=spec.label, unit="tick", enabled=progress)
     with client.open_session(options) as session:
         opened = session.opened
         nq, nv = obj.nq, obj.nv

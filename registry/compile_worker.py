@@ -20,6 +20,8 @@ import numpy as np
 def main(argv: list[str]) -> int:
     # The parent owns Ctrl-C; a worker ends when its socket closes or it is killed.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # MuJoCo's default would also append its warnings to MUJOCO_LOG.TXT in the working folder.
+    mujoco.set_mju_user_warning(lambda message: print(f"MuJoCo warning: {message}", file=sys.stderr))
     connection = Connection(int(argv[1]))
     connection.send_bytes(b"R")
     while True:

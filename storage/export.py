@@ -30,11 +30,14 @@ from jitdyn.storage.columns import ARRAY_FIELDS, LOG_SCHEMA, SCALAR_FIELDS
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.parquet import read_metadata
 
-__all__ = ["FORMATS", "element_names", "export_session"]
+__all__ = ["FORMATS", "SOURCE_LEGEND", "element_names", "export_session"]
 
 FORMATS: Final = ("csv", "sto")
 # Source as numbers in .sto, whose columns are all numeric: the proto's enum values.
 _SOURCE_CODES: Final = {"MEASURED": 1.0, "PREDICTED": 2.0, "CORRECTED": 3.0}
+# A .sto holds numbers only: the header says what the codes of the `source` column mean (a
+# key=value line, which OpenSim keeps as metadata).
+SOURCE_LEGEND: Final = "source=" + ", ".join(f"{code:g} {name}" for name, code in _SOURCE_CODES.items())
 # The estimate columns of .sto after time, coordinates and qfrc_inverse, in this order.
 _STO_ESTIMATES: Final = (
     "qvel",
@@ -143,7 +146,7 @@ def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> Non
         with open(path, "w", encoding="utf-8", newline="\n") as f:
             f.write(
                 f"{name}\nversion=1\nnRows={data.shape[0]}\nnColumns={len(headers)}\ninDegrees=no\n"
-                "endheader\n"
+                f"{SOURCE_LEGEND}\nendheader\n"
             )
             f.write("\t".join(headers) + "\n")
             f.writelines("\t".join(_format(v) for v in row) + "\n" for row in data)

@@ -1,9 +1,13 @@
 """A session's summary computed from its stored rows: what recovery writes to the index for a
-session that never reached `close`, and what `close` writes when the runtime gives none."""
+session that never reached `close`, and what `close` writes when the runtime gives none. Also the
+one way a summary's counts are shown (`format_counts`): `jitdyn sessions list/show` and the demo
+print them with it, so that they agree.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Final, Protocol
 
 import numpy as np
 import pyarrow as pa
@@ -11,7 +15,41 @@ import pyarrow.compute as pc
 
 from jitdyn.storage.records import SessionSummaryInfo
 
-__all__ = ["summarise"]
+__all__ = ["COUNTS", "Counts", "format_counts", "summarise"]
+
+
+class Counts(Protocol):
+    """A session summary's counts: the index's SessionSummaryInfo and the SDK's Summary both are."""
+
+    @property
+    def ticks(self) -> int: ...
+    @property
+    def measured(self) -> int: ...
+    @property
+    def predicted(self) -> int: ...
+    @property
+    def corrected(self) -> int: ...
+    @property
+    def rejected(self) -> int: ...
+    @property
+    def late(self) -> int: ...
+
+
+# (label, field, width), in the order shown. `ticks` counts distinct ticks answered; a tick answered
+# PREDICTED and later CORRECTED counts once in ticks, and once in each of predicted and corrected.
+COUNTS: Final = (
+    ("ticks", "ticks", 6),
+    ("measured", "measured", 6),
+    ("predicted", "predicted", 5),
+    ("corrected", "corrected", 5),
+    ("rejected", "rejected", 4),
+    ("late", "late", 5),
+)
+
+
+def format_counts(summary: Counts) -> str:
+    """'ticks    203  measured     40  predicted   163  ...', aligned for a column of sessions."""
+    return "  ".join(f"{label} {getattr(summary, name):>{width}}" for label, name, width in COUNTS)
 
 
 def _count(mask: pa.ChunkedArray | pa.Array) -> int:

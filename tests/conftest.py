@@ -14,6 +14,12 @@ from typing import Any
 import grpc
 import pytest
 
+from jitdyn.mujoco_log import route_mujoco_messages
+
+# MuJoCo's warnings go to logging, as in the server and the CLI, not to MUJOCO_LOG.TXT in the
+# folder pytest runs from (tests/test_cli_contract.py checks that none is written).
+route_mujoco_messages()
+
 
 @pytest.fixture(scope="session")
 def make_config() -> Callable[..., Any]:

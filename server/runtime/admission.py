@@ -57,6 +57,8 @@ class Admission:
     """The tick budget of one process. Thread-safe."""
 
     budget: float = DEFAULT_TICK_BUDGET
+    # False when the process is not the server's alone (a server inside a client program).
+    count_process_cpu: bool = True
     _by_id: dict[int, Ticket] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _cpu_mark: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
@@ -73,6 +75,8 @@ class Admission:
             return self._sample_cpu()
 
     def _sample_cpu(self) -> float:
+        if not self.count_process_cpu:
+            return 0.0
         wall, cpu = time.monotonic(), time.process_time()
         since, used = self._cpu_mark
         if wall - since >= _CPU_WINDOW:

@@ -14,25 +14,28 @@ from pathlib import Path
 from jitdyn.errors import ResourceExhausted
 from jitdyn.registry import ModelRegistry
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.runtime.admission import DEFAULT_TICK_BUDGET, Admission
+from jitdyn.server.runtime.admission import Admission
+from jitdyn.settings import Settings
 from jitdyn.storage.anonymise import Anonymiser
 from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.index import SessionIndex
 
 __all__ = ["DEFAULT_SESSION_LIMITS", "Services", "SessionLimits"]
 
+_DEFAULTS = Settings()
+
 
 @dataclass(frozen=True)
 class SessionLimits:
-    """Limits on sessions; each has a `jitdyn serve` flag."""
+    """Limits on sessions; each is a setting of `jitdyn serve` (jitdyn.settings), defaults there."""
 
     # 0: no count limit. REALTIME sessions are admitted by their measured cost against each
     # process's tick budget instead (server/runtime/admission.py), so that one tenant can use the
     # whole machine; these stay for operators who want a quota.
-    max_sessions: int = 0
-    max_sessions_per_tenant: int = 0
-    max_state_dimension: int = 200  # nv of a session's model
-    tick_budget: float = DEFAULT_TICK_BUDGET  # of one core, per process
+    max_sessions: int = _DEFAULTS.max_sessions
+    max_sessions_per_tenant: int = _DEFAULTS.max_sessions_per_tenant
+    max_state_dimension: int = _DEFAULTS.max_state_dimension  # nv of a session's model
+    tick_budget: float = _DEFAULTS.tick_budget  # of one core, per process
 
 
 DEFAULT_SESSION_LIMITS = SessionLimits()

@@ -22,7 +22,8 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from jitdyn.errors import InvalidArgument
+from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
@@ -32,6 +33,7 @@ from jitdyn.server.transport.dynamics_service import DynamicsServicer
 from jitdyn.server.transport.metrics import metrics, serve_metrics
 from jitdyn.server.transport.registry_service import ModelRegistryServicer
 from jitdyn.server.transport.session_service import SessionServicer
+from jitdyn.settings import Settings, default_workers
 from jitdyn.storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
 from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.index import SessionIndex
@@ -67,15 +69,19 @@ SERVICE_NAMES = (
 )
 
 
+_DEFAULTS = Settings()
+
+
 @dataclass(frozen=True)
 class ServerConfig:
-    """Everything `jitdyn serve` can be told; defaults are the embedded, loopback set-up."""
+    """Everything `jitdyn serve` can be told; defaults are jitdyn.settings' (the embedded, loopback
+    set-up), so that a server made here and one made by `jitdyn serve` agree."""
 
-    address: str = "127.0.0.1:50051"
-    data_root: Path = Path("jitdyn-data")
-    index_url: str | None = None  # None: a SQLite file in the data root
+    address: str = _DEFAULTS.address
+    data_root: Path = _DEFAULTS.data
+    index_url: str | None = _DEFAULTS.index_url  # None: a SQLite file in the data root
     index_schema: str | None = None  # PostgreSQL schema (tests isolate runs this way)
-    workers: int = 2
+    workers: int = field(default_factory=default_workers)
     secret_file: Path | None = None
     allowed_attributes: frozenset[str] = DEFAULT_ALLOWED_ATTRIBUTES
     registry_limits: RegistryLimits = DEFAULT_LIMITS
@@ -92,6 +98,33 @@ class ServerConfig:
     startup_tasks: bool = True
     reuse_port: bool = False  # SO_REUSEPORT: several processes serve one port
     metrics_address: str | None = None  # HOST:PORT of the Prometheus endpoint; None: none
+    # The server runs inside another program (BackgroundServer: the demo, the experiments, tests):
+    # the process's CPU is not all its own, so admission counts only its sessions' estimates.
+    shares_process: bool = False
+
+    @classmethod
+    def from_settings(cls, settings: Settings, **overrides: object) -> ServerConfig:
+        """The server `settings` describe (jitdyn.settings.resolve); `overrides` replace fields."""
+        values: dict[str, object] = {
+            "address": settings.address,
+            "data_root": settings.data,
+            "index_url": settings.index_url,
+            "workers": settings.workers,
+            "secret_file": settings.secret_file,
+            "tls_cert": settings.tls_cert,
+            "tls_key": settings.tls_key,
+            "api_keys": settings.api_keys,
+            "insecure": settings.insecure,
+            "metrics_address": settings.metrics_address,
+            "session_limits": SessionLimits(
+                max_sessions=settings.max_sessions,
+                max_sessions_per_tenant=settings.max_sessions_per_tenant,
+                max_state_dimension=settings.max_state_dimension,
+                tick_budget=settings.tick_budget,
+            ),
+        }
+        values.update(overrides)
+        return cls(**values)  # type: ignore[arg-type]
 
 
 def _is_loopback(address: str) -> bool:
@@ -143,11 +176,63 @@ def prepare_data(config: ServerConfig, *, recover_only: bool = False) -> tuple[P
     return data_root, url
 
 
+def _bind(config: ServerConfig) -> tuple[grpc.aio.Server, int]:
+    """A server bound to `config.address`, with nothing served yet: binding comes before anything
+    is created on disk, so that a busy port leaves no trace."""
+    options = [
+        ("grpc.max_receive_message_length", config.max_message_bytes),
+        ("grpc.max_send_message_length", config.max_message_bytes),
+        ("grpc.so_reuseport", 1 if config.reuse_port else 0),
+        # A client that vanishes without closing its connection (a prosthesis losing power) is
+        # found by keepalive pings within about a minute, and its session is stored and released.
+        ("grpc.keepalive_time_ms", 30_000),
+        ("grpc.keepalive_timeout_ms", 10_000),
+        ("grpc.keepalive_permit_without_calls", 1),
+        ("grpc.http2.min_ping_interval_without_data_ms", 10_000),
+    ]
+    interceptors = [ApiKeyInterceptor(load_api_keys(config.api_keys))] if config.api_keys else []
+    server = grpc.aio.server(options=options, interceptors=interceptors)
+    try:
+        if config.tls_cert and config.tls_key:
+            credentials = grpc.ssl_server_credentials(
+                [(config.tls_key.read_bytes(), config.tls_cert.read_bytes())]
+            )
+            port = server.add_secure_port(config.address, credentials)
+        else:
+            port = server.add_insecure_port(config.address)
+    except RuntimeError:
+        # grpc raises RuntimeError("Failed to bind ...") for a busy or foreign address.
+        port = 0
+    if port == 0:
+        raise FailedPrecondition(
+            f"cannot listen on {config.address}: the address is in use (another jitdyn serve?) or not an "
+            "address of this machine; choose another with --address HOST:PORT (port 0 picks a free one)"
+        )
+    return server, port
+
+
 async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Services]:
-    """Build the server and everything it serves with; not started. Returns the bound port."""
+    """Build the server and everything it serves with; not started. Returns the bound port.
+
+    Checks what it can before touching the data folder: the address, TLS and key files, and the
+    port (bound first)."""
+    route_mujoco_messages()
     _check_security(config)
     if config.api_keys:
         load_api_keys(config.api_keys)  # refuse a bad key file before touching any data
+    server, port = _bind(config)
+    try:
+        services, health_servicer = await _services(config, server)
+    except BaseException:
+        await server.stop(None)
+        raise
+    server.health = health_servicer  # type: ignore[attr-defined]
+    return server, port, services
+
+
+async def _services(
+    config: ServerConfig, server: grpc.aio.Server
+) -> tuple[Services, health.aio.HealthServicer]:
     data_root = config.data_root.resolve()
     data_root.mkdir(parents=True, exist_ok=True)
     secret = load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
@@ -171,21 +256,10 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
         pool=WorkerPool(config.workers),
         data_root=data_root,
         limits=config.session_limits,
-        admission=Admission(budget=config.session_limits.tick_budget),
+        admission=Admission(
+            budget=config.session_limits.tick_budget, count_process_cpu=not config.shares_process
+        ),
     )
-    options = [
-        ("grpc.max_receive_message_length", config.max_message_bytes),
-        ("grpc.max_send_message_length", config.max_message_bytes),
-        ("grpc.so_reuseport", 1 if config.reuse_port else 0),
-        # A client that vanishes without closing its connection (a prosthesis losing power) is
-        # found by keepalive pings within about a minute, and its session is stored and released.
-        ("grpc.keepalive_time_ms", 30_000),
-        ("grpc.keepalive_timeout_ms", 10_000),
-        ("grpc.keepalive_permit_without_calls", 1),
-        ("grpc.http2.min_ping_interval_without_data_ms", 10_000),
-    ]
-    interceptors = [ApiKeyInterceptor(load_api_keys(config.api_keys))] if config.api_keys else []
-    server = grpc.aio.server(options=options, interceptors=interceptors)
     model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(
         ModelRegistryServicer(registry), server
     )
@@ -199,17 +273,7 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
         (*SERVICE_NAMES, health_pb2.DESCRIPTOR.services_by_name["Health"].full_name, reflection.SERVICE_NAME),
         server,
     )
-    if config.tls_cert and config.tls_key:
-        credentials = grpc.ssl_server_credentials(
-            [(config.tls_key.read_bytes(), config.tls_cert.read_bytes())]
-        )
-        port = server.add_secure_port(config.address, credentials)
-    else:
-        port = server.add_insecure_port(config.address)
-    if port == 0:
-        raise InvalidArgument(f"cannot listen on {config.address}: the address is in use or not valid here")
-    server.health = health_servicer  # type: ignore[attr-defined]
-    return server, port, services
+    return services, health_servicer
 
 
 async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float = 5.0) -> None:

@@ -10,6 +10,7 @@ and is safe to call twice.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import threading
 from concurrent.futures import Future
 from types import TracebackType
@@ -47,7 +48,7 @@ class BackgroundServer:
         self._closed = False
 
     async def _start(self) -> tuple[grpc.aio.Server, int, Services]:
-        server, port, services = await create_server(self._config)
+        server, port, services = await create_server(dataclasses.replace(self._config, shares_process=True))
         await server.start()
         return server, port, services
 

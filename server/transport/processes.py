@@ -34,7 +34,7 @@ from typing import Any
 
 from prometheus_client import multiprocess as prometheus_multiprocess
 
-from jitdyn.errors import InvalidArgument
+from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.transport.app import ServerConfig, prepare_data, serve
 from jitdyn.server.transport.metrics import MULTIPROCESS_ENV, serve_metrics
 
@@ -57,8 +57,11 @@ def _reserved_port(address: str) -> Iterator[int]:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         try:
             sock.bind((host, int(port)))
-        except OSError as exc:
-            raise InvalidArgument(f"cannot listen on {address}: {exc.strerror}") from None
+        except OSError:
+            raise FailedPrecondition(
+                f"cannot listen on {address}: the address is in use (another jitdyn serve?) or not an "
+                "address of this machine; choose another with --address HOST:PORT (port 0 picks a free one)"
+            ) from None
         yield sock.getsockname()[1]
     finally:
         sock.close()
@@ -97,12 +100,13 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
     """Serve `config` from `processes` processes until SIGINT or SIGTERM."""
     if processes < 1:
         raise InvalidArgument(f"--processes must be at least 1, got {processes}")
-    data_root, index_url = prepare_data(config)
-    metrics_dir = tempfile.mkdtemp(prefix="jitdyn-metrics-")
-    os.environ[MULTIPROCESS_ENV] = metrics_dir  # inherited by the children, before they import metrics
-    if config.metrics_address:
-        serve_metrics(config.metrics_address)
+    # The port first: a busy one must leave nothing created on disk.
     with _reserved_port(config.address) as port:
+        data_root, index_url = prepare_data(config)
+        metrics_dir = tempfile.mkdtemp(prefix="jitdyn-metrics-")
+        os.environ[MULTIPROCESS_ENV] = metrics_dir  # inherited by the children, before they import metrics
+        if config.metrics_address:
+            serve_metrics(config.metrics_address)
         host = config.address.rpartition(":")[0]
         child_config = dataclasses.replace(
             config, address=f"{host}:{port}", data_root=data_root, startup_tasks=False, reuse_port=True

@@ -165,15 +165,16 @@ def test_sto_line_by_line(data_root: Path, engine: sa.Engine, session: SessionHe
         out=tmp_path / "walk.sto",
     )
     lines = out.read_text().splitlines()
-    assert lines[:6] == [
+    assert lines[:7] == [
         f"jitdyn_{session.session_id}",
         "version=1",
         "nRows=2",
         "nColumns=15",
         "inDegrees=no",
+        "source=1 MEASURED, 2 PREDICTED, 3 CORRECTED",
         "endheader",
     ]
-    assert lines[6] == "\t".join(
+    assert lines[7] == "\t".join(
         ["time", "hinge_1", "hinge_2", "hinge_3"]
         + [f"qfrc_inverse_hinge_{i}" for i in (1, 2, 3)]
         + [f"qvel_hinge_{i}" for i in (1, 2, 3)]
@@ -181,9 +182,9 @@ def test_sto_line_by_line(data_root: Path, engine: sa.Engine, session: SessionHe
         + ["nis", "source"]
     )
     # Tick 0 as measured; tick 1 as corrected, its prediction gone; no rejected frame.
-    assert lines[7] == "0.0\t0.1\t0.2\t0.3\t0.5\t0.25\t0.125\t1.0\t2.0\t3.0\t-1.0\t-2.0\t-3.0\t1.5\t1.0"
-    assert lines[8] == "0.01\t0.12\t0.22\t0.32\t0.7\t0.45\t0.325\t1.2\t2.2\t3.2\t-1.2\t-2.2\t-3.2\t0.75\t3.0"
-    assert len(lines) == 9
+    assert lines[8] == "0.0\t0.1\t0.2\t0.3\t0.5\t0.25\t0.125\t1.0\t2.0\t3.0\t-1.0\t-2.0\t-3.0\t1.5\t1.0"
+    assert lines[9] == "0.01\t0.12\t0.22\t0.32\t0.7\t0.45\t0.325\t1.2\t2.2\t3.2\t-1.2\t-2.2\t-3.2\t0.75\t3.0"
+    assert len(lines) == 10
 
 
 def test_sto_nan_for_missing_nis(

@@ -383,8 +383,8 @@ class RegisterModelResponse(_message.Message):
     MODEL_FIELD_NUMBER: _builtins.int
     CREATED_FIELD_NUMBER: _builtins.int
     created: _builtins.bool
-    """False when content identical to a stored model was registered again; the stored model is
-    returned.
+    """False when content identical to a stored model was registered again: the stored model is
+    returned unchanged, and the request's name, description and tags were not applied.
     """
     @_builtins.property
     def model(self) -> Global___Model:

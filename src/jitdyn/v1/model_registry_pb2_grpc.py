@@ -59,8 +59,11 @@ class ModelRegistryServiceServicer:
     """
 
     def RegisterModel(self, request, context):
-        """Compiles and stores a model. Registering content identical to a stored model returns the stored
-        model (`created` false), whatever name it was registered under. Errors: INVALID_ARGUMENT (empty or bad name, MJCF that does not
+        """Compiles and stores a model. A content is registered once, under one name: registering content
+        identical to a stored model adds nothing (no new version, name or tag) and returns the stored
+        model as it is, with `created` false; a client that asked for another name or tags can tell by
+        comparing them (the `jitdyn` command refuses such a request and says so). Errors:
+        INVALID_ARGUMENT (empty or bad name, MJCF that does not
         compile, a file reference or include that is not among the assets; the message carries
         MuJoCo's error), RESOURCE_EXHAUSTED (model, asset count or asset size over the server's
         limits, compile time over the limit), UNAUTHENTICATED, PERMISSION_DENIED.

@@ -36,8 +36,11 @@ class ModelRegistryServiceStub:
     @_typing.overload
     def __new__(cls, channel: _aio.Channel) -> ModelRegistryServiceAsyncStub: ...
     RegisterModel: _grpc.UnaryUnaryMultiCallable[_model_registry_pb2.RegisterModelRequest, _model_registry_pb2.RegisterModelResponse]
-    """Compiles and stores a model. Registering content identical to a stored model returns the stored
-    model (`created` false), whatever name it was registered under. Errors: INVALID_ARGUMENT (empty or bad name, MJCF that does not
+    """Compiles and stores a model. A content is registered once, under one name: registering content
+    identical to a stored model adds nothing (no new version, name or tag) and returns the stored
+    model as it is, with `created` false; a client that asked for another name or tags can tell by
+    comparing them (the `jitdyn` command refuses such a request and says so). Errors:
+    INVALID_ARGUMENT (empty or bad name, MJCF that does not
     compile, a file reference or include that is not among the assets; the message carries
     MuJoCo's error), RESOURCE_EXHAUSTED (model, asset count or asset size over the server's
     limits, compile time over the limit), UNAUTHENTICATED, PERMISSION_DENIED.
@@ -59,8 +62,11 @@ class ModelRegistryServiceAsyncStub(ModelRegistryServiceStub):
 
     def __init__(self, channel: _aio.Channel) -> None: ...
     RegisterModel: _aio.UnaryUnaryMultiCallable[_model_registry_pb2.RegisterModelRequest, _model_registry_pb2.RegisterModelResponse]  # type: ignore[assignment]
-    """Compiles and stores a model. Registering content identical to a stored model returns the stored
-    model (`created` false), whatever name it was registered under. Errors: INVALID_ARGUMENT (empty or bad name, MJCF that does not
+    """Compiles and stores a model. A content is registered once, under one name: registering content
+    identical to a stored model adds nothing (no new version, name or tag) and returns the stored
+    model as it is, with `created` false; a client that asked for another name or tags can tell by
+    comparing them (the `jitdyn` command refuses such a request and says so). Errors:
+    INVALID_ARGUMENT (empty or bad name, MJCF that does not
     compile, a file reference or include that is not among the assets; the message carries
     MuJoCo's error), RESOURCE_EXHAUSTED (model, asset count or asset size over the server's
     limits, compile time over the limit), UNAUTHENTICATED, PERMISSION_DENIED.
@@ -85,8 +91,11 @@ class ModelRegistryServiceServicer(metaclass=_abc_1.ABCMeta):
         request: _model_registry_pb2.RegisterModelRequest,
         context: _ServicerContext,
     ) -> _typing.Union[_model_registry_pb2.RegisterModelResponse, _abc.Awaitable[_model_registry_pb2.RegisterModelResponse]]:
-        """Compiles and stores a model. Registering content identical to a stored model returns the stored
-        model (`created` false), whatever name it was registered under. Errors: INVALID_ARGUMENT (empty or bad name, MJCF that does not
+        """Compiles and stores a model. A content is registered once, under one name: registering content
+        identical to a stored model adds nothing (no new version, name or tag) and returns the stored
+        model as it is, with `created` false; a client that asked for another name or tags can tell by
+        comparing them (the `jitdyn` command refuses such a request and says so). Errors:
+        INVALID_ARGUMENT (empty or bad name, MJCF that does not
         compile, a file reference or include that is not among the assets; the message carries
         MuJoCo's error), RESOURCE_EXHAUSTED (model, asset count or asset size over the server's
         limits, compile time over the limit), UNAUTHENTICATED, PERMISSION_DENIED.

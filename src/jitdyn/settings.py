@@ -1,0 +1,406 @@
+"""jitdyn's settings, read in one place: a command-line flag, else an environment variable, else the
+default; each parsed and validated once, into one frozen `Settings`::
+
+    settings = resolve(parsed_args, os.environ)      # flags given, then JITDYN_*, then defaults
+    settings.workers                                 # an int >= 1, whoever set it
+
+A setting is one field of `Settings`, declared with `setting(...)`: its default, its parser (text to
+a typed value, raising ValueError with what was expected), its help, and the commands that take its
+flag. Flag and environment variable are derived from the field name (`max_sessions` is
+`--max-sessions` and `JITDYN_MAX_SESSIONS`) unless given. `add_arguments(parser, command)` puts the
+flags of `command` on an argparse parser with SUPPRESS defaults, so that the same flag may appear on
+a group and on its leaf and `resolve` still knows whether it was given. The README's settings table
+is `settings_table()`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import ipaddress
+import os
+import re
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+__all__ = [
+    "ENV_PREFIX",
+    "Setting",
+    "SettingError",
+    "Settings",
+    "add_arguments",
+    "default_workers",
+    "parse_address",
+    "parse_duration",
+    "resolve",
+    "settings_for",
+    "settings_table",
+]
+
+ENV_PREFIX: Final = "JITDYN_"
+
+
+class SettingError(ValueError):
+    """A setting's value, from a flag or the environment, is not valid; the message names where
+    it came from, what was expected and what arrived."""
+
+
+# -- parsers: text to a typed value, or ValueError saying what was expected --------------------------
+
+_DURATION = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(us|ms|s)?\s*$")
+_DURATION_UNITS: Final = {"us": 1e-6, "ms": 1e-3, "s": 1.0}
+
+
+def parse_duration(text: str) -> float:
+    """'35ms' -> 0.035, '0.5s' -> 0.5, '20us' -> 2e-05 (seconds). A bare number is refused: '35'
+    could mean 35 s or 35 ms, and the wrong guess is silent."""
+    match = _DURATION.match(text)
+    if not match:
+        raise ValueError(f"expected a duration with a unit, like 35ms or 0.5s, got {text!r}")
+    if match.group(2) is None:
+        if float(match.group(1)) == 0.0:
+            return 0.0  # nothing is ambiguous about no time at all
+        raise ValueError(
+            f"a duration needs a unit (us, ms or s): write {match.group(1)}ms or {match.group(1)}s, got {text!r}"
+        )
+    return float(match.group(1)) * _DURATION_UNITS[match.group(2)]
+
+
+def parse_address(text: str) -> str:
+    """HOST:PORT, with an IPv6 host in brackets; port 0..65535."""
+    host, sep, port = text.strip().rpartition(":")
+    if not sep or not host or not port.isdigit() or int(port) > 65535:
+        raise ValueError(f"expected HOST:PORT, like 127.0.0.1:50051, got {text!r}")
+    if host.startswith("["):
+        try:
+            ipaddress.IPv6Address(host.strip("[]"))
+        except ValueError:
+            raise ValueError(f"expected HOST:PORT with an IPv6 host in brackets, got {text!r}") from None
+    return text.strip()
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"expected a whole number >= 1, got {text!r}") from None
+    if value < 1:
+        raise ValueError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"expected a whole number >= 0, got {text!r}") from None
+    if value < 0:
+        raise ValueError(f"expected a whole number >= 0, got {text!r}")
+    return value
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"expected a number in (0, 1], got {text!r}") from None
+    if not 0.0 < value <= 1.0:
+        raise ValueError(f"expected a number in (0, 1], got {text!r}")
+    return value
+
+
+def _path(text: str) -> Path:
+    if not text.strip():
+        raise ValueError("expected a path, got an empty string")
+    return Path(text).expanduser()
+
+
+def _text(text: str) -> str:
+    if not text.strip():
+        raise ValueError("expected a value, got an empty string")
+    return text
+
+
+_TRUE = frozenset({"1", "true", "yes", "on"})
+_FALSE = frozenset({"0", "false", "no", "off", ""})
+
+
+def _boolean(text: str) -> bool:
+    if text.strip().lower() in _TRUE:
+        return True
+    if text.strip().lower() in _FALSE:
+        return False
+    raise ValueError(f"expected 1/0, true/false, yes/no or on/off, got {text!r}")
+
+
+def default_workers() -> int:
+    """Threads propagating sigma points by default: one per CPU."""
+    return os.cpu_count() or 1
+
+
+# -- the declaration of a setting ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Setting:
+    """What `setting(...)` records on a field of `Settings`."""
+
+    name: str
+    parse: Callable[[str], Any]
+    help: str
+    commands: tuple[str, ...]
+    flag: str
+    env: str
+    metavar: str | None
+    is_flag: bool  # a switch: `--insecure` takes no value
+    default_text: str | None  # the default as the help says it, when str(default) will not do
+
+
+def setting(
+    default: Any = None,
+    *,
+    parse: Callable[[str], Any],
+    help: str,
+    commands: tuple[str, ...],
+    flag: str | None = None,
+    env: str | None = None,
+    metavar: str | None = None,
+    default_factory: Callable[[], Any] | None = None,
+    default_text: str | None = None,
+    switch: bool = False,
+) -> Any:
+    """A field of `Settings`: see the module docstring. Returns a dataclasses.field."""
+    metadata = {
+        "jitdyn_setting": {
+            "parse": parse,
+            "help": help,
+            "commands": commands,
+            "flag": flag,
+            "env": env,
+            "metavar": metavar,
+            "switch": switch,
+            "default_text": default_text,
+        }
+    }
+    if default_factory is not None:
+        return field(default_factory=default_factory, metadata=metadata)
+    return field(default=default, metadata=metadata)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Every setting of every command, typed; the defaults are the embedded, loopback set-up."""
+
+    address: str = setting(
+        "127.0.0.1:50051",
+        parse=parse_address,
+        commands=("serve",),
+        metavar="HOST:PORT",
+        help="where the server listens (port 0 picks one); a non-loopback address needs "
+        "--tls-cert, --tls-key and --api-keys, or --insecure",
+    )
+    server: str | None = setting(
+        None,
+        parse=parse_address,
+        commands=("models", "demo", "experiments"),
+        metavar="HOST:PORT",
+        default_text="127.0.0.1:50051 for models; the demo and the experiments start a server in-process",
+        help="the jitdyn server to talk to",
+    )
+    data: Path = setting(
+        Path("jitdyn-data"),
+        parse=_path,
+        commands=("serve", "demo", "sessions"),
+        metavar="DIR",
+        help="data folder: Parquet frames, model store, the default SQLite index",
+    )
+    index_url: str | None = setting(
+        None,
+        parse=_text,
+        commands=("serve", "demo", "sessions"),
+        flag="--index",
+        metavar="URL",
+        default_text="index.sqlite in the data folder",
+        help="SQL index, e.g. postgresql+psycopg://user@host/db (needs jitdyn[postgres])",
+    )
+    workers: int = setting(
+        parse=_positive_int,
+        default_factory=default_workers,
+        default_text="the CPU count",
+        commands=("serve", "demo"),
+        metavar="N",
+        help="threads propagating sigma points, shared by all sessions",
+    )
+    secret_file: Path | None = setting(
+        None,
+        parse=_path,
+        commands=("serve", "demo"),
+        metavar="FILE",
+        default_text="~/.config/jitdyn/secret.key",
+        help="HMAC key of subject pseudonyms, mode 0600, outside the data folder, created at first start; "
+        "JITDYN_SECRET=hex in the environment overrides it",
+    )
+    tls_cert: Path | None = setting(
+        None,
+        parse=_path,
+        commands=("serve",),
+        metavar="FILE",
+        help="PEM certificate chain, to serve over TLS",
+    )
+    tls_key: Path | None = setting(
+        None, parse=_path, commands=("serve",), metavar="FILE", help="PEM private key of --tls-cert"
+    )
+    api_keys: Path | None = setting(
+        None,
+        parse=_path,
+        commands=("serve",),
+        metavar="FILE",
+        help="file of `KEY TENANT` lines: every RPC must then carry `authorization: Bearer KEY` and sees "
+        "only its tenant's sessions and models",
+    )
+    insecure: bool = setting(
+        False,
+        parse=_boolean,
+        commands=("serve",),
+        switch=True,
+        help="allow a non-loopback address without TLS and API keys",
+    )
+    processes: int = setting(
+        parse=_positive_int,
+        default_factory=lambda: os.cpu_count() or 1,
+        default_text="the CPU count",
+        commands=("serve",),
+        metavar="N",
+        help="server processes on the one port (SO_REUSEPORT), each with its own event loop and worker "
+        "pool, sharing the data folder and the index",
+    )
+    tick_budget: float = setting(
+        0.75,
+        parse=_fraction,
+        commands=("serve",),
+        metavar="F",
+        help="share of one core each process may spend on REALTIME ticks; a session whose measured cost "
+        "would exceed it is refused with RESOURCE_EXHAUSTED",
+    )
+    metrics_address: str | None = setting(
+        None,
+        parse=parse_address,
+        commands=("serve",),
+        metavar="HOST:PORT",
+        default_text="none",
+        help="serve Prometheus metrics there, e.g. 127.0.0.1:9464",
+    )
+    max_sessions: int = setting(
+        0,
+        parse=_count,
+        commands=("serve",),
+        metavar="N",
+        default_text="0: no quota",
+        help="open sessions per process, a quota (REALTIME sessions are admitted by --tick-budget)",
+    )
+    max_sessions_per_tenant: int = setting(
+        0,
+        parse=_count,
+        commands=("serve",),
+        metavar="N",
+        default_text="0: no quota",
+        help="open sessions per tenant and process, a quota",
+    )
+    max_state_dimension: int = setting(
+        200, parse=_positive_int, commands=("serve",), metavar="N", help="largest nv of a session's model"
+    )
+
+
+def _setting(f: dataclasses.Field[Any]) -> Setting:
+    spec = f.metadata["jitdyn_setting"]
+    return Setting(
+        name=f.name,
+        parse=spec["parse"],
+        help=spec["help"],
+        commands=spec["commands"],
+        flag=spec["flag"] or "--" + f.name.replace("_", "-"),
+        env=spec["env"] or ENV_PREFIX + f.name.upper(),
+        metavar=spec["metavar"],
+        is_flag=spec["switch"],
+        default_text=spec["default_text"],
+    )
+
+
+SETTINGS: Final[tuple[Setting, ...]] = tuple(_setting(f) for f in dataclasses.fields(Settings))
+_DEFAULTS: Final = Settings()
+
+
+def settings_for(command: str) -> Iterator[Setting]:
+    """The settings whose flags `command` takes, in declaration order."""
+    return (s for s in SETTINGS if command in s.commands)
+
+
+def _default_text(s: Setting) -> str:
+    value = getattr(_DEFAULTS, s.name)
+    if s.default_text is not None:
+        return s.default_text
+    if value is None:
+        return "none"
+    if s.is_flag:
+        return "off"
+    return str(value)
+
+
+def add_arguments(parser: argparse.ArgumentParser, command: str) -> None:
+    """Put the flags of `command`'s settings on `parser`, defaults SUPPRESSed (see `resolve`)."""
+    for s in settings_for(command):
+        text = f"{s.help} (env {s.env}; default {_default_text(s)})".replace("%", "%%")
+        if s.is_flag:
+            parser.add_argument(
+                s.flag, dest=s.name, action="store_true", default=argparse.SUPPRESS, help=text
+            )
+        else:
+            parser.add_argument(
+                s.flag,
+                dest=s.name,
+                type=_argparse_type(s),
+                default=argparse.SUPPRESS,
+                metavar=s.metavar,
+                help=text,
+            )
+
+
+def _argparse_type(s: Setting) -> Callable[[str], Any]:
+    def convert(text: str) -> Any:
+        try:
+            return s.parse(text)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+
+    convert.__name__ = s.name  # argparse names the type in some messages
+    return convert
+
+
+def resolve(given: argparse.Namespace | Mapping[str, Any] | None, environ: Mapping[str, str]) -> Settings:
+    """The settings: each from `given` (parsed flags, already typed) when there, else from its
+    environment variable (parsed and checked here), else its default.
+
+    Raises:
+      SettingError: an environment variable's value is not valid for its setting.
+    """
+    values = vars(given) if isinstance(given, argparse.Namespace) else dict(given or {})
+    chosen: dict[str, Any] = {}
+    for s in SETTINGS:
+        if s.name in values:
+            chosen[s.name] = values[s.name]
+        elif environ.get(s.env) is not None:
+            try:
+                chosen[s.name] = s.parse(environ[s.env])
+            except ValueError as error:
+                raise SettingError(f"environment variable {s.env}: {error}") from None
+    return Settings(**chosen)
+
+
+def settings_table() -> str:
+    """The settings as a Markdown table: flag, environment variable, default, commands, meaning."""
+    lines = ["| flag | environment | default | commands | what it sets |", "|---|---|---|---|---|"]
+    for s in SETTINGS:
+        lines.append(f"| `{s.flag}` | `{s.env}` | {_default_text(s)} | {', '.join(s.commands)} | {s.help} |")
+    return "\n".join(lines)
