@@ -1,0 +1,234 @@
+"""Noise that the filter learns from its innovations, within bounds, and a window of NIS that tells
+when the model is wrong (an adaptive UKF in the sense of Sage and Husa 1969, Mehra 1972, and
+Mohamed and Schwarz 1999).
+
+    adapter = NoiseAdapter(r0=np.full(m, 1e-2), q0=Q0, bounds=BOUNDS)
+    R, Q = adapter.R, adapter.Q
+    verdict = adapter.observe(innovation=y, residual=r, posterior_zz=diag_HPH, gain=K, nis=nis)
+    verdict.adapted, verdict.absorb
+
+- R (diagonal) by innovation-based covariance matching with fading memory: for a consistent filter
+  E[y y^T] = H P- H^T + R, y = z - h(x-) (Mehra; Sage and Husa's running estimate, weight
+  d_k = (1 - b) / (1 - b^(k+1))), clipped to its bounds. The residual form (E[r r^T] + H P+ H^T)
+  stays positive but cannot fall below the R in force when the prior is wide (H P+ H^T is then R
+  itself), so a filter started with a pessimistic R would never learn that its sensors are good.
+- Q keeps its configured structure (the discrete white-noise blocks) and is rescaled per state
+  component, Q = S^1/2 Q0 S^1/2, where s_i matches the running mean of (K y)_i^2, the correction the
+  filter had to make (Mohamed and Schwarz's Q = K C_y K^T, diagonal).
+- Both are clipped to `AdaptationBounds`: a filter that learns cannot learn itself into a singular
+  or absurd covariance.
+- NIS: the mean of the last `window` NIS values against its expectation, the measurement dimension
+  m. Far above it (`absorb_ratio` times) for a whole window means the model is wrong, not the
+  noise: the caller absorbs it (widens P, switches to a model with the unknown force).
+
+Pure numpy; one adapter per filter, driven from one thread; `snapshot()`/`restore()` for the
+timewarp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+
+__all__ = ["BOUNDS", "AdaptationBounds", "NoiseAdapter", "Verdict"]
+
+
+@dataclass(frozen=True)
+class AdaptationBounds:
+    """The limits of what the noise may learn.
+
+    r_min, r_max: bounds of every diagonal entry of R, in the measured channels' units squared
+    (rad^2, m^2; (rad/s)^2, (m/s)^2). 1e-10 is a sensor good to 1e-5 rad; 1 a sensor that knows
+    nothing. q_scale_min, q_scale_max: bounds of the factor s_i on the configured Q's diagonal.
+    forgetting: Sage-Husa's b, the weight of the past (window about 1 / (1 - b) updates).
+    window: updates in the NIS window; absorb_ratio: how far above m its mean must be to absorb.
+    report_change: a relative change of R or Q that `Verdict.adapted` reports. gate: an innovation
+    whose square passes gate times its predicted variance (3 sigma) does not teach R; growth: the
+    largest factor by which R may grow in one update.
+    """
+
+    r_min: float = 1e-10
+    r_max: float = 1.0
+    q_scale_min: float = 1e-4
+    q_scale_max: float = 1e4
+    forgetting: float = 0.98
+    window: int = 20
+    absorb_ratio: float = 100.0
+    report_change: float = 0.1
+    gate: float = 9.0
+    growth: float = 2.0
+
+
+BOUNDS: Final = AdaptationBounds()
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What one update taught: `adapted`, R or Q moved by more than `report_change` since the last
+    verdict that said so; `absorb`, the NIS window says the model is wrong."""
+
+    adapted: bool
+    absorb: bool
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    r: np.ndarray
+    q_est: np.ndarray
+    count: int
+    nis: np.ndarray
+    nis_count: int
+    reported_r: np.ndarray
+    reported_s: np.ndarray
+
+
+class NoiseAdapter:
+    """The adaptive R and Q of one filter (see the module docstring).
+
+    r0 (m,): R's starting diagonal; q0 (n, n): the configured Q for one tick, whose structure is
+    kept and whose diagonal sets the scale of s; adapt_q (n,) bool: the components whose Q adapts
+    (None: all).
+    """
+
+    def __init__(
+        self,
+        *,
+        r0: np.ndarray,
+        q0: np.ndarray,
+        adapt_q: np.ndarray | None = None,
+        bounds: AdaptationBounds = BOUNDS,
+    ) -> None:
+        r0 = np.asarray(r0, dtype=np.float64)
+        q0 = np.asarray(q0, dtype=np.float64)
+        if r0.ndim != 1 or not np.all(r0 > 0):
+            raise ValueError(f"r0 must be a vector of positive variances, got {r0!r}")
+        if q0.shape != (q0.shape[0], q0.shape[0]):
+            raise ValueError(f"q0 must be square, got shape {q0.shape}")
+        self._bounds = bounds
+        self._r0 = np.clip(r0, bounds.r_min, bounds.r_max)
+        self._q0 = q0
+        diag = np.diag(q0).copy()
+        # A component with no configured noise (q_var = 0) gets none: there is no scale to adapt.
+        self._q0_diag = np.where(diag > 0, diag, 1.0)
+        self._q_free = diag > 0
+        if adapt_q is not None:
+            self._q_free &= np.asarray(adapt_q, dtype=bool)
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the configured R and Q, with an empty NIS window."""
+        self._r = self._r0.copy()
+        self._q_est = np.diag(self._q0).copy()
+        self._count = 0
+        self._nis = np.zeros(self._bounds.window)
+        self._nis_count = 0
+        self._reported_r = self._r.copy()
+        self._reported_s = np.ones_like(self._q_est)
+
+    @property
+    def window_full(self) -> bool:
+        """The NIS window holds `window` values since the last reset or absorption."""
+        return self._nis_count >= self._bounds.window
+
+    @property
+    def R(self) -> np.ndarray:
+        """(m, m) the measurement noise in force."""
+        return np.diag(self._r)
+
+    @property
+    def r_diagonal(self) -> np.ndarray:
+        return self._r.copy()
+
+    @property
+    def scale(self) -> np.ndarray:
+        """(n,) s, the factor on each component of Q0's diagonal."""
+        b = self._bounds
+        s = np.where(self._q_free, self._q_est / self._q0_diag, 1.0)
+        return np.asarray(np.clip(s, b.q_scale_min, b.q_scale_max))
+
+    @property
+    def Q(self) -> np.ndarray:
+        """(n, n) the process noise in force for one tick: S^1/2 Q0 S^1/2."""
+        root = np.sqrt(self.scale)
+        return np.asarray(root[:, None] * self._q0 * root[None, :])
+
+    def q_for(self, q0: np.ndarray) -> np.ndarray:
+        """Another horizon's configured Q (n, n), rescaled as this tick's is."""
+        root = np.sqrt(self.scale)
+        return np.asarray(root[:, None] * q0 * root[None, :])
+
+    def observe(
+        self,
+        *,
+        innovation: np.ndarray,
+        prior_zz: np.ndarray,
+        gain: np.ndarray,
+        nis: float | None,
+    ) -> Verdict:
+        """Learn from one update.
+
+        innovation y (m,) = z - h(x-); prior_zz (m,): the diagonal of H P- H^T (S without R);
+        gain K (n, m); nis: y^T S^-1 y (None when not finite).
+        """
+        b = self._bounds
+        if not (np.all(np.isfinite(innovation)) and np.all(np.isfinite(prior_zz))):
+            return Verdict(adapted=False, absorb=False)
+        d = (1.0 - b.forgetting) / (1.0 - b.forgetting ** (self._count + 1))
+        self._count += 1
+        # An innovation beyond the gate is the model's error (a force that changed), not the
+        # sensor's: learning R from it would make the filter ignore its measurements, which makes
+        # the next innovation larger still (the classic runaway of innovation-based R).
+        r_sample = innovation**2 - prior_zz
+        outlier = innovation**2 > b.gate * (prior_zz + self._r)
+        r_sample = np.where(outlier, self._r, r_sample)
+        # One sample of y^2 - H P- H^T has a spread of about H P- H^T: when the prior is wide, a
+        # single tick says little about R, so R may at most double per update.
+        r_next = np.minimum((1.0 - d) * self._r + d * r_sample, b.growth * self._r)
+        self._r = np.clip(r_next, b.r_min, b.r_max)
+        correction = gain @ innovation
+        self._q_est = (1.0 - d) * self._q_est + d * correction**2
+        absorb = False
+        if nis is not None and np.isfinite(nis):
+            self._nis[self._nis_count % b.window] = nis
+            self._nis_count += 1
+            if self._nis_count >= b.window:
+                m = innovation.size
+                absorb = float(self._nis.mean()) > b.absorb_ratio * m
+        s = self.scale
+        moved = bool(
+            np.any(np.abs(self._r - self._reported_r) > b.report_change * self._reported_r)
+            or np.any(np.abs(s - self._reported_s) > b.report_change * self._reported_s)
+        )
+        if moved:
+            self._reported_r = self._r.copy()
+            self._reported_s = s
+        return Verdict(adapted=moved, absorb=absorb)
+
+    def absorbed(self, factor: float = 100.0) -> None:
+        """After an absorption: Q widened by `factor` (within bounds) and an empty NIS window, so
+        the next verdict comes from the updates after it."""
+        self._q_est = self._q_est * factor
+        self._nis[:] = 0.0
+        self._nis_count = 0
+
+    def snapshot(self) -> _Snapshot:
+        return _Snapshot(
+            r=self._r.copy(),
+            q_est=self._q_est.copy(),
+            count=self._count,
+            nis=self._nis.copy(),
+            nis_count=self._nis_count,
+            reported_r=self._reported_r.copy(),
+            reported_s=self._reported_s.copy(),
+        )
+
+    def restore(self, snap: _Snapshot) -> None:
+        self._r = snap.r.copy()
+        self._q_est = snap.q_est.copy()
+        self._count = snap.count
+        self._nis = snap.nis.copy()
+        self._nis_count = snap.nis_count
+        self._reported_r = snap.reported_r.copy()
+        self._reported_s = snap.reported_s.copy()
