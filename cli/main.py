@@ -156,7 +156,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--model", default="pendulum_3", help="built-in model: pendulum_1..3 or biped (default pendulum_3)"
     )
     demo.add_argument(
-        "--scenario", default="passive", choices=("passive", "controlled", "external"), help="default passive"
+        "--scenario",
+        default="passive",
+        choices=("passive", "controlled", "external", "driven"),
+        help="default passive",
     )
     demo.add_argument("--seconds", type=float, default=10.0, help="session length (default 10)")
     demo.add_argument("--latency", type=parse_duration, default=0.035, help="one-way latency (default 35ms)")

@@ -139,7 +139,7 @@ class NoiseAdapter:
 
     @property
     def r_diagonal(self) -> np.ndarray:
-        return self._r.copy()
+        return np.array(self._r)
 
     @property
     def scale(self) -> np.ndarray:
@@ -186,9 +186,15 @@ class NoiseAdapter:
         # One sample of y^2 - H P- H^T has a spread of about H P- H^T: when the prior is wide, a
         # single tick says little about R, so R may at most double per update.
         r_next = np.minimum((1.0 - d) * self._r + d * r_sample, b.growth * self._r)
-        self._r = np.clip(r_next, b.r_min, b.r_max)
-        correction = gain @ innovation
-        self._q_est = (1.0 - d) * self._q_est + d * correction**2
+        if np.all(np.isfinite(r_next)):
+            self._r = np.clip(r_next, b.r_min, b.r_max)
+        # A filter on its way to the divergence guard can have gains whose squares overflow: such
+        # an update teaches nothing (the guard re-initialises).
+        with np.errstate(over="ignore", invalid="ignore"):
+            correction = gain @ innovation
+            q_next = (1.0 - d) * self._q_est + d * correction**2
+        if np.all(np.isfinite(q_next)):
+            self._q_est = q_next
         absorb = False
         if nis is not None and np.isfinite(nis):
             self._nis[self._nis_count % b.window] = nis

@@ -316,9 +316,7 @@ class Propagator:
             qacc=buffers.qacc[:count] if self._want_qacc else None,
         )
 
-    def _row_forces(
-        self, qfrc: np.ndarray, rate: np.ndarray | None, count: int, nstep: int
-    ) -> np.ndarray:
+    def _row_forces(self, qfrc: np.ndarray, rate: np.ndarray | None, count: int, nstep: int) -> np.ndarray:
         """(count, nstep, nv): the force of every point at every physics step."""
         nv = self._model.nv
         if qfrc.shape != (count, nv):

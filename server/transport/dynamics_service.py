@@ -22,7 +22,7 @@ import mujoco
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, ResourceExhausted
 from jitdyn.registry import ModelInfo
 from jitdyn.server.estimation.dynamics import Dynamics
-from jitdyn.server.estimation.estimator import resolve_config
+from jitdyn.server.estimation.estimator import default_scenario, resolve_config
 from jitdyn.server.estimation.factory import make_estimator
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
 from jitdyn.server.runtime.frames import FrameIn, Rejection
@@ -316,12 +316,20 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 f"model {info.name!r} has nv = {model.nv}; this server allows at most "
                 f"{services.limits.max_state_dimension} (--max-state-dimension)"
             )
+        if plan.scenario is None:
+            chosen, scenario_reason = default_scenario(model)
+            plan = dataclasses.replace(plan, scenario=chosen.value)
+            scenario_reason = f"open.scenario unset: {scenario_reason}"
+        else:
+            scenario_reason = f"open.scenario asked for SCENARIO_{plan.scenario}"
+        scenario = str(plan.scenario)
+        model_defaults = info.defaults.get(scenario, {})
         config = resolve_config(
             model=model,
-            scenario=plan.scenario,
+            scenario=scenario,
             dt=plan.dt,
             requested=plan.estimator_request,
-            model_defaults=info.defaults.get(plan.scenario, {}),
+            model_defaults=model_defaults,
             preset=plan.preset,
             measured=plan.measured,
         )
@@ -329,9 +337,30 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         settings = {
             k: v
             for k, v in dataclasses.asdict(config).items()
-            if k in ("estimator", "sigma_points", "alpha", "beta", "kappa", "p0", "q_var", "r")
+            if k
+            in (
+                "estimator",
+                "sigma_points",
+                "alpha",
+                "beta",
+                "kappa",
+                "p0",
+                "q_var",
+                "r",
+                "force_model",
+                "force_var",
+                "noise_model",
+            )
         }
         settings["preset"] = plan.preset
+        if "noise_model" in plan.estimator_request:
+            noise_reason = f"open.estimator.noise_model asked for NOISE_MODEL_{config.noise_model}"
+        elif "noise_model" in model_defaults:
+            noise_reason = (
+                f"the model's defaults for SCENARIO_{scenario} set NOISE_MODEL_{config.noise_model}"
+            )
+        else:
+            noise_reason = f"PRESET_{plan.preset}'s default for SCENARIO_{scenario}"
         pseudonym = services.anonymiser.pseudonym(plan.subject_id) if plan.subject_id else ""
         kept, dropped = services.anonymiser.filter_attributes(plan.subject_attributes)
         session_id = str(uuid.uuid4())
@@ -349,7 +378,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             nsensordata=model.nsensordata,
             timestep=info.timestep,
             dt=plan.dt,
-            scenario=plan.scenario,
+            scenario=scenario,
             clock=plan.clock,
             estimator=settings,
             subject_pseudonym=pseudonym,
@@ -364,7 +393,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             estimator=estimator,
             dynamics=Dynamics(model, outputs=plan.outputs),
             dt=plan.dt,
-            scenario=plan.scenario,
+            scenario=scenario,
             history=plan.history,
         )
         sizes = {
@@ -395,6 +424,9 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             subject_pseudonym=pseudonym,
             dt=plan.dt,
             steps_per_tick=plan.steps_per_tick,
+            scenario=common_pb2.Scenario.Value("SCENARIO_" + scenario),
+            scenario_reason=scenario_reason,
+            noise_reason=noise_reason,
         )
         return stream, opened
 
