@@ -1,25 +1,28 @@
-"""Noise that the filter learns from its innovations, within bounds, and a window of NIS that tells
-when the model is wrong (an adaptive UKF in the sense of Sage and Husa 1969, Mehra 1972, and
-Mohamed and Schwarz 1999).
+"""Noise that the filter learns from its measurements and innovations, within bounds, and a window
+of NIS that tells when the model is wrong (an adaptive UKF)::
 
     adapter = NoiseAdapter(r0=np.full(m, 1e-2), q0=Q0, bounds=BOUNDS)
     R, Q = adapter.R, adapter.Q
-    verdict = adapter.observe(innovation=y, residual=r, posterior_zz=diag_HPH, gain=K, nis=nis)
+    verdict = adapter.observe(z=z, consecutive=True, innovation=y, gain=K, nis=nis)
     verdict.adapted, verdict.absorb
 
-- R (diagonal) by innovation-based covariance matching with fading memory: for a consistent filter
-  E[y y^T] = H P- H^T + R, y = z - h(x-) (Mehra; Sage and Husa's running estimate, weight
-  d_k = (1 - b) / (1 - b^(k+1))), clipped to its bounds. The residual form (E[r r^T] + H P+ H^T)
-  stays positive but cannot fall below the R in force when the prior is wide (H P+ H^T is then R
-  itself), so a filter started with a pessimistic R would never learn that its sensors are good.
+- R (diagonal) from the measurements themselves: the fourth difference of five consecutive frames
+  of white noise of variance s^2 has variance 70 s^2, while that of a smooth motion is of order
+  x^(4) dt^4, negligible at the ticks of wearables. R is the square of a robust scale of the last
+  `window_r` fourth differences (1.4826 median |d4| / sqrt(70), the MAD), so that the kinks of a
+  motion (a force that jumps) do not pass for noise. Innovation-based covariance matching (Mehra
+  1972, Sage and Husa 1969: E[y y^T] = H P- H^T + R) was tried first and fails where it matters:
+  while the unknown force's prior is wide, y^2 - H P- H^T is negative and R collapses to its floor,
+  so a DRIVEN filter fed noisy frames believed them perfect (docs/experiments.md).
 - Q keeps its configured structure (the discrete white-noise blocks) and is rescaled per state
   component, Q = S^1/2 Q0 S^1/2, where s_i matches the running mean of (K y)_i^2, the correction the
-  filter had to make (Mohamed and Schwarz's Q = K C_y K^T, diagonal).
+  filter had to make (Mohamed and Schwarz 1999's Q = K C_y K^T, diagonal), with Sage and Husa's
+  fading memory, weight d_k = (1 - b) / (1 - b^(k+1)).
 - Both are clipped to `AdaptationBounds`: a filter that learns cannot learn itself into a singular
   or absurd covariance.
-- NIS: the mean of the last `window` NIS values against its expectation, the measurement dimension
-  m. Far above it (`absorb_ratio` times) for a whole window means the model is wrong, not the
-  noise: the caller absorbs it (widens P, switches to a model with the unknown force).
+- NIS: the mean of the last `window` NIS values against its chi-square interval. Far above it
+  for a whole window means the model is wrong, not the
+  noise: the caller absorbs it (widens P). Far above: past the 0.999 quantile of that mean.
 
 Pure numpy; one adapter per filter, driven from one thread; `snapshot()`/`restore()` for the
 timewarp.
@@ -31,8 +34,13 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
+from scipy.stats import chi2
 
 __all__ = ["BOUNDS", "AdaptationBounds", "NoiseAdapter", "Verdict"]
+
+
+_MAD_TO_SIGMA: Final = 1.4826  # median |N(0, 1)| = 0.6745 = 1 / 1.4826
+_D4_VARIANCE: Final = 70.0  # var of the fourth difference of unit white noise: C(8, 4)
 
 
 @dataclass(frozen=True)
@@ -40,25 +48,27 @@ class AdaptationBounds:
     """The limits of what the noise may learn.
 
     r_min, r_max: bounds of every diagonal entry of R, in the measured channels' units squared
-    (rad^2, m^2; (rad/s)^2, (m/s)^2). 1e-10 is a sensor good to 1e-5 rad; 1 a sensor that knows
-    nothing. q_scale_min, q_scale_max: bounds of the factor s_i on the configured Q's diagonal.
+    (rad^2, m^2; (rad/s)^2, (m/s)^2). 1e-10 is a sensor good to 1e-5 rad; 1e-2 one good to 0.1
+    rad or 0.1 rad/s, the worst a wearable is taken to be (a larger innovation is the model's error,
+    which the NIS window then sees, not noise). q_scale_min, q_scale_max: bounds of the factor s_i on the configured Q's diagonal.
     forgetting: Sage-Husa's b, the weight of the past (window about 1 / (1 - b) updates).
-    window: updates in the NIS window; absorb_ratio: how far above m its mean must be to absorb.
-    report_change: a relative change of R or Q that `Verdict.adapted` reports. gate: an innovation
-    whose square passes gate times its predicted variance (3 sigma) does not teach R; growth: the
-    largest factor by which R may grow in one update.
+    window: updates in the NIS window; absorb_quantile: its mean must pass this quantile of the
+    mean of `window` chi-square(m) samples, chi2.ppf(q, window m) / window, to absorb (0.999: about
+    1.5 m for m = 6 and a window of 20; the thesis' EXTERNAL filters sat at 1e3 to 1e6 m).
+    report_change: a relative change of R or Q that `Verdict.adapted` reports. window_r: fourth
+    differences R is estimated from; min_differences: how many it needs before it replaces r0.
     """
 
     r_min: float = 1e-10
-    r_max: float = 1.0
+    r_max: float = 1e-2
     q_scale_min: float = 1e-4
     q_scale_max: float = 1e4
     forgetting: float = 0.98
     window: int = 20
-    absorb_ratio: float = 100.0
+    absorb_quantile: float = 0.999
     report_change: float = 0.1
-    gate: float = 9.0
-    growth: float = 2.0
+    window_r: int = 64
+    min_differences: int = 8
 
 
 BOUNDS: Final = AdaptationBounds()
@@ -80,6 +90,9 @@ class _Snapshot:
     count: int
     nis: np.ndarray
     nis_count: int
+    recent: tuple[np.ndarray, ...]
+    d4: np.ndarray
+    d4_count: int
     reported_r: np.ndarray
     reported_s: np.ndarray
 
@@ -113,6 +126,7 @@ class NoiseAdapter:
         # A component with no configured noise (q_var = 0) gets none: there is no scale to adapt.
         self._q0_diag = np.where(diag > 0, diag, 1.0)
         self._q_free = diag > 0
+        self._nis_limit: float | None = None
         if adapt_q is not None:
             self._q_free &= np.asarray(adapt_q, dtype=bool)
         self.reset()
@@ -124,6 +138,9 @@ class NoiseAdapter:
         self._count = 0
         self._nis = np.zeros(self._bounds.window)
         self._nis_count = 0
+        self._recent: list[np.ndarray] = []
+        self._d4 = np.zeros((self._bounds.window_r, self._r0.size))
+        self._d4_count = 0
         self._reported_r = self._r.copy()
         self._reported_s = np.ones_like(self._q_est)
 
@@ -162,32 +179,37 @@ class NoiseAdapter:
     def observe(
         self,
         *,
+        z: np.ndarray,
+        consecutive: bool,
         innovation: np.ndarray,
-        prior_zz: np.ndarray,
         gain: np.ndarray,
         nis: float | None,
     ) -> Verdict:
         """Learn from one update.
 
-        innovation y (m,) = z - h(x-); prior_zz (m,): the diagonal of H P- H^T (S without R);
-        gain K (n, m); nis: y^T S^-1 y (None when not finite).
+        z (m,): the measurement (no quaternions: models with ball or free joints do not adapt R
+        from qpos differences correctly, see NoiseAdapter); consecutive: the frame before it was
+        the previous tick's; innovation y (m,) = z - h(x-); gain K (n, m); nis: y^T S^-1 y (None
+        when not finite).
         """
         b = self._bounds
-        if not (np.all(np.isfinite(innovation)) and np.all(np.isfinite(prior_zz))):
+        if not (np.all(np.isfinite(innovation)) and np.all(np.isfinite(z))):
             return Verdict(adapted=False, absorb=False)
         d = (1.0 - b.forgetting) / (1.0 - b.forgetting ** (self._count + 1))
         self._count += 1
-        # An innovation beyond the gate is the model's error (a force that changed), not the
-        # sensor's: learning R from it would make the filter ignore its measurements, which makes
-        # the next innovation larger still (the classic runaway of innovation-based R).
-        r_sample = innovation**2 - prior_zz
-        outlier = innovation**2 > b.gate * (prior_zz + self._r)
-        r_sample = np.where(outlier, self._r, r_sample)
-        # One sample of y^2 - H P- H^T has a spread of about H P- H^T: when the prior is wide, a
-        # single tick says little about R, so R may at most double per update.
-        r_next = np.minimum((1.0 - d) * self._r + d * r_sample, b.growth * self._r)
-        if np.all(np.isfinite(r_next)):
-            self._r = np.clip(r_next, b.r_min, b.r_max)
+        if not consecutive:
+            self._recent = []
+        self._recent.append(np.array(z, dtype=np.float64))
+        if len(self._recent) > 5:
+            self._recent.pop(0)
+        if len(self._recent) == 5 and z.size == self._r.size:
+            z0, z1, z2, z3, z4 = self._recent
+            self._d4[self._d4_count % b.window_r] = z4 - 4.0 * z3 + 6.0 * z2 - 4.0 * z1 + z0
+            self._d4_count += 1
+            if self._d4_count >= b.min_differences:
+                filled = self._d4[: min(self._d4_count, b.window_r)]
+                scale = _MAD_TO_SIGMA * np.median(np.abs(filled), axis=0)
+                self._r = np.clip(scale**2 / _D4_VARIANCE, b.r_min, b.r_max)
         # A filter on its way to the divergence guard can have gains whose squares overflow: such
         # an update teaches nothing (the guard re-initialises).
         with np.errstate(over="ignore", invalid="ignore"):
@@ -201,7 +223,9 @@ class NoiseAdapter:
             self._nis_count += 1
             if self._nis_count >= b.window:
                 m = innovation.size
-                absorb = float(self._nis.mean()) > b.absorb_ratio * m
+                if self._nis_limit is None:
+                    self._nis_limit = float(chi2.ppf(b.absorb_quantile, b.window * m)) / b.window
+                absorb = float(self._nis.mean()) > self._nis_limit
         s = self.scale
         moved = bool(
             np.any(np.abs(self._r - self._reported_r) > b.report_change * self._reported_r)
@@ -226,6 +250,9 @@ class NoiseAdapter:
             count=self._count,
             nis=self._nis.copy(),
             nis_count=self._nis_count,
+            recent=tuple(self._recent),
+            d4=self._d4.copy(),
+            d4_count=self._d4_count,
             reported_r=self._reported_r.copy(),
             reported_s=self._reported_s.copy(),
         )
@@ -236,5 +263,8 @@ class NoiseAdapter:
         self._count = snap.count
         self._nis = snap.nis.copy()
         self._nis_count = snap.nis_count
+        self._recent = list(snap.recent)
+        self._d4 = snap.d4.copy()
+        self._d4_count = snap.d4_count
         self._reported_r = snap.reported_r.copy()
         self._reported_s = snap.reported_s.copy()

@@ -376,8 +376,9 @@ class UnscentedFilter:
         adapted = absorbed = False
         if self._adapter is not None and self._finite() and nis is not None:
             verdict = self._adapter.observe(
+                z=np.asarray(self._kf.y),
+                consecutive=self._ticks_since_update == 1,
                 innovation=np.asarray(self._kf.y),
-                prior_zz=np.diagonal(self._kf.S) - np.diagonal(self._kf.R),
                 gain=np.asarray(self._kf.K),
                 nis=nis,
             )
@@ -385,7 +386,7 @@ class UnscentedFilter:
             if verdict.absorb:
                 absorbed = True
                 self._absorptions += 1
-                if self._absorptions < ABSORPTIONS_BEFORE_REINIT:
+                if self._absorptions < ABSORPTIONS_BEFORE_REINIT or self._driven:
                     # The model is wrong, not the noise: forget what P says was known, and let Q
                     # follow the corrections the filter has to make.
                     # Only q and qd widen: a force spread as wide as P0 throws the sigma points
@@ -399,7 +400,8 @@ class UnscentedFilter:
             not self._finite()
             or self._nis_run >= DIVERGENCE_TICKS
             or self._blown_up()
-            or self._absorptions >= ABSORPTIONS_BEFORE_REINIT
+            # DRIVEN absorbs a model error into its force; restarting would throw the force away.
+            or (self._absorptions >= ABSORPTIONS_BEFORE_REINIT and not self._driven)
         ):
             self._reinitialise(m)
             if self._adapter is not None:
