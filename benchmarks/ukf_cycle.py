@@ -148,6 +148,9 @@ CASES = [
     Case("biped controlled", "biped", "CONTROLLED", 0.005, _gait),
     Case("myoElbow external", "myoelbow", "EXTERNAL", 0.002, _excitation),
     Case("myoHand external", "myohand", "EXTERNAL", 0.002, _excitation),
+    # What a myoHand session that names no scenario gets (issue 10): the unknown force in the state.
+    Case("myoElbow driven", "myoelbow", "DRIVEN", 0.002, _excitation),
+    Case("myoHand driven", "myohand", "DRIVEN", 0.002, _excitation),
 ]
 
 

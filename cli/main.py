@@ -183,7 +183,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--model", default="pendulum_3", choices=BUILTIN_NAMES, help="built-in model (default pendulum_3)"
     )
     demo.add_argument(
-        "--scenario", default="passive", choices=("passive", "controlled", "external"), help="default passive"
+        "--scenario",
+        default="passive",
+        choices=("passive", "controlled", "external", "driven"),
+        help="default passive",
     )
     demo.add_argument(
         "--seconds", type=_argparse(_seconds, "seconds"), default=10.0, help="session length, s (default 10)"

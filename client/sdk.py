@@ -45,7 +45,13 @@ if TYPE_CHECKING:
     # The stubs' generic enum wrapper: mypy-protobuf types each enum's values as its own int NewType.
     from google.protobuf.internal.enum_type_wrapper import _EnumTypeWrapper
 
-    _SettingsEnum: TypeAlias = type[common_pb2.Estimator | common_pb2.Preset | common_pb2.SigmaPoints]
+    _SettingsEnum: TypeAlias = type[
+        common_pb2.Estimator
+        | common_pb2.Preset
+        | common_pb2.SigmaPoints
+        | common_pb2.ForceModel
+        | common_pb2.NoiseModel
+    ]
 
 __all__ = [
     "IDEMPOTENT_METHODS",
@@ -110,10 +116,12 @@ _ESTIMATOR_ENUMS: dict[str, tuple[_SettingsEnum, str]] = {
     "estimator": (common_pb2.Estimator, "ESTIMATOR_"),
     "preset": (common_pb2.Preset, "PRESET_"),
     "sigma_points": (common_pb2.SigmaPoints, "SIGMA_POINTS_"),
+    "force_model": (common_pb2.ForceModel, "FORCE_MODEL_"),
+    "noise_model": (common_pb2.NoiseModel, "NOISE_MODEL_"),
 }
 # A Literal, so that mypy checks the names against EstimatorSettings' fields (HasField).
-_Scalar: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r"]
-_ESTIMATOR_SCALARS: tuple[_Scalar, ...] = ("alpha", "beta", "kappa", "p0", "q_var", "r")
+_Scalar: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r", "force_var"]
+_ESTIMATOR_SCALARS: tuple[_Scalar, ...] = ("alpha", "beta", "kappa", "p0", "q_var", "r", "force_var")
 
 
 class _EnumValues(Protocol[_V_co]):
@@ -191,7 +199,9 @@ class SessionOptions:
     inline_mjcf: str | None = None
     inline_name: str = "inline"
     inline_assets: Mapping[str, bytes] = field(default_factory=dict)
-    scenario: str = "PASSIVE"  # PASSIVE | CONTROLLED | EXTERNAL
+    # PASSIVE | CONTROLLED | EXTERNAL | DRIVEN; None: the server's choice for the model (DRIVEN
+    # for a model with actuators, else PASSIVE), reported in Opened.scenario and scenario_reason.
+    scenario: str | None = None
     dt: float = 0.05  # s
     clock: str = "LOCKSTEP"  # LOCKSTEP | REALTIME
     estimator: Mapping[str, object] = field(
@@ -213,7 +223,11 @@ class SessionOptions:
             )
         message = dynamics_pb2.OpenSession(
             model_version=self.model_version,
-            scenario=_enum(common_pb2.Scenario, "SCENARIO_", self.scenario, "scenario"),
+            scenario=(
+                _enum(common_pb2.Scenario, "SCENARIO_", self.scenario, "scenario")
+                if self.scenario
+                else common_pb2.SCENARIO_UNSPECIFIED
+            ),
             dt=self.dt,
             clock=_enum(common_pb2.Clock, "CLOCK_", self.clock, "clock"),
             measured=[_enum(common_pb2.Channel, "CHANNEL_", c, "measured") for c in self.measured],
@@ -314,6 +328,8 @@ class TickResult:
     horizon: float
     received_at: float  # client monotonic time the result arrived
     late_compute: bool = False  # answered on time without the estimator (an overloaded server)
+    adapted: bool = False  # the adaptive noise model moved R or Q by more than a tenth
+    absorbed: bool = False  # a NIS window far out: the filter widened its covariance
 
     @classmethod
     def from_message(cls, result: dynamics_pb2.Result, *, received_at: float) -> TickResult:
@@ -350,6 +366,8 @@ class TickResult:
             horizon=result.horizon,
             received_at=received_at,
             late_compute=result.late_compute,
+            adapted=result.adapted,
+            absorbed=result.absorbed,
         )
 
 
@@ -376,6 +394,9 @@ class Opened:
     subject_pseudonym: str
     dt: float
     steps_per_tick: int
+    scenario: str = ""  # the scenario in force: PASSIVE | CONTROLLED | EXTERNAL | DRIVEN
+    scenario_reason: str = ""  # why: asked for, or the server's choice for the model
+    noise_reason: str = ""  # why the noise model in estimator["noise_model"]
 
 
 @dataclass(frozen=True)
@@ -423,6 +444,9 @@ def _opened(message: dynamics_pb2.SessionOpened) -> Opened:
         subject_pseudonym=message.subject_pseudonym,
         dt=message.dt,
         steps_per_tick=message.steps_per_tick,
+        scenario=_name(common_pb2.Scenario, "SCENARIO_", message.scenario),
+        scenario_reason=message.scenario_reason,
+        noise_reason=message.noise_reason,
     )
 
 

@@ -494,7 +494,8 @@ OBJECTS: dict[str, Callable[[Scenario], ResearchObject]] = {
 
 
 def make_object(name: str, scenario: Scenario) -> ResearchObject:
-    """The research object `name` in `scenario`, with the thesis' frame period."""
+    """The research object `name` in `scenario`, with the thesis' frame period (the recorded
+    jump, "cmj", is experiments/recorded.py's `research_object`)."""
     try:
         factory = OBJECTS[name]
     except KeyError:

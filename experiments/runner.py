@@ -21,8 +21,9 @@ import numpy as np
 
 from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.experiments.netem import PERFECT, NetworkProfile, Schedule, gap_schedule, lockstep_schedule
-from jitdyn.experiments.objects import ResearchObject, Scenario, TrueState, UnstableSimulation, make_object
+from jitdyn.experiments.objects import ResearchObject, Scenario, TrueState, UnstableSimulation
 from jitdyn.experiments.progress import progress_bar
+from jitdyn.experiments.recorded import research_object
 
 __all__ = ["ModelCache", "RunSpec", "Trace", "estimate_of", "run_lockstep"]
 
@@ -40,13 +41,22 @@ class RunSpec:
     network: NetworkProfile = PERFECT
     grace: float = 0.0  # s: a frame later than this after its tick is late (LOCKSTEP emulation)
     gaps: tuple[int, int] | None = None  # (gap ticks, period ticks): deterministic gaps instead of `network`
-    overrides: Mapping[str, float] = field(default_factory=dict)  # estimator settings beyond the preset
+    overrides: Mapping[str, Any] = field(default_factory=dict)  # estimator settings beyond the preset
+    # The scenario the session is opened with: None, the object's; "" the server's choice (the
+    # client names none); or a scenario name (a wrong one, to test absorption).
+    open_as: str | None = None
+    noise: tuple[float, float] | None = None  # white sensor noise (q std, qd std), seeded by `seed`
+    default_settings: bool = False  # send no estimator settings at all (every default of the server)
 
     @property
     def label(self) -> str:
         estimator = self.preset if self.estimator == "UKF" else self.estimator
-        extra = "".join(f",{k}={v:g}" for k, v in sorted(self.overrides.items()))
-        return f"{self.object}/{self.scenario.value}/{estimator}{extra}"
+        if self.default_settings:
+            estimator = "defaults"
+        extra = "".join(f",{k}={v}" for k, v in sorted(self.overrides.items()))
+        opened = "" if self.open_as is None else f",opened {self.open_as or 'unset'}"
+        noisy = "" if self.noise is None else ",noisy"
+        return f"{self.object}/{self.scenario.value}/{estimator}{extra}{opened}{noisy}"
 
 
 @dataclass(frozen=True)
@@ -74,6 +84,10 @@ class Trace:
     rejected: int
     corrected_ticks: int
     wall_seconds: float
+    adapted: int = 0  # ticks where the adaptive noise model said it changed R or Q
+    absorbed: int = 0  # ticks where a NIS window far out made the filter widen its covariance
+    opened_scenario: str = ""  # the scenario the server gave the session
+    opened_reason: str = ""  # and why
     stopped: tuple[float, str] | None = (
         None  # (t, why) when the truth became unstable and the run ended early
     )
@@ -131,13 +145,18 @@ def _measured(scenario: Scenario) -> tuple[str, ...]:
     return ("qpos", "qvel")
 
 
-def _frame(seq: int, truth: TrueState, scenario: Scenario) -> FrameData:
+def _frame(
+    seq: int, truth: TrueState, scenario: Scenario, noise: tuple[np.ndarray, np.ndarray] | None = None
+) -> FrameData:
     controlled = scenario is Scenario.CONTROLLED
+    qpos, qvel = truth.qpos, truth.qvel
+    if noise is not None:
+        qpos, qvel = qpos + noise[0], qvel + noise[1]
     return FrameData(
         seq=seq,
         t=truth.t,
-        qpos=truth.qpos,
-        qvel=truth.qvel,
+        qpos=qpos,
+        qvel=qvel,
         qacc=truth.qacc if controlled else None,
         ctrl=truth.ctrl if controlled else None,
     )
@@ -164,19 +183,25 @@ def run_lockstep(
     as the schedule says); a CONTROLLED object then gets the control its law computes from the
     latest answer's filter state, held until tick k + 1, and frame k + 1 reports it.
     """
-    obj = obj or make_object(spec.object, spec.scenario)
+    obj = obj or research_object(spec.object, spec.scenario)
     models = models or ModelCache(client)
     dt = obj.dt
     ticks = max(2, round(spec.seconds / dt))
     schedule = _schedule(spec, ticks, dt)
-    settings: dict[str, object] = {"estimator": spec.estimator, "preset": spec.preset, **spec.overrides}
+    settings: dict[str, object] = (
+        {}
+        if spec.default_settings
+        else {"estimator": spec.estimator, "preset": spec.preset, **spec.overrides}
+    )
+    opened_as = spec.scenario.value if spec.open_as is None else (spec.open_as or None)
+    noise_rng = np.random.default_rng(spec.seed + 7919)
     options = SessionOptions(
         **models.options(obj),
-        scenario=spec.scenario.value,
+        scenario=opened_as,
         dt=dt,
         clock="LOCKSTEP",
         estimator=settings,
-        measured=_measured(spec.scenario),
+        measured=_measured(Scenario(opened_as) if opened_as in ("PASSIVE", "CONTROLLED") else spec.scenario),
         outputs=("FILTER_STATE",),
         # Every late frame of the emulated network is applied: a history as long as the run.
         history=min(10_000, ticks + 1),
@@ -186,6 +211,17 @@ def run_lockstep(
         by_tick.setdefault(delivery.tick, []).append(delivery)
 
     truths: list[TrueState] = [obj.reset(spec.seed)]
+    # Sensor noise per tick, drawn once per tick whatever the schedule, so that every estimator
+    # of a comparison sees the same noisy frames.
+    noises: list[tuple[np.ndarray, np.ndarray]] = []
+    if spec.noise is not None:
+        for _ in range(ticks + 1):
+            noises.append(
+                (
+                    spec.noise[0] * noise_rng.standard_normal(obj.nq),
+                    spec.noise[1] * noise_rng.standard_normal(obj.nv),
+                )
+            )
     answers: dict[int, TickResult] = {}
     finals: dict[int, TickResult] = {}
     rejected = 0
@@ -202,7 +238,9 @@ def run_lockstep(
             if kind == "skip":
                 answer = session.skip(seq)
             else:
-                answer = session.send_frame(_frame(seq, truths[seq], spec.scenario))
+                answer = session.send_frame(
+                    _frame(seq, truths[seq], spec.scenario, noises[seq] if noises else None)
+                )
             if isinstance(answer, Rejection):
                 rejected += 1
                 return None
@@ -244,13 +282,19 @@ def run_lockstep(
     bar.close()
     wall = time.perf_counter() - started
 
-    nx = opened.state_dimension
-    layout = 3 if nx == 3 * nv else 2
+    layout = 3 if opened.scenario == "CONTROLLED" else 2
+    # DRIVEN filters carry the unknown force after [q, qd]; the truth has no such state (the force
+    # the filter holds over a tick is a modelling device), so the trace keeps the [q, qd] block of
+    # the mean and the covariance, and NEES is that marginal's.
+    size = nq + (layout - 1) * nv
+    side = layout * nv
     truth_state = np.array([np.concatenate([s.qpos, s.qvel, s.qacc][:layout]) for s in truths[:ticks]])
-    estimate = np.array([_state(answers[k], nx) for k in range(ticks)])
-    final = np.array([_state(finals[k], nx) for k in range(ticks)])
+    estimate = np.array([_state(answers[k], size) for k in range(ticks)])
+    final = np.array([_state(finals[k], size) for k in range(ticks)])
     covariances = [answers[k].covariance for k in range(ticks)]
-    covariance = None if any(c is None for c in covariances) else np.array(covariances)
+    covariance = (
+        None if any(c is None for c in covariances) else np.array([c[:side, :side] for c in covariances])  # type: ignore[index]
+    )
     measured_channels = [c for c in opened.measured if c in ("qpos", "qvel", "qacc")]
     return Trace(
         spec=spec,
@@ -271,6 +315,10 @@ def run_lockstep(
         nis=np.array([np.nan if answers[k].nis is None else answers[k].nis for k in range(ticks)]),
         compute_us=np.array([answers[k].compute_us for k in range(ticks)], dtype=float),
         reinitialised=sum(1 for k in range(ticks) if answers[k].reinitialised),
+        adapted=sum(1 for k in range(ticks) if answers[k].adapted),
+        absorbed=sum(1 for k in range(ticks) if answers[k].absorbed),
+        opened_scenario=opened.scenario,
+        opened_reason=opened.scenario_reason,
         rejected=rejected,
         corrected_ticks=corrected,
         wall_seconds=wall,
@@ -278,8 +326,8 @@ def run_lockstep(
     )
 
 
-def _state(result: TickResult, nx: int) -> np.ndarray:
-    if result.filter_state.size == nx:
-        return np.asarray(result.filter_state, dtype=float)
+def _state(result: TickResult, size: int) -> np.ndarray:
+    if result.filter_state.size >= size:
+        return np.asarray(result.filter_state[:size], dtype=float)
     # Before the first frame there is no filter state; NaN keeps the tick out of the metrics.
-    return np.full(nx, math.nan)
+    return np.full(size, math.nan)

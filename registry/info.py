@@ -34,13 +34,16 @@ MAX_TAGS = 32
 MAX_DESCRIPTION = 4096
 
 # The keys of `ModelMetadata.defaults`: jitdyn.v1.Scenario names without their prefix.
-SCENARIOS = ("PASSIVE", "CONTROLLED", "EXTERNAL")
+SCENARIOS = ("PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN")
 # The settings one scenario's defaults may hold (the fields of jitdyn.v1.EstimatorSettings): enum
 # fields take the enum's value names without prefix, the others a number.
 ESTIMATOR_SETTINGS: Mapping[str, tuple[str, ...] | None] = {
     "estimator": ("UKF", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION"),
     "preset": ("JITDYN", "THESIS"),
     "sigma_points": ("MERWE", "SIMPLEX", "UNIFORM"),
+    "force_model": ("RANDOM_WALK", "INTEGRATED_RANDOM_WALK"),
+    "noise_model": ("FIXED", "ADAPTIVE"),
+    "force_var": None,
     "alpha": None,
     "beta": None,
     "kappa": None,
@@ -236,8 +239,8 @@ def _check_setting(scenario: str, key: object, value: object) -> Any:
         raise InvalidArgument(f"{where}['alpha'] must be in (0, 1], got {number!r}")
     if key in ("p0", "r") and not number > 0:
         raise InvalidArgument(f"{where}[{key!r}] must be positive, got {number!r}")
-    if key == "q_var" and not number >= 0:
-        raise InvalidArgument(f"{where}['q_var'] must be non-negative, got {number!r}")
+    if key in ("q_var", "force_var") and not number >= 0:
+        raise InvalidArgument(f"{where}[{key!r}] must be non-negative, got {number!r}")
     return number
 
 

@@ -37,7 +37,7 @@ Vector = npt.NDArray[np.float64]
 
 KINDS: Final = ("result", "rejected")
 SOURCES: Final = ("MEASURED", "PREDICTED", "CORRECTED")
-SCENARIOS: Final = ("PASSIVE", "CONTROLLED", "EXTERNAL")
+SCENARIOS: Final = ("PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN")
 CLOCKS: Final = ("LOCKSTEP", "REALTIME")
 STATUSES: Final = ("OPEN", "COMPLETE", "RECOVERED", "FAILED")
 # MuJoCo's joint types by their mjtJoint names, lower case as in MJCF.

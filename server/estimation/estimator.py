@@ -14,8 +14,10 @@ tick at a time::
 
 Estimators: the unscented Kalman filter (estimation/ukf.py) and the dead-reckoning extrapolators of
 IEEE 1278 (estimation/deadreckoning.py). State layouts: x = [q (nq), qd (nv)] in PASSIVE and EXTERNAL,
-[q, qd, qdd (nv)] in CONTROLLED; covariances live in the tangent space, (k nv, k nv) with k = 2 or 3,
-which differs from len(x) only for models with ball or free joints (estimation/manifold.py).
+[q, qd, qdd (nv)] in CONTROLLED, and for the UKF in DRIVEN [q, qd, f (nv)] (force model RANDOM_WALK)
+or [q, qd, f, fd (nv)] (INTEGRATED_RANDOM_WALK), f the unknown generalized force; covariances live
+in the tangent space, (k nv, k nv) with k = 2, 3 or 4, which differs from len(x) only for models
+with ball or free joints (estimation/manifold.py).
 """
 
 from __future__ import annotations
@@ -39,14 +41,18 @@ __all__ = [
     "Estimator",
     "EstimatorConfig",
     "EstimatorKind",
+    "ForceModel",
     "Measurement",
+    "NoiseModel",
     "Preset",
     "Scenario",
     "SigmaScheme",
     "check_against_model",
     "check_measurement",
     "check_vector",
+    "default_scenario",
     "derivative_order",
+    "force_blocks",
     "is_pendulum_like",
     "preset_values",
     "read_only",
@@ -67,6 +73,21 @@ class Scenario(enum.StrEnum):
     PASSIVE = "PASSIVE"
     CONTROLLED = "CONTROLLED"
     EXTERNAL = "EXTERNAL"
+    DRIVEN = "DRIVEN"
+
+
+class ForceModel(enum.StrEnum):
+    """How the unknown generalized force of DRIVEN evolves between ticks."""
+
+    RANDOM_WALK = "RANDOM_WALK"  # f' = f + w: the force is held over a prediction
+    INTEGRATED_RANDOM_WALK = "INTEGRATED_RANDOM_WALK"  # f' = f + fd dt, fd' = fd + w: its trend is kept
+
+
+class NoiseModel(enum.StrEnum):
+    """Whether R and Q stay as configured or follow the innovations (estimation/adaptive.py)."""
+
+    FIXED = "FIXED"
+    ADAPTIVE = "ADAPTIVE"
 
 
 class SigmaScheme(enum.StrEnum):
@@ -93,8 +114,27 @@ CHANNELS: Final = frozenset(c.value for c in Channel)
 # on: myoHand's 46 states at a 2 ms tick need it to stay inside the tick (benchmarks/RESULTS.md).
 LARGE_STATE: Final = 32
 
+# JITDYN's DRIVEN defaults (docs/experiments.md, "Dead reckoning over gaps", says how they were chosen).
+DRIVEN_FORCE_MODEL: Final = ForceModel.RANDOM_WALK
+DRIVEN_FORCE_VAR: Final = 10.0
+DRIVEN_Q_VAR: Final = 1e-4
+DRIVEN_ALPHA: Final = 0.3
+DRIVEN_R: Final = 1e-2
+
 # Settings a request or a model's metadata may set, and their types.
-_FIELDS: Final = ("estimator", "sigma_points", "alpha", "beta", "kappa", "p0", "q_var", "r")
+_FIELDS: Final = (
+    "estimator",
+    "sigma_points",
+    "alpha",
+    "beta",
+    "kappa",
+    "p0",
+    "q_var",
+    "r",
+    "force_model",
+    "force_var",
+    "noise_model",
+)
 
 
 _E = TypeVar("_E", bound=enum.StrEnum)
@@ -139,13 +179,22 @@ class EstimatorConfig:
     dt: float  # tick, s
     steps_per_tick: int  # physics steps per tick: dt / model timestep
     measured: frozenset[str] = field(default_factory=lambda: frozenset({"qpos", "qvel"}))
+    # DRIVEN: the unknown force's evolution, and its process noise as an acceleration intensity,
+    # (m/s^2)^2/s or (rad/s^2)^2/s for RANDOM_WALK, (m/s^3)^2/s or (rad/s^3)^2/s for the rate of
+    # INTEGRATED_RANDOM_WALK, scaled into force units by the mass matrix's diagonal at qpos0.
+    force_model: ForceModel = ForceModel.RANDOM_WALK
+    force_var: float = 1e4
+    # ADAPTIVE: R and Q follow the innovations within bounds, a wrong model is absorbed.
+    noise_model: NoiseModel = NoiseModel.FIXED
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise through the back door, once, here
         set_(self, "estimator", _enum(EstimatorKind, self.estimator, "estimator"))
         set_(self, "scenario", _enum(Scenario, self.scenario, "scenario"))
         set_(self, "sigma_points", _enum(SigmaScheme, self.sigma_points, "sigma_points"))
-        for name in ("alpha", "beta", "kappa", "p0", "q_var", "r", "dt"):
+        set_(self, "force_model", _enum(ForceModel, self.force_model, "force_model"))
+        set_(self, "noise_model", _enum(NoiseModel, self.noise_model, "noise_model"))
+        for name in ("alpha", "beta", "kappa", "p0", "q_var", "r", "dt", "force_var"):
             set_(self, name, _real(getattr(self, name), name))
         if not 0.0 < self.alpha <= 1.0:
             raise InvalidArgument(f"alpha must be in (0, 1], got {self.alpha}")
@@ -153,6 +202,8 @@ class EstimatorConfig:
             raise InvalidArgument(f"p0 must be > 0, got {self.p0}")
         if self.q_var < 0.0:
             raise InvalidArgument(f"q_var must be >= 0, got {self.q_var}")
+        if self.force_var < 0.0:
+            raise InvalidArgument(f"force_var must be >= 0, got {self.force_var}")
         if self.r <= 0.0:
             # R = 0 makes the innovation covariance singular as soon as P collapses onto the
             # measurement: the gain is then undefined.
@@ -191,10 +242,14 @@ class Measurement:
 class Estimate:
     """An estimator's answer for one tick. Every array is a read-only copy.
 
-    qpos (nq,), qvel (nv,), qacc (nv,); state: the estimator's own mean, [q, qd] or [q, qd, qdd]
-    (len nq + 1 or 2 nv); covariance (n, n) in the tangent space, None for dead reckoning; nis:
+    qpos (nq,), qvel (nv,), qacc (nv,); state: the estimator's own mean (see the module docstring
+    for its layouts); covariance (n, n) in the tangent space, None for dead reckoning; nis:
     normalised innovation squared of the measurement just used, None when none was (or it was not
-    finite); reinitialised: the divergence guard restarted the estimator from a measurement.
+    finite); reinitialised: the divergence guard restarted the estimator from a measurement;
+    adapted: the adaptive noise model changed R or Q by more than a tenth since the last estimate
+    that said so; absorbed: the NIS of a window of updates was far outside its interval and the
+    filter widened its covariance (and, for a PASSIVE or EXTERNAL filter, started estimating the
+    unknown force) to follow the measurements.
     """
 
     qpos: np.ndarray
@@ -204,6 +259,8 @@ class Estimate:
     covariance: np.ndarray | None
     nis: float | None = None
     reinitialised: bool = False
+    adapted: bool = False
+    absorbed: bool = False
 
 
 def check_vector(value: object, size: int, name: str) -> np.ndarray:
@@ -293,9 +350,33 @@ def derivative_order(scenario: Scenario | str) -> int:
     return 3 if scenario == Scenario.CONTROLLED else 2
 
 
-def state_dimension(model: mujoco.MjModel, scenario: Scenario | str) -> int:
-    """The tangent dimension of the state: 2 nv, or 3 nv in CONTROLLED."""
-    return derivative_order(scenario) * int(model.nv)
+def force_blocks(scenario: Scenario | str, force_model: ForceModel | str = ForceModel.RANDOM_WALK) -> int:
+    """How many nv-blocks of unknown force the UKF's state holds: 0, or in DRIVEN 1 (f) or 2 (f, fd)."""
+    if scenario != Scenario.DRIVEN:
+        return 0
+    return 2 if force_model == ForceModel.INTEGRATED_RANDOM_WALK else 1
+
+
+def state_dimension(
+    model: mujoco.MjModel, scenario: Scenario | str, force_model: ForceModel | str = ForceModel.RANDOM_WALK
+) -> int:
+    """The tangent dimension of the UKF's state: 2 nv, 3 nv in CONTROLLED, 3 or 4 nv in DRIVEN."""
+    return (derivative_order(scenario) + force_blocks(scenario, force_model)) * int(model.nv)
+
+
+def is_driven(model: mujoco.MjModel) -> bool:
+    """A model whose motion something drives: it has actuators (motors, muscles)."""
+    return int(model.nu) > 0
+
+
+def default_scenario(model: mujoco.MjModel) -> tuple[Scenario, str]:
+    """The scenario of a session whose client names none, and why."""
+    if is_driven(model):
+        return Scenario.DRIVEN, (
+            f"the model has {int(model.nu)} actuators, whose forces a session does not see: "
+            "the unknown generalized force is estimated as part of the state"
+        )
+    return Scenario.PASSIVE, "the model has no actuators: only its own passive forces act"
 
 
 def is_pendulum_like(model: mujoco.MjModel) -> bool:
@@ -330,21 +411,46 @@ def preset_values(
     """
     preset = _enum(Preset, preset, "preset")
     scenario = _enum(Scenario, scenario, "scenario")
-    n = state_dimension(model, scenario)
+    force_model = DRIVEN_FORCE_MODEL
+    n = state_dimension(model, scenario, force_model)
     pendulum = is_pendulum_like(model)
     q_var = {
         Scenario.PASSIVE: 0.1,
         Scenario.CONTROLLED: 0.2 if pendulum else 5.0,
         Scenario.EXTERNAL: 50.0,
+        Scenario.DRIVEN: 50.0,
     }[scenario]
-    common: dict[str, object] = {"estimator": "UKF", "beta": 2.0, "p0": 0.2, "q_var": q_var, "r": 0.01}
+    common: dict[str, object] = {
+        "estimator": "UKF",
+        "beta": 2.0,
+        "p0": 0.2,
+        "q_var": q_var,
+        "r": 0.01,
+        "force_model": force_model.value,
+        "force_var": DRIVEN_FORCE_VAR,
+    }
     if preset == Preset.THESIS:
-        return {**common, "sigma_points": "MERWE", "alpha": 0.001, "kappa": float(3 - n) if pendulum else 0.0}
+        return {
+            **common,
+            "sigma_points": "MERWE",
+            "alpha": 0.001,
+            "kappa": float(3 - n) if pendulum else 0.0,
+            "noise_model": NoiseModel.FIXED.value,
+        }
+    if scenario == Scenario.DRIVEN:
+        # The unknown force carries what the thesis' q_var = 50 stood for; what is left is the
+        # model's own error, and the adaptation finds its size.
+        # A narrower spread (alpha 0.3: central weight about -10) keeps the sigma points of a force
+        # whose variance is large inside the range where a tick's response to it is linear.
+        common.update(q_var=DRIVEN_Q_VAR, r=DRIVEN_R)
     return {
         **common,
         "sigma_points": "SIMPLEX" if n >= LARGE_STATE else "MERWE",
-        "alpha": 1.0,
+        "alpha": DRIVEN_ALPHA if scenario == Scenario.DRIVEN else 1.0,
         "kappa": float(max(0, 3 - n)),
+        # Adaptive noise is the default of the scenario a client gets when it names none for a
+        # driven model; the thesis' scenarios keep the noise they were measured with unless asked.
+        "noise_model": (NoiseModel.ADAPTIVE if scenario == Scenario.DRIVEN else NoiseModel.FIXED).value,
     }
 
 
@@ -373,7 +479,7 @@ def check_against_model(model: mujoco.MjModel, config: EstimatorConfig) -> None:
         raise InvalidArgument(
             f"steps_per_tick must be dt / timestep = {expected}, got {config.steps_per_tick}"
         )
-    n = state_dimension(model, config.scenario)
+    n = state_dimension(model, config.scenario, config.force_model)
     if (
         config.estimator == EstimatorKind.UKF
         and config.sigma_points == SigmaScheme.MERWE
@@ -398,7 +504,8 @@ def resolve_config(
     """The complete settings of a session: each field from the request if set there, else from the
     model's defaults for the scenario, else from the preset (`preset_values`).
 
-    requested, model_defaults: some of estimator, sigma_points, alpha, beta, kappa, p0, q_var, r.
+    requested, model_defaults: some of estimator, sigma_points, alpha, beta, kappa, p0, q_var, r,
+    force_model, force_var, noise_model.
     Raises InvalidArgument naming the first bad field.
     """
     _check_settings(requested, "requested")
@@ -416,6 +523,9 @@ def resolve_config(
         p0=values["p0"],  # type: ignore[arg-type]
         q_var=values["q_var"],  # type: ignore[arg-type]
         r=values["r"],  # type: ignore[arg-type]
+        force_model=values["force_model"],  # type: ignore[arg-type]
+        force_var=values["force_var"],  # type: ignore[arg-type]
+        noise_model=values["noise_model"],  # type: ignore[arg-type]
         dt=dt,
         steps_per_tick=steps_per_tick(model, dt),
         measured=frozenset(measured),

@@ -38,7 +38,8 @@ class Inputs(enum.Enum):
 
     NONE = 0  # PASSIVE: ctrl and qfrc_applied are zero
     CTRL = _CTRL  # CONTROLLED: the tick's control
-    QFRC = _QFRC  # EXTERNAL: the restored generalized force, as qfrc_applied
+    QFRC = _QFRC  # EXTERNAL: the restored generalized force, as qfrc_applied; DRIVEN: each
+    # sigma point's own estimated force (and its rate), as qfrc_applied
 
 
 def process_model(model: mujoco.MjModel, *, scenario: str) -> mujoco.MjModel:
@@ -51,7 +52,7 @@ def process_model(model: mujoco.MjModel, *, scenario: str) -> mujoco.MjModel:
     - Auto-reset off: a sigma point that blows up stays non-finite, where MuJoCo would silently put
       it back at qpos0; the filter's divergence guard sees it.
     - Sensors off: the filter never reads them.
-    - EXTERNAL: actuation off. The restored force is everything mj_inverse says acted, actuators
+    - EXTERNAL and DRIVEN: actuation off. The restored (or estimated) force is everything mj_inverse says acted, actuators
       included; muscles' passive and active forces must not act a second time on top of it.
       Tendons that then do nothing (no stiffness, damping, friction, limit, armature or equality
       constraint: they only routed muscles) lose their wrap paths, so MuJoCo stops computing their
@@ -63,7 +64,7 @@ def process_model(model: mujoco.MjModel, *, scenario: str) -> mujoco.MjModel:
         | mujoco.mjtDisableBit.mjDSBL_AUTORESET
         | mujoco.mjtDisableBit.mjDSBL_SENSOR
     )
-    if scenario == "EXTERNAL":
+    if scenario in ("EXTERNAL", "DRIVEN"):
         flags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
         private.tendon_num[_inert_tendons(private)] = 0
     private.opt.disableflags |= int(flags)
@@ -260,14 +261,17 @@ class Propagator:
         act: np.ndarray,
         ctrl: np.ndarray | None = None,
         qfrc: np.ndarray | None = None,
+        qfrc_rate: np.ndarray | None = None,
         nstep: int | None = None,
     ) -> Propagated:
         """Step every sigma point.
 
         qpos (count, nq), qvel (count, nv), count <= nsigma; act (na,), the same for every point;
-        ctrl (nu,) for Inputs.CTRL, qfrc (nv,) for Inputs.QFRC, held over all steps; nstep
-        defaults to the propagator's own (buffers for another count are made on first use and
-        kept). Returns (count, ...) views.
+        ctrl (nu,) for Inputs.CTRL, qfrc (nv,) for Inputs.QFRC, held over all steps; or qfrc
+        (count, nv), one force per point, and then optionally qfrc_rate (count, nv, per second):
+        physics step s (from 0) of point i then acts with qfrc[i] + (s + 1/2) h qfrc_rate[i], the
+        midpoint of a force that ramps (h: the timestep). nstep defaults to the propagator's own
+        (buffers for another count are made on first use and kept). Returns (count, ...) views.
         """
         nstep = self._nstep if nstep is None else nstep
         if nstep < 1:
@@ -288,9 +292,18 @@ class Propagator:
         self._initial[:count, s["qvel"]] = qvel
         self._initial[:count, s["act"]] = act
         self._ctrl[:] = ctrl if self._inputs is Inputs.CTRL and ctrl is not None else 0.0
-        self._qfrc[:] = qfrc if self._inputs is Inputs.QFRC and qfrc is not None else 0.0
-        if self._rollout:
-            self._run_rollout(buffers, count, chunks)
+        rows: np.ndarray | None = None
+        if self._inputs is Inputs.QFRC and qfrc is not None and np.ndim(qfrc) == 2:
+            rows = self._row_forces(np.asarray(qfrc), qfrc_rate, count, nstep)
+            self._qfrc[:] = 0.0
+        else:
+            self._qfrc[:] = qfrc if self._inputs is Inputs.QFRC and qfrc is not None else 0.0
+        if rows is not None and not self._rollout:
+            self._pool.run_chunks(
+                lambda worker, lo, hi: self._run_rows(buffers, rows, worker, lo, hi), count, chunks=chunks
+            )
+        elif self._rollout:
+            self._run_rollout(buffers, count, chunks, rows=rows)
         else:
             self._pool.run_chunks(
                 lambda worker, lo, hi: self._run_chunk(buffers, worker, lo, hi), count, chunks=chunks
@@ -302,6 +315,37 @@ class Propagator:
             act=final[:, s["act"]],
             qacc=buffers.qacc[:count] if self._want_qacc else None,
         )
+
+    def _row_forces(self, qfrc: np.ndarray, rate: np.ndarray | None, count: int, nstep: int) -> np.ndarray:
+        """(count, nstep, nv): the force of every point at every physics step."""
+        nv = self._model.nv
+        if qfrc.shape != (count, nv):
+            raise InvalidArgument(f"qfrc must have shape ({count}, {nv}) or ({nv},), got {qfrc.shape}")
+        forces = np.repeat(qfrc[:, None, :], nstep, axis=1)
+        if rate is not None:
+            if rate.shape != (count, nv):
+                raise InvalidArgument(f"qfrc_rate must have shape ({count}, {nv}), got {rate.shape}")
+            h = float(self._model.opt.timestep)
+            forces += ((np.arange(nstep) + 0.5) * h)[None, :, None] * rate[:, None, :]
+        return forces
+
+    def _run_rows(self, buffers: _Buffers, forces: np.ndarray, worker: int, lo: int, hi: int) -> None:
+        """Per-point forces (DRIVEN): one worker's rows on its MjData, step by step when the force
+        ramps. mj_step releases the GIL, so workers run in parallel."""
+        m, d = self._model, self._data[worker]
+        d.ctrl[:] = 0.0
+        initial, final, nstep = self._initial, buffers.final, buffers.nstep
+        constant = bool(np.all(forces[:, :1] == forces))
+        for i in range(lo, hi):
+            mujoco.mj_setState(m, d, initial[i], _FULL)
+            if constant:
+                d.qfrc_applied[:] = forces[i, 0]
+                mujoco.mj_step(m, d, nstep)
+            else:
+                for s in range(nstep):
+                    d.qfrc_applied[:] = forces[i, s]
+                    mujoco.mj_step(m, d)
+            mujoco.mj_getState(m, d, final[i], _FULL)
 
     def _run_chunk(self, buffers: _Buffers, worker: int, lo: int, hi: int) -> None:
         """THREADS back-end: one worker's share, on its own MjData (mj_step releases the GIL)."""
@@ -318,11 +362,19 @@ class Propagator:
             if self._want_qacc:
                 qacc[i] = d.qacc
 
-    def _run_rollout(self, buffers: _Buffers, count: int, chunks: int) -> None:
-        """ROLLOUT back-end: each worker's rows in one call into C++ (server/estimation/pool.py)."""
+    def _run_rollout(
+        self, buffers: _Buffers, count: int, chunks: int, *, rows: np.ndarray | None = None
+    ) -> None:
+        """ROLLOUT back-end: each worker's rows in one call into C++ (server/estimation/pool.py).
+        rows (count, nstep, nv): per-point, per-step forces (DRIVEN), else the held inputs."""
         control = buffers.control
         if control is not None:
-            control[:count] = self._ctrl if self._inputs is Inputs.CTRL else self._qfrc
+            if rows is not None:
+                if self._want_qacc:
+                    raise InvalidArgument("per-point forces cannot be combined with want_qacc")
+                control[:count] = rows
+            else:
+                control[:count] = self._ctrl if self._inputs is Inputs.CTRL else self._qfrc
         trajectory = buffers.trajectory
         then = None
         if self._want_qacc:

@@ -39,16 +39,19 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import UnscentedKalmanFilter, unscented_transform
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.server.estimation.adaptive import NoiseAdapter
 from jitdyn.server.estimation.estimator import (
     Estimate,
     EstimatorConfig,
     EstimatorKind,
     Measurement,
+    NoiseModel,
     Scenario,
     check_against_model,
     check_measurement,
     check_vector,
     derivative_order,
+    force_blocks,
     read_only,
 )
 from jitdyn.server.estimation.manifold import SplitManifold, has_manifold
@@ -62,6 +65,7 @@ from jitdyn.server.estimation.sigma import (
 )
 
 __all__ = [
+    "ABSORPTIONS_BEFORE_REINIT",
     "COVARIANCE_LIMIT",
     "DIVERGENCE_TICKS",
     "NIS_LIMIT_PER_DIMENSION",
@@ -76,6 +80,13 @@ __all__ = [
 NIS_LIMIT_PER_DIMENSION: Final = 1e6
 DIVERGENCE_TICKS: Final = 10
 COVARIANCE_LIMIT: Final = 1e14
+# An adaptive filter whose NIS window stays far out after this many absorptions in a row starts
+# again from the measurement.
+ABSORPTIONS_BEFORE_REINIT: Final = 3
+# DRIVEN's initial uncertainty of the unknown force (and its rate), as the acceleration it would
+# give each dof alone: 10 rad/s^2 (or m/s^2), 100 rad/s^3; scaled by the mass matrix's diagonal.
+FORCE_P0_ACCELERATION: Final = 10.0
+FORCE_RATE_P0_JERK: Final = 100.0
 
 
 def process_noise(*, order: int, dt: float, var: float, nv: int) -> np.ndarray:
@@ -161,6 +172,8 @@ class _Snapshot:
     last_qvel: np.ndarray
     ticks_since_update: int
     nis_run: int
+    adapter: object | None
+    absorptions: int
 
 
 class UnscentedFilter:
@@ -179,8 +192,10 @@ class UnscentedFilter:
         m = self._model
         self._nq, self._nv, self._na, self._nu = int(m.nq), int(m.nv), int(m.na), int(m.nu)
         self._order = derivative_order(self._scenario)
-        self._n = self._order * self._nv  # tangent dimension: filterpy's dim_x
-        self._size = self._nq + (self._order - 1) * self._nv  # len(x)
+        self._fblocks = force_blocks(self._scenario, config.force_model)  # DRIVEN: f, or f and fd
+        self._driven = self._fblocks > 0
+        self._n = (self._order + self._fblocks) * self._nv  # tangent dimension: filterpy's dim_x
+        self._size = self._nq + (self._order - 1 + self._fblocks) * self._nv  # len(x)
         self._controlled = self._scenario == Scenario.CONTROLLED
 
         # The measurement: qpos, then qvel, then qacc (CONTROLLED only: the other states have no
@@ -217,6 +232,7 @@ class UnscentedFilter:
             Scenario.PASSIVE: Inputs.NONE,
             Scenario.CONTROLLED: Inputs.CTRL,
             Scenario.EXTERNAL: Inputs.QFRC,
+            Scenario.DRIVEN: Inputs.QFRC,
         }
         self._propagator = Propagator(
             m,
@@ -242,10 +258,17 @@ class UnscentedFilter:
             residual_z=z_manifold.residual if z_manifold is not None else None,
             state_add=self._x_manifold.add if self._x_manifold is not None else None,
         )
-        self._Q = process_noise(order=self._order, dt=config.dt, var=config.q_var, nv=nv)
+        self._mass = self._mass_diagonal()
+        self._Q = self._process_noise(config.dt)
         self._kf.Q = self._Q
         self._kf.R = config.r * np.eye(z_tangent)
-        self._P0 = config.p0 * np.eye(self._n)
+        self._P0 = self._initial_covariance()
+        self._adapter = (
+            NoiseAdapter(r0=np.full(z_tangent, config.r), q0=self._Q, adapt_q=self._adapt_q_mask())
+            if config.noise_model == NoiseModel.ADAPTIVE
+            else None
+        )
+        self._absorptions = 0
         # Plain vectors keep filterpy's own transform (and its arithmetic, bit for bit).
         self._ut = unscented_transform if not manifold else _tangent_unscented_transform
         self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
@@ -264,6 +287,11 @@ class UnscentedFilter:
         self._last_qvel = np.zeros(nv)
         self._ticks_since_update = 0
         self._nis_run = 0
+
+    @property
+    def adapter(self) -> NoiseAdapter | None:
+        """The adaptive noise model; None with NoiseModel.FIXED."""
+        return self._adapter
 
     # -- Estimator ------------------------------------------------------------------------------
 
@@ -293,6 +321,9 @@ class UnscentedFilter:
         self._act = np.zeros(self._na)
         self._ctrl = m.ctrl.copy() if m.ctrl is not None else np.zeros(self._nu)
         self._qfrc = np.zeros(self._nv)
+        if self._adapter is not None:
+            self._adapter.reset()
+        self._absorptions = 0
         self._start_from(m, qvel_fallback=np.zeros(self._nv))
         if self._scenario == Scenario.EXTERNAL and m.qacc is not None:
             self._qfrc = self._inverse(m.qpos, self._last_qvel, m.qacc)
@@ -302,6 +333,8 @@ class UnscentedFilter:
         self._require_initialised("predict")
         if self._controlled and ctrl is not None:
             self._ctrl = check_vector(ctrl, self._nu, "ctrl").copy()
+        if self._adapter is not None:
+            self._kf.Q = self._adapter.Q
         self._kf.predict(UT=self._ut)
         self._act = self._clip_act(self._propagated_act)
         self._ticks_since_update += 1
@@ -321,6 +354,8 @@ class UnscentedFilter:
         self._require_initialised("update")
         m = check_measurement(m, self._model, self._config.measured)
         z = np.concatenate([m.qpos] + [getattr(m, c) for c in ("qvel", "qacc") if self._measures(c)])
+        if self._adapter is not None:
+            self._kf.R = self._adapter.R
         try:
             self._kf.update(z, UT=self._ut)
             y, SI = self._kf.y, self._kf.SI
@@ -338,8 +373,40 @@ class UnscentedFilter:
             self._nis_run = 0
         else:
             self._nis_run += 1
-        if not self._finite() or self._nis_run >= DIVERGENCE_TICKS or self._blown_up():
+        adapted = absorbed = False
+        if self._adapter is not None and self._finite() and nis is not None:
+            verdict = self._adapter.observe(
+                z=np.asarray(self._kf.y),
+                consecutive=self._ticks_since_update == 1,
+                innovation=np.asarray(self._kf.y),
+                gain=np.asarray(self._kf.K),
+                nis=nis,
+            )
+            adapted = verdict.adapted
+            if verdict.absorb:
+                absorbed = True
+                self._absorptions += 1
+                if self._absorptions < ABSORPTIONS_BEFORE_REINIT or self._driven:
+                    # The model is wrong, not the noise: forget what P says was known, and let Q
+                    # follow the corrections the filter has to make.
+                    # Only q and qd widen: a force spread as wide as P0 throws the sigma points
+                    # of a pendulum over (measured, docs/experiments.md).
+                    k = self._order * self._nv
+                    self._kf.P[:k, :k] += self._P0[:k, :k]
+                    self._adapter.absorbed()
+            elif self._adapter.window_full:
+                self._absorptions = 0
+        if (
+            not self._finite()
+            or self._nis_run >= DIVERGENCE_TICKS
+            or self._blown_up()
+            # DRIVEN absorbs a model error into its force; restarting would throw the force away.
+            or (self._absorptions >= ABSORPTIONS_BEFORE_REINIT and not self._driven)
+        ):
             self._reinitialise(m)
+            if self._adapter is not None:
+                self._adapter.reset()
+            self._absorptions = 0
             reinitialised = True
         else:
             qvel = m.qvel if m.qvel is not None else self._kf.x[self._nq : self._nq + self._nv]
@@ -350,7 +417,7 @@ class UnscentedFilter:
             self._ticks_since_update = 0
         if m.ctrl is not None:
             self._ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
-        return self._estimate(nis=nis, reinitialised=reinitialised)
+        return self._estimate(nis=nis, reinitialised=reinitialised, adapted=adapted, absorbed=absorbed)
 
     def extrapolate(self, seconds: float) -> Estimate:
         self._require_initialised("extrapolate")
@@ -366,8 +433,10 @@ class UnscentedFilter:
             return self._estimate()
         Q = self._extrapolation_Q.get(nstep)
         if Q is None:
-            Q = process_noise(order=self._order, dt=nstep * timestep, var=self._config.q_var, nv=self._nv)
+            Q = self._process_noise(nstep * timestep)
             self._extrapolation_Q = {self._config.steps_per_tick: self._Q, nstep: Q}
+        if self._adapter is not None:
+            Q = self._adapter.q_for(Q)
         sigmas = self._points.sigma_points(self._kf.x, self._kf.P)
         propagated = self._propagate_sigmas(sigmas, nstep=nstep)
         x, P = self._ut(propagated, self._points.Wm, self._points.Wc, Q, self._kf.x_mean, self._kf.residual_x)
@@ -390,6 +459,8 @@ class UnscentedFilter:
             last_qvel=read_only(self._last_qvel),
             ticks_since_update=self._ticks_since_update,
             nis_run=self._nis_run,
+            adapter=self._adapter.snapshot() if self._adapter is not None else None,
+            absorptions=self._absorptions,
         )
 
     def restore(self, snap: object) -> None:
@@ -403,6 +474,9 @@ class UnscentedFilter:
         self._last_qvel = snap.last_qvel.copy()
         self._ticks_since_update = snap.ticks_since_update
         self._nis_run = snap.nis_run
+        if self._adapter is not None and snap.adapter is not None:
+            self._adapter.restore(snap.adapter)  # type: ignore[arg-type]
+        self._absorptions = snap.absorptions
 
     # -- internals ------------------------------------------------------------------------------
 
@@ -440,6 +514,8 @@ class UnscentedFilter:
         gives the same numbers with 2 nv fewer points stepped.
         """
         nq, nv = self._nq, self._nv
+        if self._driven:
+            return self._propagate_driven(sigmas, nstep=nstep)
         head = sigmas[:, : nq + nv]
         shared: np.ndarray | None = None
         if self._controlled:
@@ -470,6 +546,78 @@ class UnscentedFilter:
         if self._na:
             self._propagated_act = self._points.Wm @ act
         return propagated
+
+    def _propagate_driven(self, sigmas: np.ndarray, *, nstep: int | None) -> np.ndarray:
+        """DRIVEN: every point moves under its own force f (ramping with its rate fd under the
+        integrated random walk); f' = f + fd T, fd' = fd (T: the steps' span), or f' = f."""
+        nq, nv = self._nq, self._nv
+        force = sigmas[:, nq + nv : nq + 2 * nv]
+        rate = sigmas[:, nq + 2 * nv : nq + 3 * nv] if self._fblocks == 2 else None
+        out = self._propagator(
+            sigmas[:, :nq],
+            sigmas[:, nq : nq + nv],
+            act=self._act,
+            qfrc=np.ascontiguousarray(force),
+            qfrc_rate=None if rate is None else np.ascontiguousarray(rate),
+            nstep=nstep,
+        )
+        propagated = np.array(sigmas, dtype=np.float64)
+        propagated[:, :nq] = out.qpos
+        propagated[:, nq : nq + nv] = out.qvel
+        if rate is not None:
+            span = (self._config.steps_per_tick if nstep is None else nstep) * float(self._model.opt.timestep)
+            propagated[:, nq + nv : nq + 2 * nv] += span * rate
+        if self._na:
+            self._propagated_act = self._points.Wm @ out.act
+        return propagated
+
+    def _adapt_q_mask(self) -> np.ndarray:
+        """(n,) the components whose Q adapts: all but the unknown force's. The force's corrections
+        are its real changes, large for a driven body; a Q matched to them spreads the sigma points
+        so wide that the predicted mean leaves the motion's path (measured: docs/experiments.md)."""
+        return np.zeros(self._n, dtype=bool) if self._driven else np.ones(self._n, dtype=bool)
+
+    def _mass_diagonal(self) -> np.ndarray:
+        """(nv,) the mass matrix's diagonal at qpos0 (kg, kg m^2): the scale of a dof's force."""
+        m, d = self._model, self._data
+        d.qpos[:] = m.qpos0
+        d.qvel[:] = 0.0
+        mujoco.mj_forward(m, d)
+        full = np.zeros((m.nv, m.nv))
+        mujoco.mj_fullM(m, d, full)
+        return np.asarray(np.diagonal(full).copy())
+
+    def _process_noise(self, dt: float) -> np.ndarray:
+        """Q over dt (n, n): the discrete white-noise blocks of [q, qd] (and qdd), then, in DRIVEN,
+        the unknown force's: a random walk, f' = f + w with Var w = force_var m_ii^2 dt, or an
+        integrated random walk of (f, fd) with the same intensity on fd."""
+        base = process_noise(order=self._order, dt=dt, var=self._config.q_var, nv=self._nv)
+        if not self._driven:
+            return base
+        nv, k = self._nv, self._order * self._nv
+        Q = np.zeros((self._n, self._n))
+        Q[:k, :k] = base
+        intensity = self._config.force_var * self._mass**2
+        f = np.arange(k, k + nv)
+        if self._fblocks == 1:
+            Q[f, f] = intensity * dt
+        else:
+            fd = f + nv
+            Q[f, f] = intensity * dt**3 / 3.0
+            Q[f, fd] = Q[fd, f] = intensity * dt**2 / 2.0
+            Q[fd, fd] = intensity * dt
+        return Q
+
+    def _initial_covariance(self) -> np.ndarray:
+        """P0: p0 I on [q, qd] (and qdd); in DRIVEN the force's uncertainty as an acceleration of
+        FORCE_P0_ACCELERATION (its rate's as FORCE_RATE_P0_JERK) on each dof alone."""
+        diagonal = np.full(self._n, self._config.p0)
+        k, nv = self._order * self._nv, self._nv
+        if self._driven:
+            diagonal[k : k + nv] = (FORCE_P0_ACCELERATION * self._mass) ** 2
+            if self._fblocks == 2:
+                diagonal[k + nv :] = (FORCE_RATE_P0_JERK * self._mass) ** 2
+        return np.diag(diagonal)
 
     def _activation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         low = np.full(self._na, -np.inf)
@@ -502,6 +650,16 @@ class UnscentedFilter:
         x[nq : nq + nv] = qvel
         if self._controlled:
             x[nq + nv :] = m.qacc if m.qacc is not None else self._forward(m.qpos, qvel, self._act)
+        if self._driven:
+            # The force that would give the frame's qacc (none measured: hold the body still);
+            # a re-initialisation keeps the force it had, when that is still finite.
+            previous = self._kf.x[nq + nv :] if self._initialised else None
+            if previous is not None and np.all(np.isfinite(previous)):
+                x[nq + nv :] = previous
+            else:
+                qacc = m.qacc if m.qacc is not None else np.zeros(nv)
+                x[nq + nv :] = 0.0
+                x[nq + nv : nq + 2 * nv] = self._inverse(m.qpos, qvel, qacc)
         self._kf.x = x
         self._kf.P = self._P0.copy()
         self._kf.sigmas_f = self._points.sigma_points(self._kf.x, self._kf.P)
@@ -537,18 +695,37 @@ class UnscentedFilter:
         mujoco.mj_inverse(self._model, d)
         return np.array(d.qfrc_inverse)
 
-    def _forward(self, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray) -> np.ndarray:
-        """qacc at a state under the scenario's inputs (warm start is off: no hidden state)."""
+    def _forward(
+        self, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray, *, force: np.ndarray | None = None
+    ) -> np.ndarray:
+        """qacc at a state under the scenario's inputs (warm start is off: no hidden state);
+        DRIVEN: under `force`, the estimated unknown force."""
         d = self._data
         d.qpos[:], d.qvel[:], d.act[:] = qpos, qvel, act
         d.ctrl[:] = self._ctrl if self._controlled else 0.0
-        d.qfrc_applied[:] = self._qfrc if self._scenario == Scenario.EXTERNAL else 0.0
+        if force is not None:
+            d.qfrc_applied[:] = force
+        else:
+            d.qfrc_applied[:] = self._qfrc if self._scenario == Scenario.EXTERNAL else 0.0
         mujoco.mj_forward(self._model, d)
         return np.array(d.qacc)
 
-    def _estimate(self, *, nis: float | None = None, reinitialised: bool = False) -> Estimate:
+    def _estimate(
+        self,
+        *,
+        nis: float | None = None,
+        reinitialised: bool = False,
+        adapted: bool = False,
+        absorbed: bool = False,
+    ) -> Estimate:
         return self._make_estimate(
-            self._kf.x, self._kf.P, act=self._act, nis=nis, reinitialised=reinitialised
+            self._kf.x,
+            self._kf.P,
+            act=self._act,
+            nis=nis,
+            reinitialised=reinitialised,
+            adapted=adapted,
+            absorbed=absorbed,
         )
 
     def _make_estimate(
@@ -559,6 +736,8 @@ class UnscentedFilter:
         act: np.ndarray,
         nis: float | None = None,
         reinitialised: bool = False,
+        adapted: bool = False,
+        absorbed: bool = False,
     ) -> Estimate:
         nq, nv = self._nq, self._nv
         state = read_only(x)
@@ -566,7 +745,8 @@ class UnscentedFilter:
         if self._controlled:
             qacc = state[nq + nv :]
         elif np.isfinite(state).all():
-            qacc = read_only(self._forward(qpos, qvel, act))
+            force = state[nq + nv : nq + 2 * nv] if self._driven else None
+            qacc = read_only(self._forward(qpos, qvel, act, force=force))
         else:
             qacc = read_only(np.full(nv, np.nan))
         return Estimate(
@@ -577,6 +757,8 @@ class UnscentedFilter:
             covariance=read_only(P),
             nis=nis,
             reinitialised=reinitialised,
+            adapted=adapted,
+            absorbed=absorbed,
         )
 
 

@@ -22,7 +22,7 @@ import mujoco
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, ResourceExhausted
 from jitdyn.registry import ModelInfo
 from jitdyn.server.estimation.dynamics import Dynamics
-from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, resolve_config
+from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, default_scenario, resolve_config
 from jitdyn.server.estimation.factory import make_estimator, measure_cycle
 from jitdyn.server.runtime.admission import TRANSPORT_COST, Ticket
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
@@ -381,12 +381,20 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 f"model {info.name!r} has nv = {model.nv}; this server allows at most "
                 f"{services.limits.max_state_dimension} (--max-state-dimension)"
             )
+        if plan.scenario is None:
+            chosen, scenario_reason = default_scenario(model)
+            plan = dataclasses.replace(plan, scenario=chosen.value)
+            scenario_reason = f"open.scenario unset: {scenario_reason}"
+        else:
+            scenario_reason = f"open.scenario asked for SCENARIO_{plan.scenario}"
+        scenario = str(plan.scenario)
+        model_defaults = info.defaults.get(scenario, {})
         config = resolve_config(
             model=model,
-            scenario=plan.scenario,
+            scenario=scenario,
             dt=plan.dt,
             requested=plan.estimator_request,
-            model_defaults=info.defaults.get(plan.scenario, {}),
+            model_defaults=model_defaults,
             preset=plan.preset,
             measured=plan.measured,
         )
@@ -398,7 +406,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 ticket = services.admission.admit(
                     cost_per_tick=cycle + TRANSPORT_COST,
                     dt=plan.dt,
-                    what=f"{info.name} ({plan.scenario.lower()}) at {1 / plan.dt:g} Hz",
+                    what=f"{info.name} ({scenario.lower()}) at {1 / plan.dt:g} Hz",
                 )
             except ResourceExhausted:
                 metrics().refusals.labels(metrics().process).inc()
@@ -406,7 +414,9 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             finally:
                 metrics().load.labels(metrics().process).set(services.admission.load())
         try:
-            return self._build_stream(request, tenant, info, model, plan, config, estimator, ticket)
+            return self._build_stream(
+                request, tenant, info, model, plan, config, estimator, ticket, scenario_reason
+            )
         except BaseException:
             if ticket is not None:
                 ticket.release()
@@ -422,14 +432,38 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         config: EstimatorConfig,
         estimator: Estimator,
         ticket: Ticket | None,
+        scenario_reason: str,
     ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
         services = self._services
+        scenario = str(plan.scenario)
+        model_defaults = info.defaults.get(scenario, {})
         settings = {
             k: v
             for k, v in dataclasses.asdict(config).items()
-            if k in ("estimator", "sigma_points", "alpha", "beta", "kappa", "p0", "q_var", "r")
+            if k
+            in (
+                "estimator",
+                "sigma_points",
+                "alpha",
+                "beta",
+                "kappa",
+                "p0",
+                "q_var",
+                "r",
+                "force_model",
+                "force_var",
+                "noise_model",
+            )
         }
         settings["preset"] = plan.preset
+        if "noise_model" in plan.estimator_request:
+            noise_reason = f"open.estimator.noise_model asked for NOISE_MODEL_{config.noise_model}"
+        elif "noise_model" in model_defaults:
+            noise_reason = (
+                f"the model's defaults for SCENARIO_{scenario} set NOISE_MODEL_{config.noise_model}"
+            )
+        else:
+            noise_reason = f"PRESET_{plan.preset}'s default for SCENARIO_{scenario}"
         pseudonym = services.anonymiser.pseudonym(plan.subject_id) if plan.subject_id else ""
         kept, dropped = services.anonymiser.filter_attributes(plan.subject_attributes)
         session_id = str(uuid.uuid4())
@@ -447,7 +481,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             nsensordata=model.nsensordata,
             timestep=info.timestep,
             dt=plan.dt,
-            scenario=plan.scenario,
+            scenario=scenario,
             clock=plan.clock,
             estimator=settings,
             subject_pseudonym=pseudonym,
@@ -464,7 +498,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             estimator=estimator,
             dynamics=Dynamics(model, outputs=plan.outputs),
             dt=plan.dt,
-            scenario=plan.scenario,
+            scenario=scenario,
             history=plan.history,
         )
         sizes = {
@@ -496,6 +530,9 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             subject_pseudonym=pseudonym,
             dt=plan.dt,
             steps_per_tick=plan.steps_per_tick,
+            scenario=common_pb2.Scenario.Value("SCENARIO_" + scenario),
+            scenario_reason=scenario_reason,
+            noise_reason=noise_reason,
         )
         return stream, opened
 

@@ -66,6 +66,8 @@ def result_message(
         if estimate.nis is not None and outcome.source != "PREDICTED":
             result.nis = estimate.nis
         result.reinitialised = estimate.reinitialised
+        result.adapted = estimate.adapted
+        result.absorbed = estimate.absorbed
     if durable_seq is not None:
         result.durable_seq = durable_seq
     return result

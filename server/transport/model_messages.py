@@ -24,7 +24,13 @@ if TYPE_CHECKING:
     # The stubs' generic enum wrapper: mypy-protobuf types each enum's values as its own int NewType.
     from google.protobuf.internal.enum_type_wrapper import _EnumTypeWrapper
 
-    _SettingsEnum: TypeAlias = type[common_pb2.Estimator | common_pb2.Preset | common_pb2.SigmaPoints]
+    _SettingsEnum: TypeAlias = type[
+        common_pb2.Estimator
+        | common_pb2.Preset
+        | common_pb2.SigmaPoints
+        | common_pb2.ForceModel
+        | common_pb2.NoiseModel
+    ]
 
 __all__ = [
     "metadata_from_message",
@@ -45,10 +51,12 @@ _ENUMS: dict[str, tuple[_SettingsEnum, str]] = {
     "estimator": (common_pb2.Estimator, "ESTIMATOR_"),
     "preset": (common_pb2.Preset, "PRESET_"),
     "sigma_points": (common_pb2.SigmaPoints, "SIGMA_POINTS_"),
+    "force_model": (common_pb2.ForceModel, "FORCE_MODEL_"),
+    "noise_model": (common_pb2.NoiseModel, "NOISE_MODEL_"),
 }
 # A Literal, so that mypy checks the names against EstimatorSettings' fields (HasField).
-_Number: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r"]
-_NUMBERS: tuple[_Number, ...] = ("alpha", "beta", "kappa", "p0", "q_var", "r")
+_Number: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r", "force_var"]
+_NUMBERS: tuple[_Number, ...] = ("alpha", "beta", "kappa", "p0", "q_var", "r", "force_var")
 _SCENARIO_PREFIX = "SCENARIO_"
 _SCENARIO = common_pb2.Scenario
 

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 __all__ = ["ESTIMATOR_FIELDS", "SessionPlan", "enum_name", "plan_session"]
 
 # Optional scalar fields of EstimatorSettings, by name.
-ESTIMATOR_FIELDS = ("alpha", "beta", "kappa", "p0", "q_var", "r")
+ESTIMATOR_FIELDS = ("alpha", "beta", "kappa", "p0", "q_var", "r", "force_var")
 _MAX_DT = 10.0
 _DEFAULT_HISTORY = 50
 _MAX_HISTORY = 10_000
@@ -41,7 +41,7 @@ def enum_name(enum: _EnumTypeWrapper[_V], value: _V) -> str:
 class SessionPlan:
     """A checked `open`: what the session will run. The model is resolved separately."""
 
-    scenario: str  # PASSIVE | CONTROLLED | EXTERNAL
+    scenario: str | None  # PASSIVE | CONTROLLED | EXTERNAL | DRIVEN; None: the server picks for the model
     clock: str  # LOCKSTEP | REALTIME
     dt: float  # s
     steps_per_tick: int
@@ -68,7 +68,7 @@ def _estimator_request(settings: common_pb2.EstimatorSettings) -> tuple[dict[str
 
 def plan_session(open_: dynamics_pb2.OpenSession, *, timestep: float) -> SessionPlan:
     """Check `open_` against a model with physics `timestep` (s)."""
-    scenario = enum_name(common_pb2.Scenario, open_.scenario) if open_.scenario else "PASSIVE"
+    scenario = enum_name(common_pb2.Scenario, open_.scenario) if open_.scenario else None
     clock = enum_name(common_pb2.Clock, open_.clock) if open_.clock else "LOCKSTEP"
     dt = open_.dt
     if not math.isfinite(dt) or dt <= 0.0 or dt > _MAX_DT:

@@ -209,7 +209,7 @@ def test_settings_are_checked_with_messages_naming_the_field(kwargs: dict[str, o
 def test_unknown_scenario_and_preset_are_refused() -> None:
     with pytest.raises(
         InvalidArgument,
-        match=r"^scenario must be one of \['PASSIVE', 'CONTROLLED', 'EXTERNAL'\], got 'IDLE'$",
+        match=r"^scenario must be one of \['PASSIVE', 'CONTROLLED', 'EXTERNAL', 'DRIVEN'\], got 'IDLE'$",
     ):
         resolve(pendulum(1), "IDLE")
     with pytest.raises(InvalidArgument, match=r"^preset must be one of \['JITDYN', 'THESIS'\], got 'PAPER'$"):

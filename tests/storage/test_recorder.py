@@ -267,7 +267,10 @@ def test_record_of_the_wrong_type_fails_the_recorder(
     [
         ({"session_id": "not-a-uuid"}, "session_id must be a UUID in canonical form"),
         ({"model_name": "../etc"}, "model_name must be 1 to 64 letters, digits"),
-        ({"scenario": "passive"}, "scenario must be one of PASSIVE, CONTROLLED, EXTERNAL, got 'passive'"),
+        (
+            {"scenario": "passive"},
+            "scenario must be one of PASSIVE, CONTROLLED, EXTERNAL, DRIVEN, got 'passive'",
+        ),
         ({"nq": 4}, "the joints ['hinge', 'hinge', 'hinge'] span nq=3, nv=3, but the header says nq=4, nv=3"),
         ({"dof_names": ("a",)}, "dof_names must have nv=3 names, got 1"),
         ({"estimator": {"alpha": math.nan}}, "estimator settings must be JSON-serialisable"),

@@ -162,7 +162,10 @@ def test_filters(index: SessionIndex, make_header: Callable[..., SessionHeader])
     [
         ({"page_size": 0}, "page_size must be between 1 and 1000, got 0"),
         ({"page_size": 1001}, "page_size must be between 1 and 1000, got 1001"),
-        ({"scenario": "passive"}, "scenario must be one of PASSIVE, CONTROLLED, EXTERNAL, got 'passive'"),
+        (
+            {"scenario": "passive"},
+            "scenario must be one of PASSIVE, CONTROLLED, EXTERNAL, DRIVEN, got 'passive'",
+        ),
         ({"status": "DONE"}, "status must be one of OPEN, COMPLETE, RECOVERED, FAILED, got 'DONE'"),
         (
             {"started_after": T0 + dt.timedelta(seconds=1), "started_before": T0},

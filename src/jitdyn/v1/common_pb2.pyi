@@ -28,7 +28,10 @@ class _Scenario:
 class _ScenarioEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Scenario.ValueType], _builtins.type):
     DESCRIPTOR: _descriptor.EnumDescriptor
     SCENARIO_UNSPECIFIED: _Scenario.ValueType  # 0
-    """Not set. `OpenSession.scenario` defaults to SCENARIO_PASSIVE when unset."""
+    """Not set. When `OpenSession.scenario` is unset, the server picks SCENARIO_DRIVEN for a model
+    with actuators (motors, muscles) and SCENARIO_PASSIVE for one without, and says so in
+    `SessionOpened.scenario` and `SessionOpened.scenario_reason`.
+    """
     SCENARIO_PASSIVE: _Scenario.ValueType  # 1
     """Only gravity and the model's own passive forces act; the state is x = [q, qd]."""
     SCENARIO_CONTROLLED: _Scenario.ValueType  # 2
@@ -38,6 +41,15 @@ class _ScenarioEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Scenario.Val
     SCENARIO_EXTERNAL: _Scenario.ValueType  # 3
     """An unknown external force acts; the server restores the generalized force that acted from the
     last frames by inverse dynamics and holds it over the prediction; the state is x = [q, qd].
+    The thesis' scenario, kept exactly.
+    """
+    SCENARIO_DRIVEN: _Scenario.ValueType  # 4
+    """Forces the server does not see move the body (muscles, a person, a controller); the UKF
+    estimates that unknown generalized force f (nv values, N or N m) as part of its state, with
+    the process model `EstimatorSettings.force_model`: x = [q, qd, f] (FORCE_MODEL_RANDOM_WALK) or
+    [q, qd, f, fd] (FORCE_MODEL_INTEGRATED_RANDOM_WALK; fd in N/s or N m/s). Each sigma point
+    moves under its own f (as qfrc_applied, actuators off), so a prediction over a gap uses the
+    body's dynamics under the estimated force. The dead-reckoning estimators keep x = [q, qd].
     """
 
 class Scenario(_Scenario, metaclass=_ScenarioEnumTypeWrapper):
@@ -46,7 +58,10 @@ class Scenario(_Scenario, metaclass=_ScenarioEnumTypeWrapper):
     """
 
 SCENARIO_UNSPECIFIED: Scenario.ValueType  # 0
-"""Not set. `OpenSession.scenario` defaults to SCENARIO_PASSIVE when unset."""
+"""Not set. When `OpenSession.scenario` is unset, the server picks SCENARIO_DRIVEN for a model
+with actuators (motors, muscles) and SCENARIO_PASSIVE for one without, and says so in
+`SessionOpened.scenario` and `SessionOpened.scenario_reason`.
+"""
 SCENARIO_PASSIVE: Scenario.ValueType  # 1
 """Only gravity and the model's own passive forces act; the state is x = [q, qd]."""
 SCENARIO_CONTROLLED: Scenario.ValueType  # 2
@@ -56,6 +71,15 @@ x = [q, qd, qdd].
 SCENARIO_EXTERNAL: Scenario.ValueType  # 3
 """An unknown external force acts; the server restores the generalized force that acted from the
 last frames by inverse dynamics and holds it over the prediction; the state is x = [q, qd].
+The thesis' scenario, kept exactly.
+"""
+SCENARIO_DRIVEN: Scenario.ValueType  # 4
+"""Forces the server does not see move the body (muscles, a person, a controller); the UKF
+estimates that unknown generalized force f (nv values, N or N m) as part of its state, with
+the process model `EstimatorSettings.force_model`: x = [q, qd, f] (FORCE_MODEL_RANDOM_WALK) or
+[q, qd, f, fd] (FORCE_MODEL_INTEGRATED_RANDOM_WALK; fd in N/s or N m/s). Each sigma point
+moves under its own f (as qfrc_applied, actuators off), so a prediction over a gap uses the
+body's dynamics under the estimated force. The dead-reckoning estimators keep x = [q, qd].
 """
 Global___Scenario: _TypeAlias = Scenario  # noqa: Y015
 
@@ -181,6 +205,72 @@ kappa = 3 - n or 0, P0 = 0.2 I, R = 0.01 I, Q variance per experiment).
 """
 Global___Preset: _TypeAlias = Preset  # noqa: Y015
 
+class _ForceModel:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _ForceModelEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_ForceModel.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    FORCE_MODEL_UNSPECIFIED: _ForceModel.ValueType  # 0
+    """Not set: the preset decides (FORCE_MODEL_RANDOM_WALK for both presets)."""
+    FORCE_MODEL_RANDOM_WALK: _ForceModel.ValueType  # 1
+    """f' = f + w: the force is held over a prediction; w has variance force_var m_ii^2 dt."""
+    FORCE_MODEL_INTEGRATED_RANDOM_WALK: _ForceModel.ValueType  # 2
+    """f' = f + fd dt, fd' = fd + w: the force keeps its trend over a prediction."""
+
+class ForceModel(_ForceModel, metaclass=_ForceModelEnumTypeWrapper):
+    """How the unknown force of SCENARIO_DRIVEN evolves between ticks."""
+
+FORCE_MODEL_UNSPECIFIED: ForceModel.ValueType  # 0
+"""Not set: the preset decides (FORCE_MODEL_RANDOM_WALK for both presets)."""
+FORCE_MODEL_RANDOM_WALK: ForceModel.ValueType  # 1
+"""f' = f + w: the force is held over a prediction; w has variance force_var m_ii^2 dt."""
+FORCE_MODEL_INTEGRATED_RANDOM_WALK: ForceModel.ValueType  # 2
+"""f' = f + fd dt, fd' = fd + w: the force keeps its trend over a prediction."""
+Global___ForceModel: _TypeAlias = ForceModel  # noqa: Y015
+
+class _NoiseModel:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _NoiseModelEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_NoiseModel.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    NOISE_MODEL_UNSPECIFIED: _NoiseModel.ValueType  # 0
+    """Not set: the preset decides (PRESET_JITDYN: NOISE_MODEL_ADAPTIVE in SCENARIO_DRIVEN,
+    NOISE_MODEL_FIXED in the thesis' scenarios; PRESET_THESIS: NOISE_MODEL_FIXED).
+    """
+    NOISE_MODEL_FIXED: _NoiseModel.ValueType  # 1
+    """R = r I and Q from q_var (and force_var) for the whole session, as in the thesis."""
+    NOISE_MODEL_ADAPTIVE: _NoiseModel.ValueType  # 2
+    """R (diagonal) follows the innovations (Sage-Husa covariance matching with fading memory,
+    window about 50 updates), within [1e-10, 1] in the measured channels' units squared; an
+    innovation beyond 3 sigma does not teach R, and R at most doubles per update. Q of [q, qd] is
+    rescaled per component within [1e-4, 1e4] times its configured value (not in SCENARIO_DRIVEN,
+    whose force carries the model's error). When the mean NIS of 20 updates passes 100 times the
+    measurement dimension, the filter widens its covariance (`Result.absorbed`); after three such
+    windows in a row it starts again from the measurement (`Result.reinitialised`).
+    """
+
+class NoiseModel(_NoiseModel, metaclass=_NoiseModelEnumTypeWrapper):
+    """Whether the noise covariances stay as configured or learn from the innovations."""
+
+NOISE_MODEL_UNSPECIFIED: NoiseModel.ValueType  # 0
+"""Not set: the preset decides (PRESET_JITDYN: NOISE_MODEL_ADAPTIVE in SCENARIO_DRIVEN,
+NOISE_MODEL_FIXED in the thesis' scenarios; PRESET_THESIS: NOISE_MODEL_FIXED).
+"""
+NOISE_MODEL_FIXED: NoiseModel.ValueType  # 1
+"""R = r I and Q from q_var (and force_var) for the whole session, as in the thesis."""
+NOISE_MODEL_ADAPTIVE: NoiseModel.ValueType  # 2
+"""R (diagonal) follows the innovations (Sage-Husa covariance matching with fading memory,
+window about 50 updates), within [1e-10, 1] in the measured channels' units squared; an
+innovation beyond 3 sigma does not teach R, and R at most doubles per update. Q of [q, qd] is
+rescaled per component within [1e-4, 1e4] times its configured value (not in SCENARIO_DRIVEN,
+whose force carries the model's error). When the mean NIS of 20 updates passes 100 times the
+measurement dimension, the filter widens its covariance (`Result.absorbed`); after three such
+windows in a row it starts again from the measurement (`Result.reinitialised`).
+"""
+Global___NoiseModel: _TypeAlias = NoiseModel  # noqa: Y015
+
 class _Channel:
     ValueType = _typing.NewType("ValueType", _builtins.int)
     V: _TypeAlias = ValueType  # noqa: Y015
@@ -271,6 +361,9 @@ class EstimatorSettings(_message.Message):
     P0_FIELD_NUMBER: _builtins.int
     Q_VAR_FIELD_NUMBER: _builtins.int
     R_FIELD_NUMBER: _builtins.int
+    FORCE_MODEL_FIELD_NUMBER: _builtins.int
+    FORCE_VAR_FIELD_NUMBER: _builtins.int
+    NOISE_MODEL_FIELD_NUMBER: _builtins.int
     estimator: Global___Estimator.ValueType
     """The estimator. Unset: ESTIMATOR_UKF."""
     preset: Global___Preset.ValueType
@@ -292,7 +385,20 @@ class EstimatorSettings(_message.Message):
     joint block, in the state's units squared; >= 0.
     """
     r: _builtins.float
-    """Measurement noise: R = r * I, in the measured channels' units squared; > 0."""
+    """Measurement noise: R = r * I, in the measured channels' units squared; > 0. With
+    NOISE_MODEL_ADAPTIVE, the starting value of R's diagonal.
+    """
+    force_model: Global___ForceModel.ValueType
+    """SCENARIO_DRIVEN: how the unknown force evolves. Unset: from the preset."""
+    force_var: _builtins.float
+    """SCENARIO_DRIVEN: the intensity of the unknown force's process noise, as the acceleration it
+    would give each dof alone: (rad/s^2)^2/s or (m/s^2)^2/s for FORCE_MODEL_RANDOM_WALK,
+    (rad/s^3)^2/s or (m/s^3)^2/s on the rate of FORCE_MODEL_INTEGRATED_RANDOM_WALK; scaled into
+    force units by the squared diagonal of the mass matrix at qpos0 (kg^2 or kg^2 m^4); >= 0.
+    PRESET_JITDYN: 10.
+    """
+    noise_model: Global___NoiseModel.ValueType
+    """Fixed or adaptive noise. Unset: from the preset."""
     def __init__(
         self,
         *,
@@ -305,15 +411,20 @@ class EstimatorSettings(_message.Message):
         p0: _builtins.float | None = ...,
         q_var: _builtins.float | None = ...,
         r: _builtins.float | None = ...,
+        force_model: Global___ForceModel.ValueType = ...,
+        force_var: _builtins.float | None = ...,
+        noise_model: Global___NoiseModel.ValueType = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "kappa", b"kappa", "p0", b"p0", "q_var", b"q_var", "r", b"r"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "force_var", b"force_var", "kappa", b"kappa", "p0", b"p0", "q_var", b"q_var", "r", b"r"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "estimator", b"estimator", "kappa", b"kappa", "p0", b"p0", "preset", b"preset", "q_var", b"q_var", "r", b"r", "sigma_points", b"sigma_points"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "estimator", b"estimator", "force_model", b"force_model", "force_var", b"force_var", "kappa", b"kappa", "noise_model", b"noise_model", "p0", b"p0", "preset", b"preset", "q_var", b"q_var", "r", b"r", "sigma_points", b"sigma_points"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__alpha: _TypeAlias = _typing.Literal["alpha"]  # noqa: Y015
     _WhichOneofArgType__alpha: _TypeAlias = _typing.Literal["_alpha", b"_alpha"]  # noqa: Y015
     _WhichOneofReturnType__beta: _TypeAlias = _typing.Literal["beta"]  # noqa: Y015
     _WhichOneofArgType__beta: _TypeAlias = _typing.Literal["_beta", b"_beta"]  # noqa: Y015
+    _WhichOneofReturnType__force_var: _TypeAlias = _typing.Literal["force_var"]  # noqa: Y015
+    _WhichOneofArgType__force_var: _TypeAlias = _typing.Literal["_force_var", b"_force_var"]  # noqa: Y015
     _WhichOneofReturnType__kappa: _TypeAlias = _typing.Literal["kappa"]  # noqa: Y015
     _WhichOneofArgType__kappa: _TypeAlias = _typing.Literal["_kappa", b"_kappa"]  # noqa: Y015
     _WhichOneofReturnType__p0: _TypeAlias = _typing.Literal["p0"]  # noqa: Y015
@@ -326,6 +437,8 @@ class EstimatorSettings(_message.Message):
     def WhichOneof(self, oneof_group: _WhichOneofArgType__alpha) -> _WhichOneofReturnType__alpha | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__beta) -> _WhichOneofReturnType__beta | None: ...
+    @_typing.overload
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__force_var) -> _WhichOneofReturnType__force_var | None: ...
     @_typing.overload
     def WhichOneof(self, oneof_group: _WhichOneofArgType__kappa) -> _WhichOneofReturnType__kappa | None: ...
     @_typing.overload

@@ -302,7 +302,9 @@ class OpenSession(_message.Message):
     model_version: _builtins.int
     """The version of `model_name`; 0 means the newest. Must be 0 with the other model choices."""
     scenario: _common_pb2.Scenario.ValueType
-    """The forces the estimator knows. Unset: SCENARIO_PASSIVE."""
+    """The forces the estimator knows. Unset: SCENARIO_DRIVEN for a model with actuators,
+    SCENARIO_PASSIVE for one without (`SessionOpened.scenario_reason` says which and why).
+    """
     dt: _builtins.float
     """The frame period (seconds): > 0, at most 10, and a whole multiple of the model's timestep
     (to 1e-9 relative).
@@ -587,6 +589,9 @@ class SessionOpened(_message.Message):
     SUBJECT_PSEUDONYM_FIELD_NUMBER: _builtins.int
     DT_FIELD_NUMBER: _builtins.int
     STEPS_PER_TICK_FIELD_NUMBER: _builtins.int
+    SCENARIO_FIELD_NUMBER: _builtins.int
+    SCENARIO_REASON_FIELD_NUMBER: _builtins.int
+    NOISE_REASON_FIELD_NUMBER: _builtins.int
     session_id: _builtins.str
     """The session's id (a UUID)."""
     state_dimension: _builtins.int
@@ -601,6 +606,16 @@ class SessionOpened(_message.Message):
     """The dt in force (seconds) and the physics steps it spans."""
     steps_per_tick: _builtins.int
     """Physics steps of the model's timestep per tick."""
+    scenario: _common_pb2.Scenario.ValueType
+    """The scenario in force (never SCENARIO_UNSPECIFIED)."""
+    scenario_reason: _builtins.str
+    """Why the session got this scenario: asked for by the client, or the server's choice for the
+    model (e.g. "the model has 6 actuators, whose forces a session does not see: ...").
+    """
+    noise_reason: _builtins.str
+    """Why the session got the noise model in `estimator.noise_model`: asked for, the model's
+    defaults, or the preset's for the scenario.
+    """
     @_builtins.property
     def model(self) -> _model_registry_pb2.Model:
         """The model the session runs."""
@@ -636,10 +651,13 @@ class SessionOpened(_message.Message):
         subject_pseudonym: _builtins.str = ...,
         dt: _builtins.float = ...,
         steps_per_tick: _builtins.int = ...,
+        scenario: _common_pb2.Scenario.ValueType = ...,
+        scenario_reason: _builtins.str = ...,
+        noise_reason: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["estimator", b"estimator", "model", b"model"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["dropped_attributes", b"dropped_attributes", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "measured", b"measured", "model", b"model", "outputs", b"outputs", "session_id", b"session_id", "state_dimension", b"state_dimension", "steps_per_tick", b"steps_per_tick", "subject_pseudonym", b"subject_pseudonym"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["dropped_attributes", b"dropped_attributes", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "measured", b"measured", "model", b"model", "noise_reason", b"noise_reason", "outputs", b"outputs", "scenario", b"scenario", "scenario_reason", b"scenario_reason", "session_id", b"session_id", "state_dimension", b"state_dimension", "steps_per_tick", b"steps_per_tick", "subject_pseudonym", b"subject_pseudonym"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
@@ -678,6 +696,8 @@ class Result(_message.Message):
     FILTER_STATE_FIELD_NUMBER: _builtins.int
     COVARIANCE_FIELD_NUMBER: _builtins.int
     LATE_COMPUTE_FIELD_NUMBER: _builtins.int
+    ADAPTED_FIELD_NUMBER: _builtins.int
+    ABSORBED_FIELD_NUMBER: _builtins.int
     seq: _builtins.int
     """The tick index."""
     t: _builtins.float
@@ -714,10 +734,19 @@ class Result(_message.Message):
     """The horizon the estimate is extrapolated by (seconds)."""
     late_compute: _builtins.bool
     """REALTIME: the server could not run the estimator for this tick by its deadline (it was
-    overloaded, or a late frame's timewarp was still running), so it answered on time from what it
-    already had instead of late: the frame itself when it had arrived (MEASURED; the estimator is
-    then re-initialised from it, and `reinitialised` is set), else the last estimate repeated
-    (PREDICTED). The estimator skips the tick; late frames older than it are rejected TOO_OLD.
+    overloaded, or a late frame's timewarp held it), so it answered on time from what it already
+    had instead of late: the frame itself when it had arrived (MEASURED; the estimator is then
+    re-initialised from it, and `reinitialised` is set), else the last estimate repeated
+    (PREDICTED). A late frame at or before this tick still replays it properly (CORRECTED).
+    """
+    adapted: _builtins.bool
+    """NOISE_MODEL_ADAPTIVE: the measurement or process noise moved by more than a tenth at this
+    tick since the last result that said so.
+    """
+    absorbed: _builtins.bool
+    """NOISE_MODEL_ADAPTIVE: the mean NIS of the last 20 updates was far outside its interval (the
+    model, not the noise, is wrong) and the filter widened its covariance of q and qd to follow
+    the measurements.
     """
     @_builtins.property
     def qpos(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
@@ -756,8 +785,10 @@ class Result(_message.Message):
     @_builtins.property
     def filter_state(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """OUTPUT_FILTER_STATE: the estimator's state mean after this tick, laid out [q, qd] (PASSIVE,
-        EXTERNAL) or [q, qd, qdd] (CONTROLLED), q with nq values. For a MEASURED tick this is the
-        posterior, while `qpos`, `qvel` and `qacc` report the frame itself.
+        EXTERNAL), [q, qd, qdd] (CONTROLLED), or for the UKF in DRIVEN [q, qd, f] or [q, qd, f, fd]
+        (f the estimated unknown generalized force, N or N m; fd its rate, N/s or N m/s), q with nq
+        values. For a MEASURED tick this is the posterior, while `qpos`, `qvel` and `qacc` report the
+        frame itself.
         """
 
     @_builtins.property
@@ -792,10 +823,12 @@ class Result(_message.Message):
         filter_state: _abc.Iterable[_builtins.float] | None = ...,
         covariance: _abc.Iterable[_builtins.float] | None = ...,
         late_compute: _builtins.bool = ...,
+        adapted: _builtins.bool = ...,
+        absorbed: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "durable_seq", b"durable_seq", "nis", b"nis"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "actuator_force", b"actuator_force", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "absorbed", b"absorbed", "actuator_force", b"actuator_force", "adapted", b"adapted", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__durable_seq: _TypeAlias = _typing.Literal["durable_seq"]  # noqa: Y015
     _WhichOneofArgType__durable_seq: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq"]  # noqa: Y015

@@ -1,0 +1,270 @@
+"""Noise that the filter learns from its measurements and innovations, within bounds, and a window
+of NIS that tells when the model is wrong (an adaptive UKF)::
+
+    adapter = NoiseAdapter(r0=np.full(m, 1e-2), q0=Q0, bounds=BOUNDS)
+    R, Q = adapter.R, adapter.Q
+    verdict = adapter.observe(z=z, consecutive=True, innovation=y, gain=K, nis=nis)
+    verdict.adapted, verdict.absorb
+
+- R (diagonal) from the measurements themselves: the fourth difference of five consecutive frames
+  of white noise of variance s^2 has variance 70 s^2, while that of a smooth motion is of order
+  x^(4) dt^4, negligible at the ticks of wearables. R is the square of a robust scale of the last
+  `window_r` fourth differences (1.4826 median |d4| / sqrt(70), the MAD), so that the kinks of a
+  motion (a force that jumps) do not pass for noise. Innovation-based covariance matching (Mehra
+  1972, Sage and Husa 1969: E[y y^T] = H P- H^T + R) was tried first and fails where it matters:
+  while the unknown force's prior is wide, y^2 - H P- H^T is negative and R collapses to its floor,
+  so a DRIVEN filter fed noisy frames believed them perfect (docs/experiments.md).
+- Q keeps its configured structure (the discrete white-noise blocks) and is rescaled per state
+  component, Q = S^1/2 Q0 S^1/2, where s_i matches the running mean of (K y)_i^2, the correction the
+  filter had to make (Mohamed and Schwarz 1999's Q = K C_y K^T, diagonal), with Sage and Husa's
+  fading memory, weight d_k = (1 - b) / (1 - b^(k+1)).
+- Both are clipped to `AdaptationBounds`: a filter that learns cannot learn itself into a singular
+  or absurd covariance.
+- NIS: the mean of the last `window` NIS values against its chi-square interval. Far above it
+  for a whole window means the model is wrong, not the
+  noise: the caller absorbs it (widens P). Far above: past the 0.999 quantile of that mean.
+
+Pure numpy; one adapter per filter, driven from one thread; `snapshot()`/`restore()` for the
+timewarp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+from scipy.stats import chi2
+
+__all__ = ["BOUNDS", "AdaptationBounds", "NoiseAdapter", "Verdict"]
+
+
+_MAD_TO_SIGMA: Final = 1.4826  # median |N(0, 1)| = 0.6745 = 1 / 1.4826
+_D4_VARIANCE: Final = 70.0  # var of the fourth difference of unit white noise: C(8, 4)
+
+
+@dataclass(frozen=True)
+class AdaptationBounds:
+    """The limits of what the noise may learn.
+
+    r_min, r_max: bounds of every diagonal entry of R, in the measured channels' units squared
+    (rad^2, m^2; (rad/s)^2, (m/s)^2). 1e-10 is a sensor good to 1e-5 rad; 1e-2 one good to 0.1
+    rad or 0.1 rad/s, the worst a wearable is taken to be (a larger innovation is the model's error,
+    which the NIS window then sees, not noise). q_scale_min, q_scale_max: bounds of the factor s_i on the configured Q's diagonal.
+    forgetting: Sage-Husa's b, the weight of the past (window about 1 / (1 - b) updates).
+    window: updates in the NIS window; absorb_quantile: its mean must pass this quantile of the
+    mean of `window` chi-square(m) samples, chi2.ppf(q, window m) / window, to absorb (0.999: about
+    1.5 m for m = 6 and a window of 20; the thesis' EXTERNAL filters sat at 1e3 to 1e6 m).
+    report_change: a relative change of R or Q that `Verdict.adapted` reports. window_r: fourth
+    differences R is estimated from; min_differences: how many it needs before it replaces r0.
+    """
+
+    r_min: float = 1e-10
+    r_max: float = 1e-2
+    q_scale_min: float = 1e-4
+    q_scale_max: float = 1e4
+    forgetting: float = 0.98
+    window: int = 20
+    absorb_quantile: float = 0.999
+    report_change: float = 0.1
+    window_r: int = 64
+    min_differences: int = 8
+
+
+BOUNDS: Final = AdaptationBounds()
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What one update taught: `adapted`, R or Q moved by more than `report_change` since the last
+    verdict that said so; `absorb`, the NIS window says the model is wrong."""
+
+    adapted: bool
+    absorb: bool
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    r: np.ndarray
+    q_est: np.ndarray
+    count: int
+    nis: np.ndarray
+    nis_count: int
+    recent: tuple[np.ndarray, ...]
+    d4: np.ndarray
+    d4_count: int
+    reported_r: np.ndarray
+    reported_s: np.ndarray
+
+
+class NoiseAdapter:
+    """The adaptive R and Q of one filter (see the module docstring).
+
+    r0 (m,): R's starting diagonal; q0 (n, n): the configured Q for one tick, whose structure is
+    kept and whose diagonal sets the scale of s; adapt_q (n,) bool: the components whose Q adapts
+    (None: all).
+    """
+
+    def __init__(
+        self,
+        *,
+        r0: np.ndarray,
+        q0: np.ndarray,
+        adapt_q: np.ndarray | None = None,
+        bounds: AdaptationBounds = BOUNDS,
+    ) -> None:
+        r0 = np.asarray(r0, dtype=np.float64)
+        q0 = np.asarray(q0, dtype=np.float64)
+        if r0.ndim != 1 or not np.all(r0 > 0):
+            raise ValueError(f"r0 must be a vector of positive variances, got {r0!r}")
+        if q0.shape != (q0.shape[0], q0.shape[0]):
+            raise ValueError(f"q0 must be square, got shape {q0.shape}")
+        self._bounds = bounds
+        self._r0 = np.clip(r0, bounds.r_min, bounds.r_max)
+        self._q0 = q0
+        diag = np.diag(q0).copy()
+        # A component with no configured noise (q_var = 0) gets none: there is no scale to adapt.
+        self._q0_diag = np.where(diag > 0, diag, 1.0)
+        self._q_free = diag > 0
+        self._nis_limit: float | None = None
+        if adapt_q is not None:
+            self._q_free &= np.asarray(adapt_q, dtype=bool)
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the configured R and Q, with an empty NIS window."""
+        self._r = self._r0.copy()
+        self._q_est = np.diag(self._q0).copy()
+        self._count = 0
+        self._nis = np.zeros(self._bounds.window)
+        self._nis_count = 0
+        self._recent: list[np.ndarray] = []
+        self._d4 = np.zeros((self._bounds.window_r, self._r0.size))
+        self._d4_count = 0
+        self._reported_r = self._r.copy()
+        self._reported_s = np.ones_like(self._q_est)
+
+    @property
+    def window_full(self) -> bool:
+        """The NIS window holds `window` values since the last reset or absorption."""
+        return self._nis_count >= self._bounds.window
+
+    @property
+    def R(self) -> np.ndarray:
+        """(m, m) the measurement noise in force."""
+        return np.diag(self._r)
+
+    @property
+    def r_diagonal(self) -> np.ndarray:
+        return np.array(self._r)
+
+    @property
+    def scale(self) -> np.ndarray:
+        """(n,) s, the factor on each component of Q0's diagonal."""
+        b = self._bounds
+        s = np.where(self._q_free, self._q_est / self._q0_diag, 1.0)
+        return np.asarray(np.clip(s, b.q_scale_min, b.q_scale_max))
+
+    @property
+    def Q(self) -> np.ndarray:
+        """(n, n) the process noise in force for one tick: S^1/2 Q0 S^1/2."""
+        root = np.sqrt(self.scale)
+        return np.asarray(root[:, None] * self._q0 * root[None, :])
+
+    def q_for(self, q0: np.ndarray) -> np.ndarray:
+        """Another horizon's configured Q (n, n), rescaled as this tick's is."""
+        root = np.sqrt(self.scale)
+        return np.asarray(root[:, None] * q0 * root[None, :])
+
+    def observe(
+        self,
+        *,
+        z: np.ndarray,
+        consecutive: bool,
+        innovation: np.ndarray,
+        gain: np.ndarray,
+        nis: float | None,
+    ) -> Verdict:
+        """Learn from one update.
+
+        z (m,): the measurement (no quaternions: models with ball or free joints do not adapt R
+        from qpos differences correctly, see NoiseAdapter); consecutive: the frame before it was
+        the previous tick's; innovation y (m,) = z - h(x-); gain K (n, m); nis: y^T S^-1 y (None
+        when not finite).
+        """
+        b = self._bounds
+        if not (np.all(np.isfinite(innovation)) and np.all(np.isfinite(z))):
+            return Verdict(adapted=False, absorb=False)
+        d = (1.0 - b.forgetting) / (1.0 - b.forgetting ** (self._count + 1))
+        self._count += 1
+        if not consecutive:
+            self._recent = []
+        self._recent.append(np.array(z, dtype=np.float64))
+        if len(self._recent) > 5:
+            self._recent.pop(0)
+        if len(self._recent) == 5 and z.size == self._r.size:
+            z0, z1, z2, z3, z4 = self._recent
+            self._d4[self._d4_count % b.window_r] = z4 - 4.0 * z3 + 6.0 * z2 - 4.0 * z1 + z0
+            self._d4_count += 1
+            if self._d4_count >= b.min_differences:
+                filled = self._d4[: min(self._d4_count, b.window_r)]
+                scale = _MAD_TO_SIGMA * np.median(np.abs(filled), axis=0)
+                self._r = np.clip(scale**2 / _D4_VARIANCE, b.r_min, b.r_max)
+        # A filter on its way to the divergence guard can have gains whose squares overflow: such
+        # an update teaches nothing (the guard re-initialises).
+        with np.errstate(over="ignore", invalid="ignore"):
+            correction = gain @ innovation
+            q_next = (1.0 - d) * self._q_est + d * correction**2
+        if np.all(np.isfinite(q_next)):
+            self._q_est = q_next
+        absorb = False
+        if nis is not None and np.isfinite(nis):
+            self._nis[self._nis_count % b.window] = nis
+            self._nis_count += 1
+            if self._nis_count >= b.window:
+                m = innovation.size
+                if self._nis_limit is None:
+                    self._nis_limit = float(chi2.ppf(b.absorb_quantile, b.window * m)) / b.window
+                absorb = float(self._nis.mean()) > self._nis_limit
+        s = self.scale
+        moved = bool(
+            np.any(np.abs(self._r - self._reported_r) > b.report_change * self._reported_r)
+            or np.any(np.abs(s - self._reported_s) > b.report_change * self._reported_s)
+        )
+        if moved:
+            self._reported_r = self._r.copy()
+            self._reported_s = s
+        return Verdict(adapted=moved, absorb=absorb)
+
+    def absorbed(self, factor: float = 100.0) -> None:
+        """After an absorption: Q widened by `factor` (within bounds) and an empty NIS window, so
+        the next verdict comes from the updates after it."""
+        self._q_est = self._q_est * factor
+        self._nis[:] = 0.0
+        self._nis_count = 0
+
+    def snapshot(self) -> _Snapshot:
+        return _Snapshot(
+            r=self._r.copy(),
+            q_est=self._q_est.copy(),
+            count=self._count,
+            nis=self._nis.copy(),
+            nis_count=self._nis_count,
+            recent=tuple(self._recent),
+            d4=self._d4.copy(),
+            d4_count=self._d4_count,
+            reported_r=self._reported_r.copy(),
+            reported_s=self._reported_s.copy(),
+        )
+
+    def restore(self, snap: _Snapshot) -> None:
+        self._r = snap.r.copy()
+        self._q_est = snap.q_est.copy()
+        self._count = snap.count
+        self._nis = snap.nis.copy()
+        self._nis_count = snap.nis_count
+        self._recent = list(snap.recent)
+        self._d4 = snap.d4.copy()
+        self._d4_count = snap.d4_count
+        self._reported_r = snap.reported_r.copy()
+        self._reported_s = snap.reported_s.copy()
