@@ -88,7 +88,12 @@ def trajectory(model: str, scenario: str, rate: float, ticks: int) -> dict[str, 
         raise SystemExit(f"--model must be one of {sorted(kinds)}, got {model!r}")
     cls, args = kinds[model]
     obj = cls(*args, Scenario(scenario), dt=dt)
-    states = [obj.reset(seed=0)] + [obj.step() for _ in range(ticks - 1)]
+    states = [obj.reset(seed=0)]
+    for _ in range(ticks - 1):
+        # CONTROLLED: the object's controller, fed the truth (a client's own controller would be).
+        now = states[-1]
+        ctrl = obj.control(now.t, now.qpos, now.qvel) if scenario == "CONTROLLED" else None
+        states.append(obj.step(ctrl))
     return {
         "qpos": np.array([s.qpos for s in states]),
         "qvel": np.array([s.qvel for s in states]),

@@ -213,6 +213,26 @@ class _Stream:
                     )
                 )
             ]
+        if self.ticket is not None:
+            # REALTIME: a timewarp replays every tick since the late one, on the event loop. When
+            # that would not fit in half a tick, the frame is not applied: replays on a server
+            # that is already behind made it fall further behind (late frames begot late frames).
+            replay = self.runtime.next_tick - seq
+            cost = replay * self.ticket.cost_per_tick
+            if cost > self.plan.dt / 2:
+                return [
+                    Response(
+                        rejected=self.record_rejection(
+                            Rejection(
+                                seq,
+                                "TOO_OLD",
+                                f"frame {seq}: {replay} ticks late; replaying them would take about "
+                                f"{1e3 * cost:.1f} ms of a {1e3 * self.plan.dt:g} ms tick, more than this "
+                                "server can spare now, so it is not applied",
+                            )
+                        )
+                    )
+                ]
         outcome = self.runtime.apply_late(checked)
         return [Response(result=self.record_result(outcome, arrived=arrived))]
 
