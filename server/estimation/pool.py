@@ -37,6 +37,7 @@ import mujoco.rollout
 import numpy as np
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.mujoco_log import counting, current_counter
 
 __all__ = ["DEFAULT_BACKEND", "MAX_WORKERS", "MIN_CHUNK_SECONDS", "Backend", "WorkerPool"]
 
@@ -197,7 +198,16 @@ class WorkerPool:
             bounds = [i * count // nchunk for i in range(nchunk + 1)]  # even, contiguous
             futures: list[Future[None]] = []
             if nchunk > 1 and self._executor is not None:
-                futures = [self._executor.submit(work, i, bounds[i], bounds[i + 1]) for i in range(1, nchunk)]
+                # MuJoCo's warnings on the pool's threads count for the caller's session too.
+                counter = current_counter()
+
+                def counted(i: int, lo: int, hi: int) -> None:
+                    with counting(counter):
+                        work(i, lo, hi)
+
+                futures = [
+                    self._executor.submit(counted, i, bounds[i], bounds[i + 1]) for i in range(1, nchunk)
+                ]
             try:
                 work(0, bounds[0], bounds[1])
             finally:

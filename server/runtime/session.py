@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from jitdyn.mujoco_log import WarningCounter
 from jitdyn.server.estimation.dynamics import Dynamics, DynamicsResult
 from jitdyn.server.estimation.estimator import Estimate, Estimator, Measurement
 from jitdyn.server.runtime.frames import FrameIn, Rejection
@@ -59,6 +60,7 @@ class SessionCounts:
     rejected: int = 0
     late: int = 0
     late_compute: int = 0  # ticks answered without the estimator (overload)
+    mujoco_warnings: int = 0  # warnings MuJoCo raised in this session's work
     compute_us_total: int = 0
     compute_us_max: int = 0
     results: int = 0
@@ -116,6 +118,9 @@ class SessionRuntime:
         self._qpos0 = model.qpos0.copy()
         self._zero_nv = np.zeros(model.nv)
         self._last: TickOutcome | None = None
+        # Every call into MuJoCo for this session runs under `mujoco_log.counting(self.warnings)`
+        # (the servicer does it), so its warnings are counted here.
+        self.warnings = WarningCounter()
         # The first tick shed without a frame: from it on the estimator is behind, until a frame
         # re-initialises it or a late frame at or before it replays the ticks properly.
         self._stale_since: int | None = None

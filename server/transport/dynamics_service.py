@@ -9,17 +9,20 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import functools
 import logging
 import math
 import time
 import uuid
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from datetime import UTC, datetime
+from typing import Any, TypeVar
 
 import grpc
 import mujoco
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, ResourceExhausted
+from jitdyn.mujoco_log import counting
 from jitdyn.registry import ModelInfo
 from jitdyn.server.estimation.dynamics import Dynamics
 from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, default_scenario, resolve_config
@@ -63,6 +66,20 @@ SHED_AFTER = 0.003
 # REALTIME: a frame is answered as it arrives once its tick's time has come, give or take this
 # much error of the clock offset (seconds).
 _EARLY_TOLERANCE = 0.002
+
+
+_R = TypeVar("_R")
+
+
+def _counting_warnings(method: Callable[..., _R]) -> Callable[..., _R]:
+    """Run a `_Stream` method with MuJoCo's warnings counted for its session."""
+
+    @functools.wraps(method)
+    def wrapped(self: _Stream, *args: Any, **kwargs: Any) -> _R:
+        with counting(self.runtime.warnings):
+            return method(self, *args, **kwargs)
+
+    return wrapped
 
 
 class _Stream:
@@ -141,6 +158,7 @@ class _Stream:
             return self.sync.round_trip / 2.0
         return 0.0
 
+    @_counting_warnings
     def on_frame(self, message: dynamics_pb2.Frame, arrived: float) -> list[Response]:
         checked = check_frame(message, sizes=self.sizes, measured=self.plan.measured, received=arrived)
         if isinstance(checked, Rejection):
@@ -236,6 +254,7 @@ class _Stream:
         outcome = self.runtime.apply_late(checked)
         return [Response(result=self.record_result(outcome, arrived=arrived))]
 
+    @_counting_warnings
     def on_skip(self, seq: int, arrived: float) -> Response:
         if self.plan.clock != "LOCKSTEP":
             return Response(
@@ -276,6 +295,7 @@ class _Stream:
         self._m_lateness.observe(max(0.0, self.clock.now() - self.deadline(outcome.seq)))
         return response
 
+    @_counting_warnings
     def answer_ready(self) -> list[Response]:
         """REALTIME: answer, at once, every next tick whose frame is here and whose time has come
         (on an on-time client, as its frame arrives: well before the deadline, which only a tick
@@ -289,6 +309,7 @@ class _Stream:
             responses.append(self.answer(frame, due=frame.received, now=now))
         return responses
 
+    @_counting_warnings
     def on_deadline(self, deadline: float) -> list[Response]:
         """REALTIME: the next tick's deadline: predicted when its frame did not come, then every
         following tick whose frame is already here."""
@@ -297,6 +318,7 @@ class _Stream:
         responses.extend(self.answer_ready())
         return responses
 
+    @_counting_warnings
     def drain(self) -> list[Response]:
         """REALTIME close: answer every tick up to the last frame that is waiting, at once."""
         responses = []
@@ -688,6 +710,13 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             if stream.closed:
                 raise FailedPrecondition("the session is already closed")
             stream.closed = True
+        stream.runtime.counts.mujoco_warnings = stream.runtime.warnings.count
+        if stream.runtime.counts.mujoco_warnings:
+            _log.warning(
+                "session %s: MuJoCo warned %d times (the jitdyn.mujoco log says what about)",
+                stream.recorder.header.session_id,
+                stream.runtime.counts.mujoco_warnings,
+            )
         summary = summary_info(stream.runtime.counts, duration=stream.clock.now())
         try:
             location = await asyncio.to_thread(stream.recorder.close, summary, status=status)

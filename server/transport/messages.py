@@ -163,6 +163,8 @@ def summary_info(counts: SessionCounts, *, duration: float) -> SessionSummaryInf
     if counts.qfrc_min is not None and counts.qfrc_max is not None:
         stats["qfrc_inverse_min"] = counts.qfrc_min.tolist()
         stats["qfrc_inverse_max"] = counts.qfrc_max.tolist()
+    if counts.mujoco_warnings:
+        stats["mujoco_warnings"] = counts.mujoco_warnings
     return SessionSummaryInfo(
         ticks=counts.ticks,
         frames=counts.frames + counts.rejected,

@@ -8,21 +8,34 @@ MuJoCo calls the handler from whichever thread warned, mujoco.rollout's C++ thre
 warning repeated in a loop (an unstable simulation warns at every step) is logged at its 1st, 2nd,
 4th, 8th, ... occurrence with the count so far, so a log stays readable. MuJoCo's errors need no
 handler here: the Python bindings raise them as exceptions (mujoco.FatalError) and log nothing.
-Per session, MuJoCo also counts warnings in each MjData (`MjData.warning`); see `data_warnings`.
+Per session: a session's work runs under `counting(counter)` (the runtime does it around each tick,
+the worker pool carries it into its threads), and each warning raised meanwhile also counts there.
+
+    counter = WarningCounter()
+    with counting(counter):
+        mujoco.mj_step(model, data)  # a warning here adds to counter.count
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import re
 import threading
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 import mujoco
 
-__all__ = ["data_warnings", "route_mujoco_messages", "warning_counts"]
+__all__ = [
+    "WarningCounter",
+    "counting",
+    "current_counter",
+    "data_warnings",
+    "route_mujoco_messages",
+    "warning_counts",
+]
 
 _log = logging.getLogger("jitdyn.mujoco")
 _lock = threading.Lock()
@@ -35,8 +48,48 @@ def _kind(message: str) -> str:
     return _NUMBERS.sub("#", message.strip())
 
 
+class WarningCounter:
+    """MuJoCo warnings raised while one session's work ran (thread-safe)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._count = 0
+
+    def add(self) -> None:
+        with self._lock:
+            self._count += 1
+
+    @property
+    def count(self) -> int:
+        with self._lock:
+            return self._count
+
+
+_local = threading.local()
+
+
+def current_counter() -> WarningCounter | None:
+    """The counter of the session whose work this thread runs now, if any."""
+    counter: WarningCounter | None = getattr(_local, "counter", None)
+    return counter
+
+
+@contextlib.contextmanager
+def counting(counter: WarningCounter | None) -> Iterator[None]:
+    """Count the warnings this thread raises meanwhile in `counter` too (None: none)."""
+    previous = current_counter()
+    _local.counter = counter
+    try:
+        yield
+    finally:
+        _local.counter = previous
+
+
 def _on_warning(message: str) -> None:
     kind = _kind(message)
+    session = current_counter()
+    if session is not None:
+        session.add()
     with _lock:
         _counts[kind] += 1
         count = _counts[kind]

@@ -310,6 +310,13 @@ with BackgroundServer(ServerConfig(address="127.0.0.1:0", data_root=Path("data")
             session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[1e30]))
             for k in range(1, 4):
                 session.skip(k)
+        with client.open_session(SessionOptions(model_name="pendulum_1", dt=0.05)) as calm:
+            calm.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0]))
+            calm.skip(1)
+    index = server.services.index
+    unstable = index.get(session.opened.session_id, tenant="").summary.stats.get("mujoco_warnings", 0)
+    quiet = index.get(calm.opened.session_id, tenant="").summary.stats.get("mujoco_warnings", 0)
+    print("per session", unstable, quiet)
 print(sum(warning_counts().values()))
 """
 
@@ -327,6 +334,10 @@ def test_mujoco_warnings_go_to_logging_not_to_a_file(tmp_path: Path) -> None:
     )
     assert result.returncode == 0, result.stderr
     assert int(result.stdout.split()[-1]) > 0, "MuJoCo did not warn: the test proves nothing"
+    # Counted per session: the unstable one has them, the calm one none.
+    unstable, quiet = (int(n) for n in re.search(r"per session (\d+) (\d+)", result.stdout).groups())  # type: ignore[union-attr]
+    assert unstable > 0 and quiet == 0, result.stdout
+    assert re.search(r"session [0-9a-f-]{36}: MuJoCo warned \d+ times", result.stderr), result.stderr
     assert "jitdyn.mujoco: MuJoCo: Nan, Inf or huge value in QVEL" in result.stderr, result.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
     assert not list((tmp_path / "data").rglob("MUJOCO_LOG.TXT"))
