@@ -375,6 +375,87 @@ def _server_pid(address: str) -> int | None:
 
 
 # ---------------------------------------------------------------------------------------------
+# The floor: what grpc.aio alone costs per tick, measured in the same run.
+
+
+def _floor_server(queue: mp.Queue, seconds: float, dt: float) -> None:  # type: ignore[type-arg]
+    import grpc
+
+    from jitdyn.v1 import dynamics_pb2
+
+    response = dynamics_pb2.StreamSessionResponse(
+        result=dynamics_pb2.Result(
+            seq=1, qpos=[0.1] * 3, qvel=[0.1] * 3, qacc=[0.1] * 3, qfrc_inverse=[1.0] * 3
+        )
+    ).SerializeToString()
+
+    async def handler(requests: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[type-arg]
+        started = time.monotonic()
+        for k in range(round(seconds / dt)):
+            await context.read()  # the frame
+            wait = started + k * dt - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            await context.write(response)
+
+    async def main() -> None:
+        server = grpc.aio.server()
+        handlers = grpc.method_handlers_generic_handler(
+            "floor.Floor",
+            {
+                "S": grpc.stream_stream_rpc_method_handler(
+                    handler, request_deserializer=None, response_serializer=None
+                )
+            },
+        )
+        server.add_generic_rpc_handlers((handlers,))
+        port = server.add_insecure_port("127.0.0.1:0")
+        await server.start()
+        queue.put(port)
+        cpu = time.process_time()
+        await asyncio.sleep(seconds + 2.0)
+        queue.put(time.process_time() - cpu)
+        await server.stop(0)
+
+    asyncio.run(main())
+
+
+async def _floor_clients(port: int, sessions: int, seconds: float, dt: float) -> None:
+    import grpc
+
+    frame = b"x" * 200
+
+    async def one(i: int) -> None:
+        async with grpc.aio.insecure_channel(f"127.0.0.1:{port}") as channel:
+            call = channel.stream_stream(
+                "/floor.Floor/S", request_serializer=None, response_deserializer=None
+            )()
+            started = time.monotonic()
+            for k in range(round(seconds / dt)):
+                wait = started + k * dt - time.monotonic()
+                if wait > 0:
+                    await asyncio.sleep(wait)
+                await call.write(frame)
+                await call.read()
+
+    await asyncio.gather(*(one(i) for i in range(sessions)))
+
+
+def transport_floor_us(sessions: int, rate: float, seconds: float = 5.0) -> float:
+    """Server CPU per tick of a bare grpc.aio bidirectional stream: read a frame, wait for the tick,
+    write a result, `sessions` streams at `rate` Hz, no jitdyn at all."""
+    context = mp.get_context("spawn")
+    queue = context.Queue()
+    server = context.Process(target=_floor_server, args=(queue, seconds, 1.0 / rate))
+    server.start()
+    port = queue.get()
+    asyncio.run(_floor_clients(port, sessions, seconds, 1.0 / rate))
+    cpu = queue.get()
+    server.join()
+    return float(cpu) / (sessions * round(seconds * rate)) * 1e6
+
+
+# ---------------------------------------------------------------------------------------------
 # One run.
 
 
@@ -595,6 +676,13 @@ def sweep(
     ticks = max(2, round(length * target.rate))
     states = trajectory(target.model, target.scenario, target.rate, ticks)
     ukf_us = ukf_cycle_us(target.model, target.scenario, target.rate, states)
+    floor_n = min(target.sessions, 50)
+    floor = transport_floor_us(floor_n, target.rate)
+    print(
+        f"# {target.model} {target.scenario} {target.rate:g} Hz: UKF cycle {ukf_us:.0f} us; bare grpc.aio "
+        f"read + write per tick ({floor_n} streams): {floor:.0f} us of server CPU",
+        flush=True,
+    )
     reports: list[RunReport] = []
 
     def trial(n: int) -> RunReport:
@@ -650,6 +738,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--targets", nargs="*", default=None, help="with --sweep: models to sweep (default all four)"
     )
     parser.add_argument("--json", type=Path, help="also write every report here")
+    parser.add_argument(
+        "--floor",
+        action="store_true",
+        help="also measure bare grpc.aio's server CPU per tick at the same load",
+    )
     args = parser.parse_args(argv)
     serve_args = args.serve_args.split()
     print(
@@ -685,6 +778,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             serve_args=serve_args,
         )
         print(report.line())
+        if args.floor:
+            floor = transport_floor_us(min(args.sessions, 50), args.rate)
+            print(
+                f"  floor: bare grpc.aio, read + write per tick, {min(args.sessions, 50)} streams: {floor:.0f} us server CPU per tick"
+            )
         for error in report.errors:
             print(f"  {error}")
         reports = [report]
