@@ -61,6 +61,7 @@ class SessionCounts:
     late: int = 0
     late_compute: int = 0  # ticks answered without the estimator (overload)
     mujoco_warnings: int = 0  # warnings MuJoCo raised in this session's work
+    skipped: int = 0  # ticks not answered at all: the server was behind (overload)
     compute_us_total: int = 0
     compute_us_max: int = 0
     results: int = 0
@@ -204,6 +205,18 @@ class SessionRuntime:
         self.counts.add_result(outcome)
         self._last = outcome
         return outcome
+
+    def skip(self, count: int) -> None:
+        """Leave the next `count` ticks unanswered: a server far behind answers a tick by its
+        deadline or not at all. The history goes (no late frame replays across the gap) and the
+        estimator, now behind, restarts from the next frame."""
+        if count <= 0:
+            return
+        self._next += count
+        self.counts.skipped += count
+        self._ticks.clear()
+        if self._initialised and self._stale_since is None:
+            self._stale_since = self._next
 
     def _repeat_last(self, tick: _Tick, *, started: int) -> TickOutcome:
         last = self._last

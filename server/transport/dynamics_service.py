@@ -196,6 +196,7 @@ class _Stream:
                     )
                 ]
             self.pending[seq] = checked
+            self.catch_up()
             return self.answer_ready()
         if place == "future":
             return [
@@ -294,6 +295,20 @@ class _Stream:
         response = Response(result=self.record_result(outcome, arrived=due))
         self._m_lateness.observe(max(0.0, self.clock.now() - self.deadline(outcome.seq)))
         return response
+
+    def catch_up(self) -> None:
+        """REALTIME: when the loop reaches a session more than a tick late, skip (answer not at all)
+        every tick whose deadline is already SHED_AFTER behind but the newest, so that the next
+        answer is about the present and an overloaded process sheds work instead of queueing it."""
+        seq = self.runtime.next_tick
+        behind = self.clock.now() - self.sync.offset - self.plan.grace - SHED_AFTER
+        # The newest tick whose deadline is more than SHED_AFTER gone: it is answered (shed); the
+        # ones before it, a tick or more behind it, are not.
+        newest = math.ceil(behind / self.plan.dt) - 1
+        if newest - seq >= 1:
+            for k in range(seq, newest):
+                self.pending.pop(k, None)
+            self.runtime.skip(newest - seq)
 
     @_counting_warnings
     def answer_ready(self) -> list[Response]:
@@ -629,6 +644,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                     return
                 if stream.runtime.next_tick != seq:
                     continue  # answered meanwhile, as its frame arrived
+                stream.catch_up()
+                seq = stream.runtime.next_tick
                 if seq in stream.pending:
                     responses = stream.answer_ready()
                 elif stream.clock.now() >= stream.deadline(seq):

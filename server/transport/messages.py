@@ -165,6 +165,8 @@ def summary_info(counts: SessionCounts, *, duration: float) -> SessionSummaryInf
         stats["qfrc_inverse_max"] = counts.qfrc_max.tolist()
     if counts.mujoco_warnings:
         stats["mujoco_warnings"] = counts.mujoco_warnings
+    if counts.skipped or counts.late_compute:
+        stats["overload"] = {"skipped_ticks": counts.skipped, "late_compute_ticks": counts.late_compute}
     return SessionSummaryInfo(
         ticks=counts.ticks,
         frames=counts.frames + counts.rejected,
