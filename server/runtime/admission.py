@@ -25,8 +25,10 @@ __all__ = ["DEFAULT_TICK_BUDGET", "TRANSPORT_COST", "Admission", "Ticket"]
 
 DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
 # Server CPU per tick outside the estimator (receiving the frame, checking it, the result message,
-# sending it, recording it), measured on this project's reference machine (benchmarks/load.py).
-TRANSPORT_COST: Final = 300e-6  # s
+# sending it, recording it, the event loop): the starting guess, on this project's reference
+# machine (benchmarks/load.py measured 1.2-2 ms per pendulum_3 tick against a 0.4 ms filter);
+# each process then learns its own from its CPU and its ticks.
+TRANSPORT_COST: Final = 1e-3  # s
 _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 _CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
 
@@ -45,8 +47,10 @@ class Ticket:
         return self.cost_per_tick / self.dt
 
     def observe(self, seconds: float) -> None:
-        """One tick took `seconds` of the estimator and dynamics; the transport is added."""
-        self.cost_per_tick += _EWMA * (seconds + TRANSPORT_COST - self.cost_per_tick)
+        """One tick took `seconds` of the estimator and dynamics; the process's learnt overhead per
+        tick (the transport, the loop, recording) is added."""
+        self.admission._count_tick(seconds)
+        self.cost_per_tick += _EWMA * (seconds + self.admission.overhead - self.cost_per_tick)
 
     def release(self) -> None:
         self.admission._release(self)
@@ -64,6 +68,9 @@ class Admission:
     _cpu_mark: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
     _cpu_load: float = 0.0
     refused: int = 0
+    overhead: float = TRANSPORT_COST  # s per tick outside the estimator, learnt from this process's CPU
+    _window_ticks: int = 0
+    _window_compute: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.budget <= 1.0:
@@ -81,8 +88,18 @@ class Admission:
         since, used = self._cpu_mark
         if wall - since >= _CPU_WINDOW:
             self._cpu_load = (cpu - used) / (wall - since)
+            if self._window_ticks >= 50:
+                # What a tick cost this process beyond its estimator: its CPU per tick, less compute.
+                per_tick = (cpu - used) / self._window_ticks - self._window_compute / self._window_ticks
+                self.overhead += 0.5 * (max(per_tick, 100e-6) - self.overhead)
+            self._window_ticks, self._window_compute = 0, 0.0
             self._cpu_mark = (wall, cpu)
         return self._cpu_load
+
+    def _count_tick(self, compute: float) -> None:
+        with self._lock:
+            self._window_ticks += 1
+            self._window_compute += compute
 
     def load(self) -> float:
         """The process's load in cores: the larger of its sessions' estimates and its measured CPU."""

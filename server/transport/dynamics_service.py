@@ -27,7 +27,7 @@ from jitdyn.registry import ModelInfo
 from jitdyn.server.estimation.dynamics import Dynamics
 from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, default_scenario, resolve_config
 from jitdyn.server.estimation.factory import make_estimator, measure_cycle
-from jitdyn.server.runtime.admission import TRANSPORT_COST, Ticket
+from jitdyn.server.runtime.admission import Ticket
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
 from jitdyn.server.runtime.frames import FrameIn, Rejection
 from jitdyn.server.runtime.services import Services
@@ -461,7 +461,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             cycle = measure_cycle(model, config, pool=services.pool)
             try:
                 ticket = services.admission.admit(
-                    cost_per_tick=cycle + TRANSPORT_COST,
+                    cost_per_tick=cycle + services.admission.overhead,
                     dt=plan.dt,
                     what=f"{info.name} ({scenario.lower()}) at {1 / plan.dt:g} Hz",
                 )
