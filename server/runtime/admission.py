@@ -26,9 +26,10 @@ __all__ = ["DEFAULT_TICK_BUDGET", "TRANSPORT_COST", "Admission", "Ticket"]
 DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
 # Server CPU per tick outside the estimator (receiving the frame, checking it, the result message,
 # sending it, recording it, the event loop): the starting guess, on this project's reference
-# machine (benchmarks/load.py measured 1.2-2 ms per pendulum_3 tick against a 0.4 ms filter);
-# each process then learns its own from its CPU and its ticks.
-TRANSPORT_COST: Final = 1e-3  # s
+# machine (benchmarks/load.py measured 1.2-2.3 ms per pendulum_3 tick beyond a 0.4 ms filter);
+# each process then learns its own from its CPU and its ticks. Too low a guess over-admits the
+# first burst of opens, before a 2 s window has measured anything (26 sessions instead of ~15).
+TRANSPORT_COST: Final = 2e-3  # s
 _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 _CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
 

@@ -114,7 +114,7 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
         "--processes",
         str(processes),
         "--tick-budget",
-        "0.04",
+        "0.12",
         "--metrics-address",
         f"127.0.0.1:{metrics_port}",
     )
@@ -141,7 +141,7 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
     assert ran and refused, outcomes
     for message in refused:
         assert re.fullmatch(
-            r"this server process is at \d+ % of a core and its tick budget is 4 % \(--tick-budget 0\.04\); "
+            r"this server process is at \d+ % of a core and its tick budget is 12 % \(--tick-budget 0\.12\); "
             r"a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us per tick, [\d.]+ % more\. "
             r"Try again later, on another server, or at a lower rate",
             message,
