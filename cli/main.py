@@ -15,6 +15,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from jitdyn.cli.limits import add_limit_arguments, limit_settings
 from jitdyn.errors import JitdynError
 
 __all__ = ["main", "parse_duration"]
@@ -125,6 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument(
         "--max-state-dimension", type=int, default=200, help="largest nv of a session's model (default 200)"
     )
+    add_limit_arguments(serve)
 
     models = commands.add_parser(
         "models", help="register, list and show models", description="The model registry, from the shell."
@@ -186,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
     slist = session_commands.add_parser("list", help="list sessions, newest first")
     slist.add_argument("--model", help="only this model name")
-    slist.add_argument("--status", choices=("OPEN", "COMPLETE", "RECOVERED", "FAILED"))
+    slist.add_argument("--status", choices=("OPEN", "COMPLETE", "RECOVERED", "FAILED", "ABANDONED"))
     slist.add_argument("--limit", type=int, default=50)
     sshow = session_commands.add_parser("show", help="show one session")
     sshow.add_argument("session_id")
@@ -229,6 +231,7 @@ def _serve(args: argparse.Namespace) -> int:
             max_sessions_per_tenant=args.max_sessions_per_tenant,
             max_state_dimension=args.max_state_dimension,
         ),
+        **limit_settings(args),
     )
     if args.processes > 1:
         from jitdyn.server.transport.processes import run_processes
