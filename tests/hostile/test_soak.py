@@ -202,6 +202,7 @@ def _abuse(served: Served, ledger: Ledger, stop: threading.Event, pause: threadi
         ledger.abused(chosen.__name__)
 
 
+@pytest.mark.timeout(SECONDS + 900)
 def test_soak_of_honest_and_abusive_clients(serve: Callable[..., Served]) -> None:
     served = serve("--idle-timeout", "3", "--workers", "1")
     register(served, "chain100", chain(100))
