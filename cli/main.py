@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from jitdyn.cli.extras import MissingExtra, require_extra
+from jitdyn.cli.limits import add_limit_arguments, limit_settings
 from jitdyn.errors import JitdynError, Unavailable
 from jitdyn.registry.builtins import BUILTIN_NAMES
 from jitdyn.settings import SettingError, Settings, add_arguments, parse_duration, resolve
@@ -120,13 +121,14 @@ def build_parser() -> argparse.ArgumentParser:
             name, parents=[common, _settings_parent(group)], epilog=_EPILOG, **kwargs
         )
 
-    leaf(
+    serve = leaf(
         commands,
         "serve",
         "serve",
         help="run the server",
         description="Run the jitdyn server until Ctrl-C or SIGTERM.",
     )
+    add_limit_arguments(serve)
 
     models = leaf(
         commands,
@@ -224,7 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
     slist = leaf(session_commands, "list", "sessions", help="list sessions, newest first")
     slist.add_argument("--model", help="only this model name")
-    slist.add_argument("--status", choices=("OPEN", "COMPLETE", "RECOVERED", "FAILED"))
+    slist.add_argument("--status", choices=("OPEN", "COMPLETE", "RECOVERED", "FAILED", "ABANDONED"))
     slist.add_argument(
         "--limit", type=_argparse(_positive, "limit"), default=50, help="at most N (default 50)"
     )
@@ -281,7 +283,7 @@ def _server_config(settings: Settings, **overrides: Any) -> Any:
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from jitdyn.server.transport.app import serve
 
-    config = _server_config(settings)
+    config = _server_config(settings, **limit_settings(args))
     if settings.processes > 1:
         from jitdyn.server.transport.processes import run_processes
 

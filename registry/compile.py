@@ -62,12 +62,13 @@ _WORKER = Path(__file__).with_name("compile_worker.py")
 class _Worker:
     """One compile process (registry/compile_worker.py) and the parent's end of its socket."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, memory: int = 0) -> None:
         parent, child = socket.socketpair()
+        self.expired = False
         try:
             # Run by path, not by module name: the worker needs MuJoCo only, whatever sys.path is.
             self.process = subprocess.Popen(
-                [sys.executable, str(_WORKER), str(child.fileno())],
+                [sys.executable, str(_WORKER), str(child.fileno()), str(memory)],
                 pass_fds=(child.fileno(),),
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
@@ -80,28 +81,52 @@ class _Worker:
             raise RuntimeError(f"the MuJoCo compile worker did not start within {_STARTUP_TIMEOUT:g} s")
         self.connection.recv_bytes()
 
-    def compile(self, mjcf: str, assets: dict[str, bytes], *, timeout: float) -> mujoco.MjModel:
+    def compile(
+        self, mjcf: str, assets: dict[str, bytes], *, timeout: float, max_bytes: int
+    ) -> mujoco.MjModel:
+        # The limit covers the whole exchange (sending the job, compiling, sending the model back):
+        # a timer kills the worker when it runs out, which ends any read or write here at once.
+        timer = threading.Timer(timeout, self._expire)
+        timer.daemon = True
+        timer.start()
         try:
-            self.connection.send((mjcf, assets))
-            if not self.connection.poll(timeout):
-                self.kill()
-                raise ResourceExhausted(
-                    f"compiling the model took longer than the limit of {timeout:g} s "
-                    "(registry setting compile_timeout)"
-                )
+            self.connection.send((mjcf, assets, max_bytes))
             answer = self.connection.recv_bytes()
         except (EOFError, OSError):
             self.kill()
+            if self.expired:
+                raise ResourceExhausted(
+                    f"compiling the model took longer than the limit of {timeout:g} s "
+                    "(registry setting compile_timeout, --compile-timeout)"
+                ) from None
             code = self.process.returncode
             if code == -signal.SIGKILL:
                 raise ResourceExhausted(
                     "the MuJoCo compiler was killed while compiling the model (most likely out of memory)"
                 ) from None
             raise InvalidArgument(f"MuJoCo's compiler crashed on the model (exit code {code})") from None
+        finally:
+            timer.cancel()
         kind, body = answer[:1], answer[1:]
         if kind == b"E":
             raise InvalidArgument(f"MuJoCo could not compile the model: {body.decode('utf-8').strip()}")
+        if kind == b"B":
+            raise ResourceExhausted(
+                f"the compiled model needs {int(body)} bytes, over the limit of {max_bytes} bytes "
+                "(registry setting max_compiled_bytes, --max-compiled-bytes)"
+            )
+        if kind == b"O":
+            self.kill()  # its heap may be fragmented up to the limit; start afresh
+            raise ResourceExhausted(
+                "compiling the model ran out of the compile worker's memory limit "
+                "(registry setting compile_memory_bytes, --compile-memory-bytes)"
+            )
         return mujoco.MjModel.from_binary_path("model.mjb", {"model.mjb": body})
+
+    def _expire(self) -> None:
+        self.expired = True
+        if self.process.poll() is None:
+            self.process.kill()
 
     def alive(self) -> bool:
         return self.process.poll() is None
@@ -149,7 +174,12 @@ class ModelCompiler:
         with self._slots:
             worker = self._acquire()
             try:
-                model = worker.compile(checked.mjcf, checked.assets, timeout=self._limits.compile_timeout)
+                model = worker.compile(
+                    checked.mjcf,
+                    checked.assets,
+                    timeout=self._limits.compile_timeout,
+                    max_bytes=self._limits.max_compiled_bytes,
+                )
             finally:
                 self._release(worker)
         self._limits.check("max_nv", "the model's number of degrees of freedom (nv)", model.nv)
@@ -165,7 +195,7 @@ class ModelCompiler:
                     self._busy.add(worker)
                     return worker
                 worker.kill()
-        worker = _Worker()
+        worker = _Worker(memory=self._limits.compile_memory_bytes)
         with self._lock:
             self._busy.add(worker)
         return worker

@@ -29,6 +29,22 @@ DEFAULT_MAX_ASSETS = 1000
 DEFAULT_MAX_ASSET_BYTES = 64 * 1024 * 1024
 DEFAULT_COMPILE_TIMEOUT = 10.0
 DEFAULT_MAX_NV = 500
+DEFAULT_MAX_COMPILED_BYTES = 64 * 1024 * 1024
+DEFAULT_COMPILE_MEMORY_BYTES = 4 * 1024 * 1024 * 1024
+DEFAULT_CACHE_BYTES = 512 * 1024 * 1024
+DEFAULT_MAX_MODELS_PER_TENANT = 1000
+DEFAULT_MAX_TENANT_BYTES = 4 * 1024 * 1024 * 1024
+
+
+# The `jitdyn serve` flags of the limits that have one (cli/limits.py).
+_FLAGS = {
+    "compile_timeout": "--compile-timeout",
+    "max_compiled_bytes": "--max-compiled-bytes",
+    "compile_memory_bytes": "--compile-memory-bytes",
+    "cache_bytes": "--model-cache-bytes",
+    "max_models_per_tenant": "--max-models-per-tenant",
+    "max_tenant_bytes": "--max-tenant-bytes",
+}
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -41,6 +57,14 @@ class RegistryLimits:
       max_asset_bytes: total size of the assets' contents, in bytes.
       compile_timeout: wall time MuJoCo may spend compiling the model, in seconds.
       max_nv: degrees of freedom (the size of qvel); the estimator's state grows with it.
+      max_compiled_bytes: memory of one compiled model (mj_sizeModel), in bytes: a few bytes of MJCF
+        can ask for a huge height field (--max-compiled-bytes).
+      compile_memory_bytes: address space of a compile worker process (RLIMIT_AS), in bytes
+        (--compile-memory-bytes).
+      cache_bytes: memory of the compiled models a server keeps, least recently used dropped first,
+        in bytes (--model-cache-bytes).
+      max_models_per_tenant: models (versions) one tenant may register (--max-models-per-tenant).
+      max_tenant_bytes: MJCF and asset bytes one tenant may store (--max-tenant-bytes).
     """
 
     max_mjcf_bytes: int = DEFAULT_MAX_MJCF_BYTES
@@ -48,9 +72,24 @@ class RegistryLimits:
     max_asset_bytes: int = DEFAULT_MAX_ASSET_BYTES
     compile_timeout: float = DEFAULT_COMPILE_TIMEOUT
     max_nv: int = DEFAULT_MAX_NV
+    max_compiled_bytes: int = DEFAULT_MAX_COMPILED_BYTES
+    compile_memory_bytes: int = DEFAULT_COMPILE_MEMORY_BYTES
+    cache_bytes: int = DEFAULT_CACHE_BYTES
+    max_models_per_tenant: int = DEFAULT_MAX_MODELS_PER_TENANT
+    max_tenant_bytes: int = DEFAULT_MAX_TENANT_BYTES
 
     def __post_init__(self) -> None:
-        for field in ("max_mjcf_bytes", "max_assets", "max_asset_bytes", "max_nv"):
+        for field in (
+            "max_mjcf_bytes",
+            "max_assets",
+            "max_asset_bytes",
+            "max_nv",
+            "max_compiled_bytes",
+            "compile_memory_bytes",
+            "cache_bytes",
+            "max_models_per_tenant",
+            "max_tenant_bytes",
+        ):
             value = getattr(self, field)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"RegistryLimits.{field} must be a positive integer, got {value!r}")
@@ -68,8 +107,9 @@ class RegistryLimits:
         """Raise ResourceExhausted when `value` is over the limit `setting` (a field name)."""
         limit = getattr(self, setting)
         if value > limit:
+            flag = f", {_FLAGS[setting]}" if setting in _FLAGS else ""
             raise ResourceExhausted(
-                f"{what} is {value}{unit}, over the limit of {limit}{unit} (registry setting {setting})"
+                f"{what} is {value}{unit}, over the limit of {limit}{unit} (registry setting {setting}{flag})"
             )
 
 

@@ -22,6 +22,7 @@ import hashlib
 import json
 import logging
 import threading
+from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
 from types import TracebackType
@@ -75,6 +76,37 @@ def _utc(value: datetime.datetime) -> datetime.datetime:
     return value.astimezone(datetime.UTC)
 
 
+class _ModelCache:
+    """Compiled models by id, at most `capacity` bytes of them (mj_sizeModel), the least recently
+    used dropped first. Not thread-safe: the registry holds its lock around every call."""
+
+    def __init__(self, capacity: int) -> None:
+        self._capacity = capacity
+        self._models: OrderedDict[str, tuple[mujoco.MjModel, int]] = OrderedDict()
+        self.bytes = 0
+
+    def get(self, model_id: str) -> mujoco.MjModel | None:
+        entry = self._models.get(model_id)
+        if entry is None:
+            return None
+        self._models.move_to_end(model_id)
+        return entry[0]
+
+    def put(self, model_id: str, model: mujoco.MjModel) -> None:
+        size = int(mujoco.mj_sizeModel(model))
+        if model_id in self._models or size > self._capacity:
+            return
+        self._models[model_id] = (model, size)
+        self.bytes += size
+        while self.bytes > self._capacity:
+            _, (_, dropped) = self._models.popitem(last=False)
+            self.bytes -= dropped
+
+    def clear(self) -> None:
+        self._models.clear()
+        self.bytes = 0
+
+
 class ModelRegistry:
     """Registers, finds and loads models; thread-safe. A context manager; `close()` is safe twice.
 
@@ -99,7 +131,7 @@ class ModelRegistry:
         self._data_root = Path(data_root)
         self._limits = limits
         self._compiler = ModelCompiler(limits=limits, workers=compile_workers)
-        self._cache: dict[str, mujoco.MjModel] = {}
+        self._cache = _ModelCache(limits.cache_bytes)
         self._cache_lock = threading.Lock()
         self._load_locks: dict[str, threading.Lock] = {}
         self._closed = False
@@ -212,12 +244,13 @@ class ModelRegistry:
                 return existing, False
             if not builtin:
                 self._check_not_builtin_name(connection, name)
+                self._check_quota(connection, tenant, mjcf, assets)
         model = self._compiler.compile(mjcf, assets)
         shape = describe_model(model)
         blob = write_blob(self._data_root, model_id, mjcf, assets)
         size = len(mjcf.encode("utf-8")) + sum(len(data) for data in assets.values())
         with self._cache_lock:
-            self._cache.setdefault(model_id, model)
+            self._cache.put(model_id, model)
         for _ in range(_INSERT_ATTEMPTS):
             try:
                 with self._engine.begin() as connection:
@@ -249,6 +282,26 @@ class ModelRegistry:
                 continue  # another registration took this id or version first: re-read
         raise RuntimeError(
             f"could not register model {name!r}: {_INSERT_ATTEMPTS} concurrent registrations won the race first"
+        )
+
+    def _check_quota(
+        self, connection: sa.Connection, tenant: str, mjcf: str, assets: Mapping[str, bytes]
+    ) -> None:
+        """Refuse a model over the tenant's model count or stored bytes (ResourceExhausted)."""
+        count, stored = connection.execute(
+            sa.select(sa.func.count(), sa.func.coalesce(sa.func.sum(models.c.size_bytes), 0)).where(
+                models.c.tenant == tenant, models.c.builtin == sa.false()
+            )
+        ).one()
+        self._limits.check(
+            "max_models_per_tenant", "the number of this tenant's models, with this one", count + 1
+        )
+        size = len(mjcf.encode("utf-8")) + sum(len(data) for data in assets.values())
+        self._limits.check(
+            "max_tenant_bytes",
+            "the bytes this tenant's models store, with this one",
+            int(stored) + size,
+            " bytes",
         )
 
     def _check_not_builtin_name(self, connection: sa.Connection, name: str) -> None:
@@ -466,7 +519,7 @@ class ModelRegistry:
                         )
                     model = self._compiler.compile(mjcf, assets)
                     with self._cache_lock:
-                        self._cache[model_id] = model
+                        self._cache.put(model_id, model)
         return copy.copy(model)
 
 

@@ -38,10 +38,11 @@ def write_blob(data_root: Path, model_id: str, mjcf: str, assets: Mapping[str, b
     final = data_root / relative
     if final.exists():
         return relative  # content-addressed: the same id is the same content
-    final.parent.mkdir(parents=True, exist_ok=True)
+    final.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     temporary = final.with_name(f".{final.name}.{uuid.uuid4().hex}.tmp")
     try:
-        with open(temporary, "wb") as file:
+        # Readable by the server's user only, whatever the umask (DESIGN: Security and limits).
+        with os.fdopen(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "wb") as file:
             with zipfile.ZipFile(file, "w") as archive:
                 archive.writestr(_entry(_MJCF), mjcf.encode("utf-8"))
                 for name in sorted(assets):

@@ -1,24 +1,30 @@
-"""Anonymisation before anything is written: subject ids become keyed pseudonyms, and only
-allow-listed, short subject attributes are kept.
+"""Anonymisation before anything is written: subject ids become keyed pseudonyms, one key per
+tenant, and subject attributes are typed values from a fixed table, never free text.
 
     secret = load_or_create_secret(secret_file=None, env=os.environ, data_root=data_root)
     anonymiser = Anonymiser(secret)
-    pseudonym = anonymiser.pseudonym("patient-4711")        # 64 hex digits, stable per secret
-    kept, dropped = anonymiser.filter_attributes({"sex": "F", "name": "..."})  # dropped == ["name"]
+    pseudonym = anonymiser.pseudonym("patient-4711", tenant="lab-a")   # 64 hex digits
+    anonymiser.check_attributes({"sex": "F", "age": "43", "height_m": "1.83"})
+    # -> {"sex": "F", "age_band": "40-44", "height_m": "1.85"}
+    anonymiser.check_attributes({"name": "Jane"})   # InvalidArgument naming "name"
 
-The pseudonym is HMAC-SHA256 keyed with a server secret kept apart from the data (a 0600 key file
-outside the data root, or the environment), so that the data alone cannot be matched back to ids
-by hashing candidate ids. Nothing else about the client (address, host name) is ever stored.
+The pseudonym is HMAC-SHA256 keyed with a key derived from a server secret for the tenant, so that
+pseudonyms of one tenant's subjects say nothing about another's (a tenant is told its own
+pseudonyms, and could otherwise test candidate ids against every other tenant's data). The secret
+is kept apart from the data (a 0600 key file outside the data root, or the environment), so that
+the data alone cannot be matched back to ids by hashing candidate ids. Nothing else about the
+client (address, host name) is ever stored.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 import os
 import secrets
 import stat
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Final
 
@@ -26,6 +32,7 @@ from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.storage.layout import fsync_dir
 
 __all__ = [
+    "ATTRIBUTES",
     "DEFAULT_ALLOWED",
     "DEFAULT_ALLOWED_ATTRIBUTES",
     "MAX_ATTRIBUTE_LENGTH",
@@ -36,18 +43,31 @@ __all__ = [
     "load_or_create_secret",
 ]
 
-# Coarse attributes biomechanics needs to interpret a session, none identifying alone:
-#   sex        "F", "M", ...
-#   age_band   "40-49" (a band, never a birth date or an exact age)
-#   height_m   "1.82"       mass_kg  "74"
-#   side       "left" / "right" (dominant or affected side)
-#   limb       "arm", "leg", "hand", ...
-#   condition  a short category, e.g. "ACL-reconstruction", "healthy"
+# The attributes biomechanics needs to interpret a session, each a typed value that identifies no
+# one alone: a word from a fixed vocabulary, or a number coarsened on the way in.
+SEXES: Final = ("F", "M", "X")  # X: other or not stated
+SIDES: Final = ("left", "right", "both")
+LIMBS: Final = ("arm", "forearm", "hand", "leg", "thigh", "shank", "foot", "trunk", "neck", "head")
+CONDITIONS: Final = (
+    "healthy",
+    "amputation",
+    "stroke",
+    "spinal-cord-injury",
+    "cerebral-palsy",
+    "parkinsons",
+    "multiple-sclerosis",
+    "osteoarthritis",
+    "acl-reconstruction",
+    "other",
+)
+AGE_BAND_YEARS: Final = 5
+HEIGHT_STEP_M: Final = 0.05
+MASS_STEP_KG: Final = 5.0
 DEFAULT_ALLOWED_ATTRIBUTES: Final = frozenset(
-    {"sex", "age_band", "height_m", "mass_kg", "side", "limb", "condition"}
+    {"sex", "age", "age_band", "height_m", "mass_kg", "side", "limb", "condition"}
 )
 DEFAULT_ALLOWED: Final = DEFAULT_ALLOWED_ATTRIBUTES
-# Longer values are dropped, not cut: a long value is free text, and free text can name a person.
+# A value longer than this is not looked at further (a number or a word of the vocabularies is short).
 MAX_ATTRIBUTE_LENGTH: Final = 32
 MAX_SUBJECT_ID_LENGTH: Final = 256
 SECRET_BYTES: Final = 32
@@ -120,44 +140,132 @@ def load_or_create_secret(
     return _parse_secret(path.read_text(), origin=f"the secret file {path}")
 
 
+def _word(
+    vocabulary: tuple[str, ...], *, fold: Callable[[str], str] = str.lower
+) -> Callable[[str], tuple[str, str]]:
+    def parse(value: str) -> tuple[str, str]:
+        word = fold(value.strip())
+        if word not in vocabulary:
+            raise ValueError(f"one of {', '.join(vocabulary)}")
+        return "", word
+
+    return parse
+
+
+def _number(text: str, *, low: float, high: float, unit: str) -> float:
+    try:
+        number = float(text)
+    except ValueError:
+        raise ValueError(f"a number of {unit} in [{low:g}, {high:g}]") from None
+    if not (math.isfinite(number) and low <= number <= high):
+        raise ValueError(f"a number of {unit} in [{low:g}, {high:g}]")
+    return number
+
+
+def _band(low: int) -> str:
+    return f"{low}-{low + AGE_BAND_YEARS - 1}"
+
+
+def _age(value: str) -> tuple[str, str]:
+    text = value.strip()
+    if not text.isdigit() or int(text) > 130:
+        raise ValueError("whole years, 0 to 130 (stored as a 5-year band)")
+    years = int(text)
+    return "age_band", _band(years - years % AGE_BAND_YEARS)
+
+
+def _age_band(value: str) -> tuple[str, str]:
+    low, dash, high = value.strip().partition("-")
+    if not (dash and low.isdigit() and high.isdigit()) or int(low) % AGE_BAND_YEARS or int(low) > 130:
+        raise ValueError('a 5-year band such as "40-44"')
+    if _band(int(low)) != value.strip():
+        raise ValueError('a 5-year band such as "40-44"')
+    return "", value.strip()
+
+
+def _rounded(
+    step: float, *, low: float, high: float, unit: str, digits: int
+) -> Callable[[str], tuple[str, str]]:
+    def parse(value: str) -> tuple[str, str]:
+        number = _number(value, low=low, high=high, unit=unit)
+        return "", f"{round(number / step) * step:.{digits}f}"
+
+    return parse
+
+
+# Every attribute a server can keep: name -> parser of the client's text into (the name it is
+# stored under, "" for the same; the stored value), raising ValueError with what was expected.
+ATTRIBUTES: Final[Mapping[str, Callable[[str], tuple[str, str]]]] = {
+    "sex": _word(SEXES, fold=str.upper),
+    "age": _age,
+    "age_band": _age_band,
+    "height_m": _rounded(HEIGHT_STEP_M, low=0.3, high=2.6, unit="metres", digits=2),
+    "mass_kg": _rounded(MASS_STEP_KG, low=1.0, high=400.0, unit="kilograms", digits=0),
+    "side": _word(SIDES),
+    "limb": _word(LIMBS),
+    "condition": _word(CONDITIONS),
+}
+
+_KEY_LABEL: Final = b"jitdyn pseudonym key v1\x00"
+
+
 class Anonymiser:
     """Pseudonyms and attribute filtering with one secret and one allow-list."""
 
-    def __init__(
-        self,
-        secret: bytes,
-        allowed_attributes: Iterable[str] = DEFAULT_ALLOWED_ATTRIBUTES,
-        *,
-        max_attribute_length: int = MAX_ATTRIBUTE_LENGTH,
-    ) -> None:
+    def __init__(self, secret: bytes, allowed_attributes: Iterable[str] = DEFAULT_ALLOWED_ATTRIBUTES) -> None:
         if len(secret) < SECRET_BYTES:
             raise InvalidArgument(f"secret must have at least {SECRET_BYTES} bytes, got {len(secret)}")
+        allowed = frozenset(allowed_attributes)
+        unknown = sorted(allowed - ATTRIBUTES.keys())
+        if unknown:
+            raise InvalidArgument(
+                f"allowed attributes must be typed ones of {', '.join(sorted(ATTRIBUTES))}, got {unknown}"
+            )
         self._secret = secret
-        self._allowed = frozenset(allowed_attributes)
-        self._max_length = max_attribute_length
+        self._allowed = allowed
+        self._keys: dict[str, bytes] = {}
 
     @property
     def allowed_attributes(self) -> frozenset[str]:
         return self._allowed
 
-    def pseudonym(self, subject_id: str) -> str:
-        """HMAC-SHA256 of the id under the secret, as 64 hex digits; "" for no subject ("")."""
+    def tenant_key(self, tenant: str) -> bytes:
+        """The tenant's pseudonym key: HMAC-SHA256 of a label and the tenant under the secret."""
+        key = self._keys.get(tenant)
+        if key is None:
+            key = hmac.new(self._secret, _KEY_LABEL + tenant.encode("utf-8"), hashlib.sha256).digest()
+            self._keys[tenant] = key
+        return key
+
+    def pseudonym(self, subject_id: str, *, tenant: str) -> str:
+        """HMAC-SHA256 of the id under the tenant's key, as 64 hex digits; "" for no subject ("")."""
         if not subject_id:
             return ""
         if len(subject_id) > MAX_SUBJECT_ID_LENGTH:
             raise InvalidArgument(
                 f"subject.id must have at most {MAX_SUBJECT_ID_LENGTH} characters, got {len(subject_id)}"
             )
-        return hmac.new(self._secret, subject_id.encode("utf-8"), hashlib.sha256).hexdigest()
+        return hmac.new(self.tenant_key(tenant), subject_id.encode("utf-8"), hashlib.sha256).hexdigest()
 
-    def filter_attributes(self, attributes: Mapping[str, str]) -> tuple[dict[str, str], list[str]]:
-        """(kept, dropped keys): kept are the allow-listed keys whose values have at most
-        `max_attribute_length` characters; every other key is dropped, sorted."""
+    def check_attributes(self, attributes: Mapping[str, str]) -> dict[str, str]:
+        """The attributes as stored: each checked against its type and coarsened (age banded, height
+        and mass rounded). Raises InvalidArgument naming the first attribute that is not on the
+        allow-list or whose value is not of its type."""
         kept: dict[str, str] = {}
-        dropped: list[str] = []
-        for key, value in attributes.items():
-            if key in self._allowed and len(value) <= self._max_length:
-                kept[key] = value
-            else:
-                dropped.append(key)
-        return kept, sorted(dropped)
+        for key in sorted(attributes):
+            value = attributes[key]
+            where = f"open.subject.attributes[{key[:40]!r}]"
+            if key not in self._allowed:
+                raise InvalidArgument(
+                    f"{where}: not an attribute this server keeps; allowed: {', '.join(sorted(self._allowed))}"
+                )
+            if len(value) > MAX_ATTRIBUTE_LENGTH:
+                raise InvalidArgument(
+                    f"{where} must have at most {MAX_ATTRIBUTE_LENGTH} characters, got {len(value)}"
+                )
+            try:
+                name, stored = ATTRIBUTES[key](value)
+            except ValueError as error:
+                raise InvalidArgument(f"{where} must be {error}, got {value[:40]!r}") from None
+            kept[name or key] = stored
+        return kept

@@ -30,6 +30,7 @@ import pyarrow as pa
 
 from jitdyn.errors import InvalidArgument, JitdynError, Unavailable
 from jitdyn.storage.columns import check_lengths, records_to_batch
+from jitdyn.storage.failures import storage_failure
 from jitdyn.storage.records import TickRecord
 
 __all__ = ["CommitStats", "GroupCommitter", "default_committer"]
@@ -243,7 +244,9 @@ class GroupCommitter:
                     _sync_all([s.fd for s, _ in written])
                 except OSError as exc:
                     for s, _ in written:
-                        self._fail(s, Unavailable(f"session {s.name}: its log cannot be made durable: {exc}"))
+                        self._fail(
+                            s, storage_failure(f"session {s.name}: its log cannot be made durable", exc)
+                        )
                 else:
                     durable = written
             with self._cond:
@@ -307,7 +310,7 @@ class GroupCommitter:
             if written != data.size:
                 raise OSError(f"short write: {written} of {data.size} bytes")
         except (OSError, pa.ArrowException) as exc:
-            self._fail(s, Unavailable(f"session {s.name}: its log cannot be written: {exc}"))
+            self._fail(s, storage_failure(f"session {s.name}: its log cannot be written", exc))
             return None
         s.bytes_written += data.size
         return s, records

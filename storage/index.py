@@ -30,7 +30,7 @@ from jitdyn.storage.schema import sessions
 __all__ = ["MAX_PAGE_SIZE", "SessionIndex", "SessionRow"]
 
 MAX_PAGE_SIZE: Final = 1000
-_FINAL_STATUSES: Final = ("COMPLETE", "RECOVERED", "FAILED")
+_FINAL_STATUSES: Final = STATUSES[1:]
 _TOKEN_VERSION: Final = 1
 
 
@@ -229,6 +229,14 @@ class SessionIndex:
         if current is None:
             raise NotFound(f"session {session_id} is not in the index")
         raise FailedPrecondition(f"session {session_id} is {current}, not OPEN; it was ended already")
+
+    def discard(self, session_id: str) -> None:
+        """Remove the row of a session that was never served (its open failed or was abandoned
+        before `opened` was sent): no frame of it exists, so nothing is to be kept."""
+        with self._engine.begin() as conn:
+            conn.execute(
+                sa.delete(sessions).where(sessions.c.session_id == session_id, sessions.c.status == "OPEN")
+            )
 
     def get(self, session_id: str, *, tenant: str) -> SessionRow:
         """The session, if it belongs to `tenant`; NotFound otherwise (whoever else it belongs to)."""

@@ -9,7 +9,15 @@ from __future__ import annotations
 import os
 from pathlib import Path, PurePosixPath
 
-__all__ = ["FRAMES_DIR", "LOG_DIR", "frames_location", "fsync_dir", "log_location", "make_dirs"]
+__all__ = [
+    "FRAMES_DIR",
+    "LOG_DIR",
+    "frames_location",
+    "fsync_dir",
+    "log_location",
+    "make_dirs",
+    "prepare_data_root",
+]
 
 LOG_DIR = "logs"
 FRAMES_DIR = "frames"
@@ -37,11 +45,42 @@ def fsync_dir(path: Path) -> None:
 def make_dirs(root: Path, relative: str) -> Path:
     """Create the folders of `relative` under `root`, each new one made durable in its parent."""
     current = root
-    current.mkdir(parents=True, exist_ok=True)
+    current.mkdir(mode=0o700, parents=True, exist_ok=True)
     for part in PurePosixPath(relative).parts:
         child = current / part
         if not child.is_dir():
-            child.mkdir(exist_ok=True)
+            child.mkdir(mode=0o700, exist_ok=True)
             fsync_dir(current)
         current = child
     return current
+
+
+def prepare_data_root(data_root: Path) -> Path:
+    """The data folder, made ready to serve from and private: created 0700 when missing (and tightened
+    to 0700 when group or others could enter it), new files 0600 from now on in this process (the
+    umask covers what SQLite and the libraries create), and proved writable by writing a file.
+
+    Raises FailedPrecondition, in one line that says why, when the folder cannot be made or written.
+    """
+    from jitdyn.errors import FailedPrecondition
+
+    os.umask(0o077)
+    root = data_root.expanduser().absolute()
+    try:
+        root.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if root.stat().st_mode & 0o077:
+            root.chmod(0o700)
+        probe = root / f".write-test-{os.getpid()}"
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            os.write(fd, b"jitdyn")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+            probe.unlink(missing_ok=True)
+    except OSError as error:
+        raise FailedPrecondition(
+            f"the data folder {root} cannot be written ({error.strerror or error}); give --data a folder "
+            "this user can write"
+        ) from None
+    return root.resolve()

@@ -11,16 +11,17 @@ from __future__ import annotations
 
 import fcntl
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final
+from typing import Final, Self
 
 import pyarrow as pa
 
 from jitdyn.storage.columns import LOG_SCHEMA
 from jitdyn.storage.layout import fsync_dir
 
-__all__ = ["HEADER_KEY", "LogContents", "LogWriter", "read_log", "try_lock"]
+__all__ = ["HEADER_KEY", "LogContents", "LogStream", "LogWriter", "read_log", "stream_log", "try_lock"]
 
 HEADER_KEY: Final = b"jitdyn.header"
 
@@ -65,6 +66,8 @@ class LogWriter:
             fsync_dir(path.parent)
         except BaseException:
             self._release()
+            # A log without its header holds nothing to recover; leave no empty file behind.
+            path.unlink(missing_ok=True)
             raise
         self.bytes_written = os.fstat(self._file.fileno()).st_size
 
@@ -141,3 +144,61 @@ def read_log(path: Path) -> LogContents:
         table = pa.Table.from_batches(batches, schema=LOG_SCHEMA) if batches else empty
     raw = metadata.get(HEADER_KEY)
     return LogContents(table, raw.decode() if raw is not None else None, torn=torn)
+
+
+class LogStream:
+    """A log read batch by batch, in bounded memory: each batch is read into its own buffers and
+    freed when dropped (a memory map would keep every page it touched resident until it closes).
+    `header_json` (None when even the header did not reach the disk), `batches()` once, then `torn`
+    (whether a torn tail was dropped)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.header_json: str | None = None
+        self.torn = False
+        self._source: pa.OSFile | None = None
+        self._reader: pa.ipc.RecordBatchStreamReader | None = None
+        if path.stat().st_size == 0:
+            return
+        self._source = pa.OSFile(str(path))
+        try:
+            self._reader = pa.ipc.open_stream(self._source)
+        except (pa.ArrowInvalid, OSError):
+            self.torn = True
+            self.close()
+            return
+        raw = (self._reader.schema.metadata or {}).get(HEADER_KEY)
+        self.header_json = raw.decode() if raw is not None else None
+
+    def batches(self) -> Iterator[pa.RecordBatch]:
+        """The complete batches, in order, as LOG_SCHEMA."""
+        if self._reader is None:
+            return
+        while True:
+            try:
+                batch = self._reader.read_next_batch()
+            except StopIteration:
+                return
+            except (pa.ArrowInvalid, OSError):
+                # The writer died inside this batch: it was never fsynced, never acknowledged.
+                self.torn = True
+                return
+            if batch.num_rows:
+                yield pa.RecordBatch.from_arrays(batch.columns, schema=LOG_SCHEMA)
+
+    def close(self) -> None:
+        if self._source is not None:
+            self._source.close()
+            self._source = None
+        self._reader = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def stream_log(path: Path) -> LogStream:
+    """A log to read batch by batch (use as a context manager)."""
+    return LogStream(path)

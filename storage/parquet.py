@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Final
 
@@ -25,6 +26,7 @@ from jitdyn.storage.records import SessionHeader
 
 __all__ = [
     "METADATA_KEY",
+    "ROW_GROUP_BYTES",
     "ROW_GROUP_SIZE",
     "SCHEMA_VERSION",
     "file_metadata",
@@ -33,6 +35,7 @@ __all__ = [
     "read_metadata",
     "to_frame_table",
     "write_parquet",
+    "write_parquet_stream",
 ]
 
 # Bumped when a column is added, removed or changes meaning.
@@ -159,17 +162,60 @@ def to_frame_table(log: pa.Table, *, session_id: str, model_name: str) -> pa.Tab
 def write_parquet(table: pa.Table, *, path: Path, metadata: dict[str, Any]) -> None:
     """Write `table` to `path` atomically: a temporary file beside it, fsync, rename, fsync of the
     folder. A reader sees the old file or the whole new one, never a part."""
-    table = table.replace_schema_metadata({METADATA_KEY: json.dumps(metadata, allow_nan=False)})
+    write_parquet_stream([table], schema=table.schema, path=path, metadata=metadata)
+
+
+# A row group is written once this much of it is buffered (or ROW_GROUP_SIZE rows are): what
+# compaction holds in memory at most, whatever the session's length.
+ROW_GROUP_BYTES: Final = 32 * 1024 * 1024
+
+
+def write_parquet_stream(
+    tables: Iterable[pa.Table], *, schema: pa.Schema, path: Path, metadata: dict[str, Any]
+) -> None:
+    """`write_parquet` of the concatenation of `tables` (each of `schema`), holding at most one row
+    group (ROW_GROUP_SIZE rows or ROW_GROUP_BYTES) in memory."""
+    schema = schema.with_metadata({METADATA_KEY: json.dumps(metadata, allow_nan=False)})
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        pq.write_table(
-            table,
+    # Readable by the server's user only, whatever the umask (DESIGN: Security and limits).
+    with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "wb") as f:
+        with pq.ParquetWriter(
             f,
+            schema,
             compression="zstd",
             use_dictionary=_DICTIONARY_COLUMNS,
             column_encoding=_COLUMN_ENCODING,
-            row_group_size=ROW_GROUP_SIZE,
-        )
+        ) as writer:
+            pending: list[pa.Table] = []
+            rows = size = 0
+
+            def flush(*, whole: bool) -> None:
+                # Full row groups of ROW_GROUP_SIZE rows; the rest waits for more rows unless
+                # `whole` (the end, or ROW_GROUP_BYTES buffered).
+                nonlocal rows, size
+                if not pending:
+                    return
+                table = pa.concat_tables(pending)
+                pending.clear()
+                start = 0
+                while table.num_rows - start >= ROW_GROUP_SIZE:
+                    writer.write_table(table.slice(start, ROW_GROUP_SIZE))
+                    start += ROW_GROUP_SIZE
+                rest = table.slice(start)
+                if whole and rest.num_rows:
+                    writer.write_table(rest)
+                elif rest.num_rows:
+                    pending.append(rest)
+                rows = sum(t.num_rows for t in pending)
+                size = sum(t.nbytes for t in pending)
+
+            for table in tables:
+                pending.append(table.replace_schema_metadata(schema.metadata))
+                rows += table.num_rows
+                size += table.nbytes
+                if rows >= ROW_GROUP_SIZE or size >= ROW_GROUP_BYTES:
+                    flush(whole=size >= ROW_GROUP_BYTES)
+            flush(whole=True)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)

@@ -19,6 +19,7 @@ import enum
 import logging
 import os
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
 from typing import Self
@@ -26,20 +27,21 @@ from typing import Self
 import pyarrow as pa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
-from jitdyn.storage.columns import expected_lengths
+from jitdyn.storage.columns import FRAME_SCHEMA, expected_lengths
 from jitdyn.storage.commit import GroupCommitter, default_committer
+from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.layout import frames_location, fsync_dir, log_location, make_dirs
-from jitdyn.storage.log import LogWriter, read_log, try_lock
+from jitdyn.storage.log import LogStream, LogWriter, stream_log, try_lock
 from jitdyn.storage.parquet import (
     file_metadata,
     header_from_json,
     header_to_json,
     to_frame_table,
-    write_parquet,
+    write_parquet_stream,
 )
-from jitdyn.storage.records import SessionHeader, SessionSummaryInfo, TickRecord
-from jitdyn.storage.summary import summarise
+from jitdyn.storage.records import STATUSES, SessionHeader, SessionSummaryInfo, TickRecord
+from jitdyn.storage.summary import Summariser
 
 __all__ = ["SessionRecorder", "recover_unfinished"]
 
@@ -51,12 +53,24 @@ class _State(enum.Enum):
     CLOSED = "closed"
 
 
-def _compact(*, data_root: Path, header: SessionHeader, log: pa.Table) -> str:
-    """Write the log's rows as the session's Parquet file; its location relative to the data root."""
+def _compact(
+    *, data_root: Path, header: SessionHeader, log: LogStream, summariser: Summariser | None = None
+) -> str:
+    """Write the log's rows, read batch by batch in bounded memory, as the session's Parquet file
+    (adding each to `summariser`); its location relative to the data root."""
     location = frames_location(model_name=header.model_name, date=header.date, session_id=header.session_id)
     folder = make_dirs(data_root, str(Path(location).parent))
-    table = to_frame_table(log, session_id=header.session_id, model_name=header.model_name)
-    write_parquet(table, path=folder / Path(location).name, metadata=file_metadata(header))
+
+    def tables() -> Iterator[pa.Table]:
+        for batch in log.batches():
+            rows = pa.Table.from_batches([batch])
+            if summariser is not None:
+                summariser.add(rows)
+            yield to_frame_table(rows, session_id=header.session_id, model_name=header.model_name)
+
+    write_parquet_stream(
+        tables(), schema=FRAME_SCHEMA, path=folder / Path(location).name, metadata=file_metadata(header)
+    )
     return location
 
 
@@ -107,25 +121,38 @@ class SessionRecorder:
 
         self._log_location = log_location(header.session_id)
         self._log_path = data_root / self._log_location
-        make_dirs(data_root, str(Path(self._log_location).parent))
-        # The log (with the header) is durable before the index names it, so an OPEN row always
-        # has a log to recover from.
-        self._writer = LogWriter(self._log_path, header_json=header_to_json(header))
+        self._registered = False
+        try:
+            make_dirs(data_root, str(Path(self._log_location).parent))
+            # The log (with the header) is durable before the index names it, so an OPEN row always
+            # has a log to recover from.
+            self._writer = LogWriter(self._log_path, header_json=header_to_json(header))
+        except STORAGE_ERRORS as error:
+            raise storage_failure(f"session {header.session_id} could not be opened", error) from None
         try:
             index.create(header, log_path=self._log_location)
-        except BaseException:
+        except BaseException as error:
             self._writer.release()
             _delete_log(self._log_path)
+            if isinstance(error, STORAGE_ERRORS):
+                raise storage_failure(f"session {header.session_id} could not be opened", error) from None
             raise
-        self._key = self._committer.register(
-            name=header.session_id,
-            fd=self._writer.fileno(),
-            lengths=expected_lengths(header),
-            commit_every=commit_every,
-            commit_interval=commit_interval,
-            on_durable=self._on_durable,
-            on_failure=self._on_failure,
-        )
+        try:
+            self._key = self._committer.register(
+                name=header.session_id,
+                fd=self._writer.fileno(),
+                lengths=expected_lengths(header),
+                commit_every=commit_every,
+                commit_interval=commit_interval,
+                on_durable=self._on_durable,
+                on_failure=self._on_failure,
+            )
+        except BaseException:
+            self._state = _State.CLOSED
+            self._writer.release()
+            self._index.discard(header.session_id)
+            _delete_log(self._log_path)
+            raise
         self._registered = True
 
     @property
@@ -205,8 +232,8 @@ class SessionRecorder:
         `status` with `summary` (None: computed from the rows) in one index transaction, delete the
         log. Returns the Parquet location relative to the data root. Blocks for the compaction;
         call it off the event loop. A second call returns the same location and does nothing."""
-        if status not in ("COMPLETE", "RECOVERED", "FAILED"):
-            raise InvalidArgument(f"status must be one of COMPLETE, RECOVERED, FAILED, got {status!r}")
+        if status not in STATUSES[1:]:
+            raise InvalidArgument(f"status must be one of {', '.join(STATUSES[1:])}, got {status!r}")
         with self._cond:
             if self._state is _State.CLOSED:
                 if self._close_error is not None:
@@ -219,13 +246,23 @@ class SessionRecorder:
                 # The log holds what was durable; the session stays OPEN, and the next start
                 # recovers it.
                 raise self._failure
-            self._writer.finish()
-            log = read_log(self._log_path).table
-            location = _compact(data_root=self._data_root, header=self._header, log=log)
-            if summary is None:
-                summary = summarise(log, dof_names=self._header.dof_names)
-            self._index.finish(self._header.session_id, status=status, summary=summary, location=location)
-            _delete_log(self._log_path)
+            try:
+                self._writer.finish()
+                summariser = Summariser(dof_names=self._header.dof_names)
+                with stream_log(self._log_path) as log:
+                    location = _compact(
+                        data_root=self._data_root,
+                        header=self._header,
+                        log=log,
+                        summariser=summariser if summary is None else None,
+                    )
+                summary = summariser.result() if summary is None else summary
+                self._index.finish(self._header.session_id, status=status, summary=summary, location=location)
+                _delete_log(self._log_path)
+            except STORAGE_ERRORS as error:
+                raise storage_failure(
+                    f"session {self._header.session_id} could not be stored", error
+                ) from None
             self._location = location
             return location
         except BaseException as exc:
@@ -235,6 +272,20 @@ class SessionRecorder:
             # Released only now: until the index says the session ended, its lock keeps a
             # recovering server away from it.
             self._writer.release()
+
+    def discard(self) -> None:
+        """Undo a session that was never served (its open failed, or its client left before
+        `opened`): no log, no index row remain. Safe after close, and twice."""
+        with self._cond:
+            if self._state is _State.CLOSED:
+                return
+            self._state = _State.CLOSED
+        self._stop_committing()
+        try:
+            self._index.discard(self._header.session_id)
+        finally:
+            self._writer.release()
+            _delete_log(self._log_path)
 
     def fail(self, summary: SessionSummaryInfo | None = None) -> str:
         """`close` with status FAILED: the session ended by an error; what was received is kept."""
@@ -264,17 +315,18 @@ def _recover_one(*, data_root: Path, index: SessionIndex, row: SessionRow) -> bo
         _log.info("session %s is open in a live server; left alone", row.session_id)
         return False
     try:
-        contents = read_log(path)
-        if contents.header_json is None:
-            # The log died before its header was durable; no frame was acknowledged, and the
-            # index row, written after, cannot exist. Kept for a human to look at.
-            _log.warning("session %s: log %s has no header; not recovered", row.session_id, path)
-            return False
-        header = header_from_json(contents.header_json)
-        if contents.torn:
-            _log.info("session %s: dropped a torn last batch (never acknowledged)", row.session_id)
-        location = _compact(data_root=data_root, header=header, log=contents.table)
-        summary = summarise(contents.table, dof_names=header.dof_names)
+        with stream_log(path) as log:
+            if log.header_json is None:
+                # The log died before its header was durable; no frame was acknowledged, and the
+                # index row, written after, cannot exist. Kept for a human to look at.
+                _log.warning("session %s: log %s has no header; not recovered", row.session_id, path)
+                return False
+            header = header_from_json(log.header_json)
+            summariser = Summariser(dof_names=header.dof_names)
+            location = _compact(data_root=data_root, header=header, log=log, summariser=summariser)
+            if log.torn:
+                _log.info("session %s: dropped a torn last batch (never acknowledged)", row.session_id)
+        summary = summariser.result()
         index.finish(row.session_id, status="RECOVERED", summary=summary, location=location)
         _delete_log(path)
         return True

@@ -39,7 +39,7 @@ KINDS: Final = ("result", "rejected")
 SOURCES: Final = ("MEASURED", "PREDICTED", "CORRECTED")
 SCENARIOS: Final = ("PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN")
 CLOCKS: Final = ("LOCKSTEP", "REALTIME")
-STATUSES: Final = ("OPEN", "COMPLETE", "RECOVERED", "FAILED")
+STATUSES: Final = ("OPEN", "COMPLETE", "RECOVERED", "FAILED", "ABANDONED")
 # MuJoCo's joint types by their mjtJoint names, lower case as in MJCF.
 JOINT_TYPES: Final = ("free", "ball", "slide", "hinge")
 

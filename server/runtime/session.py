@@ -140,6 +140,12 @@ class SessionRuntime:
             return "too_old"
         return "duplicate" if tick.frame is not None else "late"
 
+    def release(self) -> None:
+        """Drop the history (its snapshots are most of a session's memory) once the session has
+        ended, whatever still refers to the runtime (an exception's traceback, until the garbage
+        collector finds the cycle it is part of)."""
+        self._ticks.clear()
+
     def reject(self, rejection: Rejection) -> Rejection:
         self.counts.rejected += 1
         return rejection

@@ -27,8 +27,9 @@ from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
+from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
-from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
+from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
 from jitdyn.server.transport.metrics import metrics, serve_metrics
 from jitdyn.server.transport.registry_service import ModelRegistryServicer
@@ -37,6 +38,7 @@ from jitdyn.settings import Settings, default_workers
 from jitdyn.storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
 from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.layout import prepare_data_root
 from jitdyn.storage.recorder import recover_unfinished
 from jitdyn.v1 import (
     dynamics_pb2,
@@ -101,6 +103,8 @@ class ServerConfig:
     # The server runs inside another program (BackgroundServer: the demo, the experiments, tests):
     # the process's CPU is not all its own, so admission counts only its sessions' estimates.
     shares_process: bool = False
+    # Per session: history memory, clock offset, idle time, tick cost (server/runtime/limits.py).
+    stream_limits: StreamLimits = DEFAULT_STREAM_LIMITS
 
     @classmethod
     def from_settings(cls, settings: Settings, **overrides: object) -> ServerConfig:
@@ -142,6 +146,8 @@ def _check_security(config: ServerConfig) -> None:
         raise InvalidArgument(f"--address must be HOST:PORT, got {config.address!r}")
     if bool(config.tls_cert) != bool(config.tls_key):
         raise InvalidArgument("--tls-cert and --tls-key must be given together")
+    if config.tls_key:
+        check_private_file(config.tls_key, setting="--tls-key")
     if not _is_loopback(config.address) and not config.insecure and not (config.tls_cert and config.api_keys):
         raise InvalidArgument(
             f"--address {config.address} is not a loopback address: serving beyond this machine needs "
@@ -156,8 +162,7 @@ def prepare_data(config: ServerConfig, *, recover_only: bool = False) -> tuple[P
     _check_security(config)
     if config.api_keys:
         load_api_keys(config.api_keys)  # refuse a bad key file before touching any data
-    data_root = config.data_root.resolve()
-    data_root.mkdir(parents=True, exist_ok=True)
+    data_root = prepare_data_root(config.data_root)
     load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
     url = config.index_url or default_index_url(data_root)
     engine = open_index(url, schema=config.index_schema)
@@ -233,8 +238,7 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
 async def _services(
     config: ServerConfig, server: grpc.aio.Server
 ) -> tuple[Services, health.aio.HealthServicer]:
-    data_root = config.data_root.resolve()
-    data_root.mkdir(parents=True, exist_ok=True)
+    data_root = await asyncio.to_thread(prepare_data_root, config.data_root)
     secret = load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
     engine = await asyncio.to_thread(
         open_index, config.index_url or default_index_url(data_root), schema=config.index_schema
@@ -263,7 +267,9 @@ async def _services(
     model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(
         ModelRegistryServicer(registry), server
     )
-    dynamics_pb2_grpc.add_DynamicsServiceServicer_to_server(DynamicsServicer(services), server)
+    dynamics_pb2_grpc.add_DynamicsServiceServicer_to_server(
+        DynamicsServicer(services, limits=config.stream_limits), server
+    )
     session_pb2_grpc.add_SessionServiceServicer_to_server(SessionServicer(index), server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)

@@ -8,19 +8,30 @@ key's tenant for the RPC, and every servicer reads it with `tenant_of`.
 
 from __future__ import annotations
 
+import asyncio
 import contextvars
 import hashlib
 import hmac
 import re
+import stat
+import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 import grpc
 
-from jitdyn.errors import InvalidArgument
+from jitdyn.errors import FailedPrecondition, InvalidArgument
 
-__all__ = ["DEFAULT_TENANT", "ApiKeyInterceptor", "current_tenant", "load_api_keys", "tenant_of"]
+__all__ = [
+    "DEFAULT_TENANT",
+    "ApiKeyInterceptor",
+    "FailurePenalty",
+    "check_private_file",
+    "current_tenant",
+    "load_api_keys",
+    "tenant_of",
+]
 
 DEFAULT_TENANT = ""
 
@@ -43,10 +54,25 @@ def _digest(key: str) -> bytes:
     return hashlib.sha256(key.encode()).digest()
 
 
+def check_private_file(path: Path, *, setting: str) -> None:
+    """Refuse a key file that group or others may read or write (FailedPrecondition, with the chmod
+    that fixes it): a key anyone on the machine can read protects nothing."""
+    try:
+        mode = stat.S_IMODE(path.stat().st_mode)
+    except OSError as error:
+        raise InvalidArgument(f"{setting} {str(path)!r} cannot be read: {error.strerror}") from None
+    if mode & 0o077:
+        raise FailedPrecondition(
+            f"{setting} {path} is accessible by group or others (mode {mode:04o}); run `chmod 600 {path}`"
+        )
+
+
 def load_api_keys(path: Path) -> dict[bytes, str]:
     """SHA-256 of each key -> its tenant, from a `KEY TENANT` file. Keys of fewer than 16 characters,
-    bad tenant names and repeated keys are refused with the line they are on."""
+    bad tenant names and repeated keys are refused with the line they are on; a file group or others
+    can read is refused."""
     keys: dict[bytes, str] = {}
+    check_private_file(path, setting="--api-keys")
     try:
         lines = path.read_text().splitlines()
     except OSError as error:
@@ -81,13 +107,52 @@ def load_api_keys(path: Path) -> dict[bytes, str]:
 
 
 def _tenant_for(metadata: Sequence[tuple[str, str | bytes]] | None, keys: Mapping[bytes, str]) -> str | None:
-    for name, value in metadata or ():
-        if name == "authorization" and isinstance(value, str) and value.startswith("Bearer "):
-            digest = _digest(value[len("Bearer ") :].strip())
-            for known, tenant in keys.items():
-                if hmac.compare_digest(known, digest):
-                    return tenant
-    return None
+    """The tenant of the one `authorization: Bearer KEY` header; None for no header, several
+    (each would be another guess at a key in the same RPC) or an unknown key."""
+    values = [value for name, value in metadata or () if name == "authorization"]
+    if len(values) != 1:
+        return None
+    (value,) = values
+    if not (isinstance(value, str) and value.startswith("Bearer ")):
+        return None
+    digest = _digest(value[len("Bearer ") :].strip())
+    found = None
+    for known, tenant in keys.items():
+        if hmac.compare_digest(known, digest):
+            found = tenant
+    return found
+
+
+class FailurePenalty:
+    """Slows down a peer that keeps failing authentication: each failure within `window` seconds of
+    the previous one doubles the wait before its answer, from `first` up to `cap` seconds, so
+    guessing keys costs time while one mistyped key costs nothing noticeable. Peers are hosts
+    (the port of each connection is left out); at most `max_peers` are remembered."""
+
+    def __init__(
+        self, *, first: float = 0.05, cap: float = 2.0, window: float = 60.0, max_peers: int = 10_000
+    ) -> None:
+        self._first = first
+        self._cap = cap
+        self._window = window
+        self._max_peers = max_peers
+        self._failures: dict[str, tuple[int, float]] = {}
+
+    @staticmethod
+    def host(peer: str) -> str:
+        """ "ipv4:10.0.0.7:53211" -> "ipv4:10.0.0.7"; "ipv6:[::1]:53211" -> "ipv6:[::1]"."""
+        return peer.rsplit(":", 1)[0] if peer.count(":") >= 2 else peer
+
+    def failed(self, peer: str) -> float:
+        """Count a failure of `peer`; the seconds to wait before answering it."""
+        now = time.monotonic()
+        host = self.host(peer)
+        count, last = self._failures.pop(host, (0, now))
+        count = count + 1 if now - last < self._window else 1
+        if len(self._failures) >= self._max_peers:
+            self._failures.pop(next(iter(self._failures)))  # the least recently failing
+        self._failures[host] = (count, now)
+        return min(self._cap, self._first * 2.0 ** (count - 1)) if count > 1 else 0.0
 
 
 # The grpc stubs type a handler's behaviours as synchronous; under grpc.aio they return awaitables
@@ -116,8 +181,9 @@ def _with_tenant(behavior: Callable[..., Any], tenant: str, streaming_response: 
 class ApiKeyInterceptor(grpc.aio.ServerInterceptor):
     """Requires a known API key on every RPC but health and reflection; sets the RPC's tenant."""
 
-    def __init__(self, keys: Mapping[bytes, str]) -> None:
+    def __init__(self, keys: Mapping[bytes, str], *, penalty: FailurePenalty | None = None) -> None:
         self._keys = dict(keys)
+        self._penalty = penalty or FailurePenalty()
 
     async def intercept_service(
         self,
@@ -133,9 +199,10 @@ class ApiKeyInterceptor(grpc.aio.ServerInterceptor):
         if tenant is None:
 
             async def refuse(request: object, context: grpc.aio.ServicerContext[_Request, _Response]) -> None:
+                await asyncio.sleep(self._penalty.failed(context.peer()))
                 await context.abort(
                     grpc.StatusCode.UNAUTHENTICATED,
-                    "this server needs an API key: send metadata `authorization: Bearer <key>`",
+                    "this server needs an API key: send one metadata `authorization: Bearer <key>`",
                 )
 
             if handler.request_streaming and handler.response_streaming:

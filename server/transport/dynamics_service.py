@@ -13,6 +13,7 @@ import functools
 import logging
 import math
 import time
+import traceback
 import uuid
 from collections.abc import AsyncIterator, Callable
 from datetime import UTC, datetime
@@ -30,6 +31,13 @@ from jitdyn.server.estimation.factory import make_estimator, measure_cycle
 from jitdyn.server.runtime.admission import Ticket
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
 from jitdyn.server.runtime.frames import FrameIn, Rejection
+from jitdyn.server.runtime.limits import (
+    DEFAULT_STREAM_LIMITS,
+    IdleTimeout,
+    StreamLimits,
+    snapshot_bytes,
+    tick_cost,
+)
 from jitdyn.server.runtime.services import Services
 from jitdyn.server.runtime.session import SessionRuntime, TickOutcome
 from jitdyn.server.transport.auth import tenant_of
@@ -46,6 +54,7 @@ from jitdyn.server.transport.model_messages import metadata_from_message, model_
 from jitdyn.server.transport.opening import SessionPlan, plan_session
 from jitdyn.server.transport.session_service import summary_to_pb
 from jitdyn.server.transport.status import abort
+from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
 from jitdyn.v1 import common_pb2, dynamics_pb2, dynamics_pb2_grpc
@@ -348,8 +357,9 @@ class _Stream:
 class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     """Serves StreamSession."""
 
-    def __init__(self, services: Services) -> None:
+    def __init__(self, services: Services, *, limits: StreamLimits = DEFAULT_STREAM_LIMITS) -> None:
         self._services = services
+        self._limits = limits
 
     # grpc.aio also takes a stream handler that writes through `context.write` and returns None,
     # which the generated servicer's signature (iterators of responses) does not describe.
@@ -374,22 +384,34 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             stream, opened = await self._open(first.open, tenant)
         except JitdynError as error:
             await abort(context, error)
+        except Exception:  # noqa: BLE001 (a bug: logged with its traceback, as translate_errors does)
+            # The client learns nothing of the server's insides.
+            _log.exception("internal error while opening a session")
+            await context.abort(grpc.StatusCode.INTERNAL, "internal server error; see the server log")
+        # A stream that ends without `close` was left by its client (cancelled, vanished, or just
+        # stopped sending) or cut by a stopping server: stored as ABANDONED. Everything from here on
+        # is inside the try, so that a cancel arriving while `opened` is written still stores the
+        # session and releases its slot.
         metrics().open_sessions.labels(metrics().process).inc()
-        # The session clock starts as `opened` leaves, as the client's starts as it arrives: opening
-        # (the log's fsync, the index row) took milliseconds, tens under load, which the client's
-        # clock knows nothing of; counted in, every frame looked late until a clock probe completed.
-        stream.clock.restart()
-        await context.write(Response(opened=opened))
-        status = "FAILED"
+        status = "ABANDONED"
         try:
+            # The session clock starts as `opened` leaves, as the client's starts as it arrives:
+            # opening (the log's fsync, the index row) took milliseconds, tens under load, which the
+            # client's clock knows nothing of; counted in, every frame looked late until a clock
+            # probe completed.
+            stream.clock.restart()
+            await context.write(Response(opened=opened))
             if stream.plan.clock == "REALTIME":
                 await self._realtime(stream, request_iterator, context)
             else:
                 await self._lockstep(stream, request_iterator, context)
-            status = "COMPLETE"
         except JitdynError as error:
-            await self._finish_quietly(stream, "FAILED")
-            await abort(context, error)
+            await self._finish_quietly(stream, "ABANDONED" if isinstance(error, IdleTimeout) else "FAILED")
+            # The status is set and the handler returns, rather than raising through
+            # context.abort: a raised abort keeps this frame (and the session's estimator and
+            # models) alive in its traceback's reference cycle until the garbage collector runs.
+            context.set_code(error.code)
+            context.set_details(str(error))
         finally:
             if not stream.closed:
                 # The client went away or the server is stopping: what arrived is stored.
@@ -400,11 +422,36 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
         services = self._services
         services.admit(tenant)
+        opening = asyncio.ensure_future(asyncio.to_thread(self._open_sync, request, tenant))
         try:
-            return await asyncio.to_thread(self._open_sync, request, tenant)
+            return await asyncio.shield(opening)
+        except JitdynError as error:
+            # The refused open's frames (the model, an estimator of hundreds of MB for a large
+            # model) would otherwise live in the error's traceback, kept in a reference cycle by
+            # the handler until the garbage collector runs.
+            traceback.clear_frames(error.__traceback__)
+            services.release(tenant)
+            raise
+        except asyncio.CancelledError:
+            # The client left while the session was being opened. The thread cannot be stopped, so
+            # the handler waits for it and undoes what it built (log, index row, commit
+            # registration) before the slot is given back.
+            await asyncio.shield(self._abandon_open(opening, tenant))
+            raise
         except BaseException:
             services.release(tenant)
             raise
+
+    async def _abandon_open(
+        self, opening: asyncio.Future[tuple[_Stream, dynamics_pb2.SessionOpened]], tenant: str
+    ) -> None:
+        try:
+            stream, _ = await opening
+            await asyncio.to_thread(stream.recorder.discard)
+        except Exception:  # noqa: BLE001 (the open failed anyway, or the discard did: both only logged)
+            _log.debug("an abandoned open ended with an error", exc_info=True)
+        finally:
+            self._services.release(tenant)
 
     def _open_sync(
         self, request: dynamics_pb2.OpenSession, tenant: str
@@ -456,6 +503,26 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             measured=plan.measured,
         )
         estimator = make_estimator(model, config, pool=services.pool)
+        self._limits.check_history(
+            history=plan.history,
+            snapshot_bytes=snapshot_bytes(estimator.snapshot()),
+            state_dimension=estimator.state_dimension,
+        )
+        if plan.clock == "REALTIME":
+            nsigma = int(getattr(estimator, "nsigma", 1))
+            cost = tick_cost(
+                model,
+                nsigma=nsigma,
+                steps_per_tick=plan.steps_per_tick,
+                state_dimension=estimator.state_dimension,
+            )
+            self._limits.check_tick_cost(
+                cost,
+                dt=plan.dt,
+                state_dimension=estimator.state_dimension,
+                nsigma=nsigma,
+                steps=plan.steps_per_tick,
+            )
         ticket: Ticket | None = None
         if plan.clock == "REALTIME":
             cycle = measure_cycle(model, config, pool=services.pool)
@@ -521,8 +588,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             )
         else:
             noise_reason = f"PRESET_{plan.preset}'s default for SCENARIO_{scenario}"
-        pseudonym = services.anonymiser.pseudonym(plan.subject_id) if plan.subject_id else ""
-        kept, dropped = services.anonymiser.filter_attributes(plan.subject_attributes)
+        kept = services.anonymiser.check_attributes(plan.subject_attributes)
+        pseudonym = services.anonymiser.pseudonym(plan.subject_id, tenant=tenant)
         session_id = str(uuid.uuid4())
         header = SessionHeader(
             session_id=session_id,
@@ -550,6 +617,40 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         recorder = SessionRecorder(
             data_root=services.data_root, index=services.index, header=header, committer=services.committer
         )
+        try:
+            return self._start(
+                plan,
+                model,
+                info,
+                estimator,
+                recorder,
+                settings,
+                pseudonym,
+                ticket=ticket,
+                scenario_reason=scenario_reason,
+                noise_reason=noise_reason,
+            )
+        except BaseException:
+            recorder.discard()
+            raise
+
+    def _start(
+        self,
+        plan: SessionPlan,
+        model: mujoco.MjModel,
+        info: ModelInfo,
+        estimator: Estimator,
+        recorder: SessionRecorder,
+        settings: dict[str, object],
+        pseudonym: str,
+        *,
+        ticket: Ticket | None,
+        scenario_reason: str,
+        noise_reason: str,
+    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        services = self._services
+        session_id = recorder.header.session_id
+        scenario = str(plan.scenario)
         runtime = SessionRuntime(
             model=model,
             estimator=estimator,
@@ -583,7 +684,6 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             outputs=[common_pb2.Output.Value("OUTPUT_" + o) for o in sorted(plan.outputs)],
             grace=plan.grace,
             history=plan.history,
-            dropped_attributes=sorted(dropped),
             subject_pseudonym=pseudonym,
             dt=plan.dt,
             steps_per_tick=plan.steps_per_tick,
@@ -599,7 +699,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         requests: AsyncIterator[dynamics_pb2.StreamSessionRequest],
         context: _Context,
     ) -> None:
-        async for request in requests:
+        async for request in self._until_idle(requests):
             arrived = stream.clock.now()
             kind = request.WhichOneof("payload")
             if kind == "frame":
@@ -657,7 +757,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
 
         tick_task = asyncio.create_task(ticker())
         try:
-            async for request in requests:
+            async for request in self._until_idle(requests):
                 if tick_task.done():
                     tick_task.result()  # surfaces a failure of the clock
                 arrived = stream.clock.now()
@@ -682,6 +782,20 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             # The clock's own end (cancelled, or failed while the stream ends) is not news here.
             await asyncio.gather(tick_task, return_exceptions=True)
 
+    async def _until_idle(
+        self, requests: AsyncIterator[dynamics_pb2.StreamSessionRequest]
+    ) -> AsyncIterator[dynamics_pb2.StreamSessionRequest]:
+        """The requests, until the client sends nothing for the idle timeout (IdleTimeout)."""
+        iterator = aiter(requests)
+        while True:
+            try:
+                request = await asyncio.wait_for(anext(iterator), self._limits.idle_timeout)
+            except StopAsyncIteration:
+                return
+            except TimeoutError:
+                raise self._limits.idle() from None
+            yield request
+
     def _pong(self, stream: _Stream, ping: dynamics_pb2.SyncPing, arrived: float) -> Response:
         if not math.isfinite(ping.client_send_time):
             raise InvalidArgument(f"sync.client_send_time must be finite, got {ping.client_send_time}")
@@ -696,6 +810,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             if ping.HasField("previous_receive_time")
             else None,
         )
+        if stream.plan.clock == "REALTIME":
+            # A client clock that leaps would make the session tick as fast as the CPU allows
+            # (ahead) or never (behind); either way it is refused.
+            self._limits.check_clock_offset(stream.sync.offset)
         return Response(
             sync=dynamics_pb2.SyncPong(
                 id=ping.id,
@@ -735,8 +853,14 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 stream.runtime.counts.mujoco_warnings,
             )
         summary = summary_info(stream.runtime.counts, duration=stream.clock.now())
+        stream.runtime.release()
+        stream.pending.clear()
         try:
             location = await asyncio.to_thread(stream.recorder.close, summary, status=status)
+        except STORAGE_ERRORS as error:
+            raise storage_failure(
+                f"session {stream.recorder.header.session_id} could not be stored", error
+            ) from None
         finally:
             self._services.release(stream.recorder.header.tenant)
             metrics().open_sessions.labels(metrics().process).dec()

@@ -30,9 +30,16 @@ _MAX_SUBJECT_ID = 256
 _V = TypeVar("_V", bound=int)
 
 
-def enum_name(enum: _EnumTypeWrapper[_V], value: _V) -> str:
-    """An enum value's name without its type prefix: Scenario 1 -> "PASSIVE"."""
-    full = enum.Name(value)
+def enum_name(enum: _EnumTypeWrapper[_V], value: _V, *, argument: str = "") -> str:
+    """An enum value's name without its type prefix: Scenario 1 -> "PASSIVE". A value the enum does
+    not define (proto3 enums are open: any int arrives) is InvalidArgument naming `argument`."""
+    try:
+        full = enum.Name(value)
+    except ValueError:
+        known = ", ".join(enum.keys())
+        raise InvalidArgument(
+            f"{argument or enum.DESCRIPTOR.name} must be one of {known}, got the undefined value {value}"
+        ) from None
     prefix = "".join("_" + c if c.isupper() and i else c for i, c in enumerate(enum.DESCRIPTOR.name)).upper()
     return full[len(prefix) + 1 :] if full.startswith(prefix + "_") else full
 
@@ -68,8 +75,10 @@ def _estimator_request(settings: common_pb2.EstimatorSettings) -> tuple[dict[str
 
 def plan_session(open_: dynamics_pb2.OpenSession, *, timestep: float) -> SessionPlan:
     """Check `open_` against a model with physics `timestep` (s)."""
-    scenario = enum_name(common_pb2.Scenario, open_.scenario) if open_.scenario else None
-    clock = enum_name(common_pb2.Clock, open_.clock) if open_.clock else "LOCKSTEP"
+    scenario = (
+        enum_name(common_pb2.Scenario, open_.scenario, argument="open.scenario") if open_.scenario else None
+    )
+    clock = enum_name(common_pb2.Clock, open_.clock, argument="open.clock") if open_.clock else "LOCKSTEP"
     dt = open_.dt
     if not math.isfinite(dt) or dt <= 0.0 or dt > _MAX_DT:
         raise InvalidArgument(f"open.dt must be in (0, {_MAX_DT}] seconds, got {dt}")
@@ -79,7 +88,7 @@ def plan_session(open_: dynamics_pb2.OpenSession, *, timestep: float) -> Session
             f"open.dt must be a whole multiple of the model's timestep {timestep} s, got {dt} "
             f"({dt / timestep:.6g} timesteps)"
         )
-    measured = {enum_name(common_pb2.Channel, c) for c in open_.measured}
+    measured = {enum_name(common_pb2.Channel, c, argument="open.measured") for c in open_.measured}
     if "UNSPECIFIED" in measured:
         raise InvalidArgument("open.measured must not contain CHANNEL_UNSPECIFIED")
     measured_lower = frozenset(c.lower() for c in measured)
@@ -94,12 +103,14 @@ def plan_session(open_: dynamics_pb2.OpenSession, *, timestep: float) -> Session
             "open.measured must include CHANNEL_CTRL in SCENARIO_CONTROLLED (the estimator predicts "
             f"with the frames' controls), got {sorted(c.upper() for c in measured_lower)}"
         )
-    outputs = frozenset(enum_name(common_pb2.Output, o) for o in open_.outputs) or frozenset(
-        {"INVERSE_DYNAMICS"}
-    )
+    outputs = frozenset(
+        enum_name(common_pb2.Output, o, argument="open.outputs") for o in open_.outputs
+    ) or frozenset({"INVERSE_DYNAMICS"})
     if "UNSPECIFIED" in outputs:
         raise InvalidArgument("open.outputs must not contain OUTPUT_UNSPECIFIED")
-    horizon = enum_name(dynamics_pb2.Horizon, open_.horizon) if open_.horizon else "NONE"
+    horizon = (
+        enum_name(dynamics_pb2.Horizon, open_.horizon, argument="open.horizon") if open_.horizon else "NONE"
+    )
     if horizon == "HALF_ROUND_TRIP" and clock != "REALTIME":
         raise InvalidArgument(
             "open.horizon HORIZON_HALF_ROUND_TRIP needs open.clock CLOCK_REALTIME, got CLOCK_LOCKSTEP"

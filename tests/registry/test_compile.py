@@ -97,7 +97,7 @@ def test_a_compile_over_the_time_limit_is_killed_and_the_compiler_recovers() -> 
             compiler.compile(slow, {})
         assert time.perf_counter() - started < 3.0
         assert str(error.value) == (
-            "compiling the model took longer than the limit of 0.3 s (registry setting compile_timeout)"
+            "compiling the model took longer than the limit of 0.3 s (registry setting compile_timeout, --compile-timeout)"
         )
         assert compiler.compile(PENDULUM, {}).nv == 1
 

@@ -27,6 +27,7 @@ def keyed_server(
 ) -> Iterator[BackgroundServer]:
     keys = tmp_path_factory.mktemp("keys") / "api-keys"
     keys.write_text(f"# key tenant\n{KEY_A} lab-a\n{KEY_B} lab-b\n")
+    keys.chmod(0o600)
     with BackgroundServer(make_config(tmp_path_factory.mktemp("data"), api_keys=keys)) as running:
         yield running
 

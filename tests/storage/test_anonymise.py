@@ -83,37 +83,80 @@ def test_secret_file_from_environment_path(tmp_path: Path) -> None:
     assert bytes.fromhex(path.read_text()) == secret
 
 
-def test_pseudonym_is_hmac_sha256_hex() -> None:
+def test_pseudonym_is_hmac_sha256_under_a_key_per_tenant() -> None:
     anonymiser = Anonymiser(SECRET)
-    pseudonym = anonymiser.pseudonym("patient-4711")
-    assert pseudonym == hmac.new(SECRET, b"patient-4711", hashlib.sha256).hexdigest()
+    pseudonym = anonymiser.pseudonym("patient-4711", tenant="")
+    key = hmac.new(SECRET, b"jitdyn pseudonym key v1\x00", hashlib.sha256).digest()
+    assert pseudonym == hmac.new(key, b"patient-4711", hashlib.sha256).hexdigest()
     # Pinned, so that a change of the scheme (which would orphan every stored pseudonym) is seen.
-    assert pseudonym == "72f470b43d8b0c702555bc24adfed6d5b3cd9e443040cf00cbdfd83f6ddb6d3b"
-    assert Anonymiser(bytes(32)).pseudonym("patient-4711") != pseudonym
-    assert anonymiser.pseudonym("") == ""
+    assert pseudonym == "586352089bf4a624e0bc71fe127e719460f65c2a1e72db3f6176037b525509bc"
+    other = anonymiser.pseudonym("patient-4711", tenant="lab-b")
+    lab_b = hmac.new(SECRET, b"jitdyn pseudonym key v1\x00lab-b", hashlib.sha256).digest()
+    assert other == hmac.new(lab_b, b"patient-4711", hashlib.sha256).hexdigest() != pseudonym
+    assert Anonymiser(bytes(32)).pseudonym("patient-4711", tenant="") != pseudonym
+    assert anonymiser.pseudonym("", tenant="") == ""
     with pytest.raises(InvalidArgument, match="subject.id must have at most 256 characters, got 257"):
-        anonymiser.pseudonym("x" * 257)
+        anonymiser.pseudonym("x" * 257, tenant="")
 
 
-def test_attributes_pass_the_allow_list_and_a_length_limit() -> None:
-    assert {
-        "sex",
-        "age_band",
-        "height_m",
-        "mass_kg",
-        "side",
-        "limb",
-        "condition",
-    } == DEFAULT_ALLOWED_ATTRIBUTES
-    kept, dropped = Anonymiser(SECRET).filter_attributes(
-        {"sex": "F", "height_m": "1.68", "name": "Erika Mustermann", "condition": "x" * 33, "email": "e@x"}
+def test_attributes_are_typed_and_coarsened() -> None:
+    assert {"sex", "age", "age_band", "height_m", "mass_kg", "side", "limb", "condition"} == (
+        DEFAULT_ALLOWED_ATTRIBUTES
     )
-    assert kept == {"sex": "F", "height_m": "1.68"}
-    assert dropped == ["condition", "email", "name"]
-    kept, dropped = Anonymiser(SECRET, allowed_attributes={"cohort"}).filter_attributes(
-        {"cohort": "A", "sex": "F"}
-    )
-    assert (kept, dropped) == ({"cohort": "A"}, ["sex"])
+    anonymiser = Anonymiser(SECRET)
+    assert anonymiser.check_attributes(
+        {"sex": "f", "age": "43", "height_m": "1.83", "mass_kg": "77.4", "side": "Left", "limb": "leg"}
+    ) == {"sex": "F", "age_band": "40-44", "height_m": "1.85", "mass_kg": "75", "side": "left", "limb": "leg"}
+    assert anonymiser.check_attributes({"age_band": "65-69", "condition": "stroke"}) == {
+        "age_band": "65-69",
+        "condition": "stroke",
+    }
+
+
+@pytest.mark.parametrize(
+    ("attributes", "message"),
+    [
+        (
+            {"name": "Erika"},
+            r"open.subject.attributes\['name'\]: not an attribute this server keeps; allowed: ",
+        ),
+        (
+            {"limb": "Jane Doe 555-1234"},
+            r"attributes\['limb'\] must be one of arm, forearm, .*, got 'Jane Doe 555-1234'",
+        ),
+        (
+            {"age": "43.5"},
+            r"attributes\['age'\] must be whole years, 0 to 130 \(stored as a 5-year band\), got '43.5'",
+        ),
+        (
+            {"age_band": "40-49"},
+            r"attributes\['age_band'\] must be a 5-year band such as \"40-44\", got '40-49'",
+        ),
+        (
+            {"height_m": "tall"},
+            r"attributes\['height_m'\] must be a number of metres in \[0.3, 2.6\], got 'tall'",
+        ),
+        (
+            {"mass_kg": "nan"},
+            r"attributes\['mass_kg'\] must be a number of kilograms in \[1, 400\], got 'nan'",
+        ),
+        ({"condition": "x" * 33}, r"attributes\['condition'\] must have at most 32 characters, got 33"),
+    ],
+)
+def test_anything_else_is_refused_naming_the_attribute(attributes: dict[str, str], message: str) -> None:
+    with pytest.raises(InvalidArgument, match=message):
+        Anonymiser(SECRET).check_attributes(attributes)
+
+
+def test_only_typed_attributes_can_be_allowed() -> None:
+    with pytest.raises(
+        InvalidArgument, match=r"allowed attributes must be typed ones of .*, got \['cohort'\]"
+    ):
+        Anonymiser(SECRET, allowed_attributes={"cohort"})
+    with pytest.raises(
+        InvalidArgument, match=r"attributes\['sex'\]: not an attribute this server keeps; allowed: limb"
+    ):
+        Anonymiser(SECRET, allowed_attributes={"limb"}).check_attributes({"sex": "F"})
 
 
 def test_no_stored_byte_identifies_the_subject(
@@ -126,11 +169,10 @@ def test_no_stored_byte_identifies_the_subject(
     """A session as the runtime records it, with a subject id and a name among the attributes: no
     file under the data root (the SQLite index included) and no index row holds either."""
     anonymiser = Anonymiser(SECRET)
-    kept, dropped = anonymiser.filter_attributes(
-        {"name": "Erika Mustermann", "sex": "F", "age_band": "40-49"}
+    kept = anonymiser.check_attributes({"sex": "F", "age": "43"})
+    header = make_header(
+        subject_pseudonym=anonymiser.pseudonym("patient-4711", tenant=""), subject_attributes=kept
     )
-    assert dropped == ["name"]
-    header = make_header(subject_pseudonym=anonymiser.pseudonym("patient-4711"), subject_attributes=kept)
     with SessionRecorder(data_root=data_root, index=index, header=header) as recorder:
         for record in make_records(40):
             recorder.append(record)
@@ -144,7 +186,7 @@ def test_no_stored_byte_identifies_the_subject(
             text = repr(tuple(row)).encode()
             for needle in (b"patient-4711", b"Erika", b"Mustermann"):
                 assert needle not in text
-    assert index.get(header.session_id, tenant="").subject_attributes == {"sex": "F", "age_band": "40-49"}
+    assert index.get(header.session_id, tenant="").subject_attributes == {"sex": "F", "age_band": "40-44"}
 
 
 def scan_for_identifiers(root: Path) -> None:

@@ -90,7 +90,7 @@ def test_create_get_and_finish(index: SessionIndex, make_header: Callable[..., S
     with pytest.raises(NotFound, match="is not in the index"):
         index.finish("00000000-0000-0000-0000-000000000000", status="FAILED", summary=summary, location="")
     with pytest.raises(
-        InvalidArgument, match="status must be one of COMPLETE, RECOVERED, FAILED, got 'OPEN'"
+        InvalidArgument, match="status must be one of COMPLETE, RECOVERED, FAILED, ABANDONED, got 'OPEN'"
     ):
         index.finish(header.session_id, status="OPEN", summary=summary, location="")
     with pytest.raises(FailedPrecondition, match="already in the index"):
@@ -166,7 +166,10 @@ def test_filters(index: SessionIndex, make_header: Callable[..., SessionHeader])
             {"scenario": "passive"},
             "scenario must be one of PASSIVE, CONTROLLED, EXTERNAL, DRIVEN, got 'passive'",
         ),
-        ({"status": "DONE"}, "status must be one of OPEN, COMPLETE, RECOVERED, FAILED, got 'DONE'"),
+        (
+            {"status": "DONE"},
+            "status must be one of OPEN, COMPLETE, RECOVERED, FAILED, ABANDONED, got 'DONE'",
+        ),
         (
             {"started_after": T0 + dt.timedelta(seconds=1), "started_before": T0},
             (

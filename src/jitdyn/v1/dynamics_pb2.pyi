@@ -257,8 +257,14 @@ class Subject(_message.Message):
     """The subject's id in the client's world (e.g. a patient number); at most 256 characters."""
     @_builtins.property
     def attributes(self) -> _containers.ScalarMap[_builtins.str, _builtins.str]:
-        """Attributes of the subject (e.g. "height_m": "1.82"). Only keys on the server's allow-list are
-        kept; the dropped keys are listed in `SessionOpened.dropped_attributes`.
+        """Typed attributes of the subject, never free text. The keys a server keeps (its allow-list, a
+        subset of these) and their values: "sex": F, M or X; "age": whole years, stored only as its
+        5-year band "age_band" ("43" -> "40-44"); "age_band": such a band; "height_m": metres, stored
+        rounded to 0.05; "mass_kg": kilograms, stored rounded to 5; "side": left, right or both;
+        "limb": arm, forearm, hand, leg, thigh, shank, foot, trunk, neck or head; "condition":
+        healthy, amputation, stroke, spinal-cord-injury, cerebral-palsy, parkinsons,
+        multiple-sclerosis, osteoarthritis, acl-reconstruction or other. Any other key, or a value
+        not of its type, is INVALID_ARGUMENT naming the attribute. Values have at most 32 characters.
         """
 
     def __init__(
@@ -601,7 +607,9 @@ class SessionOpened(_message.Message):
     history: _builtins.int
     """The history in force (ticks)."""
     subject_pseudonym: _builtins.str
-    """The subject's pseudonym as stored (hex HMAC-SHA256); empty without a subject id."""
+    """The subject's pseudonym as stored (hex HMAC-SHA256 under this tenant's own key, so that it
+    matches no pseudonym of another tenant); empty without a subject id.
+    """
     dt: _builtins.float
     """The dt in force (seconds) and the physics steps it spans."""
     steps_per_tick: _builtins.int
@@ -634,7 +642,7 @@ class SessionOpened(_message.Message):
 
     @_builtins.property
     def dropped_attributes(self) -> _containers.RepeatedScalarFieldContainer[_builtins.str]:
-        """Subject attribute keys that are not on the allow-list and were dropped."""
+        """Always empty: attributes off the allow-list are refused (INVALID_ARGUMENT), no longer dropped."""
 
     def __init__(
         self,

@@ -38,6 +38,11 @@ class _SessionStatusEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Session
     """The server stopped during the session; recovered from its log at the next start."""
     SESSION_STATUS_FAILED: _SessionStatus.ValueType  # 4
     """Ended by an error; what was received is stored."""
+    SESSION_STATUS_ABANDONED: _SessionStatus.ValueType  # 5
+    """The stream ended without `close`: the client cancelled it, vanished (its connection died or
+    went silent past the server's idle timeout) or the server stopped first; what was received
+    is stored.
+    """
 
 class SessionStatus(_SessionStatus, metaclass=_SessionStatusEnumTypeWrapper):
     """The life of a stored session."""
@@ -52,6 +57,11 @@ SESSION_STATUS_RECOVERED: SessionStatus.ValueType  # 3
 """The server stopped during the session; recovered from its log at the next start."""
 SESSION_STATUS_FAILED: SessionStatus.ValueType  # 4
 """Ended by an error; what was received is stored."""
+SESSION_STATUS_ABANDONED: SessionStatus.ValueType  # 5
+"""The stream ended without `close`: the client cancelled it, vanished (its connection died or
+went silent past the server's idle timeout) or the server stopped first; what was received
+is stored.
+"""
 Global___SessionStatus: _TypeAlias = SessionStatus  # noqa: Y015
 
 @_typing.final

@@ -1,0 +1,134 @@
+"""Limits on what one session may cost the server, checked at open and while it runs; each has a
+`jitdyn serve` flag, which the refusal names.
+
+    limits = StreamLimits(max_history_bytes=64 << 20, idle_timeout=60.0)
+    limits.check_history(history=500, snapshot_bytes=estimator_snapshot_bytes(estimator))
+    limits.check_tick_cost(model, nsigma=..., steps_per_tick=..., state_dimension=..., dt=...)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from jitdyn.errors import InvalidArgument, ResourceExhausted
+
+__all__ = [
+    "DEFAULT_STREAM_LIMITS",
+    "IdleTimeout",
+    "StreamLimits",
+    "snapshot_bytes",
+    "tick_cost",
+]
+
+# Floating-point work of the filter's linear algebra per second that a tick can count on (numpy on
+# one core, measured for the covariance and its square root at state dimensions 50-400).
+_FLOPS = 2e9
+# Physics steps timed at open to price one step of the model.
+_TIMED_STEPS = 10
+
+
+class IdleTimeout(ResourceExhausted):
+    """A session sent nothing (no frame, no sync, no skip) for longer than the idle timeout."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class StreamLimits:
+    """Limits on one session's memory, clock and time.
+
+    Attributes:
+      max_history_bytes: memory the late-frame history may hold (ticks x the estimator's state
+        size), in bytes (--max-history-bytes).
+      max_clock_offset: how far (s) a REALTIME client's clock may be placed from the session's by
+        `sync` (--max-clock-offset); both start as `opened` is sent, so an honest offset is about
+        half a round trip.
+      idle_timeout: seconds a session may go with no request at all (--idle-timeout).
+      max_tick_share: the largest share of dt a REALTIME tick's estimated cost may take
+        (--max-tick-share).
+    """
+
+    max_history_bytes: int = 256 * 1024 * 1024
+    max_clock_offset: float = 5.0
+    idle_timeout: float = 60.0
+    max_tick_share: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("max_history_bytes", "max_clock_offset", "idle_timeout", "max_tick_share"):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not (math.isfinite(value) and value > 0)
+            ):
+                raise InvalidArgument(f"StreamLimits.{name} must be a positive number, got {value!r}")
+
+    def check_history(self, *, history: int, snapshot_bytes: int, state_dimension: int) -> None:
+        """Refuse a history whose snapshots would hold more than max_history_bytes."""
+        needed = history * snapshot_bytes
+        if needed > self.max_history_bytes:
+            fits = max(1, self.max_history_bytes // max(1, snapshot_bytes))
+            raise ResourceExhausted(
+                f"open.history {history} ticks at state dimension {state_dimension} would hold "
+                f"{needed / 2**20:.1f} MiB; the limit per session is {self.max_history_bytes / 2**20:.1f} MiB "
+                f"(--max-history-bytes): ask for at most {fits} ticks"
+            )
+
+    def check_clock_offset(self, offset: float) -> None:
+        """Refuse a REALTIME client clock placed further than max_clock_offset from the session's."""
+        if not abs(offset) <= self.max_clock_offset:
+            raise InvalidArgument(
+                f"sync: the client's clock is {offset:+.6g} s from the session's; the limit is "
+                f"±{self.max_clock_offset:g} s (--max-clock-offset): start the session clock when "
+                "`opened` arrives"
+            )
+
+    def idle(self) -> IdleTimeout:
+        return IdleTimeout(
+            f"the session sent no frame, sync or skip for {self.idle_timeout:g} s, the limit "
+            f"(--idle-timeout); it was stored and its slot given back"
+        )
+
+    def check_tick_cost(
+        self, cost: float, *, dt: float, state_dimension: int, nsigma: int, steps: int
+    ) -> None:
+        """Refuse a REALTIME session whose estimated tick cost (s) does not fit its dt."""
+        if cost > self.max_tick_share * dt:
+            raise ResourceExhausted(
+                f"a tick of this session would cost about {cost * 1e3:.1f} ms (state dimension "
+                f"{state_dimension}, {nsigma} sigma points, {steps} physics steps each), over "
+                f"{self.max_tick_share:g} of open.dt {dt * 1e3:g} ms (--max-tick-share): use a larger dt, "
+                "fewer sigma points (estimator.sigma_points) or a smaller model"
+            )
+
+
+DEFAULT_STREAM_LIMITS = StreamLimits()
+
+
+def snapshot_bytes(snapshot: object) -> int:
+    """Bytes of the arrays an estimator snapshot holds (one tick of history)."""
+    if isinstance(snapshot, np.ndarray):
+        return int(snapshot.nbytes)
+    if dataclasses.is_dataclass(snapshot) and not isinstance(snapshot, type):
+        return sum(snapshot_bytes(getattr(snapshot, f.name)) for f in dataclasses.fields(snapshot))
+    if isinstance(snapshot, (tuple, list)):
+        return sum(snapshot_bytes(item) for item in snapshot)
+    return 0
+
+
+def tick_cost(model: mujoco.MjModel, *, nsigma: int, steps_per_tick: int, state_dimension: int) -> float:
+    """Estimated seconds of one tick: every sigma point stepped `steps_per_tick` times (one step
+    of this model timed here) plus the filter's linear algebra (cubic in the state dimension)."""
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    started = time.perf_counter()
+    for _ in range(_TIMED_STEPS):
+        mujoco.mj_step(model, data)
+    step = (time.perf_counter() - started) / _TIMED_STEPS
+    n = state_dimension
+    flops = n**3 + 4.0 * nsigma * n * n
+    return nsigma * steps_per_tick * step + flops / _FLOPS

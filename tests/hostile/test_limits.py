@@ -1,0 +1,182 @@
+"""Findings 3 to 6: models that amplify memory, a history unbounded by memory, REALTIME clock
+games and silent clients, ticks that cannot fit their dt. Each refusal names its limit and flag."""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import grpc
+import pytest
+from _hostile import (
+    Request,
+    Served,
+    chain,
+    hfield,
+    honest_session,
+    logs,
+    open_request,
+    register,
+    settle,
+    stored,
+)
+
+from jitdyn.v1 import dynamics_pb2
+
+
+def _refused(call: Callable[[], object], code: grpc.StatusCode) -> str:
+    with pytest.raises(grpc.RpcError) as caught:
+        call()
+    assert caught.value.code() == code, caught.value.details()
+    return caught.value.details() or ""
+
+
+def test_a_tiny_mjcf_cannot_ask_for_a_huge_height_field(serve: Callable[..., Served]) -> None:
+    served = serve()
+    honest_session(served)
+    before = served.resources().rss_mb
+    mjcf = hfield(5000)
+    assert len(mjcf) < 110
+    for attempt in range(4):
+        details = _refused(
+            lambda a=attempt: register(served, f"bomb{a}", mjcf), grpc.StatusCode.RESOURCE_EXHAUSTED
+        )
+        assert (
+            "the compiled model needs 100" in details
+            and "(registry setting max_compiled_bytes, --max-compiled-bytes)" in details
+        )
+    assert served.resources().rss_mb - before < 50
+
+
+def test_the_compile_worker_runs_under_a_memory_limit(serve: Callable[..., Served]) -> None:
+    served = serve("--compile-memory-bytes", "1500MiB", "--max-compiled-bytes", "4GiB")
+    started = time.monotonic()
+    details = _refused(lambda: register(served, "bomb", hfield(16000)), grpc.StatusCode.RESOURCE_EXHAUSTED)
+    assert details == (
+        "compiling the model ran out of the compile worker's memory limit "
+        "(registry setting compile_memory_bytes, --compile-memory-bytes)"
+    )
+    assert time.monotonic() - started < 10
+    assert served.resources().rss_mb < 600
+    register(served, "small", hfield(10))  # a new worker serves the next model
+
+
+def test_compiled_models_are_kept_within_the_cache_bytes(serve: Callable[..., Served]) -> None:
+    served = serve("--model-cache-bytes", "32MiB")
+    register(served, "warm", hfield(10))
+    before = served.resources().rss_mb
+    for i in range(10):
+        register(served, f"field{i}", hfield(2000))  # 16 MB each once compiled
+    time.sleep(0.5)
+    assert served.resources().rss_mb - before < 90
+
+
+def test_a_tenant_has_a_model_quota(serve: Callable[..., Served]) -> None:
+    served = serve("--max-models-per-tenant", "3")
+    for i in range(3):
+        register(served, f"m{i}", hfield(10 + i))
+    details = _refused(lambda: register(served, "m3", hfield(20)), grpc.StatusCode.RESOURCE_EXHAUSTED)
+    assert details == (
+        "the number of this tenant's models, with this one is 4, over the limit of 3 "
+        "(registry setting max_models_per_tenant, --max-models-per-tenant)"
+    )
+    register(served, "m0", hfield(10))  # identical content: the existing model, no new one
+
+
+def test_history_is_bounded_by_memory(serve: Callable[..., Served]) -> None:
+    served = serve()
+    register(served, "chain100", chain(100))
+    before = served.resources().rss_mb
+    details = _refused(
+        lambda: list(
+            served.dynamics.StreamSession(
+                iter([open_request(model="chain100", dt=0.005, history=10000)]), timeout=60
+            )
+        ),
+        grpc.StatusCode.RESOURCE_EXHAUSTED,
+    )
+    assert details.startswith("open.history 10000 ticks at state dimension 200 would hold ")
+    assert "(--max-history-bytes): ask for at most " in details
+    honest_session(served, model="chain100", dt=0.005, history=50, ticks=2, nq=100)
+    assert served.resources().rss_mb - before < 150
+    assert logs(served) == []
+
+
+def _realtime(served: Served, requests: Iterator[Request]) -> tuple[list[str], grpc.RpcError | None]:
+    kinds: list[str] = []
+    try:
+        for response in served.dynamics.StreamSession(requests, timeout=30):
+            kinds.append(response.WhichOneof("payload"))
+    except grpc.RpcError as error:
+        return kinds, error
+    return kinds, None
+
+
+@pytest.mark.parametrize("leap", [1e5, -1e5])
+def test_a_client_clock_that_leaps_is_refused(serve: Callable[..., Served], leap: float) -> None:
+    served = serve()
+    gate = threading.Event()
+
+    def requests() -> Iterator[Request]:
+        yield open_request(clock="REALTIME")
+        yield Request(sync=dynamics_pb2.SyncPing(id=1, client_send_time=leap))
+        yield Request(
+            sync=dynamics_pb2.SyncPing(
+                id=2, client_send_time=leap + 0.01, previous_id=1, previous_receive_time=leap + 0.002
+            )
+        )
+        gate.wait(5)
+
+    started = time.monotonic()
+    kinds, error = _realtime(served, requests())
+    gate.set()
+    assert error is not None and error.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert "the limit is ±5 s (--max-clock-offset)" in (error.details() or "")
+    assert time.monotonic() - started < 3
+    assert kinds.count("result") < 20  # no run of ticks as fast as the CPU allows
+    assert settle(lambda: len(stored(served, "FAILED")) == 1)
+
+
+@pytest.mark.parametrize("clock", ["LOCKSTEP", "REALTIME"])
+def test_a_silent_client_is_ended_after_the_idle_timeout(serve: Callable[..., Served], clock: str) -> None:
+    served = serve("--idle-timeout", "1", "--max-sessions-per-tenant", "1")
+    gate = threading.Event()
+
+    def requests() -> Iterator[Request]:
+        yield open_request(clock=clock)
+        gate.wait(30)
+
+    started = time.monotonic()
+    _, error = _realtime(served, requests())
+    gate.set()
+    assert error is not None and error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+    assert "for 1 s, the limit (--idle-timeout)" in (error.details() or "")
+    assert 0.9 < time.monotonic() - started < 5
+    assert settle(lambda: len(stored(served, "ABANDONED")) == 1)
+    honest_session(served)  # the one slot came back
+
+
+def test_a_tick_that_cannot_fit_dt_is_refused_at_open(serve: Callable[..., Served]) -> None:
+    served = serve()
+    register(served, "chain100", chain(100))
+    details = _refused(
+        lambda: list(
+            served.dynamics.StreamSession(
+                iter([open_request(model="chain100", dt=0.025, clock="REALTIME")]), timeout=60
+            )
+        ),
+        grpc.StatusCode.RESOURCE_EXHAUSTED,
+    )
+    assert details.startswith("a tick of this session would cost about ")
+    assert re.search(
+        r"\(state dimension 200, \d+ sigma points, 5 physics steps each\), over 0.5 of open.dt 25 ms "
+        r"\(--max-tick-share\): use a larger dt, fewer sigma points \(estimator.sigma_points\) or a smaller model$",
+        details,
+    ), details
+    # An honest REALTIME session still opens.
+    kinds, error = _realtime(
+        served, iter([open_request(clock="REALTIME"), Request(close=dynamics_pb2.CloseSession())])
+    )
+    assert error is None and kinds[0] == "opened" and kinds[-1] == "closed"
