@@ -447,6 +447,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     ) -> None:
         try:
             stream, _ = await opening
+            if stream.ticket is not None:
+                stream.ticket.release()  # its share of the tick budget, too
             await asyncio.to_thread(stream.recorder.discard)
         except Exception:  # noqa: BLE001 (the open failed anyway, or the discard did: both only logged)
             _log.debug("an abandoned open ended with an error", exc_info=True)
