@@ -103,34 +103,16 @@ def expected_lengths(header: SessionHeader) -> dict[str, int]:
     }
 
 
-_CHECKED: Final = tuple(
-    (name, operator.attrgetter(name))
-    for name in (
-        "frame_qpos",
-        "frame_qvel",
-        "frame_qacc",
-        "frame_ctrl",
-        "frame_sensordata",
-        "qpos",
-        "qvel",
-        "qacc",
-        "qfrc_inverse",
-        "qacc_forward",
-        "actuator_force",
-        "sensordata",
-    )
-)
-
-
 def check_lengths(records: Sequence[TickRecord], lengths: dict[str, int]) -> None:
     """Raise InvalidArgument naming the column when a present array of `records` has the wrong
     length for its session (`lengths` from `expected_lengths`)."""
+    checked = [(name, _GETTERS[name], expected) for name, expected in lengths.items()]
     for position, record in enumerate(records):
-        for name, getter in _CHECKED:
+        for name, getter, expected in checked:
             array = getter(record)
-            if array is not None and name in lengths and len(array) != lengths[name]:
+            if array is not None and len(array) != expected:
                 raise InvalidArgument(
-                    f"{name} must have {lengths[name]} values in every record, got {len(array)} "
+                    f"{name} must have {expected} values in every record, got {len(array)} "
                     f"in the record at position {position} of the batch"
                 )
 
