@@ -48,6 +48,7 @@ class Honest:
     def __init__(self, served: Served, *, dt: float = 0.025) -> None:
         self.dt = dt
         self.latencies: list[float] = []
+        self.server_latencies: list[float] = []  # frame arrival to result sent, server clock
         self.sources: list[int] = []
         self.seqs: list[int] = []
         self.late_compute = 0
@@ -82,6 +83,7 @@ class Honest:
                 sent = self._sent.get(result.seq)
                 if sent is not None and result.frame_received:
                     self.latencies.append(time.monotonic() - sent)
+                    self.server_latencies.append(result.receive_to_send_us / 1e6)
                 self.sources.append(result.source)
                 if result.source != dynamics_pb2.Source.Value("SOURCE_CORRECTED"):
                     self.seqs.append(result.seq)
@@ -125,9 +127,10 @@ def live(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Served]:
     assert ticks >= 0.97 * (honest.seqs[-1] + 1)
     assert honest.late_compute <= 0.02 * ticks
     assert statistics.median(honest.latencies) < honest.dt / 2
-    # This client shares its process (and GIL) with the fuzzer: on a loaded 2-core machine its own
-    # reading lags, so the tail is held to a few ticks and the median to half of one.
-    assert sorted(honest.latencies)[int(0.95 * len(honest.latencies))] < 4 * honest.dt
+    # This client shares its process (and GIL) with the fuzzer, so its own reading lags on a loaded
+    # machine: the tail is judged on the server's clock (frame arrival to result sent).
+    server = sorted(honest.server_latencies)
+    assert server[int(0.95 * len(server))] < honest.dt
 
 
 def _stream(served: Served, requests: list[Request]) -> tuple[list[str], grpc.RpcError | None]:
