@@ -8,7 +8,9 @@
 `append` only queues the record; the process's commit thread (storage/commit.py, shared by every
 session) appends what has queued to the session's log and makes it durable together with the other
 sessions' records of the same window (group commit), every `commit_every` records or
-`commit_interval` seconds after the first queued one, whichever comes first. `close` compacts the
+`commit_interval` seconds after the first queued one, whichever comes first (the commit thread
+widens the window, up to commit.MAX_WINDOW, while its commits carry too few records to be worth
+their fixed cost). `close` compacts the
 log to Parquet, marks the session ended in the index in one transaction, then deletes the log. On
 start, `recover_unfinished` does the same for every session whose server died.
 """

@@ -31,6 +31,7 @@ _FULL: Final = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 _CTRL: Final = int(mujoco.mjtState.mjSTATE_CTRL)
 _QFRC: Final = int(mujoco.mjtState.mjSTATE_QFRC_APPLIED)
 _INTEGRATION: Final = int(mujoco.mjtState.mjSTATE_INTEGRATION)
+_PRICED_STEPS: Final = 8
 
 
 class Inputs(enum.Enum):
@@ -131,13 +132,18 @@ def _full_columns(model: mujoco.MjModel) -> slice | np.ndarray:
 
 
 def _step_seconds(model: mujoco.MjModel, data: mujoco.MjData) -> float:
-    """A rough price of one mj_step of `model` (s): the best of a few, from its reference pose."""
+    """A rough price of one mj_step of `model` (s): the best of a few runs of a few steps, from its
+    reference pose, in this thread's CPU time. Not the wall clock: estimators are built while other
+    sessions tick, and every mj_step gives up the GIL, so a wall-clock price counted the waits to
+    get it back. An inflated price split pendulum_3's 13 sigma points across two threads, a
+    hand-off per predict (profiled: a quarter of the event loop's busy time at 8 sessions)."""
     mujoco.mj_resetData(model, data)
     best = float("inf")
-    for _ in range(5):
-        start = time.perf_counter()
-        mujoco.mj_step(model, data)
-        best = min(best, time.perf_counter() - start)
+    for _ in range(3):
+        start = time.thread_time()
+        for _ in range(_PRICED_STEPS):
+            mujoco.mj_step(model, data)
+        best = min(best, (time.thread_time() - start) / _PRICED_STEPS)
     mujoco.mj_resetData(model, data)
     return best
 

@@ -12,6 +12,7 @@ import dataclasses
 import functools
 import logging
 import math
+import threading
 import time
 import traceback
 import uuid
@@ -354,12 +355,55 @@ class _Stream:
         return responses
 
 
+@dataclasses.dataclass(frozen=True, slots=True)
+class _TickPrice:
+    """What one REALTIME tick of a model and its settings costs in this process."""
+
+    cost: float  # s: the physics and linear algebra, priced (the --max-tick-share check)
+    cycle: float | None  # s: one predict + update, measured once the price alone admits it
+    nsigma: int
+    state_dimension: int
+
+
 class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     """Serves StreamSession."""
 
     def __init__(self, services: Services, *, limits: StreamLimits = DEFAULT_STREAM_LIMITS) -> None:
         self._services = services
         self._limits = limits
+        # What a tick of (model, settings) costs here, measured at its first REALTIME open and
+        # reused: every open of a hundred sessions of one model would otherwise time its own
+        # throwaway filter while the others' ticks wait.
+        self._costs: dict[tuple[str, EstimatorConfig], _TickPrice] = {}
+        self._costs_lock = threading.Lock()
+
+    def _tick_price(
+        self, info: ModelInfo, model: mujoco.MjModel, config: EstimatorConfig, *, cycle: bool
+    ) -> _TickPrice:
+        """What a tick of `config` costs on this model, priced at its first REALTIME open in this
+        process (on a throwaway estimator) and reused; `cycle`: also time one predict + update,
+        once (a session that the price alone refuses never costs the others that)."""
+        key = (info.id, config)
+        with self._costs_lock:
+            known = self._costs.get(key)
+            if known is None:
+                probe = make_estimator(model, config, pool=self._services.pool)
+                nsigma = int(getattr(probe, "nsigma", 1))
+                known = self._costs[key] = _TickPrice(
+                    cost=tick_cost(
+                        model,
+                        nsigma=nsigma,
+                        steps_per_tick=config.steps_per_tick,
+                        state_dimension=probe.state_dimension,
+                    ),
+                    cycle=None,
+                    nsigma=nsigma,
+                    state_dimension=probe.state_dimension,
+                )
+            if cycle and known.cycle is None:
+                measured = measure_cycle(model, config, pool=self._services.pool)
+                known = self._costs[key] = dataclasses.replace(known, cycle=measured)
+            return known
 
     # grpc.aio also takes a stream handler that writes through `context.write` and returns None,
     # which the generated servicer's signature (iterators of responses) does not describe.
@@ -504,31 +548,23 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             preset=plan.preset,
             measured=plan.measured,
         )
-        estimator = make_estimator(model, config, pool=services.pool)
-        self._limits.check_history(
-            history=plan.history,
-            snapshot_bytes=snapshot_bytes(estimator.snapshot()),
-            state_dimension=estimator.state_dimension,
-        )
-        if plan.clock == "REALTIME":
-            nsigma = int(getattr(estimator, "nsigma", 1))
-            cost = tick_cost(
-                model,
-                nsigma=nsigma,
-                steps_per_tick=plan.steps_per_tick,
-                state_dimension=estimator.state_dimension,
-            )
-            self._limits.check_tick_cost(
-                cost,
-                dt=plan.dt,
-                state_dimension=estimator.state_dimension,
-                nsigma=nsigma,
-                steps=plan.steps_per_tick,
-            )
+        # REALTIME: admitted (or refused) before anything is built for the session, from a price
+        # measured once per model and settings, so that a burst of opens past capacity costs the
+        # sessions already running next to nothing.
         ticket: Ticket | None = None
         if plan.clock == "REALTIME":
-            cycle = measure_cycle(model, config, pool=services.pool)
+            price = self._tick_price(info, model, config, cycle=False)
+            self._limits.check_tick_cost(
+                price.cost,
+                dt=plan.dt,
+                state_dimension=price.state_dimension,
+                nsigma=price.nsigma,
+                steps=plan.steps_per_tick,
+            )
             try:
+                cycle = self._tick_price(info, model, config, cycle=True).cycle
+                if cycle is None:  # pragma: no cover - measured just above
+                    raise RuntimeError("the filter cycle was not measured")
                 ticket = services.admission.admit(
                     cost_per_tick=cycle + services.admission.overhead,
                     dt=plan.dt,
@@ -539,6 +575,17 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 raise
             finally:
                 metrics().load.labels(metrics().process).set(services.admission.load())
+        try:
+            estimator = make_estimator(model, config, pool=services.pool)
+            self._limits.check_history(
+                history=plan.history,
+                snapshot_bytes=snapshot_bytes(estimator.snapshot()),
+                state_dimension=estimator.state_dimension,
+            )
+        except BaseException:
+            if ticket is not None:
+                ticket.release()
+            raise
         try:
             return self._build_stream(
                 request, tenant, info, model, plan, config, estimator, ticket, scenario_reason
@@ -791,7 +838,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         iterator = aiter(requests)
         while True:
             try:
-                request = await asyncio.wait_for(anext(iterator), self._limits.idle_timeout)
+                # asyncio.timeout, not wait_for: in Python 3.11 wait_for wraps every read in a new
+                # task, and this runs once per frame of every session.
+                async with asyncio.timeout(self._limits.idle_timeout):
+                    request = await anext(iterator)
             except StopAsyncIteration:
                 return
             except TimeoutError:
