@@ -36,9 +36,11 @@ def result_message(
         seq=outcome.seq,
         t=outcome.t,
         source=_SOURCES[outcome.source],
-        qpos=outcome.qpos,
-        qvel=outcome.qvel,
-        qacc=outcome.qacc,
+        # Lists, not arrays: protobuf reads a list 2-3x faster than a numpy array (1.3 against
+        # 3.4 us a field), and a Result has up to eleven vector fields.
+        qpos=outcome.qpos.tolist(),
+        qvel=outcome.qvel.tolist(),
+        qacc=outcome.qacc.tolist(),
         frame_received=outcome.frame is not None,
         late_ticks=outcome.late_ticks,
         frame_delay=frame_delay,
@@ -49,20 +51,20 @@ def result_message(
     )
     dyn = outcome.dynamics
     if dyn.qfrc_inverse is not None:
-        result.qfrc_inverse[:] = dyn.qfrc_inverse
+        result.qfrc_inverse[:] = dyn.qfrc_inverse.tolist()
     if dyn.qacc_forward is not None:
-        result.qacc_forward[:] = dyn.qacc_forward
+        result.qacc_forward[:] = dyn.qacc_forward.tolist()
     if dyn.actuator_force is not None:
-        result.actuator_force[:] = dyn.actuator_force
+        result.actuator_force[:] = dyn.actuator_force.tolist()
     if dyn.sensordata is not None:
-        result.sensordata[:] = dyn.sensordata
+        result.sensordata[:] = dyn.sensordata.tolist()
     if estimate is not None:
         if estimate.covariance is not None:
-            result.covariance_diagonal[:] = np.diagonal(estimate.covariance)
+            result.covariance_diagonal[:] = np.diagonal(estimate.covariance).tolist()
             if "FILTER_STATE" in outputs:
-                result.covariance[:] = estimate.covariance.ravel()
+                result.covariance[:] = estimate.covariance.ravel().tolist()
         if "FILTER_STATE" in outputs:
-            result.filter_state[:] = estimate.state
+            result.filter_state[:] = np.asarray(estimate.state).tolist()
         if estimate.nis is not None and outcome.source != "PREDICTED":
             result.nis = estimate.nis
         result.reinitialised = estimate.reinitialised
