@@ -493,6 +493,12 @@ class RunReport:
 
     def line(self) -> str:
         verdict = "MEETS" if self.meets() else "misses"
+        if self.opened == 0:
+            # Nothing ran: no lateness or CPU per tick to report (they would read nan and inf).
+            return (
+                f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
+                f"opened    0 refused {self.refused:3d} | nothing ran (ukf {self.ukf_cycle_us:5.0f} us) | {verdict}"
+            )
         return (
             f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
             f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "

@@ -112,16 +112,26 @@ class Admission:
         with self._lock:
             return len(self._by_id)
 
-    def admit(self, *, cost_per_tick: float, dt: float, what: str) -> Ticket:
+    def admit(
+        self, *, cost_per_tick: float, dt: float, what: str, filter_seconds: float | None = None
+    ) -> Ticket:
         """A ticket for a session costing `cost_per_tick` seconds every `dt`, or ResourceExhausted
-        saying why (the measured load, the session's estimated cost, the setting that raises it)."""
+        saying why (the measured load, the session's estimated cost, the setting that raises it).
+        filter_seconds: the part of the cost that is the session's own filter, measured (the rest is
+        the guessed transport); an idle process admits the session if that part fits."""
+        if filter_seconds is None:
+            filter_seconds = cost_per_tick
         if not dt > 0:
             raise InvalidArgument(f"dt must be > 0, got {dt}")
         ticket = Ticket(self, dt=dt, cost_per_tick=cost_per_tick)
         with self._lock:
             estimated = sum(t.load for t in self._by_id.values())
             current = max(estimated, self._sample_cpu())
-            if current + ticket.load > self.budget:
+            # A process with nothing to serve takes a session whose own filter fits the budget,
+            # whatever the guess of the transport's cost: its ticks then measure what they cost
+            # (with the starting guess alone, no 500 Hz session, at 2 ms a tick, could ever open).
+            first = not self._by_id and current < self.budget / 2 and filter_seconds / dt <= self.budget
+            if current + ticket.load > self.budget and not first:
                 self.refused += 1
                 raise ResourceExhausted(
                     f"this server process is at {100 * current:.0f} % of a core and its tick budget is "

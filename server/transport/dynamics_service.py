@@ -567,6 +567,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                     raise RuntimeError("the filter cycle was not measured")
                 ticket = services.admission.admit(
                     cost_per_tick=cycle + services.admission.overhead,
+                    filter_seconds=cycle,
                     dt=plan.dt,
                     what=f"{info.name} ({scenario.lower()}) at {1 / plan.dt:g} Hz",
                 )

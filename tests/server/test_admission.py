@@ -1,0 +1,43 @@
+"""Admission by measured cost, on the class itself (the server-level test is test_capacity.py)."""
+
+from __future__ import annotations
+
+import pytest
+
+from jitdyn.errors import ResourceExhausted
+from jitdyn.server.runtime.admission import TRANSPORT_COST, Admission
+
+
+def test_an_idle_process_takes_a_fast_session_whose_guessed_transport_would_not_fit() -> None:
+    admission = Admission(budget=0.75, count_process_cpu=False)
+    # myoElbow at 500 Hz: a 0.7 ms filter, plus the 2 ms transport guess, is over one 2 ms tick.
+    ticket = admission.admit(
+        cost_per_tick=0.7e-3 + TRANSPORT_COST, dt=2e-3, what="myoelbow at 500 Hz", filter_seconds=0.7e-3
+    )
+    assert admission.sessions == 1
+    # A second one is refused on the first one's estimate, saying why.
+    with pytest.raises(ResourceExhausted, match=r"estimated at 2700 us per tick"):
+        admission.admit(
+            cost_per_tick=0.7e-3 + TRANSPORT_COST, dt=2e-3, what="myoelbow at 500 Hz", filter_seconds=0.7e-3
+        )
+    assert admission.refused == 1
+    ticket.release()
+    assert admission.sessions == 0
+
+
+def test_a_filter_that_alone_exceeds_the_budget_is_refused_even_on_an_idle_process() -> None:
+    admission = Admission(budget=0.75, count_process_cpu=False)
+    with pytest.raises(ResourceExhausted, match=r"myohand at 500 Hz is estimated at 4200 us"):
+        admission.admit(
+            cost_per_tick=2.2e-3 + TRANSPORT_COST, dt=2e-3, what="myohand at 500 Hz", filter_seconds=2.2e-3
+        )
+    assert admission.sessions == 0
+
+
+def test_sessions_are_admitted_until_their_estimates_fill_the_budget() -> None:
+    admission = Admission(budget=0.5, count_process_cpu=False)
+    tickets = []
+    with pytest.raises(ResourceExhausted):
+        for _ in range(100):
+            tickets.append(admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz"))
+    assert len(tickets) == 10  # 10 x 2.5 ms / 50 ms = 0.5 of a core
