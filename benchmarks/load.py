@@ -259,9 +259,11 @@ async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResul
     frames = _frames(spec, measured)
     result = WorkerResult()
     cpu_started = time.process_time()
-    options = [("grpc.max_receive_message_length", 64 * 1024 * 1024)]
     # One connection per session, as every device has its own: the kernel spreads connections, not
-    # streams, over the server's processes (SO_REUSEPORT).
+    # streams, over the server's processes (SO_REUSEPORT). gRPC shares one connection between
+    # channels of the same target and arguments (its global subchannel pool): without a local pool
+    # every session of a client process went over one connection to one server process.
+    options = [("grpc.max_receive_message_length", 64 * 1024 * 1024), ("grpc.use_local_subchannel_pool", 1)]
     channels = [grpc.aio.insecure_channel(spec.address, options=options) for _ in range(spec.sessions)]
     try:
         tasks = [

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import AsyncIterator, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar
 
@@ -83,7 +83,9 @@ class AsyncSession:
         metadata: Sequence[tuple[str, str]],
         checksum: bool,
         sync_interval: float = 0.5,
+        on_end: Callable[[], None] | None = None,
     ) -> None:
+        self._on_end = on_end  # called once the stream has ended: the client closes its connection
         self._open_request = dynamics_pb2.StreamSessionRequest(open=options.to_message())
         self._responses: asyncio.Queue[_Received | grpc.RpcError | _End] = asyncio.Queue()
         self._write_lock = asyncio.Lock()
@@ -135,6 +137,8 @@ class AsyncSession:
             self._responses.put_nowait(error)
         finally:
             self._responses.put_nowait(_END)
+            if self._on_end is not None:
+                self._on_end()
 
     async def _reader_done(self, timeout: float = 5.0) -> None:
         await asyncio.wait({self._reader}, timeout=timeout)
@@ -323,13 +327,16 @@ class AsyncClient:
         api_key: str | None = None,
         root_certificates: bytes | None = None,
         checksum: bool = True,
+        connection_per_session: bool = True,
     ) -> None:
-        if root_certificates is not None:
-            self._channel = grpc.aio.secure_channel(
-                address, grpc.ssl_channel_credentials(root_certificates), options=_CHANNEL_OPTIONS
-            )
-        else:
-            self._channel = grpc.aio.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._address = address
+        self._root_certificates = root_certificates
+        self._channel = self._new_channel(shared=True)
+        # See Client: each session on its own connection, so that `jitdyn serve --processes N`
+        # spreads them over its processes.
+        self._connection_per_session = connection_per_session
+        self._session_channels: set[grpc.aio.Channel] = set()
+        self._closing: set[asyncio.Task[None]] = set()
         self._metadata = _auth_metadata(api_key)
         self._timeout = timeout
         self._checksum = checksum
@@ -417,19 +424,55 @@ class AsyncClient:
             await self._unary(self._sessions.GetSession, session_pb2.GetSessionRequest(session_id=session_id))
         ).session
 
+    def _new_channel(self, *, shared: bool) -> grpc.aio.Channel:
+        # gRPC shares one connection between channels of the same target and arguments unless a
+        # channel asks for its own subchannel pool.
+        options = _CHANNEL_OPTIONS if shared else (*_CHANNEL_OPTIONS, ("grpc.use_local_subchannel_pool", 1))
+        if self._root_certificates is not None:
+            return grpc.aio.secure_channel(
+                self._address, grpc.ssl_channel_credentials(self._root_certificates), options=options
+            )
+        return grpc.aio.insecure_channel(self._address, options=options)
+
     async def open_session(self, options: SessionOptions) -> AsyncSession:
         """Open a session; raises the server's error (InvalidArgument, NotFound, ...) if it refuses."""
+        if not self._connection_per_session:
+            session = AsyncSession(
+                self._dynamics,
+                options,
+                timeout=self._timeout,
+                metadata=self._metadata,
+                checksum=self._checksum,
+            )
+            await session._open()
+            return session
+        channel = self._new_channel(shared=False)
+        self._session_channels.add(channel)
+
+        def ended() -> None:
+            if channel in self._session_channels:
+                self._session_channels.discard(channel)
+                task = asyncio.ensure_future(channel.close())
+                self._closing.add(task)
+                task.add_done_callback(self._closing.discard)
+
         session = AsyncSession(
-            self._dynamics, options, timeout=self._timeout, metadata=self._metadata, checksum=self._checksum
+            dynamics_pb2_grpc.DynamicsServiceStub(channel),
+            options,
+            timeout=self._timeout,
+            metadata=self._metadata,
+            checksum=self._checksum,
+            on_end=ended,
         )
         await session._open()
         return session
 
     async def close(self) -> None:
-        """Close the channel (open sessions end with it); safe to call twice."""
+        """Close the connections (open sessions end with them); safe to call twice."""
         if not self._closed:
             self._closed = True
-            await self._channel.close()
+            channels, self._session_channels = self._session_channels, set()
+            await asyncio.gather(self._channel.close(), *(c.close() for c in channels), *self._closing)
 
     async def __aenter__(self) -> Self:
         return self

@@ -20,7 +20,7 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum, auto
 from types import TracebackType
@@ -559,7 +559,9 @@ class Session:
         metadata: Sequence[tuple[str, str]],
         checksum: bool,
         sync_interval: float = 0.5,
+        on_end: Callable[[], None] | None = None,
     ) -> None:
+        self._on_end = on_end  # called once the stream has ended: the client closes its connection
         self._requests: queue.Queue[dynamics_pb2.StreamSessionRequest | _End] = queue.Queue()
         self._responses: queue.Queue[
             tuple[float, dynamics_pb2.StreamSessionResponse] | grpc.RpcError | _End
@@ -612,6 +614,8 @@ class Session:
             self._responses.put(error)
         finally:
             self._responses.put(_END)
+            if self._on_end is not None:
+                self._on_end()
 
     def _next_response(self, timeout: float | None) -> dynamics_pb2.StreamSessionResponse:
         item = self._get(timeout)
@@ -774,13 +778,18 @@ class Client:
         api_key: str | None = None,
         root_certificates: bytes | None = None,
         checksum: bool = True,
+        connection_per_session: bool = True,
     ) -> None:
-        if root_certificates is not None:
-            self._channel = grpc.secure_channel(
-                address, grpc.ssl_channel_credentials(root_certificates), options=_CHANNEL_OPTIONS
-            )
-        else:
-            self._channel = grpc.insecure_channel(address, options=_CHANNEL_OPTIONS)
+        self._address = address
+        self._root_certificates = root_certificates
+        self._channel = self._new_channel(shared=True)
+        # Each session on its own connection (its own HTTP/2 connection, not a stream of the
+        # client's): `jitdyn serve --processes N` is N processes on one port, and the kernel spreads
+        # connections, not streams, over them, so sessions sharing one connection share one process
+        # and one core. False: every session on the client's one connection.
+        self._connection_per_session = connection_per_session
+        self._session_channels: set[grpc.Channel] = set()
+        self._lock = threading.Lock()
         self._metadata = _auth_metadata(api_key)
         self._timeout = timeout
         self._checksum = checksum
@@ -871,20 +880,50 @@ class Client:
             self._sessions.GetSession, session_pb2.GetSessionRequest(session_id=session_id)
         ).session
 
+    def _new_channel(self, *, shared: bool) -> grpc.Channel:
+        # gRPC shares one connection between channels of the same target and arguments unless a
+        # channel asks for its own subchannel pool.
+        options = _CHANNEL_OPTIONS if shared else (*_CHANNEL_OPTIONS, ("grpc.use_local_subchannel_pool", 1))
+        if self._root_certificates is not None:
+            return grpc.secure_channel(
+                self._address, grpc.ssl_channel_credentials(self._root_certificates), options=options
+            )
+        return grpc.insecure_channel(self._address, options=options)
+
     def open_session(self, options: SessionOptions) -> Session:
         """Open a session; raises the server's error (InvalidArgument, NotFound, ...) if it refuses."""
+        stub, ended = self._dynamics, None
+        if self._connection_per_session:
+            channel = self._new_channel(shared=False)
+            with self._lock:
+                self._session_channels.add(channel)
+            stub = dynamics_pb2_grpc.DynamicsServiceStub(channel)
+
+            def ended() -> None:
+                with self._lock:
+                    if channel not in self._session_channels:
+                        return
+                    self._session_channels.discard(channel)
+                channel.close()
+
         try:
             return Session(
-                self._dynamics,
+                stub,
                 options,
                 timeout=self._timeout,
                 metadata=self._metadata,
                 checksum=self._checksum,
+                on_end=ended,
             )
         except grpc.RpcError as error:
             raise _status_error(error) from None
 
     def close(self) -> None:
+        """Close the connections (open sessions end with them); safe to call twice."""
+        with self._lock:
+            channels, self._session_channels = self._session_channels, set()
+        for channel in channels:
+            channel.close()
         self._channel.close()
 
     def __enter__(self) -> Self:

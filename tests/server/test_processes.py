@@ -234,3 +234,43 @@ def test_a_model_missing_from_the_data_folder_is_a_clear_error(tmp_path: Path) -
         assert str(tmp_path) not in message
     finally:
         server.stop()
+
+
+def _open_sessions_by_process(metrics_port: int) -> dict[str, float]:
+    import urllib.request
+
+    scraped = urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10).read().decode()
+    return {
+        process: float(value)
+        for process, value in re.findall(
+            r'^jitdyn_open_sessions\{process="(\d+)"\} (\S+)$', scraped, re.MULTILINE
+        )
+    }
+
+
+@pytest.mark.parametrize("per_session", [True, False])
+def test_one_client_s_sessions_spread_over_the_processes(tmp_path: Path, per_session: bool) -> None:
+    """The kernel spreads connections, not streams, over the processes: a client's sessions reach
+    both only when each has its own connection (the client's default)."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        metrics_port = int(sock.getsockname()[1])
+    server = Serve(
+        tmp_path / "data", processes=2, extra=("--metrics-address", f"127.0.0.1:{metrics_port}")
+    )
+    try:
+        with Client(server.address, connection_per_session=per_session) as client:
+            sessions = [
+                client.open_session(SessionOptions(model_name="pendulum_1", dt=0.05)) for _ in range(12)
+            ]
+            by_process = _open_sessions_by_process(metrics_port)
+            for session in sessions:
+                session.close()
+        assert sum(by_process.values()) == 12, by_process
+        serving = [p for p, n in by_process.items() if n > 0]
+        # 12 connections hashed over 2 processes all land on one with probability 2^-11.
+        assert len(serving) == (2 if per_session else 1), by_process
+    finally:
+        server.stop()
