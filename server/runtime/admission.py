@@ -10,10 +10,16 @@ of this process's tick budget (a fraction of one core: one process runs Python o
 A session's load is its cost per tick divided by dt: CPU seconds per second. The process's load is
 the larger of the sum over its sessions and its CPU actually used over the last seconds (which
 also counts what no estimate sees: the gRPC transport of LOCKSTEP sessions, compaction, GC).
+
+A process's budget is only worth what the machine can give it: on a machine whose cores other
+programs (or the server's other processes, or the clients beside it) keep busy, a session is also
+refused when the CPU the machine left idle over the last window, less what was admitted since,
+cannot carry it (Linux: /proc/stat; elsewhere the process budget alone).
 """
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from dataclasses import dataclass, field
@@ -31,6 +37,37 @@ DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
 # first burst of opens, before a 2 s window has measured anything (26 sessions instead of ~15).
 TRANSPORT_COST: Final = 2e-3  # s
 _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
+# Cores of the machine kept free of new sessions: the slack that keeps ticks on time when the
+# machine is nearly full (a tick late by a scheduling quantum is late).
+MACHINE_HEADROOM: Final = 0.1
+
+
+def _machine_times() -> tuple[int, int] | None:
+    """(busy, total) jiffies of every CPU since boot, from /proc/stat; None where there is none.
+    Busy is every process's time, whatever its priority, the kernel's own and the hypervisor's steal."""
+    try:
+        with open("/proc/stat", "rb") as stat:
+            fields = [int(v) for v in stat.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 4:
+        return None
+    # user nice system idle iowait irq softirq steal (guest time is inside user). Niced work
+    # counts as busy: with the kernel's autogroup scheduling a niced program of another login
+    # session still gets its session's share (measured here: SCHED_IDLE experiments took a quarter
+    # of two cores from two busy loops at normal priority).
+    total = sum(fields[:8])
+    free = fields[3] + (fields[4] if len(fields) > 4 else 0)
+    return total - free, total
+
+
+def _usable_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 _CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
 
 
@@ -42,6 +79,7 @@ class Ticket:
     dt: float
     cost_per_tick: float  # s, the current estimate
     released: bool = False
+    admitted_at: float = field(default_factory=time.monotonic)
 
     @property
     def load(self) -> float:
@@ -64,6 +102,8 @@ class Admission:
     budget: float = DEFAULT_TICK_BUDGET
     # False when the process is not the server's alone (a server inside a client program).
     count_process_cpu: bool = True
+    # False: ignore what the rest of the machine does (the process budget alone).
+    count_machine_cpu: bool = True
     _by_id: dict[int, Ticket] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _cpu_mark: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
@@ -72,6 +112,8 @@ class Admission:
     overhead: float = TRANSPORT_COST  # s per tick outside the estimator, learnt from this process's CPU
     _window_ticks: int = 0
     _window_compute: float = 0.0
+    _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
+    machine_free: float | None = None  # cores the machine left idle over the last window
 
     def __post_init__(self) -> None:
         if not 0.0 < self.budget <= 1.0:
@@ -95,7 +137,17 @@ class Admission:
                 self.overhead += 0.5 * (max(per_tick, 100e-6) - self.overhead)
             self._window_ticks, self._window_compute = 0, 0.0
             self._cpu_mark = (wall, cpu)
+            self._sample_machine()
         return self._cpu_load
+
+    def _sample_machine(self) -> None:
+        if not self.count_machine_cpu:
+            return
+        now = _machine_times()
+        if now is not None and self._machine_mark is not None and now[1] > self._machine_mark[1]:
+            busy, total = now[0] - self._machine_mark[0], now[1] - self._machine_mark[1]
+            self.machine_free = _usable_cpus() * max(0.0, 1.0 - busy / total)
+        self._machine_mark = now
 
     def _count_tick(self, compute: float) -> None:
         with self._lock:
@@ -139,6 +191,20 @@ class Admission:
                     f"estimated at {1e6 * cost_per_tick:.0f} us per tick, {100 * ticket.load:.1f} % more. "
                     "Try again later, on another server, or at a lower rate"
                 )
+            if self.machine_free is not None and not first:
+                # What the machine left idle in the last window, less what was admitted since.
+                since = self._cpu_mark[0]
+                recent = sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
+                free = self.machine_free - recent
+                if ticket.load > free - MACHINE_HEADROOM:
+                    self.refused += 1
+                    raise ResourceExhausted(
+                        f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
+                        f"programs, this server's other processes or its clients use the rest); a session "
+                        f"of {what} is estimated at {1e6 * cost_per_tick:.0f} us per tick, "
+                        f"{ticket.load:.2f} of a core, and {MACHINE_HEADROOM:g} of a core is kept free. "
+                        "Try again later, on another server, or at a lower rate"
+                    )
             self._by_id[id(ticket)] = ticket
         return ticket
 

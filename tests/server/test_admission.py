@@ -41,3 +41,31 @@ def test_sessions_are_admitted_until_their_estimates_fill_the_budget() -> None:
         for _ in range(100):
             tickets.append(admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz"))
     assert len(tickets) == 10  # 10 x 2.5 ms / 50 ms = 0.5 of a core
+
+
+def test_a_machine_that_others_keep_busy_refuses_the_sessions_it_cannot_carry() -> None:
+    import os
+    import subprocess
+    import sys
+    import time
+
+    hogs = [
+        subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        for _ in range(len(os.sched_getaffinity(0)))
+    ]
+    try:
+        machine = Admission(budget=0.75)
+        alone = Admission(budget=0.75, count_machine_cpu=False)
+        for admission in (machine, alone):  # the first session of an idle process is admitted
+            admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+        time.sleep(2.2)  # a window of the machine's CPU, all of it taken by the hogs
+        with pytest.raises(ResourceExhausted, match=r"^this machine has 0\.\d\d of its \d+ cores free"):
+            machine.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+        assert machine.machine_free is not None and machine.machine_free < 0.2
+        # The process budget alone would have taken it: the machine's CPU is what refused it.
+        alone.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+        assert alone.sessions == 2
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()

@@ -140,10 +140,18 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
     refused = [o[0] for o in outcomes if o[0] != "ran"]
     assert ran and refused, outcomes
     for message in refused:
+        # Refused for the process's budget, or (on a machine that other work keeps busy) for the
+        # machine's idle CPU; either way the message says why.
         assert re.fullmatch(
             r"this server process is at \d+ % of a core and its tick budget is 12 % \(--tick-budget 0\.12\); "
             r"a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us per tick, [\d.]+ % more\. "
             r"Try again later, on another server, or at a lower rate",
+            message,
+        ) or re.fullmatch(
+            r"this machine has [\d.]+ of its \d+ cores free \(other programs, this server's other processes or "
+            r"its clients use the rest\); a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us "
+            r"per tick, [\d.]+ of a core, and 0\.1 of a core is kept free\. Try again later, on another server, "
+            r"or at a lower rate",
             message,
         ), message
     for _, lateness, measured in ran:

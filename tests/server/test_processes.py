@@ -257,9 +257,7 @@ def test_one_client_s_sessions_spread_over_the_processes(tmp_path: Path, per_ses
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         metrics_port = int(sock.getsockname()[1])
-    server = Serve(
-        tmp_path / "data", processes=2, extra=("--metrics-address", f"127.0.0.1:{metrics_port}")
-    )
+    server = Serve(tmp_path / "data", processes=2, extra=("--metrics-address", f"127.0.0.1:{metrics_port}"))
     try:
         with Client(server.address, connection_per_session=per_session) as client:
             sessions = [
