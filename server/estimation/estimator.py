@@ -42,6 +42,7 @@ __all__ = [
     "EstimatorConfig",
     "EstimatorKind",
     "ForceModel",
+    "Forecast",
     "Measurement",
     "NoiseModel",
     "Preset",
@@ -81,6 +82,14 @@ class ForceModel(enum.StrEnum):
 
     RANDOM_WALK = "RANDOM_WALK"  # f' = f + w: the force is held over a prediction
     INTEGRATED_RANDOM_WALK = "INTEGRATED_RANDOM_WALK"  # f' = f + fd dt, fd' = fd + w: its trend is kept
+
+
+class Forecast(enum.StrEnum):
+    """What answers a tick without a frame (estimation/forecast.py)."""
+
+    FILTER = "FILTER"  # the filter's predicted mean
+    COMBINED = "COMBINED"  # the least-error-variance combination of the model's rollout and the
+    # IEEE 1278 extrapolators, weighted by how each did on the session's own frames
 
 
 class NoiseModel(enum.StrEnum):
@@ -134,6 +143,7 @@ _FIELDS: Final = (
     "force_model",
     "force_var",
     "noise_model",
+    "forecast",
 )
 
 
@@ -186,6 +196,8 @@ class EstimatorConfig:
     force_var: float = 1e4
     # ADAPTIVE: R and Q follow the innovations within bounds, a wrong model is absorbed.
     noise_model: NoiseModel = NoiseModel.FIXED
+    # What answers a tick without a frame: the filter, or the scored combination (DRIVEN only).
+    forecast: Forecast = Forecast.FILTER
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise through the back door, once, here
@@ -194,6 +206,7 @@ class EstimatorConfig:
         set_(self, "sigma_points", _enum(SigmaScheme, self.sigma_points, "sigma_points"))
         set_(self, "force_model", _enum(ForceModel, self.force_model, "force_model"))
         set_(self, "noise_model", _enum(NoiseModel, self.noise_model, "noise_model"))
+        set_(self, "forecast", _enum(Forecast, self.forecast, "forecast"))
         for name in ("alpha", "beta", "kappa", "p0", "q_var", "r", "dt", "force_var"):
             set_(self, name, _real(getattr(self, name), name))
         if not 0.0 < self.alpha <= 1.0:
@@ -261,6 +274,9 @@ class Estimate:
     reinitialised: bool = False
     adapted: bool = False
     absorbed: bool = False
+    # Over a gap with Forecast.COMBINED: the weights of the predictors that answered, in
+    # estimation/forecast.py's PREDICTORS order; None when the filter answered alone.
+    forecast_weights: tuple[float, ...] | None = None
 
 
 def check_vector(value: object, size: int, name: str) -> np.ndarray:
@@ -436,6 +452,7 @@ def preset_values(
             "alpha": 0.001,
             "kappa": float(3 - n) if pendulum else 0.0,
             "noise_model": NoiseModel.FIXED.value,
+            "forecast": Forecast.FILTER.value,
         }
     if scenario == Scenario.DRIVEN:
         # The unknown force carries what the thesis' q_var = 50 stood for; what is left is the
@@ -451,6 +468,8 @@ def preset_values(
         # Adaptive noise is the default of the scenario a client gets when it names none for a
         # driven model; the thesis' scenarios keep the noise they were measured with unless asked.
         "noise_model": (NoiseModel.ADAPTIVE if scenario == Scenario.DRIVEN else NoiseModel.FIXED).value,
+        # The scored combination answers gaps where the force is unknown (docs/experiments.md).
+        "forecast": (Forecast.COMBINED if scenario == Scenario.DRIVEN else Forecast.FILTER).value,
     }
 
 
@@ -526,6 +545,7 @@ def resolve_config(
         force_model=values["force_model"],  # type: ignore[arg-type]
         force_var=values["force_var"],  # type: ignore[arg-type]
         noise_model=values["noise_model"],  # type: ignore[arg-type]
+        forecast=values["forecast"],  # type: ignore[arg-type]
         dt=dt,
         steps_per_tick=steps_per_tick(model, dt),
         measured=frozenset(measured),

@@ -579,6 +579,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 "force_model",
                 "force_var",
                 "noise_model",
+                "forecast",
             )
         }
         settings["preset"] = plan.preset

@@ -68,6 +68,8 @@ def result_message(
         result.reinitialised = estimate.reinitialised
         result.adapted = estimate.adapted
         result.absorbed = estimate.absorbed
+        if estimate.forecast_weights is not None and outcome.source == "PREDICTED":
+            result.forecast_weights[:] = estimate.forecast_weights
     if durable_seq is not None:
         result.durable_seq = durable_seq
     return result

@@ -271,6 +271,52 @@ windows in a row it starts again from the measurement (`Result.reinitialised`).
 """
 Global___NoiseModel: _TypeAlias = NoiseModel  # noqa: Y015
 
+class _Forecast:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _ForecastEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Forecast.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    FORECAST_UNSPECIFIED: _Forecast.ValueType  # 0
+    """Not set: the preset decides (PRESET_JITDYN: FORECAST_COMBINED in SCENARIO_DRIVEN,
+    FORECAST_FILTER in the thesis' scenarios; PRESET_THESIS: FORECAST_FILTER).
+    """
+    FORECAST_FILTER: _Forecast.ValueType  # 1
+    """The filter's predicted mean, as in the thesis."""
+    FORECAST_COMBINED: _Forecast.ValueType  # 2
+    """SCENARIO_DRIVEN, ESTIMATOR_UKF, models without ball or free joints: the server scores its own
+    forecasts against every frame it gets, at every horizon up to 0.2 s (in ticks), for four
+    predictors: the posterior mean rolled out by the model under its estimated force (MODEL), and
+    IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last frame. Over a
+    gap of h ticks it answers the combination of the four with the least error variance at h on
+    the recent frames (weights >= 0 summing to 1; fading memory of about 5 scored forecasts per
+    horizon); `Result.forecast_weights` says which predictors answered and how much. Until a
+    horizon has 3 scores, and in a gap longer than 0.2 s beyond it, the filter answers (or the
+    0.2 s weights hold). The filter itself (`filter_state`'s force and `covariance`) is unchanged.
+    """
+
+class Forecast(_Forecast, metaclass=_ForecastEnumTypeWrapper):
+    """What answers a tick that has no frame (a gap)."""
+
+FORECAST_UNSPECIFIED: Forecast.ValueType  # 0
+"""Not set: the preset decides (PRESET_JITDYN: FORECAST_COMBINED in SCENARIO_DRIVEN,
+FORECAST_FILTER in the thesis' scenarios; PRESET_THESIS: FORECAST_FILTER).
+"""
+FORECAST_FILTER: Forecast.ValueType  # 1
+"""The filter's predicted mean, as in the thesis."""
+FORECAST_COMBINED: Forecast.ValueType  # 2
+"""SCENARIO_DRIVEN, ESTIMATOR_UKF, models without ball or free joints: the server scores its own
+forecasts against every frame it gets, at every horizon up to 0.2 s (in ticks), for four
+predictors: the posterior mean rolled out by the model under its estimated force (MODEL), and
+IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last frame. Over a
+gap of h ticks it answers the combination of the four with the least error variance at h on
+the recent frames (weights >= 0 summing to 1; fading memory of about 5 scored forecasts per
+horizon); `Result.forecast_weights` says which predictors answered and how much. Until a
+horizon has 3 scores, and in a gap longer than 0.2 s beyond it, the filter answers (or the
+0.2 s weights hold). The filter itself (`filter_state`'s force and `covariance`) is unchanged.
+"""
+Global___Forecast: _TypeAlias = Forecast  # noqa: Y015
+
 class _Channel:
     ValueType = _typing.NewType("ValueType", _builtins.int)
     V: _TypeAlias = ValueType  # noqa: Y015
@@ -364,6 +410,7 @@ class EstimatorSettings(_message.Message):
     FORCE_MODEL_FIELD_NUMBER: _builtins.int
     FORCE_VAR_FIELD_NUMBER: _builtins.int
     NOISE_MODEL_FIELD_NUMBER: _builtins.int
+    FORECAST_FIELD_NUMBER: _builtins.int
     estimator: Global___Estimator.ValueType
     """The estimator. Unset: ESTIMATOR_UKF."""
     preset: Global___Preset.ValueType
@@ -399,6 +446,8 @@ class EstimatorSettings(_message.Message):
     """
     noise_model: Global___NoiseModel.ValueType
     """Fixed or adaptive noise. Unset: from the preset."""
+    forecast: Global___Forecast.ValueType
+    """What answers a tick without a frame. Unset: from the preset."""
     def __init__(
         self,
         *,
@@ -414,10 +463,11 @@ class EstimatorSettings(_message.Message):
         force_model: Global___ForceModel.ValueType = ...,
         force_var: _builtins.float | None = ...,
         noise_model: Global___NoiseModel.ValueType = ...,
+        forecast: Global___Forecast.ValueType = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "force_var", b"force_var", "kappa", b"kappa", "p0", b"p0", "q_var", b"q_var", "r", b"r"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "estimator", b"estimator", "force_model", b"force_model", "force_var", b"force_var", "kappa", b"kappa", "noise_model", b"noise_model", "p0", b"p0", "preset", b"preset", "q_var", b"q_var", "r", b"r", "sigma_points", b"sigma_points"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "estimator", b"estimator", "force_model", b"force_model", "force_var", b"force_var", "forecast", b"forecast", "kappa", b"kappa", "noise_model", b"noise_model", "p0", b"p0", "preset", b"preset", "q_var", b"q_var", "r", b"r", "sigma_points", b"sigma_points"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__alpha: _TypeAlias = _typing.Literal["alpha"]  # noqa: Y015
     _WhichOneofArgType__alpha: _TypeAlias = _typing.Literal["_alpha", b"_alpha"]  # noqa: Y015
