@@ -44,6 +44,7 @@ ESTIMATOR_SETTINGS: Mapping[str, tuple[str, ...] | None] = {
     "force_model": ("RANDOM_WALK", "INTEGRATED_RANDOM_WALK"),
     "noise_model": ("FIXED", "ADAPTIVE"),
     "forecast": ("FILTER", "COMBINED"),
+    "wrong_model": ("KEEP", "DRIVEN"),
     "force_var": None,
     "alpha": None,
     "beta": None,

@@ -48,6 +48,7 @@ __all__ = [
     "Preset",
     "Scenario",
     "SigmaScheme",
+    "WrongModel",
     "check_against_model",
     "check_measurement",
     "check_vector",
@@ -90,6 +91,13 @@ class Forecast(enum.StrEnum):
     FILTER = "FILTER"  # the filter's predicted mean
     COMBINED = "COMBINED"  # the least-error-variance combination of the model's rollout and the
     # IEEE 1278 extrapolators, weighted by how each did on the session's own frames
+
+
+class WrongModel(enum.StrEnum):
+    """What a PASSIVE UKF does when a window of NIS says its model is wrong (estimation/switch.py)."""
+
+    KEEP = "KEEP"  # nothing: the filter stays PASSIVE (the thesis)
+    DRIVEN = "DRIVEN"  # the session's filter becomes DRIVEN, from that frame
 
 
 class NoiseModel(enum.StrEnum):
@@ -144,6 +152,7 @@ _FIELDS: Final = (
     "force_var",
     "noise_model",
     "forecast",
+    "wrong_model",
 )
 
 
@@ -198,6 +207,8 @@ class EstimatorConfig:
     noise_model: NoiseModel = NoiseModel.FIXED
     # What answers a tick without a frame: the filter, or the scored combination (DRIVEN only).
     forecast: Forecast = Forecast.FILTER
+    # PASSIVE: what a window of NIS far out does.
+    wrong_model: WrongModel = WrongModel.KEEP
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise through the back door, once, here
@@ -207,6 +218,7 @@ class EstimatorConfig:
         set_(self, "force_model", _enum(ForceModel, self.force_model, "force_model"))
         set_(self, "noise_model", _enum(NoiseModel, self.noise_model, "noise_model"))
         set_(self, "forecast", _enum(Forecast, self.forecast, "forecast"))
+        set_(self, "wrong_model", _enum(WrongModel, self.wrong_model, "wrong_model"))
         for name in ("alpha", "beta", "kappa", "p0", "q_var", "r", "dt", "force_var"):
             set_(self, name, _real(getattr(self, name), name))
         if not 0.0 < self.alpha <= 1.0:
@@ -277,6 +289,9 @@ class Estimate:
     # Over a gap with Forecast.COMBINED: the weights of the predictors that answered, in
     # estimation/forecast.py's PREDICTORS order; None when the filter answered alone.
     forecast_weights: tuple[float, ...] | None = None
+    # The scenario of the filter that answered: a PASSIVE session's becomes DRIVEN when a wrong
+    # model is absorbed (estimation/switch.py).
+    scenario: str = ""
 
 
 def check_vector(value: object, size: int, name: str) -> np.ndarray:
@@ -453,6 +468,7 @@ def preset_values(
             "kappa": float(3 - n) if pendulum else 0.0,
             "noise_model": NoiseModel.FIXED.value,
             "forecast": Forecast.FILTER.value,
+            "wrong_model": WrongModel.KEEP.value,
         }
     if scenario == Scenario.DRIVEN:
         # The unknown force carries what the thesis' q_var = 50 stood for; what is left is the
@@ -470,6 +486,8 @@ def preset_values(
         "noise_model": (NoiseModel.ADAPTIVE if scenario == Scenario.DRIVEN else NoiseModel.FIXED).value,
         # The scored combination answers gaps where the force is unknown (docs/experiments.md).
         "forecast": (Forecast.COMBINED if scenario == Scenario.DRIVEN else Forecast.FILTER).value,
+        # A PASSIVE filter whose innovations say something drives the body becomes DRIVEN.
+        "wrong_model": (WrongModel.DRIVEN if scenario == Scenario.PASSIVE else WrongModel.KEEP).value,
     }
 
 
@@ -546,6 +564,7 @@ def resolve_config(
         force_var=values["force_var"],  # type: ignore[arg-type]
         noise_model=values["noise_model"],  # type: ignore[arg-type]
         forecast=values["forecast"],  # type: ignore[arg-type]
+        wrong_model=values["wrong_model"],  # type: ignore[arg-type]
         dt=dt,
         steps_per_tick=steps_per_tick(model, dt),
         measured=frozenset(measured),

@@ -332,6 +332,11 @@ class UnscentedFilter:
         """How often an indefinite covariance had to be repaired, since construction."""
         return self._sqrt.repairs
 
+    def forget(self) -> None:
+        """Back to the uninitialised filter: the next initialise() keeps nothing of this one (a
+        re-initialisation keeps a DRIVEN filter's force)."""
+        self._initialised = False
+
     def initialise(self, m: Measurement) -> None:
         m = check_measurement(m, self._model, self._config.measured)
         self._act = np.zeros(self._na)
@@ -827,6 +832,7 @@ class UnscentedFilter:
             reinitialised=reinitialised,
             adapted=adapted,
             absorbed=absorbed,
+            scenario=self._scenario.value,
         )
 
 

@@ -580,6 +580,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 "force_var",
                 "noise_model",
                 "forecast",
+                "wrong_model",
             )
         }
         settings["preset"] = plan.preset

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
         | common_pb2.ForceModel
         | common_pb2.NoiseModel
         | common_pb2.Forecast
+        | common_pb2.WrongModel
     ]
 
 __all__ = [
@@ -55,6 +56,7 @@ _ENUMS: dict[str, tuple[_SettingsEnum, str]] = {
     "force_model": (common_pb2.ForceModel, "FORCE_MODEL_"),
     "noise_model": (common_pb2.NoiseModel, "NOISE_MODEL_"),
     "forecast": (common_pb2.Forecast, "FORECAST_"),
+    "wrong_model": (common_pb2.WrongModel, "WRONG_MODEL_"),
 }
 # A Literal, so that mypy checks the names against EstimatorSettings' fields (HasField).
 _Number: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r", "force_var"]

@@ -34,16 +34,14 @@ def test_weights_are_the_least_variance_combination_on_the_simplex(seed: int) ->
     w = _min_variance_weights(C)
     assert np.all(w >= 0) and abs(w.sum() - 1.0) < 1e-12
     reference = min(
-        (
-            minimize(
-                lambda x: x @ C @ x,
-                start,
-                bounds=[(0.0, 1.0)] * 4,
-                constraints=[{"type": "eq", "fun": lambda x: x.sum() - 1.0}],
-                method="SLSQP",
-            ).fun
-            for start in np.eye(4)
-        )
+        minimize(
+            lambda x: x @ C @ x,
+            start,
+            bounds=[(0.0, 1.0)] * 4,
+            constraints=[{"type": "eq", "fun": lambda x: x.sum() - 1.0}],
+            method="SLSQP",
+        ).fun
+        for start in np.eye(4)
     )
     assert w @ C @ w <= reference * (1 + 1e-6) + 1e-12
 
@@ -165,7 +163,10 @@ def test_a_default_session_reports_which_predictors_answered_a_gap(client: Any) 
         assert weights
 
 
-@pytest.mark.parametrize(("scenario", "estimator"), [("PASSIVE", {}), ("DRIVEN", {"preset": "THESIS"})])
+@pytest.mark.parametrize(
+    ("scenario", "estimator"),
+    [("PASSIVE", {"wrong_model": "KEEP"}), ("EXTERNAL", {}), ("DRIVEN", {"preset": "THESIS"})],
+)
 def test_the_thesis_scenarios_and_preset_answer_gaps_with_the_filter(
     client: Any, scenario: str, estimator: dict[str, str]
 ) -> None:

@@ -317,6 +317,46 @@ horizon has 3 scores, and in a gap longer than 0.2 s beyond it, the filter answe
 """
 Global___Forecast: _TypeAlias = Forecast  # noqa: Y015
 
+class _WrongModel:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _WrongModelEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_WrongModel.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    WRONG_MODEL_UNSPECIFIED: _WrongModel.ValueType  # 0
+    """Not set: the preset decides (PRESET_JITDYN: WRONG_MODEL_DRIVEN in SCENARIO_PASSIVE;
+    PRESET_THESIS and the other scenarios: WRONG_MODEL_KEEP).
+    """
+    WRONG_MODEL_KEEP: _WrongModel.ValueType  # 1
+    """Nothing: the filter stays PASSIVE, as in the thesis."""
+    WRONG_MODEL_DRIVEN: _WrongModel.ValueType  # 2
+    """When the mean NIS of 8 updates passes the 1 - 1e-9 quantile of the mean of 8 chi-square(m)
+    samples (m the measurement dimension; 19.6 for m = 6), something the session does not
+    see drives the body: the session's filter becomes SCENARIO_DRIVEN with PRESET_JITDYN's DRIVEN
+    settings, started from that frame. That result says `absorbed`, and every later result's
+    `scenario` is SCENARIO_DRIVEN; `filter_state` and `covariance` then have the DRIVEN layout
+    ([q, qd, f], 3 nv). The tick cost admitted at open (REALTIME) was the PASSIVE filter's.
+    """
+
+class WrongModel(_WrongModel, metaclass=_WrongModelEnumTypeWrapper):
+    """What a SCENARIO_PASSIVE UKF does when its innovations say the model is wrong."""
+
+WRONG_MODEL_UNSPECIFIED: WrongModel.ValueType  # 0
+"""Not set: the preset decides (PRESET_JITDYN: WRONG_MODEL_DRIVEN in SCENARIO_PASSIVE;
+PRESET_THESIS and the other scenarios: WRONG_MODEL_KEEP).
+"""
+WRONG_MODEL_KEEP: WrongModel.ValueType  # 1
+"""Nothing: the filter stays PASSIVE, as in the thesis."""
+WRONG_MODEL_DRIVEN: WrongModel.ValueType  # 2
+"""When the mean NIS of 8 updates passes the 1 - 1e-9 quantile of the mean of 8 chi-square(m)
+samples (m the measurement dimension; 19.6 for m = 6), something the session does not
+see drives the body: the session's filter becomes SCENARIO_DRIVEN with PRESET_JITDYN's DRIVEN
+settings, started from that frame. That result says `absorbed`, and every later result's
+`scenario` is SCENARIO_DRIVEN; `filter_state` and `covariance` then have the DRIVEN layout
+([q, qd, f], 3 nv). The tick cost admitted at open (REALTIME) was the PASSIVE filter's.
+"""
+Global___WrongModel: _TypeAlias = WrongModel  # noqa: Y015
+
 class _Channel:
     ValueType = _typing.NewType("ValueType", _builtins.int)
     V: _TypeAlias = ValueType  # noqa: Y015
@@ -411,6 +451,7 @@ class EstimatorSettings(_message.Message):
     FORCE_VAR_FIELD_NUMBER: _builtins.int
     NOISE_MODEL_FIELD_NUMBER: _builtins.int
     FORECAST_FIELD_NUMBER: _builtins.int
+    WRONG_MODEL_FIELD_NUMBER: _builtins.int
     estimator: Global___Estimator.ValueType
     """The estimator. Unset: ESTIMATOR_UKF."""
     preset: Global___Preset.ValueType
@@ -448,6 +489,8 @@ class EstimatorSettings(_message.Message):
     """Fixed or adaptive noise. Unset: from the preset."""
     forecast: Global___Forecast.ValueType
     """What answers a tick without a frame. Unset: from the preset."""
+    wrong_model: Global___WrongModel.ValueType
+    """SCENARIO_PASSIVE, ESTIMATOR_UKF: what a window of NIS far out does. Unset: from the preset."""
     def __init__(
         self,
         *,
@@ -464,10 +507,11 @@ class EstimatorSettings(_message.Message):
         force_var: _builtins.float | None = ...,
         noise_model: Global___NoiseModel.ValueType = ...,
         forecast: Global___Forecast.ValueType = ...,
+        wrong_model: Global___WrongModel.ValueType = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "force_var", b"force_var", "kappa", b"kappa", "p0", b"p0", "q_var", b"q_var", "r", b"r"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "estimator", b"estimator", "force_model", b"force_model", "force_var", b"force_var", "forecast", b"forecast", "kappa", b"kappa", "noise_model", b"noise_model", "p0", b"p0", "preset", b"preset", "q_var", b"q_var", "r", b"r", "sigma_points", b"sigma_points"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "estimator", b"estimator", "force_model", b"force_model", "force_var", b"force_var", "forecast", b"forecast", "kappa", b"kappa", "noise_model", b"noise_model", "p0", b"p0", "preset", b"preset", "q_var", b"q_var", "r", b"r", "sigma_points", b"sigma_points", "wrong_model", b"wrong_model"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__alpha: _TypeAlias = _typing.Literal["alpha"]  # noqa: Y015
     _WhichOneofArgType__alpha: _TypeAlias = _typing.Literal["_alpha", b"_alpha"]  # noqa: Y015
