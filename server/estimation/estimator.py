@@ -12,8 +12,8 @@ tick at a time::
     estimator.predict(ctrl=None)                      # every later tick ...
     estimate = estimator.update(frame)                # ... and, when its frame is there
 
-Estimators: the unscented Kalman filter (estimation/ukf.py) and the dead-reckoning extrapolators of
-IEEE 1278 (estimation/deadreckoning.py). State layouts: x = [q (nq), qd (nv)] in PASSIVE and EXTERNAL,
+Estimators: the unscented Kalman filter (estimation/ukf.py; a PASSIVE one that may become DRIVEN,
+estimation/switch.py) and the dead-reckoning extrapolators of IEEE 1278 (estimation/deadreckoning.py). State layouts: x = [q (nq), qd (nv)] in PASSIVE and EXTERNAL,
 [q, qd, qdd (nv)] in CONTROLLED, and for the UKF in DRIVEN [q, qd, f (nv)] (force model RANDOM_WALK)
 or [q, qd, f, fd (nv)] (INTEGRATED_RANDOM_WALK), f the unknown generalized force; covariances live
 in the tangent space, (k nv, k nv) with k = 2, 3 or 4, which differs from len(x) only for models

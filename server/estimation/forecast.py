@@ -51,14 +51,12 @@ PROBES: Final = 16
 @dataclass(frozen=True)
 class Forecast:
     """The combination's answer h ticks after the last frame: weights (P,) in PREDICTORS' order,
-    qpos (nq,), qvel (nv,), qacc (nv,), and the expected squared q error per dof at that horizon
-    from the scores (nv,)."""
+    qpos (nq,), qvel (nv,), qacc (nv,)."""
 
     weights: np.ndarray
     qpos: np.ndarray
     qvel: np.ndarray
     qacc: np.ndarray
-    q_variance: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -82,7 +80,6 @@ class _Snapshot:
     tick: int
     probes: tuple[_Probe, ...]
     cov: np.ndarray
-    var: np.ndarray
     count: np.ndarray
     anchor: tuple[np.ndarray, np.ndarray, int] | None
 
@@ -122,7 +119,6 @@ class ForecastCombiner:
         self._tick = 0
         self._probes: list[_Probe] = []
         self._cov = np.zeros((self._horizon + 1, P, P))
-        self._var = np.zeros((self._horizon + 1, P, self._nv))
         self._count = np.zeros(self._horizon + 1)
         self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # last frame's (q, v, tick)
 
@@ -195,7 +191,6 @@ class ForecastCombiner:
             qpos=weights @ q,
             qvel=weights @ v,
             qacc=weights @ a,
-            q_variance=np.asarray(np.maximum(weights**2 @ self._var[h], 0.0)),
         )
 
     def snapshot(self) -> _Snapshot:
@@ -203,7 +198,6 @@ class ForecastCombiner:
             tick=self._tick,
             probes=tuple(self._probes),
             cov=self._cov.copy(),
-            var=self._var.copy(),
             count=self._count.copy(),
             anchor=self._anchor,
         )
@@ -212,7 +206,6 @@ class ForecastCombiner:
         self._tick = snap.tick
         self._probes = list(snap.probes)
         self._cov = snap.cov.copy()
-        self._var = snap.var.copy()
         self._count = snap.count.copy()
         self._anchor = snap.anchor
 
@@ -242,7 +235,6 @@ class ForecastCombiner:
         # Sage and Husa's bias-corrected fading weight: the first sample does not count for ever.
         d = (1.0 - FORGETTING) / (1.0 - FORGETTING ** (self._count[h] + 1))
         self._cov[h] = (1.0 - d) * self._cov[h] + d * c
-        self._var[h] = (1.0 - d) * self._var[h] + d * errors**2
         self._count[h] += 1
 
     def _step(self, p: _Probe) -> _Probe:

@@ -16,6 +16,10 @@ The scenarios are the thesis' (reference/thesis-experiments.md):
   frame before) and held, as qfrc_applied, over every prediction until the next frame. Actuators
   are off in the process model: their forces are part of the restored force.
 
+DRIVEN with Forecast.COMBINED (PRESET_JITDYN's default): a tick without a frame is answered by the
+combination of the model's rollout and IEEE 1278's extrapolators that scored best on the session's
+own frames (server/estimation/forecast.py); the filter's mean and covariance are the filter's.
+
 Muscle activations (act, na of them) are physics state but not filter state: every sigma point
 starts a tick from the same act, and the filter keeps the weighted mean of the propagated acts
 (clipped to the actuators' ranges). In EXTERNAL, with actuation off, act simply stays.
