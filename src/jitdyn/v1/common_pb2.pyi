@@ -278,8 +278,9 @@ class _Forecast:
 class _ForecastEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Forecast.ValueType], _builtins.type):
     DESCRIPTOR: _descriptor.EnumDescriptor
     FORECAST_UNSPECIFIED: _Forecast.ValueType  # 0
-    """Not set: the preset decides (PRESET_JITDYN: FORECAST_COMBINED in SCENARIO_DRIVEN,
-    FORECAST_FILTER in the thesis' scenarios; PRESET_THESIS: FORECAST_FILTER).
+    """Not set: the preset decides (PRESET_JITDYN: FORECAST_COMBINED in SCENARIO_DRIVEN below a
+    state dimension of 32, FORECAST_FILTER from 32 on and in the thesis' scenarios; PRESET_THESIS:
+    FORECAST_FILTER).
     """
     FORECAST_FILTER: _Forecast.ValueType  # 1
     """The filter's predicted mean, as in the thesis."""
@@ -299,8 +300,9 @@ class Forecast(_Forecast, metaclass=_ForecastEnumTypeWrapper):
     """What answers a tick that has no frame (a gap)."""
 
 FORECAST_UNSPECIFIED: Forecast.ValueType  # 0
-"""Not set: the preset decides (PRESET_JITDYN: FORECAST_COMBINED in SCENARIO_DRIVEN,
-FORECAST_FILTER in the thesis' scenarios; PRESET_THESIS: FORECAST_FILTER).
+"""Not set: the preset decides (PRESET_JITDYN: FORECAST_COMBINED in SCENARIO_DRIVEN below a
+state dimension of 32, FORECAST_FILTER from 32 on and in the thesis' scenarios; PRESET_THESIS:
+FORECAST_FILTER).
 """
 FORECAST_FILTER: Forecast.ValueType  # 1
 """The filter's predicted mean, as in the thesis."""
