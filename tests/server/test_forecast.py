@@ -205,3 +205,26 @@ def test_the_combination_replays_exactly_after_a_snapshot() -> None:
     for (s1, w1), (s2, w2) in itertools.zip_longest(*runs):
         np.testing.assert_array_equal(s1, s2)
         assert w1 == w2 and w1 is not None
+
+
+def _chain(links: int) -> mujoco.MjModel:
+    """A chain of `links` hinged, motor-driven links."""
+    body = ""
+    for i in range(links):
+        body += f'<body pos="0 0 -0.1"><joint name="j{i}" type="hinge" axis="0 1 0"/><geom type="capsule" size="0.01" fromto="0 0 0 0 0 -0.1"/>'
+    body += "</body>" * links
+    motors = "".join(f'<motor joint="j{i}"/>' for i in range(links))
+    return mujoco.MjModel.from_xml_string(
+        f"<mujoco><worldbody>{body}</worldbody><actuator>{motors}</actuator></mujoco>"
+    )
+
+
+@pytest.mark.parametrize(("links", "forecast"), [(10, "COMBINED"), (11, "FILTER")])
+def test_the_combination_is_jitdyns_driven_default_below_a_large_state(links: int, forecast: str) -> None:
+    """DRIVEN's state is 3 nv: 30 for 10 links, 33 (>= LARGE_STATE = 32) for 11, where the filter
+    answers gaps (myoHand: the combination's scoring tripled its compute, docs/experiments.md)."""
+    model = _chain(links)
+    config = resolve_config(
+        model=model, scenario="DRIVEN", dt=0.01, requested={}, model_defaults={}, measured={"qpos", "qvel"}
+    )
+    assert config.forecast == forecast
