@@ -51,6 +51,8 @@ if TYPE_CHECKING:
         | common_pb2.SigmaPoints
         | common_pb2.ForceModel
         | common_pb2.NoiseModel
+        | common_pb2.Forecast
+        | common_pb2.WrongModel
     ]
 
 __all__ = [
@@ -118,6 +120,8 @@ _ESTIMATOR_ENUMS: dict[str, tuple[_SettingsEnum, str]] = {
     "sigma_points": (common_pb2.SigmaPoints, "SIGMA_POINTS_"),
     "force_model": (common_pb2.ForceModel, "FORCE_MODEL_"),
     "noise_model": (common_pb2.NoiseModel, "NOISE_MODEL_"),
+    "forecast": (common_pb2.Forecast, "FORECAST_"),
+    "wrong_model": (common_pb2.WrongModel, "WRONG_MODEL_"),
 }
 # A Literal, so that mypy checks the names against EstimatorSettings' fields (HasField).
 _Scalar: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r", "force_var"]
@@ -330,6 +334,12 @@ class TickResult:
     late_compute: bool = False  # answered on time without the estimator (an overloaded server)
     adapted: bool = False  # the adaptive noise model moved R or Q by more than a tenth
     absorbed: bool = False  # a NIS window far out: the filter widened its covariance
+    # FORECAST_COMBINED over a gap: the weights of MODEL, STATIC, CONSTANT_VELOCITY and
+    # CONSTANT_ACCELERATION in the answer; None when the filter answered alone.
+    forecast_weights: tuple[float, ...] | None = None
+    # The scenario of the filter that answered (DRIVEN after a wrong PASSIVE model was absorbed);
+    # "" for dead reckoning.
+    scenario: str = ""
 
     @classmethod
     def from_message(cls, result: dynamics_pb2.Result, *, received_at: float) -> TickResult:
@@ -368,6 +378,8 @@ class TickResult:
             late_compute=result.late_compute,
             adapted=result.adapted,
             absorbed=result.absorbed,
+            forecast_weights=tuple(result.forecast_weights) if result.forecast_weights else None,
+            scenario=_name(common_pb2.Scenario, "SCENARIO_", result.scenario) if result.scenario else "",
         )
 
 

@@ -43,6 +43,8 @@ ESTIMATOR_SETTINGS: Mapping[str, tuple[str, ...] | None] = {
     "sigma_points": ("MERWE", "SIMPLEX", "UNIFORM"),
     "force_model": ("RANDOM_WALK", "INTEGRATED_RANDOM_WALK"),
     "noise_model": ("FIXED", "ADAPTIVE"),
+    "forecast": ("FILTER", "COMBINED"),
+    "wrong_model": ("KEEP", "DRIVEN"),
     "force_var": None,
     "alpha": None,
     "beta": None,

@@ -15,9 +15,12 @@ from jitdyn.server.estimation.estimator import (
     EstimatorConfig,
     EstimatorKind,
     Measurement,
+    Scenario,
+    WrongModel,
     check_against_model,
 )
 from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.estimation.switch import SwitchingFilter
 from jitdyn.server.estimation.ukf import UnscentedFilter
 
 __all__ = ["make_estimator", "measure_cycle"]
@@ -27,6 +30,8 @@ def make_estimator(model: mujoco.MjModel, config: EstimatorConfig, *, pool: Work
     """The estimator `config` names, built whole for `model` on the shared `pool`."""
     check_against_model(model, config)
     if config.estimator == EstimatorKind.UKF:
+        if config.scenario == Scenario.PASSIVE and config.wrong_model == WrongModel.DRIVEN:
+            return SwitchingFilter(model, config, pool=pool)
         return UnscentedFilter(model, config, pool=pool)
     return DeadReckoning(model, config)
 

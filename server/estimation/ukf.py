@@ -16,6 +16,10 @@ The scenarios are the thesis' (reference/thesis-experiments.md):
   frame before) and held, as qfrc_applied, over every prediction until the next frame. Actuators
   are off in the process model: their forces are part of the restored force.
 
+DRIVEN with Forecast.COMBINED (PRESET_JITDYN's default): a tick without a frame is answered by the
+combination of the model's rollout and IEEE 1278's extrapolators that scored best on the session's
+own frames (server/estimation/forecast.py); the filter's mean and covariance are the filter's.
+
 Muscle activations (act, na of them) are physics state but not filter state: every sigma point
 starts a tick from the same act, and the filter keeps the weighted mean of the propagated acts
 (clipped to the actuators' ranges). In EXTERNAL, with actuation off, act simply stays.
@@ -29,6 +33,7 @@ so in the estimate.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
@@ -44,6 +49,7 @@ from jitdyn.server.estimation.estimator import (
     Estimate,
     EstimatorConfig,
     EstimatorKind,
+    Forecast,
     Measurement,
     NoiseModel,
     Scenario,
@@ -54,6 +60,7 @@ from jitdyn.server.estimation.estimator import (
     force_blocks,
     read_only,
 )
+from jitdyn.server.estimation.forecast import ForecastCombiner
 from jitdyn.server.estimation.manifold import SplitManifold, has_manifold
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
@@ -87,6 +94,8 @@ ABSORPTIONS_BEFORE_REINIT: Final = 3
 # give each dof alone: 10 rad/s^2 (or m/s^2), 100 rad/s^3; scaled by the mass matrix's diagonal.
 FORCE_P0_ACCELERATION: Final = 10.0
 FORCE_RATE_P0_JERK: Final = 100.0
+# The longest gap the forecast combination learns its weights for, s (a longer gap keeps these).
+FORECAST_HORIZON: Final = 0.2
 
 
 def process_noise(*, order: int, dt: float, var: float, nv: int) -> np.ndarray:
@@ -174,6 +183,7 @@ class _Snapshot:
     nis_run: int
     adapter: object | None
     absorptions: int
+    forecasts: object | None
 
 
 class UnscentedFilter:
@@ -273,6 +283,16 @@ class UnscentedFilter:
         self._ut = unscented_transform if not manifold else _tangent_unscented_transform
         self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
         self._act_bounds = self._activation_bounds()
+        self._forecasts = (
+            ForecastCombiner(
+                self._model,
+                dt=config.dt,
+                steps_per_tick=config.steps_per_tick,
+                horizon=int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9)),
+            )
+            if config.forecast == Forecast.COMBINED and self._driven and not manifold
+            else None
+        )
 
         # Mutable state; snapshot() copies all of it.
         self._initialised = False
@@ -316,6 +336,11 @@ class UnscentedFilter:
         """How often an indefinite covariance had to be repaired, since construction."""
         return self._sqrt.repairs
 
+    def forget(self) -> None:
+        """Back to the uninitialised filter: the next initialise() keeps nothing of this one (a
+        re-initialisation keeps a DRIVEN filter's force)."""
+        self._initialised = False
+
     def initialise(self, m: Measurement) -> None:
         m = check_measurement(m, self._model, self._config.measured)
         self._act = np.zeros(self._na)
@@ -327,6 +352,9 @@ class UnscentedFilter:
         self._start_from(m, qvel_fallback=np.zeros(self._nv))
         if self._scenario == Scenario.EXTERNAL and m.qacc is not None:
             self._qfrc = self._inverse(m.qpos, self._last_qvel, m.qacc)
+        if self._forecasts is not None:
+            self._forecasts.reset()
+            self._observe_forecast(m)
         self._initialised = True
 
     def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
@@ -335,6 +363,8 @@ class UnscentedFilter:
             self._ctrl = check_vector(ctrl, self._nu, "ctrl").copy()
         if self._adapter is not None:
             self._kf.Q = self._adapter.Q
+        if self._forecasts is not None:
+            self._forecasts.advance()
         self._kf.predict(UT=self._ut)
         self._act = self._clip_act(self._propagated_act)
         self._ticks_since_update += 1
@@ -348,7 +378,10 @@ class UnscentedFilter:
                 raise RuntimeError("unreachable: an initialised filter has a last measurement")
             self._reinitialise(self._last)
             reinitialised = True
-        return self._estimate(reinitialised=reinitialised)
+        estimate = self._estimate(reinitialised=reinitialised)
+        if self._forecasts is not None and not reinitialised:
+            estimate = self._combined(estimate)
+        return estimate
 
     def update(self, m: Measurement) -> Estimate:
         self._require_initialised("update")
@@ -415,6 +448,8 @@ class UnscentedFilter:
             self._last = m
             self._last_qvel = np.array(qvel)
             self._ticks_since_update = 0
+        if self._forecasts is not None:
+            self._observe_forecast(m)
         if m.ctrl is not None:
             self._ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
         return self._estimate(nis=nis, reinitialised=reinitialised, adapted=adapted, absorbed=absorbed)
@@ -461,6 +496,7 @@ class UnscentedFilter:
             nis_run=self._nis_run,
             adapter=self._adapter.snapshot() if self._adapter is not None else None,
             absorptions=self._absorptions,
+            forecasts=self._forecasts.snapshot() if self._forecasts is not None else None,
         )
 
     def restore(self, snap: object) -> None:
@@ -477,6 +513,8 @@ class UnscentedFilter:
         if self._adapter is not None and snap.adapter is not None:
             self._adapter.restore(snap.adapter)  # type: ignore[arg-type]
         self._absorptions = snap.absorptions
+        if self._forecasts is not None and snap.forecasts is not None:
+            self._forecasts.restore(snap.forecasts)  # type: ignore[arg-type]
 
     # -- internals ------------------------------------------------------------------------------
 
@@ -570,6 +608,45 @@ class UnscentedFilter:
         if self._na:
             self._propagated_act = self._points.Wm @ out.act
         return propagated
+
+    def _observe_forecast(self, m: Measurement) -> None:
+        """Score the forecasts against frame m and start this tick's, from the posterior."""
+        if self._forecasts is None:
+            return
+        nq, nv = self._nq, self._nv
+        x = self._kf.x
+        if not np.all(np.isfinite(x)):
+            return
+        qvel = m.qvel if m.qvel is not None else x[nq : nq + nv]
+        self._forecasts.observe(
+            m.qpos,
+            qvel,
+            mean_qpos=x[:nq],
+            mean_qvel=x[nq : nq + nv],
+            act=self._act,
+            force=x[nq + nv : nq + 2 * nv],
+            rate=x[nq + 2 * nv : nq + 3 * nv] if self._fblocks == 2 else None,
+        )
+
+    def _combined(self, estimate: Estimate) -> Estimate:
+        """Over a gap: the forecast combination's answer, when its weights are learnt."""
+        if self._forecasts is None or self._ticks_since_update == 0:
+            return estimate
+        answer = self._forecasts.forecast()
+        if answer is None:
+            return estimate
+        nq, nv = self._nq, self._nv
+        state = np.array(estimate.state)
+        state[:nq], state[nq : nq + nv] = answer.qpos, answer.qvel
+        frozen = read_only(state)
+        return dataclasses.replace(
+            estimate,
+            qpos=frozen[:nq],
+            qvel=frozen[nq : nq + nv],
+            qacc=read_only(answer.qacc),
+            state=frozen,
+            forecast_weights=tuple(float(w) for w in answer.weights),
+        )
 
     def _adapt_q_mask(self) -> np.ndarray:
         """(n,) the components whose Q adapts: all but the unknown force's. The force's corrections
@@ -759,6 +836,7 @@ class UnscentedFilter:
             reinitialised=reinitialised,
             adapted=adapted,
             absorbed=absorbed,
+            scenario=self._scenario.value,
         )
 
 

@@ -627,6 +627,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 "force_model",
                 "force_var",
                 "noise_model",
+                "forecast",
+                "wrong_model",
             )
         }
         settings["preset"] = plan.preset

@@ -11,7 +11,7 @@ import numpy as np
 from jitdyn.server.runtime.frames import Rejection
 from jitdyn.server.runtime.session import SessionCounts, TickOutcome
 from jitdyn.storage.records import SessionSummaryInfo, TickRecord
-from jitdyn.v1 import dynamics_pb2
+from jitdyn.v1 import common_pb2, dynamics_pb2
 
 __all__ = ["rejected_message", "rejection_record", "result_message", "summary_info", "tick_record"]
 
@@ -70,6 +70,10 @@ def result_message(
         result.reinitialised = estimate.reinitialised
         result.adapted = estimate.adapted
         result.absorbed = estimate.absorbed
+        if estimate.scenario:
+            result.scenario = common_pb2.Scenario.Value(f"SCENARIO_{estimate.scenario}")
+        if estimate.forecast_weights is not None and outcome.source == "PREDICTED":
+            result.forecast_weights[:] = estimate.forecast_weights
     if durable_seq is not None:
         result.durable_seq = durable_seq
     return result

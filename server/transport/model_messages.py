@@ -30,6 +30,8 @@ if TYPE_CHECKING:
         | common_pb2.SigmaPoints
         | common_pb2.ForceModel
         | common_pb2.NoiseModel
+        | common_pb2.Forecast
+        | common_pb2.WrongModel
     ]
 
 __all__ = [
@@ -53,6 +55,8 @@ _ENUMS: dict[str, tuple[_SettingsEnum, str]] = {
     "sigma_points": (common_pb2.SigmaPoints, "SIGMA_POINTS_"),
     "force_model": (common_pb2.ForceModel, "FORCE_MODEL_"),
     "noise_model": (common_pb2.NoiseModel, "NOISE_MODEL_"),
+    "forecast": (common_pb2.Forecast, "FORECAST_"),
+    "wrong_model": (common_pb2.WrongModel, "WRONG_MODEL_"),
 }
 # A Literal, so that mypy checks the names against EstimatorSettings' fields (HasField).
 _Number: TypeAlias = Literal["alpha", "beta", "kappa", "p0", "q_var", "r", "force_var"]

@@ -271,6 +271,94 @@ windows in a row it starts again from the measurement (`Result.reinitialised`).
 """
 Global___NoiseModel: _TypeAlias = NoiseModel  # noqa: Y015
 
+class _Forecast:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _ForecastEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Forecast.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    FORECAST_UNSPECIFIED: _Forecast.ValueType  # 0
+    """Not set: the preset decides (PRESET_JITDYN: FORECAST_COMBINED in SCENARIO_DRIVEN below a
+    state dimension of 32, FORECAST_FILTER from 32 on and in the thesis' scenarios; PRESET_THESIS:
+    FORECAST_FILTER).
+    """
+    FORECAST_FILTER: _Forecast.ValueType  # 1
+    """The filter's predicted mean, as in the thesis."""
+    FORECAST_COMBINED: _Forecast.ValueType  # 2
+    """SCENARIO_DRIVEN, ESTIMATOR_UKF, models without ball or free joints: the server scores its own
+    forecasts against every frame it gets, at every horizon up to 0.2 s (in ticks), for four
+    predictors: the posterior mean rolled out by the model under its estimated force (MODEL), and
+    IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last frame. Over a
+    gap of h ticks it answers the combination of the four with the least error variance at h on
+    the recent frames (weights >= 0 summing to 1; fading memory of about 5 scored forecasts per
+    horizon); `Result.forecast_weights` says which predictors answered and how much. Until a
+    horizon has 3 scores, and in a gap longer than 0.2 s beyond it, the filter answers (or the
+    0.2 s weights hold). The filter itself (`filter_state`'s force and `covariance`) is unchanged.
+    """
+
+class Forecast(_Forecast, metaclass=_ForecastEnumTypeWrapper):
+    """What answers a tick that has no frame (a gap)."""
+
+FORECAST_UNSPECIFIED: Forecast.ValueType  # 0
+"""Not set: the preset decides (PRESET_JITDYN: FORECAST_COMBINED in SCENARIO_DRIVEN below a
+state dimension of 32, FORECAST_FILTER from 32 on and in the thesis' scenarios; PRESET_THESIS:
+FORECAST_FILTER).
+"""
+FORECAST_FILTER: Forecast.ValueType  # 1
+"""The filter's predicted mean, as in the thesis."""
+FORECAST_COMBINED: Forecast.ValueType  # 2
+"""SCENARIO_DRIVEN, ESTIMATOR_UKF, models without ball or free joints: the server scores its own
+forecasts against every frame it gets, at every horizon up to 0.2 s (in ticks), for four
+predictors: the posterior mean rolled out by the model under its estimated force (MODEL), and
+IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last frame. Over a
+gap of h ticks it answers the combination of the four with the least error variance at h on
+the recent frames (weights >= 0 summing to 1; fading memory of about 5 scored forecasts per
+horizon); `Result.forecast_weights` says which predictors answered and how much. Until a
+horizon has 3 scores, and in a gap longer than 0.2 s beyond it, the filter answers (or the
+0.2 s weights hold). The filter itself (`filter_state`'s force and `covariance`) is unchanged.
+"""
+Global___Forecast: _TypeAlias = Forecast  # noqa: Y015
+
+class _WrongModel:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _WrongModelEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_WrongModel.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    WRONG_MODEL_UNSPECIFIED: _WrongModel.ValueType  # 0
+    """Not set: the preset decides (PRESET_JITDYN: WRONG_MODEL_DRIVEN in SCENARIO_PASSIVE;
+    PRESET_THESIS and the other scenarios: WRONG_MODEL_KEEP).
+    """
+    WRONG_MODEL_KEEP: _WrongModel.ValueType  # 1
+    """Nothing: the filter stays PASSIVE, as in the thesis."""
+    WRONG_MODEL_DRIVEN: _WrongModel.ValueType  # 2
+    """When the mean NIS of 8 updates passes the 1 - 1e-9 quantile of the mean of 8 chi-square(m)
+    samples (m the measurement dimension; 19.6 for m = 6), something the session does not
+    see drives the body: the session's filter becomes SCENARIO_DRIVEN with PRESET_JITDYN's DRIVEN
+    settings, started from that frame. That result says `absorbed`, and every later result's
+    `scenario` is SCENARIO_DRIVEN; `filter_state` and `covariance` then have the DRIVEN layout
+    ([q, qd, f], 3 nv). The tick cost admitted at open (REALTIME) was the PASSIVE filter's.
+    """
+
+class WrongModel(_WrongModel, metaclass=_WrongModelEnumTypeWrapper):
+    """What a SCENARIO_PASSIVE UKF does when its innovations say the model is wrong."""
+
+WRONG_MODEL_UNSPECIFIED: WrongModel.ValueType  # 0
+"""Not set: the preset decides (PRESET_JITDYN: WRONG_MODEL_DRIVEN in SCENARIO_PASSIVE;
+PRESET_THESIS and the other scenarios: WRONG_MODEL_KEEP).
+"""
+WRONG_MODEL_KEEP: WrongModel.ValueType  # 1
+"""Nothing: the filter stays PASSIVE, as in the thesis."""
+WRONG_MODEL_DRIVEN: WrongModel.ValueType  # 2
+"""When the mean NIS of 8 updates passes the 1 - 1e-9 quantile of the mean of 8 chi-square(m)
+samples (m the measurement dimension; 19.6 for m = 6), something the session does not
+see drives the body: the session's filter becomes SCENARIO_DRIVEN with PRESET_JITDYN's DRIVEN
+settings, started from that frame. That result says `absorbed`, and every later result's
+`scenario` is SCENARIO_DRIVEN; `filter_state` and `covariance` then have the DRIVEN layout
+([q, qd, f], 3 nv). The tick cost admitted at open (REALTIME) was the PASSIVE filter's.
+"""
+Global___WrongModel: _TypeAlias = WrongModel  # noqa: Y015
+
 class _Channel:
     ValueType = _typing.NewType("ValueType", _builtins.int)
     V: _TypeAlias = ValueType  # noqa: Y015
@@ -364,6 +452,8 @@ class EstimatorSettings(_message.Message):
     FORCE_MODEL_FIELD_NUMBER: _builtins.int
     FORCE_VAR_FIELD_NUMBER: _builtins.int
     NOISE_MODEL_FIELD_NUMBER: _builtins.int
+    FORECAST_FIELD_NUMBER: _builtins.int
+    WRONG_MODEL_FIELD_NUMBER: _builtins.int
     estimator: Global___Estimator.ValueType
     """The estimator. Unset: ESTIMATOR_UKF."""
     preset: Global___Preset.ValueType
@@ -399,6 +489,10 @@ class EstimatorSettings(_message.Message):
     """
     noise_model: Global___NoiseModel.ValueType
     """Fixed or adaptive noise. Unset: from the preset."""
+    forecast: Global___Forecast.ValueType
+    """What answers a tick without a frame. Unset: from the preset."""
+    wrong_model: Global___WrongModel.ValueType
+    """SCENARIO_PASSIVE, ESTIMATOR_UKF: what a window of NIS far out does. Unset: from the preset."""
     def __init__(
         self,
         *,
@@ -414,10 +508,12 @@ class EstimatorSettings(_message.Message):
         force_model: Global___ForceModel.ValueType = ...,
         force_var: _builtins.float | None = ...,
         noise_model: Global___NoiseModel.ValueType = ...,
+        forecast: Global___Forecast.ValueType = ...,
+        wrong_model: Global___WrongModel.ValueType = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "force_var", b"force_var", "kappa", b"kappa", "p0", b"p0", "q_var", b"q_var", "r", b"r"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "estimator", b"estimator", "force_model", b"force_model", "force_var", b"force_var", "kappa", b"kappa", "noise_model", b"noise_model", "p0", b"p0", "preset", b"preset", "q_var", b"q_var", "r", b"r", "sigma_points", b"sigma_points"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_alpha", b"_alpha", "_beta", b"_beta", "_force_var", b"_force_var", "_kappa", b"_kappa", "_p0", b"_p0", "_q_var", b"_q_var", "_r", b"_r", "alpha", b"alpha", "beta", b"beta", "estimator", b"estimator", "force_model", b"force_model", "force_var", b"force_var", "forecast", b"forecast", "kappa", b"kappa", "noise_model", b"noise_model", "p0", b"p0", "preset", b"preset", "q_var", b"q_var", "r", b"r", "sigma_points", b"sigma_points", "wrong_model", b"wrong_model"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__alpha: _TypeAlias = _typing.Literal["alpha"]  # noqa: Y015
     _WhichOneofArgType__alpha: _TypeAlias = _typing.Literal["_alpha", b"_alpha"]  # noqa: Y015

@@ -706,6 +706,8 @@ class Result(_message.Message):
     LATE_COMPUTE_FIELD_NUMBER: _builtins.int
     ADAPTED_FIELD_NUMBER: _builtins.int
     ABSORBED_FIELD_NUMBER: _builtins.int
+    FORECAST_WEIGHTS_FIELD_NUMBER: _builtins.int
+    SCENARIO_FIELD_NUMBER: _builtins.int
     seq: _builtins.int
     """The tick index."""
     t: _builtins.float
@@ -756,6 +758,11 @@ class Result(_message.Message):
     model, not the noise, is wrong) and the filter widened its covariance of q and qd to follow
     the measurements.
     """
+    scenario: _common_pb2.Scenario.ValueType
+    """ESTIMATOR_UKF: the scenario of the filter that answered: `SessionOpened.scenario`, or
+    SCENARIO_DRIVEN once WRONG_MODEL_DRIVEN absorbed a wrong PASSIVE model. Unspecified for the
+    dead-reckoning estimators and before the first frame.
+    """
     @_builtins.property
     def qpos(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """Estimated generalized positions (nq)."""
@@ -796,13 +803,22 @@ class Result(_message.Message):
         EXTERNAL), [q, qd, qdd] (CONTROLLED), or for the UKF in DRIVEN [q, qd, f] or [q, qd, f, fd]
         (f the estimated unknown generalized force, N or N m; fd its rate, N/s or N m/s), q with nq
         values. For a MEASURED tick this is the posterior, while `qpos`, `qvel` and `qacc` report the
-        frame itself.
+        frame itself. For a PREDICTED tick answered by FORECAST_COMBINED (`forecast_weights` set), its
+        [q, qd] block is the combination's answer and the rest the filter's prior.
         """
 
     @_builtins.property
     def covariance(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """OUTPUT_FILTER_STATE: the estimator's full covariance, row-major, state dimension squared
         values (tangent space for ball and free joints); empty for the dead-reckoning estimators.
+        """
+
+    @_builtins.property
+    def forecast_weights(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """FORECAST_COMBINED, a PREDICTED tick answered by the combination: the weight (0 to 1, summing to
+        1) of each predictor in `qpos`, `qvel`, `qacc` and the [q, qd] block of `filter_state`, in the
+        order MODEL, STATIC, CONSTANT_VELOCITY, CONSTANT_ACCELERATION (see `Forecast`). Empty when the
+        filter answered alone.
         """
 
     def __init__(
@@ -833,10 +849,12 @@ class Result(_message.Message):
         late_compute: _builtins.bool = ...,
         adapted: _builtins.bool = ...,
         absorbed: _builtins.bool = ...,
+        forecast_weights: _abc.Iterable[_builtins.float] | None = ...,
+        scenario: _common_pb2.Scenario.ValueType = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "durable_seq", b"durable_seq", "nis", b"nis"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "absorbed", b"absorbed", "actuator_force", b"actuator_force", "adapted", b"adapted", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "absorbed", b"absorbed", "actuator_force", b"actuator_force", "adapted", b"adapted", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "forecast_weights", b"forecast_weights", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "scenario", b"scenario", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__durable_seq: _TypeAlias = _typing.Literal["durable_seq"]  # noqa: Y015
     _WhichOneofArgType__durable_seq: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq"]  # noqa: Y015
