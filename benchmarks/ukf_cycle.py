@@ -42,7 +42,6 @@ from jitdyn.server.estimation.estimator import EstimatorConfig, Measurement, res
 from jitdyn.server.estimation.factory import make_estimator
 from jitdyn.server.estimation.pool import Backend, WorkerPool
 from jitdyn.server.estimation.propagate import process_model
-from jitdyn.server.estimation.ukf import UnscentedFilter
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
 
@@ -268,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
         frames = ground_truth(model, case, config.steps_per_tick, ticks=4000)
         runners = {key: Runner(model, config, pool, frames) for key, pool in pools.items()}
         some = next(iter(runners.values())).estimator
-        nsigma = some.nsigma if isinstance(some, UnscentedFilter) else 1
+        nsigma = int(getattr(some, "nsigma", 1))  # a UKF, or the switching filter around one
         stepped = (
             nsigma - 2 * model.nv
             if case.scenario == "CONTROLLED" and config.sigma_points == "MERWE"
