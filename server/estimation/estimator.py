@@ -36,6 +36,7 @@ from jitdyn.errors import InvalidArgument
 __all__ = [
     "CHANNELS",
     "LARGE_STATE",
+    "SETTING_FIELDS",
     "Channel",
     "Estimate",
     "Estimator",
@@ -139,7 +140,7 @@ DRIVEN_ALPHA: Final = 0.3
 DRIVEN_R: Final = 1e-2
 
 # Settings a request or a model's metadata may set, and their types.
-_FIELDS: Final = (
+SETTING_FIELDS: Final = (
     "estimator",
     "sigma_points",
     "alpha",
@@ -496,9 +497,11 @@ def preset_values(
 
 
 def _check_settings(values: Mapping[str, object], name: str) -> None:
-    unknown = sorted(set(values) - set(_FIELDS))
+    unknown = sorted(set(values) - set(SETTING_FIELDS))
     if unknown:
-        raise InvalidArgument(f"{name} has unknown settings {unknown}; expected some of {list(_FIELDS)}")
+        raise InvalidArgument(
+            f"{name} has unknown settings {unknown}; expected some of {list(SETTING_FIELDS)}"
+        )
 
 
 def steps_per_tick(model: mujoco.MjModel, dt: float) -> int:

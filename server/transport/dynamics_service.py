@@ -27,7 +27,13 @@ from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Reso
 from jitdyn.mujoco_log import counting
 from jitdyn.registry import ModelInfo
 from jitdyn.server.estimation.dynamics import Dynamics
-from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, default_scenario, resolve_config
+from jitdyn.server.estimation.estimator import (
+    SETTING_FIELDS,
+    Estimator,
+    EstimatorConfig,
+    default_scenario,
+    resolve_config,
+)
 from jitdyn.server.estimation.factory import make_estimator, measure_cycle
 from jitdyn.server.runtime.admission import Ticket
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
@@ -611,26 +617,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         services = self._services
         scenario = str(plan.scenario)
         model_defaults = info.defaults.get(scenario, {})
-        settings = {
-            k: v
-            for k, v in dataclasses.asdict(config).items()
-            if k
-            in (
-                "estimator",
-                "sigma_points",
-                "alpha",
-                "beta",
-                "kappa",
-                "p0",
-                "q_var",
-                "r",
-                "force_model",
-                "force_var",
-                "noise_model",
-                "forecast",
-                "wrong_model",
-            )
-        }
+        settings = {k: v for k, v in dataclasses.asdict(config).items() if k in SETTING_FIELDS}
         settings["preset"] = plan.preset
         if "noise_model" in plan.estimator_request:
             noise_reason = f"open.estimator.noise_model asked for NOISE_MODEL_{config.noise_model}"
