@@ -16,7 +16,7 @@ from _hostile import Request, Served, close, open_request
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from jitdyn.v1 import dynamics_pb2, model_registry_pb2
+from jitdyn.v1 import common_pb2, dynamics_pb2, model_registry_pb2
 
 FUZZ = settings(
     max_examples=100,
@@ -61,7 +61,12 @@ class Honest:
         assert self._opened.wait(30)
 
     def _requests(self) -> Iterator[Request]:
-        yield open_request(clock="REALTIME", dt=self.dt)
+        opening = open_request(clock="REALTIME", dt=self.dt)
+        # PASSIVE named: what is judged is the server's fairness beside the fuzzing, not the price
+        # of the default DRIVEN filter's forecast combination (benchmarks/RESULTS.md), which shed
+        # 95 of 393 ticks of this session in one full-suite run on a quiet machine.
+        opening.open.scenario = common_pb2.Scenario.Value("SCENARIO_PASSIVE")
+        yield opening
         self._opened.wait(30)
         start = time.monotonic()
         seq = 0
