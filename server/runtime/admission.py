@@ -78,6 +78,9 @@ class Ticket:
     admission: Admission
     dt: float
     cost_per_tick: float  # s, the current estimate
+    # s, the session's own estimator and dynamics per tick (wall time on the loop), without the
+    # process's transport: what replaying a tick costs. Starts at the priced filter cycle.
+    compute_per_tick: float = 0.0
     released: bool = False
     admitted_at: float = field(default_factory=time.monotonic)
 
@@ -90,6 +93,7 @@ class Ticket:
         tick (the transport, the loop, recording) is added."""
         self.admission._count_tick(seconds)
         self.cost_per_tick += _EWMA * (seconds + self.admission.overhead - self.cost_per_tick)
+        self.compute_per_tick += _EWMA * (seconds - self.compute_per_tick)
 
     def release(self) -> None:
         self.admission._release(self)
@@ -175,7 +179,7 @@ class Admission:
             filter_seconds = cost_per_tick
         if not dt > 0:
             raise InvalidArgument(f"dt must be > 0, got {dt}")
-        ticket = Ticket(self, dt=dt, cost_per_tick=cost_per_tick)
+        ticket = Ticket(self, dt=dt, cost_per_tick=cost_per_tick, compute_per_tick=filter_seconds)
         with self._lock:
             estimated = sum(t.load for t in self._by_id.values())
             current = max(estimated, self._sample_cpu())
