@@ -41,6 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jitdyn.server.runtime.alarm import Alarm
+
 GRACE_FRACTION = 0.5  # the server's default grace, dt / 2
 TARGET_P99_MS = 5.0
 TARGET_MEASURED = 0.99
@@ -130,8 +132,13 @@ class WorkerResult:
     shed: int = 0  # answers flagged late_compute
     late_frames: int = 0  # frames that came after their tick was answered (CORRECTED)
     rejected: int = 0
+    reject_reasons: dict[str, int] = field(default_factory=dict)  # reason -> count
+    reject_example: str = ""  # one rejection's message, to say why
     arrivals: list[float] = field(default_factory=list)  # monotonic time of each first answer
     server_late_ms: list[float] = field(default_factory=list)  # deadline to send, server clock
+    # When each frame reached the server's loop after its tick time (Result.frame_delay), ms:
+    # past the grace, its tick was answered PREDICTED.
+    frame_delay_ms: list[float] = field(default_factory=list)
 
 
 def _frames(spec: WorkerSpec, measured: Sequence[str]) -> list[bytes]:
@@ -198,8 +205,10 @@ async def _session(
             kind = response.WhichOneof("payload")
             if kind == "result":
                 seq = response.result.seq
+                r = response.result
+                if r.frame_received:
+                    result.frame_delay_ms.append(r.frame_delay * 1e3)
                 if seq not in first_answer:
-                    r = response.result
                     first_answer[seq] = (now - start, r.source, r.late_compute, r.receive_to_send_us)
             elif kind == "sync":
                 last_probe = (response.sync.id, now - start)
@@ -207,6 +216,9 @@ async def _session(
                 result.late_frames += response.closed.summary.late
             elif kind == "rejected":
                 result.rejected += 1
+                reason = dynamics_pb2.RejectReason.Name(response.rejected.reason)
+                result.reject_reasons[reason] = result.reject_reasons.get(reason, 0) + 1
+                result.reject_example = result.reject_example or response.rejected.message
 
     async def ping() -> None:
         nonlocal probe
@@ -220,10 +232,12 @@ async def _session(
     try:
         await ping()
         next_sync = 1.0
+        # Frames leave on their tick times to within a fraction of a millisecond: asyncio.sleep
+        # is 0.65 ms late at the median (its epoll timeout is whole milliseconds, rounded up),
+        # which is most of a 500 Hz tick's 1 ms grace spent before the frame leaves.
+        alarm = Alarm.of(asyncio.get_running_loop())
         for k, frame in enumerate(frames):
-            wait = start + k * spec.dt - time.monotonic()
-            if wait > 0:
-                await asyncio.sleep(wait)
+            await alarm.sleep_until(start + k * spec.dt)
             await call.write(frame)
             if k * spec.dt >= next_sync:
                 await ping()
@@ -372,8 +386,22 @@ def _server_pid(address: str) -> int | None:
                 for fd in os.listdir(f"/proc/{entry}/fd"):
                     link = os.readlink(f"/proc/{entry}/fd/{fd}")
                     if link.startswith("socket:[") and link[8:-1] in inodes:
-                        return int(entry)
+                        return _serve_root(int(entry))
     return None
+
+
+def _serve_root(pid: int) -> int:
+    """The `jitdyn serve` process whose tree `pid` is in: with --processes N every child listens
+    on the port, and the server's CPU is the whole tree's (one child alone read 0 us per tick)."""
+    while True:
+        try:
+            parent = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            command = Path(f"/proc/{parent}/cmdline").read_bytes().split(b"\0")
+        except (OSError, ValueError, IndexError):
+            return pid
+        if b"jitdyn.cli" not in command or b"serve" not in command:
+            return pid
+        pid = parent
 
 
 # ---------------------------------------------------------------------------------------------
@@ -482,6 +510,10 @@ class RunReport:
     shed: float = 0.0  # share of ticks answered late_compute
     late_frames: float = 0.0  # share of frames that came after their tick was answered
     rejected: int = 0
+    reject_reasons: dict[str, int] = field(default_factory=dict)
+    reject_example: str = ""
+    frame_delay_p50_ms: float = 0.0  # a frame's arrival on the server's loop after its tick time
+    frame_delay_p99_ms: float = 0.0
     server_late_p99_ms: float = 0.0  # deadline to send on the server's clock (Result.receive_to_send_us)
 
     def meets(self) -> bool:
@@ -509,7 +541,18 @@ class RunReport:
             f"max {self.late_max_ms:8.2f} ms (server {self.server_late_p99_ms:5.2f}) | cpu/tick {self.cpu_per_tick_us:6.0f} us "
             f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}; "
             f"load generator {self.client_cpu_per_tick_us:4.0f} us) | {verdict}"
+        ) + self._rejections()
+
+    def _rejections(self) -> str:
+        text = (
+            f"\n      frames reached the server's loop {self.frame_delay_p50_ms:.2f} ms (p50), "
+            f"{self.frame_delay_p99_ms:.2f} ms (p99) after their tick time; grace "
+            f"{1e3 * GRACE_FRACTION / self.rate:g} ms"
         )
+        if not self.reject_reasons:
+            return text
+        reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(self.reject_reasons.items()))
+        return text + f"\n      rejected frames: {reasons}; for example: {self.reject_example[:160]}"
 
 
 def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
@@ -640,8 +683,12 @@ def run(
         merged.shed += r["shed"]
         merged.late_frames += r["late_frames"]
         merged.rejected += r["rejected"]
+        for reason, count in r["reject_reasons"].items():
+            merged.reject_reasons[reason] = merged.reject_reasons.get(reason, 0) + count
+        merged.reject_example = merged.reject_example or r["reject_example"]
         merged.arrivals.extend(r["arrivals"])
         merged.server_late_ms.extend(r["server_late_ms"])
+        merged.frame_delay_ms.extend(r["frame_delay_ms"])
         merged.ticks_sent += r["ticks_sent"]
         merged.answered += r["answered"]
         merged.measured += r["measured"]
@@ -670,7 +717,11 @@ def run(
         shed=merged.shed / expected,
         late_frames=merged.late_frames / expected,
         rejected=merged.rejected,
+        reject_reasons=merged.reject_reasons,
+        reject_example=merged.reject_example,
         server_late_p99_ms=float(np.percentile(merged.server_late_ms or [math.inf], 99)),
+        frame_delay_p50_ms=float(np.percentile(merged.frame_delay_ms or [math.inf], 50)),
+        frame_delay_p99_ms=float(np.percentile(merged.frame_delay_ms or [math.inf], 99)),
         ukf_cycle_us=ukf_us,
         client_cpu_per_tick_us=merged.cpu_seconds / max(1, merged.answered) * 1e6,
     )
