@@ -305,6 +305,7 @@ async def serve(
         serve_metrics(config.metrics_address)
     server, port, services = await create_server(config)
     await server.start()
+    services.admission.start_window()
     host = config.address.rsplit(":", 1)[0]
     announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")
     announce(

@@ -69,3 +69,30 @@ def test_a_machine_that_others_keep_busy_refuses_the_sessions_it_cannot_carry() 
         for hog in hogs:
             hog.kill()
             hog.wait()
+
+
+def test_starting_up_is_not_taken_for_load(monkeypatch: pytest.MonkeyPatch) -> None:
+    import time
+
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.3)
+
+    def start_up() -> Admission:
+        admission = Admission(budget=0.75, count_machine_cpu=False)
+        until = time.process_time() + 0.4  # imports, the registry, migrations: a busy start
+        while time.process_time() < until:
+            pass
+        return admission
+
+    def admit(admission: Admission) -> None:
+        admission.admit(
+            cost_per_tick=0.7e-3 + TRANSPORT_COST, dt=2e-3, what="myoelbow at 500 Hz", filter_seconds=0.7e-3
+        )
+
+    with pytest.raises(ResourceExhausted, match=r"this server process is at \d+ % of a core"):
+        admit(start_up())
+    served = start_up()
+    served.start_window()  # the server calls it once it serves
+    admit(served)
+    assert served.sessions == 1
