@@ -578,6 +578,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 ticket = services.admission.admit(
                     cost_per_tick=cycle + services.admission.overhead,
                     filter_seconds=cycle,
+                    grace=plan.grace,
                     dt=plan.dt,
                     what=f"{info.name} ({scenario.lower()}) at {1 / plan.dt:g} Hz",
                 )

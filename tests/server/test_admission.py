@@ -96,3 +96,20 @@ def test_starting_up_is_not_taken_for_load(monkeypatch: pytest.MonkeyPatch) -> N
     served.start_window()  # the server calls it once it serves
     admit(served)
     assert served.sessions == 1
+
+
+def test_the_gil_changes_hands_as_often_as_the_tightest_open_grace_needs() -> None:
+    import sys
+
+    from jitdyn.server.runtime.admission import SWITCH_DEFAULT, SWITCH_SHARE
+
+    first, second = Admission(count_process_cpu=False), Admission(count_process_cpu=False)
+    slow = first.admit(cost_per_tick=1e-3, dt=0.05, what="pendulum_3 at 20 Hz", grace=0.025)
+    assert sys.getswitchinterval() == pytest.approx(SWITCH_DEFAULT)  # 5 ms of a 25 ms grace
+    fast = second.admit(cost_per_tick=1e-3, dt=5e-3, what="biped at 200 Hz", grace=2.5e-3)
+    assert sys.getswitchinterval() == pytest.approx(SWITCH_SHARE * 2.5e-3)
+    slow.release()  # another admission's session ending leaves the tight one's interval
+    assert sys.getswitchinterval() == pytest.approx(SWITCH_SHARE * 2.5e-3)
+    fast.release()
+    fast.release()  # twice is safe
+    assert sys.getswitchinterval() == pytest.approx(SWITCH_DEFAULT)
