@@ -471,18 +471,32 @@ async def _floor_clients(port: int, sessions: int, seconds: float, dt: float) ->
     await asyncio.gather(*(one(i) for i in range(sessions)))
 
 
-def transport_floor_us(sessions: int, rate: float, seconds: float = 5.0) -> float:
-    """Server CPU per tick of a bare grpc.aio bidirectional stream: read a frame, wait for the tick,
-    write a result, `sessions` streams at `rate` Hz, no jitdyn at all."""
+@dataclass(frozen=True)
+class Floor:
+    """CPU per tick of a bare grpc.aio bidirectional stream, no jitdyn at all, us."""
+
+    server_us: float  # read a frame, wait for the tick, write a result
+    client_us: float  # write a frame on the tick, read the result: a Python client's least
+
+    def cores(self, sessions: int, rate: float) -> float:
+        """What `sessions` at `rate` Hz cost both sides of the bare stream, in cores."""
+        return sessions * rate * (self.server_us + self.client_us) / 1e6
+
+
+def transport_floor(sessions: int, rate: float, seconds: float = 5.0) -> Floor:
+    """Server and client CPU per tick of a bare grpc.aio stream, `sessions` streams at `rate` Hz."""
     context = mp.get_context("spawn")
     queue = context.Queue()
     server = context.Process(target=_floor_server, args=(queue, seconds, 1.0 / rate))
     server.start()
     port = queue.get()
+    client_cpu = time.process_time()
     asyncio.run(_floor_clients(port, sessions, seconds, 1.0 / rate))
+    client_cpu = time.process_time() - client_cpu
     cpu = queue.get()
     server.join()
-    return float(cpu) / (sessions * round(seconds * rate)) * 1e6
+    ticks = sessions * round(seconds * rate)
+    return Floor(server_us=float(cpu) / ticks * 1e6, client_us=client_cpu / ticks * 1e6)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -736,10 +750,13 @@ def sweep(
     states = trajectory(target.model, target.scenario, target.rate, ticks)
     ukf_us = ukf_cycle_us(target.model, target.scenario, target.rate, states)
     floor_n = min(target.sessions, 50)
-    floor = transport_floor_us(floor_n, target.rate)
+    floor = transport_floor(floor_n, target.rate)
+    least = target.sessions * target.rate * ukf_us / 1e6 + floor.cores(target.sessions, target.rate)
     print(
         f"# {target.model} {target.scenario} {target.rate:g} Hz: UKF cycle {ukf_us:.0f} us; bare grpc.aio "
-        f"read + write per tick ({floor_n} streams): {floor:.0f} us of server CPU",
+        f"per tick ({floor_n} streams): {floor.server_us:.0f} us of server CPU, {floor.client_us:.0f} us of "
+        f"client CPU; so {target.sessions} sessions need at least {least:.2f} cores (the UKF and bare "
+        f"gRPC on both sides, nothing else) of this machine's {os.cpu_count()}",
         flush=True,
     )
     reports: list[RunReport] = []
@@ -838,9 +855,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         print(report.line())
         if args.floor:
-            floor = transport_floor_us(min(args.sessions, 50), args.rate)
+            floor = transport_floor(min(args.sessions, 50), args.rate)
+            least = args.sessions * args.rate * report.ukf_cycle_us / 1e6 + floor.cores(
+                args.sessions, args.rate
+            )
             print(
-                f"  floor: bare grpc.aio, read + write per tick, {min(args.sessions, 50)} streams: {floor:.0f} us server CPU per tick"
+                f"  floor: bare grpc.aio, {min(args.sessions, 50)} streams: {floor.server_us:.0f} us server and "
+                f"{floor.client_us:.0f} us client CPU per tick; with the UKF cycle, {args.sessions} sessions "
+                f"need at least {least:.2f} of this machine's {os.cpu_count()} cores"
             )
         for error in report.errors:
             print(f"  {error}")
