@@ -117,6 +117,16 @@ class WorkerSpec:
     ticks: int
     start_spread: float
     index: int
+    first: int = 0  # the global number of this process's first session
+    total: int = 1  # sessions over every client process
+
+    def start_delay(self, j: int) -> float:
+        """When this process's session j opens: spread over `start_spread`, and at a tick phase of its
+        own (k/total of dt for session k), as independent devices are. Spread alone put a 20 Hz
+        run's 12 sessions on 3 phases, so frames came in bursts of 4 that queued on the loop."""
+        g = self.first + j
+        spread = self.start_spread * g / max(1, self.total)
+        return spread - spread % self.dt + self.dt * g / max(1, self.total)
 
 
 @dataclass
@@ -289,7 +299,7 @@ async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResul
                 ),
                 spec,
                 frames,
-                spec.start_spread * i / max(1, spec.sessions),
+                spec.start_delay(i),
                 result,
             )
             for i, channel in enumerate(channels)
@@ -664,7 +674,18 @@ def run(
             context.Process(
                 target=_worker,
                 args=(
-                    WorkerSpec(address, open_bytes, str(frames_path), n, dt, ticks, spread, i),
+                    WorkerSpec(
+                        address,
+                        open_bytes,
+                        str(frames_path),
+                        n,
+                        dt,
+                        ticks,
+                        spread,
+                        i,
+                        sum(per_client[:i]),
+                        sessions,
+                    ),
                     measured,
                     queue,
                 ),
