@@ -25,8 +25,11 @@ from jitdyn.mujoco_log import WarningCounter
 from jitdyn.server.estimation.dynamics import Dynamics, DynamicsResult
 from jitdyn.server.estimation.estimator import Estimate, Estimator, Measurement
 from jitdyn.server.runtime.frames import FrameIn, Rejection
+from jitdyn.server.runtime.limits import snapshot_bytes
 
 __all__ = ["SessionCounts", "SessionRuntime", "TickOutcome"]
+
+_RESIZE_EVERY = 64  # ticks between two measures of the snapshots' size (it creeps as windows fill)
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,6 +107,7 @@ class SessionRuntime:
         dt: float,
         scenario: str,
         history: int,
+        max_history_bytes: int | None = None,
     ) -> None:
         self._model = model
         self._estimator = estimator
@@ -111,6 +115,12 @@ class SessionRuntime:
         self._dt = dt
         self._controlled = scenario == "CONTROLLED"
         self._history = history
+        # The ticks kept: `history`, or fewer when their snapshots would pass max_history_bytes at
+        # the size the newest has (the open checks the size the estimator starts with; it grows,
+        # and a PASSIVE filter that turns DRIVEN holds 8x as much).
+        self._max_history_bytes = max_history_bytes
+        self._retained = history
+        self._sized_for = -1  # the state dimension the retained count was last sized at
         self._ticks: OrderedDict[int, _Tick] = OrderedDict()
         self._initialised = False
         self._next = 0
@@ -125,6 +135,11 @@ class SessionRuntime:
         # The first tick shed without a frame: from it on the estimator is behind, until a frame
         # re-initialises it or a late frame at or before it replays the ticks properly.
         self._stale_since: int | None = None
+
+    @property
+    def history(self) -> int:
+        """The ticks kept for late frames now (at most the session's history)."""
+        return self._retained
 
     @property
     def next_tick(self) -> int:
@@ -160,8 +175,7 @@ class SessionRuntime:
         tick = _Tick(seq=seq, before=self._snapshot(), frame=frame, ctrl=ctrl)
         estimate = self._run_tick(tick)
         self._ticks[seq] = tick
-        while len(self._ticks) > self._history:
-            self._ticks.popitem(last=False)
+        self._keep_history(tick)
         self._next += 1
         self.counts.ticks += 1
         if frame is not None:
@@ -195,8 +209,7 @@ class SessionRuntime:
         elif self._initialised and self._stale_since is None:
             self._stale_since = seq
         self._ticks[seq] = tick
-        while len(self._ticks) > self._history:
-            self._ticks.popitem(last=False)
+        self._keep_history(tick)
         self._next += 1
         self.counts.ticks += 1
         self.counts.late_compute += 1
@@ -211,6 +224,19 @@ class SessionRuntime:
         self.counts.add_result(outcome)
         self._last = outcome
         return outcome
+
+    def _keep_history(self, newest: _Tick) -> None:
+        """Drop the ticks beyond what is retained, re-sized from the newest snapshot every
+        _RESIZE_EVERY ticks and whenever the estimator's state dimension changes."""
+        limit = self._max_history_bytes
+        if limit is not None and newest.before is not None:
+            dimension = self._estimator.state_dimension
+            if dimension != self._sized_for or newest.seq % _RESIZE_EVERY == 0:
+                self._sized_for = dimension
+                size = max(1, snapshot_bytes(newest.before))
+                self._retained = max(1, min(self._history, limit // size))
+        while len(self._ticks) > self._retained:
+            self._ticks.popitem(last=False)
 
     def skip(self, count: int) -> None:
         """Leave the next `count` ticks unanswered: a server far behind answers a tick by its

@@ -236,14 +236,21 @@ class _Stream:
                 )
             ]
         if place == "too_old":
-            oldest = max(0, self.runtime.next_tick - self.plan.history)
+            oldest = max(0, self.runtime.next_tick - self.runtime.history)
             return [
                 Response(
                     rejected=self.record_rejection(
                         Rejection(
                             seq,
                             "TOO_OLD",
-                            f"frame {seq}: late frames are applied back to tick {oldest} (history {self.plan.history} ticks), got {seq}",
+                            f"frame {seq}: late frames are applied back to tick {oldest} (history {self.runtime.history} ticks"
+                            + (
+                                f" of the {self.plan.history} asked for: their snapshots have grown past "
+                                "--max-history-bytes"
+                                if self.runtime.history < self.plan.history
+                                else ""
+                            )
+                            + f"), got {seq}",
                         )
                     )
                 )
@@ -702,6 +709,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             dt=plan.dt,
             scenario=scenario,
             history=plan.history,
+            max_history_bytes=self._limits.max_history_bytes,
         )
         sizes = {
             "qpos": model.nq,

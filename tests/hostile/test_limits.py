@@ -7,6 +7,7 @@ import re
 import threading
 import time
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import grpc
 import pytest
@@ -14,6 +15,7 @@ from _hostile import (
     Request,
     Served,
     chain,
+    close,
     hfield,
     honest_session,
     logs,
@@ -23,7 +25,7 @@ from _hostile import (
     stored,
 )
 
-from jitdyn.v1 import dynamics_pb2
+from jitdyn.v1 import common_pb2, dynamics_pb2
 
 
 def _refused(call: Callable[[], object], code: grpc.StatusCode) -> str:
@@ -180,3 +182,45 @@ def test_a_tick_that_cannot_fit_dt_is_refused_at_open(serve: Callable[..., Serve
         served, iter([open_request(clock="REALTIME"), Request(close=dynamics_pb2.CloseSession())])
     )
     assert error is None and kinds[0] == "opened" and kinds[-1] == "closed"
+
+
+def test_history_stays_bounded_when_a_passive_filter_turns_driven(serve: Callable[..., Served]) -> None:
+    """The open checks the history against the snapshot the estimator starts with; a PASSIVE filter
+    on a driven body turns DRIVEN (estimation/switch.py) and its snapshots grow 8x. The session
+    then keeps fewer ticks, and a frame older than those is refused saying why."""
+    import mujoco
+    import numpy as np
+
+    served = serve("--max-history-bytes", "65536")
+    model = mujoco.MjModel.from_xml_path(
+        str(Path(__file__).resolve().parents[2] / "models" / "pendulum_2.xml")
+    )
+    data = mujoco.MjData(model)
+    data.qpos[:] = 0.4
+    steps = round(0.05 / model.opt.timestep)
+
+    def driven(seq: int) -> Request:
+        data.ctrl[:] = 4.0 * np.sin(0.25 * seq + np.arange(model.nu))
+        mujoco.mj_step(model, data, steps)
+        return Request(
+            frame=dynamics_pb2.Frame(seq=seq, t=seq * 0.05, qpos=data.qpos.tolist(), qvel=data.qvel.tolist())
+        )
+
+    opening = open_request(model="pendulum_2", dt=0.05, history=50)
+    opening.open.scenario = common_pb2.Scenario.Value("SCENARIO_PASSIVE")
+    skipped = (20, 66)  # a tick long before the end, and one just before it
+    requests = [opening]
+    for seq in range(70):
+        requests.append(Request(skip=dynamics_pb2.Skip(seq=seq)) if seq in skipped else driven(seq))
+    late = {seq: driven(seq) for seq in skipped}  # frames of the right shape; their values do not matter
+    requests += [late[20], late[66], close()]
+    responses = list(served.dynamics.StreamSession(iter(requests), timeout=120))
+    assert responses[0].opened.scenario == common_pb2.Scenario.Value("SCENARIO_PASSIVE")
+    results = [r.result for r in responses if r.WhichOneof("payload") == "result"]
+    assert any(r.absorbed for r in results[:20])  # it became DRIVEN early
+    rejected = [r.rejected for r in responses if r.WhichOneof("payload") == "rejected"]
+    assert [r.seq for r in rejected] == [20]
+    assert rejected[0].reason == dynamics_pb2.RejectReason.Value("REJECT_REASON_TOO_OLD")
+    assert "of the 50 asked for: their snapshots have grown past --max-history-bytes" in rejected[0].message
+    corrected = [r for r in results if r.source == dynamics_pb2.Source.Value("SOURCE_CORRECTED")]
+    assert [r.seq for r in corrected] == [66]
