@@ -31,6 +31,7 @@ import multiprocessing as mp
 import os
 import queue as queue_module
 import statistics
+import struct
 import subprocess
 import sys
 import tempfile
@@ -429,10 +430,13 @@ def _floor_server(queue: mp.Queue, seconds: float, dt: float) -> None:  # type: 
         )
     ).SerializeToString()
 
+    transit: list[float] = []  # s from the client's write to this read (one monotonic clock)
+
     async def handler(requests: object, context: grpc.aio.ServicerContext) -> None:  # type: ignore[type-arg]
         started = time.monotonic()
         for k in range(round(seconds / dt)):
-            await context.read()  # the frame
+            frame = await context.read()  # the frame, stamped with its send time
+            transit.append(time.monotonic() - struct.unpack_from("d", frame)[0])  # type: ignore[arg-type]
             wait = started + k * dt - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
@@ -454,7 +458,7 @@ def _floor_server(queue: mp.Queue, seconds: float, dt: float) -> None:  # type: 
         queue.put(port)
         cpu = time.process_time()
         await asyncio.sleep(seconds + 2.0)
-        queue.put(time.process_time() - cpu)
+        queue.put((time.process_time() - cpu, transit))
         await server.stop(0)
 
     asyncio.run(main())
@@ -463,19 +467,19 @@ def _floor_server(queue: mp.Queue, seconds: float, dt: float) -> None:  # type: 
 async def _floor_clients(port: int, sessions: int, seconds: float, dt: float) -> None:
     import grpc
 
-    frame = b"x" * 200
+    padding = b"x" * 192
+    alarm = Alarm.of(asyncio.get_running_loop())
+    options = [("grpc.use_local_subchannel_pool", 1)]  # a connection each, as the sessions have
 
     async def one(i: int) -> None:
-        async with grpc.aio.insecure_channel(f"127.0.0.1:{port}") as channel:
+        async with grpc.aio.insecure_channel(f"127.0.0.1:{port}", options=options) as channel:
             call = channel.stream_stream(
                 "/floor.Floor/S", request_serializer=None, response_deserializer=None
             )()
-            started = time.monotonic()
+            started = time.monotonic() + dt * i / sessions  # a phase of its own
             for k in range(round(seconds / dt)):
-                wait = started + k * dt - time.monotonic()
-                if wait > 0:
-                    await asyncio.sleep(wait)
-                await call.write(frame)
+                await alarm.sleep_until(started + k * dt)
+                await call.write(struct.pack("d", time.monotonic()) + padding)
                 await call.read()
 
     await asyncio.gather(*(one(i) for i in range(sessions)))
@@ -487,6 +491,9 @@ class Floor:
 
     server_us: float  # read a frame, wait for the tick, write a result
     client_us: float  # write a frame on the tick, read the result: a Python client's least
+    transit_p50_ms: float  # from the client's write to the server's read
+    transit_p99_ms: float
+    over_grace: float  # share of frames whose transit alone passed the grace (dt/2)
 
     def cores(self, sessions: int, rate: float) -> float:
         """What `sessions` at `rate` Hz cost both sides of the bare stream, in cores."""
@@ -503,10 +510,17 @@ def transport_floor(sessions: int, rate: float, seconds: float = 5.0) -> Floor:
     client_cpu = time.process_time()
     asyncio.run(_floor_clients(port, sessions, seconds, 1.0 / rate))
     client_cpu = time.process_time() - client_cpu
-    cpu = queue.get()
+    cpu, transit = queue.get()
     server.join()
     ticks = sessions * round(seconds * rate)
-    return Floor(server_us=float(cpu) / ticks * 1e6, client_us=client_cpu / ticks * 1e6)
+    delays = np.array(transit) * 1e3
+    return Floor(
+        server_us=float(cpu) / ticks * 1e6,
+        client_us=client_cpu / ticks * 1e6,
+        transit_p50_ms=float(np.percentile(delays, 50)),
+        transit_p99_ms=float(np.percentile(delays, 99)),
+        over_grace=float(np.mean(delays > 1e3 * GRACE_FRACTION / rate)),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -777,7 +791,9 @@ def sweep(
         f"# {target.model} {target.scenario} {target.rate:g} Hz: UKF cycle {ukf_us:.0f} us; bare grpc.aio "
         f"per tick ({floor_n} streams): {floor.server_us:.0f} us of server CPU, {floor.client_us:.0f} us of "
         f"client CPU; so {target.sessions} sessions need at least {least:.2f} cores (the UKF and bare "
-        f"gRPC on both sides, nothing else) of this machine's {os.cpu_count()}",
+        f"gRPC on both sides, nothing else) of this machine's {os.cpu_count()}. A bare frame's transit "
+        f"p50 / p99 {floor.transit_p50_ms:.2f} / {floor.transit_p99_ms:.2f} ms, {100 * floor.over_grace:.1f} % "
+        "of frames past the grace on transit alone",
         flush=True,
     )
     reports: list[RunReport] = []
@@ -883,7 +899,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(
                 f"  floor: bare grpc.aio, {min(args.sessions, 50)} streams: {floor.server_us:.0f} us server and "
                 f"{floor.client_us:.0f} us client CPU per tick; with the UKF cycle, {args.sessions} sessions "
-                f"need at least {least:.2f} of this machine's {os.cpu_count()} cores"
+                f"need at least {least:.2f} of this machine's {os.cpu_count()} cores; a bare frame's transit "
+                f"p50 / p99 {floor.transit_p50_ms:.2f} / {floor.transit_p99_ms:.2f} ms, "
+                f"{100 * floor.over_grace:.1f} % of frames past the grace on transit alone"
             )
         for error in report.errors:
             print(f"  {error}")
