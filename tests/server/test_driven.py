@@ -116,6 +116,23 @@ def test_adaptive_noise_stays_inside_its_bounds() -> None:
     np.testing.assert_allclose(adapter.Q, 0.5 * q0)
 
 
+@pytest.mark.parametrize("frames", [4 + 8, 4 + 9, 4 + 64, 4 + 100])
+def test_r_is_the_squared_mad_of_the_fourth_differences(frames: int) -> None:
+    """R against a plain reference (np.median of the window of |fourth differences|), for odd and
+    even counts, a full window and one that has wrapped."""
+    bounds = AdaptationBounds(r_min=1e-12, r_max=1.0)
+    m = 5
+    adapter = NoiseAdapter(r0=np.full(m, 1e-2), q0=np.eye(2 * m), bounds=bounds)
+    rng = np.random.default_rng(frames)
+    z = np.cumsum(rng.standard_normal((frames, m)), axis=0) * 1e-3 + rng.standard_normal((frames, m)) * 1e-4
+    for k in range(frames):
+        adapter.observe(z=z[k], consecutive=True, innovation=np.zeros(m), gain=np.zeros((2 * m, m)), nis=1.0)
+    d4 = z[4:] - 4.0 * z[3:-1] + 6.0 * z[2:-2] - 4.0 * z[1:-3] + z[:-4]
+    window = np.abs(d4[-bounds.window_r :])
+    expected = np.clip((1.4826 * np.median(window, axis=0)) ** 2 / 70.0, bounds.r_min, bounds.r_max)
+    np.testing.assert_array_equal(adapter.r_diagonal, expected)
+
+
 def test_a_wrong_scenario_is_detected_by_the_nis_window_and_absorbed() -> None:
     """A PASSIVE filter fed a motion that strong motors drive: the NIS window is far out, the filter
     widens its covariance (absorbed) and, when that is not enough, starts again (reinitialised)."""
