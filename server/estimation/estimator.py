@@ -275,7 +275,9 @@ class Estimate:
     adapted: the adaptive noise model changed R or Q by more than a tenth since the last estimate
     that said so; absorbed: the NIS of a window of updates was far outside its interval and the
     filter widened its covariance (and, for a PASSIVE or EXTERNAL filter, started estimating the
-    unknown force) to follow the measurements.
+    unknown force) to follow the measurements, or the first frame after a gap was past the
+    divergence guard's NIS limit and the filter widened its prediction before using it (nis is
+    then the NIS against the widened prediction).
     """
 
     qpos: np.ndarray

@@ -389,15 +389,24 @@ class UnscentedFilter:
         z = np.concatenate([m.qpos] + [getattr(m, c) for c in ("qvel", "qacc") if self._measures(c)])
         if self._adapter is not None:
             self._kf.R = self._adapter.R
-        try:
-            self._kf.update(z, UT=self._ut)
-            y, SI = self._kf.y, self._kf.SI
-            nis_value = float(y @ SI @ y)
-        except np.linalg.LinAlgError:
-            # An innovation covariance that cannot be inverted: nothing of this update is usable.
-            self._kf.x = np.full(self._size, np.nan)
-            nis_value = float("nan")
-        nis = nis_value if np.isfinite(nis_value) else None
+        after_gap = self._adapter is not None and self._ticks_since_update > 1
+        prior = (self._kf.x.copy(), self._kf.P.copy(), self._kf.sigmas_f) if after_gap else None
+        nis = self._correct(z)
+        widened = False
+        if prior is not None and nis is not None and nis > NIS_LIMIT_PER_DIMENSION * self._z_tangent:
+            # The first frame after a gap, a thousand standard deviations from the prediction:
+            # the prediction was overconfident, not lost (a DRIVEN filter holds its force over the
+            # gap while the body's changes; myoHand's first gap ended at NIS 3e8). Corrected from
+            # that prior, the force took the whole innovation and the next frames overshot, ten in
+            # a row past the divergence guard. The prior is widened as an absorption widens it and
+            # the frame used again: [q, qd] follow the frame, the force its evidence.
+            x, P, _ = prior
+            k = self._order * self._nv
+            P[:k, :k] += self._P0[:k, :k]
+            self._kf.x, self._kf.P = x, P
+            self._kf.sigmas_f = self._points.sigma_points(x, P)
+            nis = self._correct(z)
+            widened = True
         reinitialised = False
         if self._finite():
             self._kf.P = _symmetric(self._kf.P)
@@ -406,7 +415,7 @@ class UnscentedFilter:
             self._nis_run = 0
         else:
             self._nis_run += 1
-        adapted = absorbed = False
+        adapted, absorbed = False, widened
         if self._adapter is not None and self._finite() and nis is not None:
             verdict = self._adapter.observe(
                 z=np.asarray(self._kf.y),
@@ -453,6 +462,18 @@ class UnscentedFilter:
         if m.ctrl is not None:
             self._ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
         return self._estimate(nis=nis, reinitialised=reinitialised, adapted=adapted, absorbed=absorbed)
+
+    def _correct(self, z: np.ndarray) -> float | None:
+        """The filter's update with measurement z; its NIS, None when not finite."""
+        try:
+            self._kf.update(z, UT=self._ut)
+            y, SI = self._kf.y, self._kf.SI
+            nis = float(y @ SI @ y)
+        except np.linalg.LinAlgError:
+            # An innovation covariance that cannot be inverted: nothing of this update is usable.
+            self._kf.x = np.full(self._size, np.nan)
+            nis = float("nan")
+        return nis if np.isfinite(nis) else None
 
     def extrapolate(self, seconds: float) -> Estimate:
         self._require_initialised("extrapolate")
