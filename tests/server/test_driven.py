@@ -246,6 +246,39 @@ def test_a_session_that_names_no_scenario_gets_driven_and_is_told_why(client: An
         assert any(adapted)  # from the 12th update on, the frames teach R (8 fourth differences)
 
 
+def test_a_large_driven_session_keeps_its_force_out_of_the_sigma_points(client: Any) -> None:
+    """A chain of 11 motor-driven hinges, opened with no scenario and no settings: DRIVEN, state
+    dimension 33 (>= LARGE_STATE), SIMPLEX_LINEAR_FORCE with 23 sigma points instead of 34; it
+    follows the chain's motion."""
+    links = 11
+    body = "".join(
+        f'<body pos="0 0 -0.1"><joint name="j{i}" type="hinge" axis="0 1 0" damping="0.01"/>'
+        '<geom type="capsule" size="0.01" fromto="0 0 0 0 0 -0.1" contype="0" conaffinity="0"/>'
+        for i in range(links)
+    )
+    motors = "".join(f'<motor joint="j{i}"/>' for i in range(links))
+    mjcf = f"<mujoco><worldbody>{body}{'</body>' * links}</worldbody><actuator>{motors}</actuator></mujoco>"
+    model, _ = client.register_model(name="chain11", mjcf=mjcf)
+    truth = mujoco.MjModel.from_xml_string(mjcf)
+    data = mujoco.MjData(truth)
+    steps = round(0.01 / truth.opt.timestep)
+    with client.open_session(
+        SessionOptions(model_id=model.id, dt=0.01, outputs=("FILTER_STATE",))
+    ) as session:
+        opened = session.opened
+        assert (opened.scenario, opened.state_dimension) == ("DRIVEN", 3 * links)
+        assert opened.estimator["sigma_points"] == "SIMPLEX_LINEAR_FORCE"
+        errors = []
+        for k in range(60):
+            data.ctrl[:] = 0.02 * np.sin(0.1 * k + np.arange(links))
+            mujoco.mj_step(truth, data, steps)
+            result = session.send_frame(FrameData(seq=k, t=k * 0.01, qpos=data.qpos, qvel=data.qvel))
+            assert isinstance(result, TickResult) and not result.reinitialised
+            errors.append(float(np.abs(result.filter_state[:links] - data.qpos).max()))
+    # As the whole state's simplex follows it (measured on these frames: both under 2.5e-3 rad).
+    assert max(errors[20:]) < 5e-3, errors
+
+
 def test_a_named_scenario_is_kept_and_its_noise_is_fixed(client: Any) -> None:
     options = SessionOptions(model_name="pendulum_1", scenario="PASSIVE", dt=0.05)
     with client.open_session(options) as session:

@@ -189,7 +189,7 @@ def test_request_beats_model_defaults_beats_preset() -> None:
         ),
         (
             {"requested": {"sigma_points": "merwe"}},
-            r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM'\], got 'merwe'$",
+            r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM', 'SIMPLEX_LINEAR_FORCE'\], got 'merwe'$",
         ),
         ({"dt": 0.055}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.055$"),
         ({"dt": 0.0}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.0$"),
