@@ -293,6 +293,17 @@ def test_a_diverging_point_stays_non_finite_instead_of_resetting() -> None:
     assert not np.all(np.isfinite(out.qvel[1]))
 
 
+def test_a_pool_leaves_blas_on_its_callers_thread() -> None:
+    """numpy's and scipy's OpenBLAS run single-threaded once a process has a pool: their own
+    threads, spinning after each call, fought the pool's for the cores (myoHand's cycle)."""
+    from threadpoolctl import threadpool_info
+
+    with WorkerPool(2):
+        blas = [info for info in threadpool_info() if info["user_api"] == "blas"]
+    assert blas, "no BLAS found: the limit would be vacuous"
+    assert {(info["prefix"], info["num_threads"]) for info in blas} == {(info["prefix"], 1) for info in blas}
+
+
 def test_pool_lifecycle() -> None:
     pool = WorkerPool(2, backend="THREADS")
     assert (pool.workers, pool.backend, pool.closed) == (2, Backend.THREADS, False)
