@@ -9,8 +9,9 @@ tick at a time::
                             model_defaults={}, preset="JITDYN", measured={"qpos", "qvel"})
     estimator = make_estimator(model, config, pool=pool)
     estimator.initialise(first)                       # tick 0
-    estimator.predict(ctrl=None)                      # every later tick ...
-    estimate = estimator.update(frame)                # ... and, when its frame is there
+    estimate = estimator.predict(ctrl=None)           # a later tick without its frame
+    estimator.advance(ctrl=None)                      # a later tick with its frame: advance ...
+    estimate = estimator.update(frame)                # ... and answer from the frame
 
 Estimators: the unscented Kalman filter (estimation/ukf.py; a PASSIVE one that may become DRIVEN,
 estimation/switch.py) and the dead-reckoning extrapolators of IEEE 1278 (estimation/deadreckoning.py). State layouts: x = [q (nq), qd (nv)] in PASSIVE and EXTERNAL,
@@ -364,6 +365,11 @@ class Estimator(Protocol):
     def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
         """Advance one tick (steps_per_tick physics steps). ctrl (nu,): the control over this tick
         in CONTROLLED (None holds the last one); ignored in the other scenarios."""
+        ...
+
+    def advance(self, *, ctrl: np.ndarray | None) -> None:
+        """predict() without its answer, for a tick whose frame update() answers next: the same
+        state afterwards, without the estimate (and the gap's answer) no one reads."""
         ...
 
     def update(self, m: Measurement) -> Estimate:

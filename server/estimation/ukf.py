@@ -4,7 +4,8 @@ call (server/estimation/propagate.py) instead of filterpy's per-point loop.
 
     estimator = UnscentedFilter(model, config, pool=pool)
     estimator.initialise(Measurement(qpos=q0, qvel=v0))
-    prior = estimator.predict(ctrl=None)
+    prior = estimator.predict(ctrl=None)                              # a tick without its frame
+    estimator.advance(ctrl=None)                                      # a tick with its frame
     posterior = estimator.update(Measurement(qpos=q1, qvel=v1))      # posterior.nis
 
 The scenarios are the thesis' (reference/thesis-experiments.md):
@@ -446,7 +447,18 @@ class UnscentedFilter:
         self._initialised = True
 
     def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
-        self._require_initialised("predict")
+        reinitialised = self._predict(ctrl, "predict")
+        estimate = self._estimate(reinitialised=reinitialised)
+        if self._forecasts is not None and not reinitialised:
+            estimate = self._combined(estimate)
+        return estimate
+
+    def advance(self, *, ctrl: np.ndarray | None) -> None:
+        self._predict(ctrl, "advance")
+
+    def _predict(self, ctrl: np.ndarray | None, what: str) -> bool:
+        """One tick of prediction; whether the divergence guard restarted the filter."""
+        self._require_initialised(what)
         if self._controlled and ctrl is not None:
             self._ctrl = check_vector(ctrl, self._nu, "ctrl").copy()
         if self._adapter is not None:
@@ -466,10 +478,7 @@ class UnscentedFilter:
                 raise RuntimeError("unreachable: an initialised filter has a last measurement")
             self._reinitialise(self._last)
             reinitialised = True
-        estimate = self._estimate(reinitialised=reinitialised)
-        if self._forecasts is not None and not reinitialised:
-            estimate = self._combined(estimate)
-        return estimate
+        return reinitialised
 
     def update(self, m: Measurement) -> Estimate:
         self._require_initialised("update")
