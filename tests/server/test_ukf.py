@@ -637,6 +637,9 @@ def test_thesis_weights_at_n_46_on_myohand_keep_running_sound() -> None:
         ({"alpha": 1e-6, "kappa": 0.0}, "CONTROLLED"),
         ({"sigma_points": "SIMPLEX", "alpha": 1e-4}, "PASSIVE"),
         ({"sigma_points": "UNIFORM", "q_var": 1e12, "r": 1e-12}, "EXTERNAL"),
+        ({"sigma_points": "SIMPLEX_LINEAR_FORCE", "force_var": 1e12, "r": 1e-12}, "DRIVEN"),
+        ({"sigma_points": "SIMPLEX_LINEAR_FORCE", "p0": 1e-300, "q_var": 0.0}, "DRIVEN"),
+        ({"sigma_points": "SIMPLEX_LINEAR_FORCE", "q_var": 1e12, "noise_model": "FIXED"}, "DRIVEN"),
     ],
 )
 def test_hostile_settings_never_crash_or_produce_nan(settings: dict[str, object], scenario: str) -> None:
