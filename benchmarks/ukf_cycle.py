@@ -4,7 +4,8 @@ For each of the thesis' experiments (passive pendulums, controlled pendulum_3, c
 externally controlled myoElbow and myoHand), with jitdyn's default settings (the JITDYN preset),
 both propagation back-ends and 1 and 2 workers:
 
-    cycle   median wall time of estimator.predict(ctrl) + estimator.update(frame)
+    cycle   median wall time of estimator.advance(ctrl) + estimator.update(frame), what the
+            server runs for a tick whose frame is there
     floor   nsigma x steps per tick x one mj_step (measured in the same run, on the filter's own
             process model, along the same trajectory) / workers
     ratio   cycle / floor     (target <= 1.5; and cycle < dt for every model)
@@ -188,7 +189,7 @@ class Runner:
         start = time.perf_counter()
         for k in range(self.next, self.next + count):
             frame = frames[k]
-            estimator.predict(ctrl=frame.ctrl if self.controlled else None)
+            estimator.advance(ctrl=frame.ctrl if self.controlled else None)
             estimator.update(frame)
         elapsed = time.perf_counter() - start
         self.next += count

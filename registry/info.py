@@ -40,7 +40,7 @@ SCENARIOS = ("PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN")
 ESTIMATOR_SETTINGS: Mapping[str, tuple[str, ...] | None] = {
     "estimator": ("UKF", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION"),
     "preset": ("JITDYN", "THESIS"),
-    "sigma_points": ("MERWE", "SIMPLEX", "UNIFORM"),
+    "sigma_points": ("MERWE", "SIMPLEX", "UNIFORM", "SIMPLEX_LINEAR_FORCE"),
     "force_model": ("RANDOM_WALK", "INTEGRATED_RANDOM_WALK"),
     "noise_model": ("FIXED", "ADAPTIVE"),
     "forecast": ("FILTER", "COMBINED"),

@@ -96,6 +96,10 @@ class DeadReckoning:
         self._elapsed += 1
         return self._at(anchor, self._elapsed * self._config.dt)
 
+    def advance(self, *, ctrl: np.ndarray | None) -> None:
+        self._require_anchor("advance")
+        self._elapsed += 1
+
     def update(self, m: Measurement) -> Estimate:
         anchor = self._require_anchor("update")
         m = check_measurement(m, self._model, self._config.measured)

@@ -9,8 +9,9 @@ tick at a time::
                             model_defaults={}, preset="JITDYN", measured={"qpos", "qvel"})
     estimator = make_estimator(model, config, pool=pool)
     estimator.initialise(first)                       # tick 0
-    estimator.predict(ctrl=None)                      # every later tick ...
-    estimate = estimator.update(frame)                # ... and, when its frame is there
+    estimate = estimator.predict(ctrl=None)           # a later tick without its frame
+    estimator.advance(ctrl=None)                      # a later tick with its frame: advance ...
+    estimate = estimator.update(frame)                # ... and answer from the frame
 
 Estimators: the unscented Kalman filter (estimation/ukf.py; a PASSIVE one that may become DRIVEN,
 estimation/switch.py) and the dead-reckoning extrapolators of IEEE 1278 (estimation/deadreckoning.py). State layouts: x = [q (nq), qd (nv)] in PASSIVE and EXTERNAL,
@@ -32,6 +33,7 @@ import mujoco
 import numpy as np
 
 from jitdyn.errors import InvalidArgument
+from jitdyn.server.estimation.manifold import has_manifold
 
 __all__ = [
     "CHANNELS",
@@ -57,6 +59,7 @@ __all__ = [
     "derivative_order",
     "force_blocks",
     "is_pendulum_like",
+    "linear_force_applies",
     "preset_values",
     "read_only",
     "resolve_config",
@@ -112,6 +115,9 @@ class SigmaScheme(enum.StrEnum):
     MERWE = "MERWE"
     SIMPLEX = "SIMPLEX"
     UNIFORM = "UNIFORM"
+    # DRIVEN, random walk, no ball or free joints: simplex points over [q, qd], the unknown force
+    # carried linearly beside them (estimation/ukf.py); elsewhere SIMPLEX.
+    SIMPLEX_LINEAR_FORCE = "SIMPLEX_LINEAR_FORCE"
 
 
 class Preset(enum.StrEnum):
@@ -129,7 +135,8 @@ class Channel(enum.StrEnum):
 CHANNELS: Final = frozenset(c.value for c in Channel)
 
 # The JITDYN preset switches to simplex points (n + 1 instead of 2n + 1) from this state dimension
-# on: myoHand's 46 states at a 2 ms tick need it to stay inside the tick (benchmarks/RESULTS.md).
+# on: myoHand's 46 states at a 2 ms tick need it to stay inside the tick (benchmarks/RESULTS.md);
+# in DRIVEN, to simplex points over [q, qd] with the force beside them (2 nv + 1 instead of 3 nv + 1).
 LARGE_STATE: Final = 32
 
 # JITDYN's DRIVEN defaults (docs/experiments.md, "Dead reckoning over gaps", says how they were chosen).
@@ -275,7 +282,9 @@ class Estimate:
     adapted: the adaptive noise model changed R or Q by more than a tenth since the last estimate
     that said so; absorbed: the NIS of a window of updates was far outside its interval and the
     filter widened its covariance (and, for a PASSIVE or EXTERNAL filter, started estimating the
-    unknown force) to follow the measurements.
+    unknown force) to follow the measurements, or the first frame after a gap was past the
+    divergence guard's NIS limit and the filter widened its prediction before using it (nis is
+    then the NIS against the widened prediction).
     """
 
     qpos: np.ndarray
@@ -356,6 +365,11 @@ class Estimator(Protocol):
     def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
         """Advance one tick (steps_per_tick physics steps). ctrl (nu,): the control over this tick
         in CONTROLLED (None holds the last one); ignored in the other scenarios."""
+        ...
+
+    def advance(self, *, ctrl: np.ndarray | None) -> None:
+        """predict() without its answer, for a tick whose frame update() answers next: the same
+        state afterwards, without the estimate (and the gap's answer) no one reads."""
         ...
 
     def update(self, m: Measurement) -> Estimate:
@@ -439,7 +453,9 @@ def preset_values(
     Wi = 1 / (2 (n + kappa)) ~ 0.011 at n = 46, Wc0 = Wm0 + 2), where the thesis' alpha = 0.001,
     kappa = 3 - n gives Wm0 ~ -n / (3 alpha^2) ~ -1.5e7 at n = 46 and an indefinite covariance
     (server/estimation/sigma.py, MerweScaled). From n = LARGE_STATE on, simplex points (n + 1, all weights
-    1 / (n + 1)) halve the physics work, which keeps myoHand's cycle inside its 2 ms tick.
+    1 / (n + 1)) halve the physics work, which keeps myoHand's cycle inside its 2 ms tick; in
+    DRIVEN (random walk, no ball or free joints) SIMPLEX_LINEAR_FORCE keeps the unknown force out
+    of them (myoHand: 47 points instead of 70).
     """
     preset = _enum(Preset, preset, "preset")
     scenario = _enum(Scenario, scenario, "scenario")
@@ -477,9 +493,10 @@ def preset_values(
         # A narrower spread (alpha 0.3: central weight about -10) keeps the sigma points of a force
         # whose variance is large inside the range where a tick's response to it is linear.
         common.update(q_var=DRIVEN_Q_VAR, r=DRIVEN_R)
+    large = "SIMPLEX_LINEAR_FORCE" if linear_force_applies(model, scenario, force_model) else "SIMPLEX"
     return {
         **common,
-        "sigma_points": "SIMPLEX" if n >= LARGE_STATE else "MERWE",
+        "sigma_points": large if n >= LARGE_STATE else "MERWE",
         "alpha": DRIVEN_ALPHA if scenario == Scenario.DRIVEN else 1.0,
         "kappa": float(max(0, 3 - n)),
         # Adaptive noise is the default of the scenario a client gets when it names none for a
@@ -494,6 +511,14 @@ def preset_values(
         # A PASSIVE filter whose innovations say something drives the body becomes DRIVEN.
         "wrong_model": (WrongModel.DRIVEN if scenario == Scenario.PASSIVE else WrongModel.KEEP).value,
     }
+
+
+def linear_force_applies(
+    model: mujoco.MjModel, scenario: Scenario | str, force_model: ForceModel | str
+) -> bool:
+    """Whether SIMPLEX_LINEAR_FORCE keeps the force out of the sigma set here (else it is SIMPLEX):
+    DRIVEN, the random walk, and a state that is a plain vector (no ball or free joints)."""
+    return scenario == Scenario.DRIVEN and force_model == ForceModel.RANDOM_WALK and not has_manifold(model)
 
 
 def _check_settings(values: Mapping[str, object], name: str) -> None:
@@ -557,6 +582,14 @@ def resolve_config(
     if isinstance(measured, str):
         raise InvalidArgument(f"measured must be a set of channel names, got the string {measured!r}")
     values = {**preset_values(preset, model=model, scenario=scenario), **model_defaults, **requested}
+    if (
+        values["sigma_points"] == SigmaScheme.SIMPLEX_LINEAR_FORCE
+        and "sigma_points" not in {**model_defaults, **requested}
+        and not linear_force_applies(model, scenario, str(values["force_model"]))
+    ):
+        # The preset's choice for its own force model; a request for another keeps the force in
+        # the points, and the settings echoed back say so.
+        values["sigma_points"] = SigmaScheme.SIMPLEX.value
     config = EstimatorConfig(
         estimator=values["estimator"],  # type: ignore[arg-type]
         scenario=scenario,  # type: ignore[arg-type]

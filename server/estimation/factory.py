@@ -61,7 +61,7 @@ def measure_cycle(
     best = float("inf")
     for _ in range(repeats):
         started = time.thread_time()
-        estimator.predict(ctrl=ctrl)
+        estimator.advance(ctrl=ctrl)
         estimator.update(measurement)
         best = min(best, time.thread_time() - started)
     return best

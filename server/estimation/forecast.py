@@ -2,10 +2,10 @@
 (forecast combination, Bates and Granger 1969; the selection of an interacting-multiple-model
 filter without its mixing)::
 
-    forecasts = ForecastCombiner(process, dt=0.05, steps_per_tick=10, nv=3)
+    forecasts = ForecastCombiner(process, dt=0.05, steps_per_tick=10, horizon=4)
     forecasts.advance()                         # every tick, before the frame is used
-    forecasts.observe(z_qpos, z_qvel, posterior=(q, qd, act, f, fd))   # every frame
-    answer = forecasts.forecast(ticks=3)        # over a gap: (weights, qpos, qvel, qacc) or None
+    forecasts.observe(z_qpos, z_qvel, mean_qpos=q, mean_qvel=qd, act=act, force=f, rate=None)
+    answer = forecasts.forecast()               # over a gap: Forecast(weights, qpos, ...) or None
 
 The predictors, from the last frame and the filter's last posterior:
 - MODEL: the posterior mean rolled out by the process model under its estimated force (the force
@@ -22,6 +22,13 @@ over w >= 0, sum w = 1 (exact: every subset of the P = 4 predictors is tried). U
 MIN_SAMPLES samples the filter answers alone. A measurement's noise adds the same variance to every
 predictor's error (its covariance is R 11'), which moves no weight.
 
+Cost: the live probes are rows of one table and are stepped together, one `mujoco.batch.Batch`
+call per tick (each probe's own state and force; the batch reports the qacc of the last step as
+mj_step does, which the MODEL predictor answers with), and scored together, one stacked product
+per frame; the weights of a horizon solve each size of subset as one stacked system. The numbers
+are those of stepping and scoring each probe in turn, bit for bit (tests/server/test_forecast.py
+keeps that loop as its reference).
+
 Pure numpy and MuJoCo, no gRPC; one combiner per filter, driven from one thread; its state is
 plain arrays, so `snapshot()`/`restore()` serve the timewarp and a replay is exact.
 """
@@ -33,6 +40,7 @@ from dataclasses import dataclass
 from typing import Final
 
 import mujoco
+import mujoco.batch
 import numpy as np
 
 __all__ = ["MIN_SAMPLES", "PREDICTORS", "Forecast", "ForecastCombiner"]
@@ -47,6 +55,12 @@ FORGETTING: Final = 0.8
 # Probes alive at once: the cost of scoring is this many single-point rollouts of one tick per tick.
 PROBES: Final = 16
 
+# Columns of the probes' integer marks.
+_ORIGIN: Final = 0  # tick of the frame the probe starts from
+_AGE: Final = 1  # ticks carried forward
+_KEEP: Final = 2  # 1: a scoring probe; 0: only the last frame's, kept for a gap
+_RAMP: Final = 3  # 1: its force ramps with its rate (integrated random walk)
+
 
 @dataclass(frozen=True)
 class Forecast:
@@ -60,25 +74,38 @@ class Forecast:
 
 
 @dataclass(frozen=True)
-class _Probe:
-    origin: int  # tick of the frame it starts from
-    age: int  # ticks carried forward
-    keep: bool  # a scoring probe (else only the last frame's, for a gap)
-    qpos: np.ndarray  # the MODEL predictor's state now
-    qvel: np.ndarray
-    qacc: np.ndarray
-    act: np.ndarray
-    force: np.ndarray
-    rate: np.ndarray | None
-    q0: np.ndarray  # the frame's anchor for the extrapolators
-    v0: np.ndarray
-    a0: np.ndarray
+class _Columns:
+    """Where each of a probe's vectors sits in its row of the table: the MODEL predictor's state
+    now (qpos, qvel, qacc, act), its force and rate, and the frame's anchor for the extrapolators
+    (q0, v0, a0)."""
+
+    qpos: slice
+    qvel: slice
+    qacc: slice
+    act: slice
+    force: slice
+    rate: slice
+    q0: slice
+    v0: slice
+    a0: slice
+    width: int
+
+    @staticmethod
+    def of(nq: int, nv: int, na: int) -> _Columns:
+        sizes = {"qpos": nq, "qvel": nv, "qacc": nv, "act": na, "force": nv, "rate": nv}
+        sizes |= {"q0": nv, "v0": nv, "a0": nv}
+        start, spans = 0, {}
+        for name, size in sizes.items():
+            spans[name] = slice(start, start + size)
+            start += size
+        return _Columns(**spans, width=start)
 
 
 @dataclass(frozen=True)
 class _Snapshot:
     tick: int
-    probes: tuple[_Probe, ...]
+    marks: np.ndarray  # (probes, 4)
+    table: np.ndarray  # (probes, width)
     cov: np.ndarray
     count: np.ndarray
     anchor: tuple[np.ndarray, np.ndarray, int] | None
@@ -88,6 +115,10 @@ class ForecastCombiner:
     """See the module docstring. process: the filter's process model (warm start off, actuation
     off for DRIVEN), whose qfrc_applied is the estimated force; horizon: ticks scored (the longest
     gap whose weights are learnt; a longer gap uses the last horizon's)."""
+
+    # The live probes, rows [0, n) oldest first: their vectors (_Columns) and integer marks.
+    _table: np.ndarray  # (capacity, width)
+    _marks: np.ndarray  # (capacity, 4)
 
     def __init__(
         self,
@@ -100,13 +131,18 @@ class ForecastCombiner:
         if int(process.nq) != int(process.nv):
             raise ValueError("the forecast combination needs nq == nv (no ball or free joints)")
         self._model = process
-        self._data = mujoco.MjData(process)
         self._dt = float(dt)
         self._nstep = int(steps_per_tick)
         self._h = float(process.opt.timestep)
         self._horizon = max(1, int(horizon))
         self._stride = max(1, -(-self._horizon // PROBES))
         self._nv = int(process.nv)
+        self._na = int(process.na)
+        self._columns = _Columns.of(int(process.nq), self._nv, self._na)
+        # Scoring probes alive at once, and the last frame's (twice, for a second frame of a tick).
+        self._n = 0
+        self._capacity = 0
+        self._grow(-(-self._horizon // self._stride) + 3)
         self.reset()
 
     @property
@@ -117,7 +153,7 @@ class ForecastCombiner:
         """Forget every score and probe."""
         P = len(PREDICTORS)
         self._tick = 0
-        self._probes: list[_Probe] = []
+        self._n = 0  # live probes: rows [0, n) of the table, oldest first
         self._cov = np.zeros((self._horizon + 1, P, P))
         # The weights of each horizon, as long as its covariance has not changed: the filter asks
         # for a forecast on every predict (a frame may not come), and solving every subset of the
@@ -127,9 +163,21 @@ class ForecastCombiner:
         self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # last frame's (q, v, tick)
 
     def advance(self) -> None:
-        """One tick passes: every probe is carried one tick forward."""
+        """One tick passes: every probe is carried one tick forward (a scoring probe that has
+        reached the horizon waits for the next frame, which scores it and lets it go)."""
         self._tick += 1
-        self._probes = [self._step(p) for p in self._probes]
+        n = self._n
+        if n == 0:
+            return
+        marks = self._marks[:n]
+        moving = (marks[:, _KEEP] == 0) | (marks[:, _AGE] < self._horizon)
+        if moving.all():
+            self._step(slice(0, n), self._ids[:n])
+            marks[:, _AGE] += 1
+        elif moving.any():
+            ids = self._ids[:n][moving]
+            self._step(ids, ids)
+            marks[ids, _AGE] += 1
 
     def observe(
         self,
@@ -144,12 +192,21 @@ class ForecastCombiner:
     ) -> None:
         """A frame (qpos, qvel measured) at this tick, and the filter's posterior after it: score
         the live probes against the frame, then start this tick's probe."""
-        survivors: list[_Probe] = []
-        for p in self._probes:
-            if p.age >= 1 and p.age <= self._horizon:
-                self._score(p, qpos)
-            if p.keep and p.age < self._horizon:
-                survivors.append(p)
+        n = self._n
+        marks = self._marks[:n]
+        age, keep = marks[:, _AGE], marks[:, _KEEP] == 1
+        # Only scoring probes score; the last frame's probe was kept for a gap alone.
+        scoring = keep & (age >= 1) & (age <= self._horizon)
+        if scoring.any():
+            self._score(np.flatnonzero(scoring), qpos)
+        survive = keep & (age < self._horizon)
+        if survive[:-1].all():
+            m = n - 1 if n and not survive[-1] else n  # at most the last frame's probe goes
+        else:
+            survivors = np.flatnonzero(survive)
+            m = survivors.size
+            self._marks[:m] = self._marks[survivors]
+            self._table[:m] = self._table[survivors]
         previous = self._anchor
         if previous is not None and previous[2] < self._tick:
             a0 = (qvel - previous[1]) / ((self._tick - previous[2]) * self._dt)
@@ -160,39 +217,32 @@ class ForecastCombiner:
         # back from one) predicts worse than the anchors gaps start from.
         streak = previous is not None and previous[2] == self._tick - 1
         self._anchor = (np.array(qpos), np.array(qvel), self._tick)
-        probe = _Probe(
-            origin=self._tick,
-            age=0,
-            keep=streak and self._tick % self._stride == 0,
-            qpos=np.array(mean_qpos),
-            qvel=np.array(mean_qvel),
-            qacc=np.zeros(self._nv),
-            act=np.array(act),
-            force=np.array(force),
-            rate=None if rate is None else np.array(rate),
-            q0=np.array(qpos),
-            v0=np.array(qvel),
-            a0=np.asarray(a0),
-        )
-        survivors.append(probe)
-        self._probes = survivors
+        if m + 1 > self._capacity:
+            self._grow(2 * self._capacity)
+        c, row = self._columns, self._table[m]
+        row[c.qpos], row[c.qvel], row[c.qacc] = mean_qpos, mean_qvel, 0.0
+        row[c.act], row[c.force] = act, force
+        row[c.rate] = 0.0 if rate is None else rate
+        row[c.q0], row[c.v0], row[c.a0] = qpos, qvel, a0
+        self._marks[m] = (self._tick, 0, streak and self._tick % self._stride == 0, rate is not None)
+        self._n = m + 1
 
     def forecast(self) -> Forecast | None:
         """The combination's answer now, when the last frame is some ticks old and that horizon's
         weights are learnt; else None (the filter answers)."""
-        latest = next(
-            (p for p in reversed(self._probes) if p.age > 0 and p.origin == self._last_origin()), None
-        )
-        if latest is None:
+        # The last frame's probe is the newest, the last row (a second frame of the same tick
+        # starts a second one after it); it answers once it has been carried forward.
+        i = self._n - 1
+        if i < 0 or self._marks[i, _ORIGIN] != self._last_origin() or self._marks[i, _AGE] == 0:
             return None
-        h = min(latest.age, self._horizon)
+        h = min(int(self._marks[i, _AGE]), self._horizon)
         if self._count[h] < MIN_SAMPLES:
             return None
         weights = self._weights.get(h)
         if weights is None:
             weights = self._weights[h] = _min_variance_weights(self._cov[h])
             weights.flags.writeable = False
-        q, v, a = self._predictions(latest)
+        q, v, a = self._predictions(i)
         return Forecast(
             weights=weights,
             qpos=weights @ q,
@@ -201,17 +251,23 @@ class ForecastCombiner:
         )
 
     def snapshot(self) -> _Snapshot:
+        n = self._n
         return _Snapshot(
             tick=self._tick,
-            probes=tuple(self._probes),
+            marks=self._marks[:n].copy(),
+            table=self._table[:n].copy(),
             cov=self._cov.copy(),
             count=self._count.copy(),
             anchor=self._anchor,
         )
 
     def restore(self, snap: _Snapshot) -> None:
+        n = snap.marks.shape[0]
+        if n > self._capacity:
+            self._grow(n)
         self._tick = snap.tick
-        self._probes = list(snap.probes)
+        self._marks[:n], self._table[:n] = snap.marks, snap.table
+        self._n = n
         self._cov = snap.cov.copy()
         self._count = snap.count.copy()
         self._anchor = snap.anchor
@@ -219,78 +275,121 @@ class ForecastCombiner:
 
     # -- internals --------------------------------------------------------------------------------
 
+    def _grow(self, capacity: int) -> None:
+        """Room for `capacity` probes: the table, the marks and the batch that steps them."""
+        n = self._n
+        table = np.zeros((capacity, self._columns.width))
+        marks = np.zeros((capacity, 4), dtype=np.int64)
+        if n:
+            table[:n], marks[:n] = self._table[:n], self._marks[:n]
+        self._table, self._marks = table, marks
+        self._ids = np.arange(capacity, dtype=np.int32)
+        # nthread=1: the batch steps on the calling thread, as the probes' single MjData did (a
+        # tick's probes are a few dozen microseconds of physics, too little to hand to a worker).
+        self._batch = mujoco.batch.Batch(self._model, nsim=capacity, nthread=1)
+        b = self._batch
+        self._qpos, self._qvel, self._act = b.bind("qpos"), b.bind("qvel"), b.bind("act")
+        self._qfrc, self._qacc = b.bind("qfrc_applied"), b.bind("qacc")
+        b.bind("ctrl")[:] = 0.0  # actuation is off in the process model; ctrl stays zero
+        self._capacity = capacity
+
     def _last_origin(self) -> int:
         return -1 if self._anchor is None else self._anchor[2]
 
-    def _predictions(self, p: _Probe) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(P, nv) each: every predictor's qpos, qvel, qacc for probe p at its age."""
-        t = p.age * self._dt
-        zero = np.zeros(self._nv)
-        q = np.stack([p.qpos, p.q0, p.q0 + p.v0 * t, p.q0 + p.v0 * t + 0.5 * p.a0 * t * t])
-        v = np.stack([p.qvel, p.v0, p.v0, p.v0 + p.a0 * t])
-        a = np.stack([p.qacc, zero, zero, p.a0])
+    def _step(self, rows: slice | np.ndarray, ids: np.ndarray) -> None:
+        """Probes `ids` (sorted; `rows`, the same rows as a slice when they are contiguous) one
+        tick forward: one batched call when the forces are held, one per physics step when they
+        ramp."""
+        c, table, nstep = self._columns, self._table, self._nstep
+        self._qpos[rows] = table[rows, c.qpos]
+        self._qvel[rows] = table[rows, c.qvel]
+        if self._na:
+            self._act[rows] = table[rows, c.act]
+        ramp = self._marks[rows, _RAMP] == 1
+        if not ramp.any():
+            self._qfrc[rows] = table[rows, c.force]
+            self._batch.step(ids, nstep)
+        else:
+            held, ramped = ids[~ramp], ids[ramp]
+            if held.size:
+                self._qfrc[held] = table[held, c.force]
+                self._batch.step(held, nstep)
+            force, rate = table[ramped, c.force], table[ramped, c.rate]
+            for s in range(nstep):
+                self._qfrc[ramped] = force + (s + 0.5) * self._h * rate
+                self._batch.step(ramped, 1)
+            table[ramped, c.force] = force + nstep * self._h * rate
+        table[rows, c.qpos] = self._qpos[rows]
+        table[rows, c.qvel] = self._qvel[rows]
+        table[rows, c.qacc] = self._qacc[rows]
+        if self._na:
+            table[rows, c.act] = self._act[rows]
+
+    def _predictions(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(P, nv) each: every predictor's qpos, qvel, qacc for probe i at its age."""
+        c, row = self._columns, self._table[i]
+        t = int(self._marks[i, _AGE]) * self._dt
+        q0, v0, a0 = row[c.q0], row[c.v0], row[c.a0]
+        q, v, a = np.empty((3, len(PREDICTORS), self._nv))
+        q[0], q[1], q[2] = row[c.qpos], q0, q0 + v0 * t
+        q[3] = q0 + v0 * t + 0.5 * a0 * t * t
+        v[0], v[1], v[2], v[3] = row[c.qvel], v0, v0, v0 + a0 * t
+        a[0], a[1], a[2], a[3] = row[c.qacc], 0.0, 0.0, a0
         return q, v, a
 
-    def _positions(self, p: _Probe) -> np.ndarray:
-        """(P, nv): every predictor's qpos for probe p at its age (the q of `_predictions`)."""
-        t = p.age * self._dt
-        q = np.empty((len(PREDICTORS), self._nv))
-        q[0], q[1] = p.qpos, p.q0
-        q[2] = p.q0 + p.v0 * t
-        q[3] = p.q0 + p.v0 * t + 0.5 * p.a0 * t * t
-        return q
-
-    def _score(self, p: _Probe, qpos: np.ndarray) -> None:
-        if not p.keep:
-            return  # only the last frame's probe, kept for a gap: it scores nothing
-        errors = self._positions(p) - qpos[None, :]  # (P, nv)
-        if not np.all(np.isfinite(errors)):
+    def _score(self, ids: np.ndarray, qpos: np.ndarray) -> None:
+        """Scoring probes `ids` (their ages all differ) against a frame's qpos."""
+        c, rows = self._columns, self._table[ids]
+        ages = self._marks[ids, _AGE]
+        t = (ages * self._dt)[:, None]
+        q0, v0, a0 = rows[:, c.q0], rows[:, c.v0], rows[:, c.a0]
+        positions = np.empty((ids.size, len(PREDICTORS), self._nv))  # the q of `_predictions`
+        positions[:, 0], positions[:, 1] = rows[:, c.qpos], q0
+        positions[:, 2] = q0 + v0 * t
+        positions[:, 3] = q0 + v0 * t + 0.5 * a0 * t * t
+        errors = positions - qpos[None, None, :]  # (S, P, nv)
+        finite = np.isfinite(errors).all(axis=(1, 2))
+        if not finite.all():
+            errors, ages = errors[finite], ages[finite]
+        if ages.size == 0:
             return
-        h = p.age
-        c = errors @ errors.T / self._nv
-        # Sage and Husa's bias-corrected fading weight: the first sample does not count for ever.
-        d = (1.0 - FORGETTING) / (1.0 - FORGETTING ** (self._count[h] + 1))
-        self._cov[h] = (1.0 - d) * self._cov[h] + d * c
-        self._count[h] += 1
-        self._weights.pop(h, None)
-
-    def _step(self, p: _Probe) -> _Probe:
-        if p.age >= self._horizon and p.keep:
-            return p
-        m, d = self._model, self._data
-        d.qpos[:], d.qvel[:] = p.qpos, p.qvel
-        if m.na:
-            d.act[:] = p.act
-        d.ctrl[:] = 0.0
-        force = p.force
-        if p.rate is None:
-            d.qfrc_applied[:] = force
-            mujoco.mj_step(m, d, self._nstep)
+        cov = errors @ errors.transpose(0, 2, 1) / self._nv
+        # Rows are oldest first, so ages fall along them; only probes that waited at the horizon
+        # through a gap share one, the horizon, at the front.
+        if ages.size < 2 or ages[0] != ages[1]:
+            d = _FADING[np.minimum(self._count[ages], _FADING.size - 1).astype(np.intp)][:, None, None]
+            self._cov[ages] = (1.0 - d) * self._cov[ages] + d * cov
+            self._count[ages] += 1
         else:
-            for s in range(self._nstep):
-                d.qfrc_applied[:] = force + (s + 0.5) * self._h * p.rate
-                mujoco.mj_step(m, d)
-            force = force + self._nstep * self._h * p.rate
-        return _Probe(
-            origin=p.origin,
-            age=p.age + 1,
-            keep=p.keep,
-            qpos=d.qpos.copy(),
-            qvel=d.qvel.copy(),
-            qacc=d.qacc.copy(),
-            act=d.act.copy() if m.na else p.act,
-            force=force,
-            rate=p.rate,
-            q0=p.q0,
-            v0=p.v0,
-            a0=p.a0,
-        )
+            # One sample after the other at the shared age, oldest first.
+            for h, c in zip(ages.tolist(), cov, strict=True):
+                d1 = _fading(float(self._count[h]))
+                self._cov[h] = (1.0 - d1) * self._cov[h] + d1 * c
+                self._count[h] += 1
+        for h in ages.tolist():
+            self._weights.pop(h, None)
+
+
+def _fading(count: float) -> float:
+    """Sage and Husa's bias-corrected fading weight of the next sample after `count` of them: the
+    first sample does not count for ever."""
+    return (1.0 - FORGETTING) / (1.0 - float(FORGETTING ** (count + 1)))
+
+
+# _fading of every count until it no longer changes (FORGETTING ** (count + 1) below half an ulp of
+# 1), computed by Python's scalar power: numpy's vectorised power differs from it in the last bit
+# for some counts, and the weights must not depend on how many probes scored at once.
+_FADING: Final = np.array(
+    list(itertools.takewhile(lambda d: d != 1.0 - FORGETTING, map(_fading, itertools.count(0.0))))
+    + [1.0 - FORGETTING]
+)
 
 
 def _min_variance_weights(C: np.ndarray) -> np.ndarray:
     """argmin w' C w over w >= 0, sum w = 1, for a small C (P, P): the best of the unconstrained
     minimum-variance weights of every subset whose weights are all >= 0 (the optimum's support is
-    one of them)."""
+    one of them). The subsets of each size are solved as one stack (LAPACK's gesv on each, as one
+    at a time would)."""
     P = C.shape[0]
     scale = float(np.trace(C)) / P
     if not np.isfinite(scale) or scale <= 0.0:
@@ -299,20 +398,17 @@ def _min_variance_weights(C: np.ndarray) -> np.ndarray:
         return w
     # A little ridge keeps near-collinear predictors (CV and CA over one tick) from extreme weights.
     C = C + 1e-9 * scale * np.eye(P)
+    subsets = _SUBSETS if P == len(PREDICTORS) else _subsets(P)
     best_w, best_v = None, np.inf
-    for k in range(1, P + 1):
-        for subset in itertools.combinations(range(P), k):
-            idx = list(subset)
-            sub = C[np.ix_(idx, idx)]
-            try:
-                x = np.linalg.solve(sub, np.ones(k))
-            except np.linalg.LinAlgError:
-                continue
-            total = float(x.sum())
-            if total <= 0.0 or not np.all(x >= 0.0):
-                continue
+    for size in subsets:
+        solved = _solve_each(C[size[:, :, None], size[:, None, :]])
+        if solved is None:
+            continue
+        x, ok = solved
+        totals = x.sum(axis=1)
+        for j in np.flatnonzero(ok & (totals > 0.0) & np.all(x >= 0.0, axis=1)).tolist():
             w = np.zeros(P)
-            w[idx] = x / total
+            w[size[j]] = x[j] / totals[j]
             v = float(w @ C @ w)
             if v < best_v:
                 best_w, best_v = w, v
@@ -320,3 +416,28 @@ def _min_variance_weights(C: np.ndarray) -> np.ndarray:
         best_w = np.zeros(P)
         best_w[int(np.argmin(np.diag(C)))] = 1.0
     return best_w
+
+
+def _subsets(P: int) -> tuple[np.ndarray, ...]:
+    """Every subset of range(P), by size: one (subsets, size) index array per size."""
+    return tuple(np.array(list(itertools.combinations(range(P), k)), dtype=np.intp) for k in range(1, P + 1))
+
+
+# The subsets of the predictors.
+_SUBSETS: Final = _subsets(len(PREDICTORS))
+
+
+def _solve_each(systems: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """x (m, k) with A x = 1 for each A of `systems` (m, k, k), and which were solved (m,) (a
+    singular one is not); None when none was."""
+    m, k = systems.shape[:2]
+    try:
+        return np.linalg.solve(systems, np.ones((m, k, 1)))[..., 0], np.ones(m, dtype=bool)
+    except np.linalg.LinAlgError:
+        x, ok = np.zeros((m, k)), np.zeros(m, dtype=bool)
+        for i, A in enumerate(systems):
+            try:
+                x[i], ok[i] = np.linalg.solve(A, np.ones(k)), True
+            except np.linalg.LinAlgError:
+                pass
+        return (x, ok) if ok.any() else None

@@ -20,7 +20,10 @@ caller, on every call.) A call also says how many chunks its work is worth (serv
 about MIN_CHUNK_SECONDS of physics each): a small sigma set stays on the calling thread.
 
 Propagations are serialised by one lock: a call gets every worker, and sessions queue behind it.
-That is what keeps the bound.
+That is what keeps the bound. BLAS (numpy's and scipy's OpenBLAS) runs single-threaded in a
+process that has a pool: the filters' matrices are tens of rows, and OpenBLAS's own threads, which
+spin after every call, fought the pool's for the cores (myoHand's DRIVEN cycle on a busy machine:
+a mean of 5.5 ms and ticks of 70 ms, against 2.1 ms and at most 7 ms single-threaded).
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ from typing import Final, Self
 import mujoco
 import mujoco.rollout
 import numpy as np
+import scipy.linalg  # noqa: F401  (its OpenBLAS is loaded, so that the limit below reaches it)
+from threadpoolctl import ThreadpoolController
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.mujoco_log import counting, current_counter
@@ -61,10 +66,24 @@ MAX_WORKERS: Final = 256
 MIN_CHUNK_SECONDS: Final = 200e-6
 
 
+_blas_limited = False
+_blas_lock = threading.Lock()
+
+
+def _single_threaded_blas() -> None:
+    """Every BLAS loaded in this process runs on its caller's thread (once per process)."""
+    global _blas_limited
+    with _blas_lock:
+        if not _blas_limited:
+            ThreadpoolController().limit(limits=1, user_api="blas")
+            _blas_limited = True
+
+
 class WorkerPool:
     """`workers` threads shared by all sessions. A context manager; `close()` is safe twice.
 
     Estimators never call the pool's methods themselves; server/estimation/propagate.py does.
+    Making one leaves BLAS single-threaded in the process (see the module docstring).
     """
 
     def __init__(self, workers: int, *, backend: Backend | str = DEFAULT_BACKEND) -> None:
@@ -76,6 +95,7 @@ class WorkerPool:
             raise InvalidArgument(
                 f"backend must be one of {[b.value for b in Backend]}, got {backend!r}"
             ) from None
+        _single_threaded_blas()
         self._workers = workers
         self._lock = threading.Lock()
         self._closed = False

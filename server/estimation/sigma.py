@@ -190,14 +190,22 @@ class Simplex:
         self.add = add if add is not None else _vector_add
         self.Wm = np.full(n + 1, 1.0 / (n + 1))
         self.Wc = self.Wm / alpha**2
-        self._unit = alpha * np.sqrt(n) * _simplex_vertices(n)  # (n, n + 1)
+        self._unit: np.ndarray = alpha * np.sqrt(n) * _simplex_vertices(n)  # (n, n + 1)
 
     def num_sigmas(self) -> int:
         return self.n + 1
 
     def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
         """x (nx,), P (n, n) -> (n + 1, nx)."""
-        U = self.sqrt(P)
+        return self.from_factor(x, self.sqrt(P))
+
+    @property
+    def unit(self) -> np.ndarray:
+        """(n, n + 1) the points' offsets for a unit covariance: point i is x + (U.T @ unit)[:, i]."""
+        return self._unit
+
+    def from_factor(self, x: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """The points of x (nx,) and a covariance whose upper square root U (n, n) is known."""
         return self.add(x, (U.T @ self._unit).T)
 
 

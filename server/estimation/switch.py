@@ -135,6 +135,11 @@ class SwitchingFilter:
             self._log.append(None)
         return self._active.predict(ctrl=ctrl)
 
+    def advance(self, *, ctrl: np.ndarray | None) -> None:
+        if not self._switched:
+            self._log.append(None)
+        self._active.advance(ctrl=ctrl)
+
     def update(self, m: Measurement) -> Estimate:
         estimate = self._active.update(m)
         if self._switched:
@@ -163,8 +168,10 @@ class SwitchingFilter:
         second.initialise(first)
         answer = second.extrapolate(0.0)
         for entry in rest:
-            second.predict(ctrl=None)
-            if entry is not None:
+            if entry is None:
+                second.predict(ctrl=None)
+            else:
+                second.advance(ctrl=None)
                 answer = second.update(entry)
         self._switched = True
         self._log = []

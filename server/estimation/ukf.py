@@ -4,7 +4,8 @@ call (server/estimation/propagate.py) instead of filterpy's per-point loop.
 
     estimator = UnscentedFilter(model, config, pool=pool)
     estimator.initialise(Measurement(qpos=q0, qvel=v0))
-    prior = estimator.predict(ctrl=None)
+    prior = estimator.predict(ctrl=None)                              # a tick without its frame
+    estimator.advance(ctrl=None)                                      # a tick with its frame
     posterior = estimator.update(Measurement(qpos=q1, qvel=v1))      # posterior.nis
 
 The scenarios are the thesis' (reference/thesis-experiments.md):
@@ -19,6 +20,13 @@ The scenarios are the thesis' (reference/thesis-experiments.md):
 DRIVEN with Forecast.COMBINED (PRESET_JITDYN's default): a tick without a frame is answered by the
 combination of the model's rollout and IEEE 1278's extrapolators that scored best on the session's
 own frames (server/estimation/forecast.py); the filter's mean and covariance are the filter's.
+
+DRIVEN with SIMPLEX_LINEAR_FORCE (PRESET_JITDYN's from a state dimension of 32, random walk):
+the sigma points span [q, qd] only, each under the force's mean given its [q, qd]; what the force
+has of its own (its covariance given [q, qd]) acts through B, the tick's response of [q, qd] to a
+generalized force, linearised at the mean. Exact where the force enters linearly (tested against
+the full simplex on such a model); a third fewer physics steps. The measurement is linear in the
+state, so its update is the Kalman filter's (what the unscented update computes for it).
 
 Muscle activations (act, na of them) are physics state but not filter state: every sigma point
 starts a tick from the same act, and the filter keeps the weighted mean of the propagated acts
@@ -42,6 +50,7 @@ import mujoco
 import numpy as np
 from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import UnscentedKalmanFilter, unscented_transform
+from scipy.linalg.lapack import dtrtrs
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.estimation.adaptive import NoiseAdapter
@@ -53,11 +62,13 @@ from jitdyn.server.estimation.estimator import (
     Measurement,
     NoiseModel,
     Scenario,
+    SigmaScheme,
     check_against_model,
     check_measurement,
     check_vector,
     derivative_order,
     force_blocks,
+    linear_force_applies,
     read_only,
 )
 from jitdyn.server.estimation.forecast import ForecastCombiner
@@ -66,6 +77,7 @@ from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
 from jitdyn.server.estimation.sigma import (
     RobustCholesky,
+    Simplex,
     cholesky_upper,
     make_sigma_points,
     nearest_positive_definite,
@@ -135,6 +147,75 @@ class _BatchedUKF(UnscentedKalmanFilter):  # type: ignore[misc]
             dx = self.residual_x(sigmas_f, x)
             dz = self.residual_z(sigmas_h, z)
         return np.asarray(dx.T @ (self.Wc[:, None] * dz))
+
+
+class _LinearForceUKF(_BatchedUKF):
+    """DRIVEN under SIMPLEX_LINEAR_FORCE (see the module docstring). x = [s, f], s = [q, qd] (k),
+    f the force (nv); the points are simplex points of s."""
+
+    x: np.ndarray
+    P: np.ndarray
+
+    def __init__(
+        self, *, owner: UnscentedFilter, motion: int, propagate: _Propagate, vector: bool, **kwargs: object
+    ) -> None:
+        super().__init__(propagate=propagate, vector=vector, **kwargs)
+        self._owner = owner
+        self._k = motion
+
+    def prior(self, x: np.ndarray, P: np.ndarray, *, nstep: int | None) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (len x,) and covariance (n, n) after nstep physics steps, before process noise.
+
+        With U the upper factor of Pss, the force given s is f + G' U^-T (s - s_mean), G = U^-T Psf,
+        with covariance Pff - G'G; a simplex point s + U' e carries f + G' e. Its propagation gives
+        the part of [s', f] that moves with s; B (Pff - G'G) B' and (Pff - G'G) B' add the rest.
+        """
+        k, owner = self._k, self._owner
+        s, f = x[:k], x[k:]
+        Pss, Psf, Pff = P[:k, :k], P[:k, k:], P[k:, k:]
+        U = self.msqrt(Pss)
+        G, info = dtrtrs(U, Psf, lower=0, trans=1)
+        if info != 0 or not np.all(np.isfinite(U)):
+            G = np.full_like(Psf, np.nan)  # a poisoned factor: the divergence guard restarts
+        points: Simplex = self.points_fn
+        chi = points.from_factor(s, U)
+        forces = f + (G.T @ points.unit).T
+        moved = owner._propagate_linear_force(chi, forces, nstep=nstep)
+        mean = self.Wm @ moved
+        spread = moved - mean
+        weighted = self.Wc[:, None] * spread
+        rest = Pff - G.T @ G
+        B = owner._force_response(s, f, nstep=nstep)
+        BR = B @ rest
+        out = np.empty_like(P)
+        out[:k, :k] = spread.T @ weighted + BR @ B.T
+        out[:k, k:] = weighted.T @ (forces - f) + BR
+        out[k:, :k] = out[:k, k:].T
+        out[k:, k:] = Pff
+        self.sigmas_f = moved
+        return np.concatenate([mean, f]), out
+
+    def predict(self, dt: object = None, UT: object = None, fx: object = None, **fx_args: object) -> None:
+        x, P = self.prior(np.asarray(self.x), np.asarray(self.P), nstep=None)
+        self.x, self.P = x, P + self.Q
+        self.x_prior = np.copy(self.x)
+        self.P_prior = np.copy(self.P)
+
+    def update(
+        self, z: np.ndarray, R: object = None, UT: object = None, hx: object = None, **hx_args: object
+    ) -> None:
+        index = self._owner._z_index
+        x, P = self.x, self.P
+        PHt = P[:, index]
+        self.S = PHt[index] + self.R
+        self.SI = self.inv(self.S)
+        self.K = PHt @ self.SI
+        self.y = z - x[index]
+        self.x = x + self.K @ self.y
+        self.P = P - self.K @ (self.S @ self.K.T)
+        self.z = np.array(z)
+        self.x_post = self.x.copy()
+        self.P_post = self.P.copy()
 
 
 def _tangent_unscented_transform(
@@ -229,9 +310,13 @@ class UnscentedFilter:
         self._x_manifold = SplitManifold(m, rest=self._size - nq) if manifold else None
         z_manifold = SplitManifold(m, rest=len(index) - nq) if manifold else None
         self._sqrt = RobustCholesky()
+        # SIMPLEX_LINEAR_FORCE keeps the force out of the points where it applies; else it is SIMPLEX.
+        linear = config.sigma_points == SigmaScheme.SIMPLEX_LINEAR_FORCE
+        self._linear_force = linear and linear_force_applies(m, self._scenario, config.force_model)
+        motion = self._order * nv
         self._points = make_sigma_points(
-            config.sigma_points,
-            n=self._n,
+            SigmaScheme.SIMPLEX if linear else config.sigma_points,
+            n=motion if self._linear_force else self._n,
             alpha=config.alpha,
             beta=config.beta,
             kappa=config.kappa,
@@ -252,22 +337,26 @@ class UnscentedFilter:
             inputs=inputs[self._scenario],
             want_qacc=self._controlled,
         )
-        self._kf = _BatchedUKF(
-            propagate=_Propagate(self),
-            vector=not manifold,
-            dim_x=self._n,
-            dim_z=z_tangent,
-            dt=config.dt,
-            hx=self._hx,
-            fx=None,
-            points=self._points,
-            sqrt_fn=self._sqrt,
-            x_mean_fn=self._x_manifold.mean if self._x_manifold is not None else None,
-            z_mean_fn=z_manifold.mean if z_manifold is not None else None,
-            residual_x=self._x_manifold.residual if self._x_manifold is not None else None,
-            residual_z=z_manifold.residual if z_manifold is not None else None,
-            state_add=self._x_manifold.add if self._x_manifold is not None else None,
-        )
+        kwargs: dict[str, object] = {
+            "dim_x": self._n,
+            "dim_z": z_tangent,
+            "dt": config.dt,
+            "hx": self._hx,
+            "fx": None,
+            "points": self._points,
+            "sqrt_fn": self._sqrt,
+            "x_mean_fn": self._x_manifold.mean if self._x_manifold is not None else None,
+            "z_mean_fn": z_manifold.mean if z_manifold is not None else None,
+            "residual_x": self._x_manifold.residual if self._x_manifold is not None else None,
+            "residual_z": z_manifold.residual if z_manifold is not None else None,
+            "state_add": self._x_manifold.add if self._x_manifold is not None else None,
+        }
+        if self._linear_force:
+            self._kf: _BatchedUKF = _LinearForceUKF(
+                owner=self, motion=motion, propagate=_Propagate(self), vector=True, **kwargs
+            )
+        else:
+            self._kf = _BatchedUKF(propagate=_Propagate(self), vector=not manifold, **kwargs)
         self._mass = self._mass_diagonal()
         self._Q = self._process_noise(config.dt)
         self._kf.Q = self._Q
@@ -358,7 +447,18 @@ class UnscentedFilter:
         self._initialised = True
 
     def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
-        self._require_initialised("predict")
+        reinitialised = self._predict(ctrl, "predict")
+        estimate = self._estimate(reinitialised=reinitialised)
+        if self._forecasts is not None and not reinitialised:
+            estimate = self._combined(estimate)
+        return estimate
+
+    def advance(self, *, ctrl: np.ndarray | None) -> None:
+        self._predict(ctrl, "advance")
+
+    def _predict(self, ctrl: np.ndarray | None, what: str) -> bool:
+        """One tick of prediction; whether the divergence guard restarted the filter."""
+        self._require_initialised(what)
         if self._controlled and ctrl is not None:
             self._ctrl = check_vector(ctrl, self._nu, "ctrl").copy()
         if self._adapter is not None:
@@ -378,10 +478,7 @@ class UnscentedFilter:
                 raise RuntimeError("unreachable: an initialised filter has a last measurement")
             self._reinitialise(self._last)
             reinitialised = True
-        estimate = self._estimate(reinitialised=reinitialised)
-        if self._forecasts is not None and not reinitialised:
-            estimate = self._combined(estimate)
-        return estimate
+        return reinitialised
 
     def update(self, m: Measurement) -> Estimate:
         self._require_initialised("update")
@@ -389,15 +486,25 @@ class UnscentedFilter:
         z = np.concatenate([m.qpos] + [getattr(m, c) for c in ("qvel", "qacc") if self._measures(c)])
         if self._adapter is not None:
             self._kf.R = self._adapter.R
-        try:
-            self._kf.update(z, UT=self._ut)
-            y, SI = self._kf.y, self._kf.SI
-            nis_value = float(y @ SI @ y)
-        except np.linalg.LinAlgError:
-            # An innovation covariance that cannot be inverted: nothing of this update is usable.
-            self._kf.x = np.full(self._size, np.nan)
-            nis_value = float("nan")
-        nis = nis_value if np.isfinite(nis_value) else None
+        after_gap = self._adapter is not None and self._ticks_since_update > 1
+        prior = (self._kf.x.copy(), self._kf.P.copy(), self._kf.sigmas_f) if after_gap else None
+        nis = self._correct(z)
+        widened = False
+        if prior is not None and nis is not None and nis > NIS_LIMIT_PER_DIMENSION * self._z_tangent:
+            # The first frame after a gap, a thousand standard deviations from the prediction:
+            # the prediction was overconfident, not lost (a DRIVEN filter holds its force over the
+            # gap while the body's changes; myoHand's first gap ended at NIS 3e8). Corrected from
+            # that prior, the force took the whole innovation and the next frames overshot, ten in
+            # a row past the divergence guard. The prior is widened as an absorption widens it and
+            # the frame used again: [q, qd] follow the frame, the force its evidence.
+            x, P, _ = prior
+            k = self._order * self._nv
+            P[:k, :k] += self._P0[:k, :k]
+            self._kf.x, self._kf.P = x, P
+            if not self._linear_force:
+                self._kf.sigmas_f = self._points.sigma_points(x, P)  # what filterpy's update uses
+            nis = self._correct(z)
+            widened = True
         reinitialised = False
         if self._finite():
             self._kf.P = _symmetric(self._kf.P)
@@ -406,7 +513,7 @@ class UnscentedFilter:
             self._nis_run = 0
         else:
             self._nis_run += 1
-        adapted = absorbed = False
+        adapted, absorbed = False, widened
         if self._adapter is not None and self._finite() and nis is not None:
             verdict = self._adapter.observe(
                 z=np.asarray(self._kf.y),
@@ -454,6 +561,18 @@ class UnscentedFilter:
             self._ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
         return self._estimate(nis=nis, reinitialised=reinitialised, adapted=adapted, absorbed=absorbed)
 
+    def _correct(self, z: np.ndarray) -> float | None:
+        """The filter's update with measurement z; its NIS, None when not finite."""
+        try:
+            self._kf.update(z, UT=self._ut)
+            y, SI = self._kf.y, self._kf.SI
+            nis = float(y @ SI @ y)
+        except np.linalg.LinAlgError:
+            # An innovation covariance that cannot be inverted: nothing of this update is usable.
+            self._kf.x = np.full(self._size, np.nan)
+            nis = float("nan")
+        return nis if np.isfinite(nis) else None
+
     def extrapolate(self, seconds: float) -> Estimate:
         self._require_initialised("extrapolate")
         if (
@@ -472,9 +591,17 @@ class UnscentedFilter:
             self._extrapolation_Q = {self._config.steps_per_tick: self._Q, nstep: Q}
         if self._adapter is not None:
             Q = self._adapter.q_for(Q)
-        sigmas = self._points.sigma_points(self._kf.x, self._kf.P)
-        propagated = self._propagate_sigmas(sigmas, nstep=nstep)
-        x, P = self._ut(propagated, self._points.Wm, self._points.Wc, Q, self._kf.x_mean, self._kf.residual_x)
+        if isinstance(self._kf, _LinearForceUKF):
+            sigmas_f = self._kf.sigmas_f
+            x, P = self._kf.prior(self._kf.x, self._kf.P, nstep=nstep)
+            self._kf.sigmas_f = sigmas_f
+            P = P + Q
+        else:
+            sigmas = self._points.sigma_points(self._kf.x, self._kf.P)
+            propagated = self._propagate_sigmas(sigmas, nstep=nstep)
+            x, P = self._ut(
+                propagated, self._points.Wm, self._points.Wc, Q, self._kf.x_mean, self._kf.residual_x
+            )
         P = _symmetric(P)
         act = self._clip_act(self._propagated_act)
         return self._make_estimate(x, P, act=act)
@@ -609,6 +736,55 @@ class UnscentedFilter:
             self._propagated_act = self._points.Wm @ out.act
         return propagated
 
+    def _propagate_linear_force(
+        self, chi: np.ndarray, forces: np.ndarray, *, nstep: int | None
+    ) -> np.ndarray:
+        """SIMPLEX_LINEAR_FORCE: [q, qd] points (m, 2 nv), each under its own force (m, nv), nstep
+        physics steps on -> (m, 2 nv)."""
+        nq = self._nq
+        out = self._propagator(
+            chi[:, :nq], chi[:, nq:], act=self._act, qfrc=np.ascontiguousarray(forces), nstep=nstep
+        )
+        moved = np.empty_like(chi)
+        moved[:, :nq], moved[:, nq:] = out.qpos, out.qvel
+        if self._na:
+            self._propagated_act = self._points.Wm @ out.act
+        return moved
+
+    def _force_response(self, s: np.ndarray, f: np.ndarray, *, nstep: int | None) -> np.ndarray:
+        """B = d[q', qd'] / df (2 nv, nv) over nstep physics steps from s = [q, qd] under force f.
+
+        The acceleration's response to a generalized force is H^-1, H = M + J' D J over the
+        constraint rows active at s (their Hessian in MuJoCo's primal problem; M alone when none
+        is); Euler's implicit damping then maps it through (M + h diag(damping))^-1 M. n
+        semi-implicit Euler steps of h with that response held give qd' = n h A f and
+        q' = h^2 n (n + 1) / 2 A f."""
+        m, d = self._model, self._data
+        nq, nv = self._nq, self._nv
+        d.qpos[:], d.qvel[:], d.act[:], d.ctrl[:], d.qfrc_applied[:] = s[:nq], s[nq:], self._act, 0.0, f
+        mujoco.mj_forward(m, d)
+        M = np.zeros((nv, nv))
+        mujoco.mj_fullM(m, d, M)
+        H = M.copy()
+        active = np.flatnonzero(d.efc_state == int(mujoco.mjtConstraintState.mjCNSTRSTATE_QUADRATIC))
+        if active.size:
+            J = _constraint_jacobian(m, d)[active]
+            H += J.T @ (d.efc_D[active][:, None] * J)
+        A = np.linalg.inv(H)
+        h = float(m.opt.timestep)
+        damping = m.dof_damping
+        if (
+            int(m.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER)
+            and np.any(damping > 0)
+            and not int(m.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
+        ):
+            A = np.linalg.solve(M + h * np.diag(damping), M @ A)
+        n = self._config.steps_per_tick if nstep is None else nstep
+        B = np.empty((2 * nv, nv))
+        B[:nv] = (h * h * n * (n + 1) / 2.0) * A
+        B[nv:] = (n * h) * A
+        return B
+
     def _observe_forecast(self, m: Measurement) -> None:
         """Score the forecasts against frame m and start this tick's, from the posterior."""
         if self._forecasts is None:
@@ -739,7 +915,13 @@ class UnscentedFilter:
                 x[nq + nv : nq + 2 * nv] = self._inverse(m.qpos, qvel, qacc)
         self._kf.x = x
         self._kf.P = self._P0.copy()
-        self._kf.sigmas_f = self._points.sigma_points(self._kf.x, self._kf.P)
+        if self._linear_force:  # the points span [q, qd]
+            k = 2 * self._nv
+            self._kf.sigmas_f = self._points.sigma_points(
+                self._kf.x[: self._nq + self._nv], self._kf.P[:k, :k]
+            )
+        else:
+            self._kf.sigmas_f = self._points.sigma_points(self._kf.x, self._kf.P)
         self._last = m
         self._last_qvel = np.array(qvel)
         self._ticks_since_update = 0
@@ -842,3 +1024,12 @@ class UnscentedFilter:
 
 def _symmetric(P: np.ndarray) -> np.ndarray:
     return np.asarray(0.5 * (P + P.T))
+
+
+def _constraint_jacobian(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
+    """(nefc, nv) the constraint Jacobian, dense whatever MuJoCo keeps."""
+    if not mujoco.mj_isSparse(m):
+        return np.asarray(d.efc_J).reshape(d.nefc, m.nv)
+    J = np.zeros((d.nefc, m.nv))
+    mujoco.mju_sparse2dense(J, d.efc_J, d.efc_J_rownnz, d.efc_J_rowadr, d.efc_J_colind)
+    return J

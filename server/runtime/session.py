@@ -345,7 +345,7 @@ class SessionRuntime:
             self._estimator.initialise(measurement)
             self._initialised = True
             return self._estimator.extrapolate(0.0)
-        self._estimator.predict(ctrl=tick.ctrl if self._controlled else None)
+        self._estimator.advance(ctrl=tick.ctrl if self._controlled else None)
         return self._estimator.update(measurement)
 
     def _frame_qacc(self, tick: _Tick, estimate: Estimate | None) -> np.ndarray:

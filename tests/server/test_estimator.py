@@ -189,7 +189,7 @@ def test_request_beats_model_defaults_beats_preset() -> None:
         ),
         (
             {"requested": {"sigma_points": "merwe"}},
-            r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM'\], got 'merwe'$",
+            r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM', 'SIMPLEX_LINEAR_FORCE'\], got 'merwe'$",
         ),
         ({"dt": 0.055}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.055$"),
         ({"dt": 0.0}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.0$"),
@@ -241,6 +241,58 @@ def test_factory_builds_the_named_estimator(kind: str) -> None:
         estimate = estimator.predict(ctrl=np.ones(2))
         assert estimate.state.shape == (6,)
         assert (estimate.covariance is None) == (kind != "UKF")
+
+
+@pytest.mark.parametrize(
+    ("kind", "scenario", "requested"),
+    [
+        ("UKF", "DRIVEN", {}),  # the forecast combination's answer is what advance leaves out
+        ("UKF", "CONTROLLED", {}),
+        ("UKF", "PASSIVE", {"wrong_model": "DRIVEN"}),  # the switching filter, switched halfway
+        ("CONSTANT_ACCELERATION", "EXTERNAL", {}),
+    ],
+)
+def test_advance_then_update_is_predict_then_update(
+    kind: str, scenario: str, requested: dict[str, str]
+) -> None:
+    """A tick with its frame: advance() leaves the estimator where predict() does (the server
+    drops predict()'s answer on such a tick), so every later answer is the same bit for bit."""
+    model = pendulum(2)
+    measured = {"qpos", "qvel", "ctrl"} if scenario == "CONTROLLED" else {"qpos", "qvel"}
+    config = resolve(model, scenario, requested={"estimator": kind, **requested}, measured=measured)
+    d = mujoco.MjData(model)
+    d.qpos[:] = 0.4
+    frames = []
+    for k in range(60):
+        d.ctrl[:] = 3.0 * np.sin(0.2 * k + np.arange(model.nu))
+        mujoco.mj_step(model, d, config.steps_per_tick)
+        frames.append(Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy(), ctrl=d.ctrl.copy()))
+    lost = {k for k in range(20, 60) if k % 10 in (0, 1, 2)}
+    runs = []
+    with WorkerPool(1) as pool:
+        for advance in (False, True):
+            estimator = make_estimator(model, config, pool=pool)
+            estimator.initialise(frames[0])
+            answers = []
+            for k in range(1, len(frames)):
+                ctrl = frames[k].ctrl
+                if k in lost:
+                    answers.append(estimator.predict(ctrl=ctrl))
+                    continue
+                if advance:
+                    estimator.advance(ctrl=ctrl)
+                else:
+                    estimator.predict(ctrl=ctrl)
+                answers.append(estimator.update(frames[k]))
+            runs.append(answers)
+    for a, b in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a.state, b.state)
+        assert a.covariance is None or np.array_equal(a.covariance, b.covariance)  # type: ignore[arg-type]
+        assert (a.forecast_weights, a.absorbed, a.scenario) == (b.forecast_weights, b.absorbed, b.scenario)
+    if requested.get("wrong_model") == "DRIVEN":
+        assert runs[1][-1].scenario == "DRIVEN"  # the driven pendulum was absorbed
+    if scenario == "DRIVEN":
+        assert any(a.forecast_weights is not None for a in runs[1])
 
 
 # -- skip sequences against the truth --------------------------------------------------------------

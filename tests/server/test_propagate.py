@@ -239,6 +239,50 @@ def test_external_process_model_drops_only_tendons_that_do_nothing() -> None:
         np.testing.assert_array_equal(out.qvel, expected[1])
 
 
+@pytest.mark.parametrize("scenario", ["PASSIVE", "CONTROLLED", "DRIVEN"])
+def test_contacts_are_off_only_where_no_two_geoms_can_touch(scenario: str) -> None:
+    """The muscle arm with a second geom that no other can collide with (conaffinity 0 on both, as
+    every geom of myoElbow): its process model skips the collision pass and steps to the same
+    states as the model with contacts on; the hopper on its floor keeps its contacts."""
+    apart = MUSCLE.replace('size="0.03" mass="0.5"/>', 'size="0.03" mass="0.5" conaffinity="0"/>')
+    apart = apart.replace(
+        '<site name="origin"',
+        '<geom type="sphere" size="0.05" pos="0.3 0 0" conaffinity="0"/><site name="origin"',
+    )
+    contact = int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    assert (
+        process_model(mujoco.MjModel.from_xml_string(HOPPER), scenario=scenario).opt.disableflags & contact
+        == 0
+    )
+    model = mujoco.MjModel.from_xml_string(apart)
+    private = process_model(model, scenario=scenario)
+    assert private.opt.disableflags & contact
+    plain = mujoco.MjModel.from_xml_string(apart)
+    plain.opt.disableflags = private.opt.disableflags & ~contact
+    plain.tendon_num[:] = private.tendon_num
+    qpos, qvel = _sigma_set(model, 5, seed=8)
+    qfrc = np.array([0.3])
+    ctrl = np.array([0.6])
+    with WorkerPool(1) as pool:
+        inputs = (
+            Inputs.CTRL if scenario == "CONTROLLED" else Inputs.QFRC if scenario == "DRIVEN" else Inputs.NONE
+        )
+        out = Propagator(private, pool=pool, nsigma=5, nstep=50, inputs=inputs, want_qacc=True)(
+            qpos, qvel, act=np.array([0.7]), ctrl=ctrl, qfrc=qfrc
+        )
+    expected = _reference(
+        plain,
+        qpos,
+        qvel,
+        np.array([0.7]),
+        ctrl if inputs is Inputs.CTRL else np.zeros(1),
+        qfrc if inputs is Inputs.QFRC else np.zeros(1),
+        50,
+    )
+    for got, want in zip((out.qpos, out.qvel, out.act, out.qacc), expected, strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_a_diverging_point_stays_non_finite_instead_of_resetting() -> None:
     model = process_model(mujoco.MjModel.from_xml_string(PENDULUM_2), scenario="PASSIVE")
     qpos, qvel = _sigma_set(model, 3, seed=5)
@@ -247,6 +291,17 @@ def test_a_diverging_point_stays_non_finite_instead_of_resetting() -> None:
         out = Propagator(model, pool=pool, nsigma=3, nstep=2, inputs=Inputs.NONE)(qpos, qvel, act=np.zeros(0))
     assert np.all(np.isfinite(out.qpos[[0, 2]]))
     assert not np.all(np.isfinite(out.qvel[1]))
+
+
+def test_a_pool_leaves_blas_on_its_callers_thread() -> None:
+    """numpy's and scipy's OpenBLAS run single-threaded once a process has a pool: their own
+    threads, spinning after each call, fought the pool's for the cores (myoHand's cycle)."""
+    from threadpoolctl import threadpool_info
+
+    with WorkerPool(2):
+        blas = [info for info in threadpool_info() if info["user_api"] == "blas"]
+    assert blas, "no BLAS found: the limit would be vacuous"
+    assert {(info["prefix"], info["num_threads"]) for info in blas} == {(info["prefix"], 1) for info in blas}
 
 
 def test_pool_lifecycle() -> None:

@@ -386,10 +386,13 @@ def test_controlled_qdd_is_mujocos_qacc_of_the_last_step() -> None:
 # -- timewarp ---------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("scenario", ["PASSIVE", "CONTROLLED", "EXTERNAL"])
+@pytest.mark.parametrize("scenario", ["PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN, linear force"])
 def test_restore_and_replay_is_exact(scenario: str) -> None:
     model = pendulum(3)
-    config = config_for(model, scenario)
+    if scenario == "DRIVEN, linear force":
+        config = config_for(model, "DRIVEN", sigma_points="SIMPLEX_LINEAR_FORCE")
+    else:
+        config = config_for(model, scenario)
     frames = simulate(model, 30, config.steps_per_tick, qpos0=np.array([1.0, -0.5, 0.3]), control=swing)
     skipped = {4, 5, 11, 12, 13}
     with WorkerPool(2) as pool:
@@ -419,6 +422,101 @@ def test_restore_and_replay_is_exact(scenario: str) -> None:
         np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(updated.state, again.state)
     np.testing.assert_array_equal(updated.covariance, again.covariance)  # type: ignore[arg-type]
+
+
+# Two slides without gravity or contacts: a generalized force enters their dynamics linearly, so
+# keeping it out of the sigma points must change nothing (the mass matrix is constant).
+_SLIDES = """
+<mujoco>
+  <option timestep="0.002" gravity="0 0 0"/>
+  <worldbody>
+    <body>
+      <joint name="a" type="slide" axis="0 0 1" damping="DAMPING"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="0.5" contype="0" conaffinity="0"/>
+      <body pos="0.3 0 0">
+        <joint name="b" type="slide" axis="1 0 0"/>
+        <geom type="sphere" size="0.05" mass="0.2" contype="0" conaffinity="0"/>
+      </body>
+    </body>
+  </worldbody>
+  <actuator><motor joint="a"/><motor joint="b"/></actuator>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize(
+    ("damping", "dt", "tolerance", "ahead_tolerance"),
+    [
+        ("0", 0.002, 1e-12, 1e-12),
+        ("0", 0.006, 1e-12, 1e-12),
+        # Euler's implicit damping: exact over one step; over several, B holds the first step's
+        # response, which damping shrinks a little each step (the extrapolation is 5 steps).
+        ("0.5", 0.002, 1e-12, 1e-4),
+        ("0.5", 0.006, 2e-4, 1e-4),
+    ],
+)
+def test_the_linear_force_is_the_full_simplex_where_the_force_enters_linearly(
+    damping: str, dt: float, tolerance: float, ahead_tolerance: float
+) -> None:
+    """DRIVEN with SIMPLEX_LINEAR_FORCE against SIMPLEX: 2 nv + 1 points instead of 3 nv + 1, and
+    the same prediction, update (with a correlated covariance, so that the force's conditional
+    mean matters) and extrapolation."""
+    model = mujoco.MjModel.from_xml_string(_SLIDES.replace("DAMPING", damping))
+    out = {}
+    for scheme in ("SIMPLEX", "SIMPLEX_LINEAR_FORCE"):
+        config = config_for(
+            model, "DRIVEN", dt=dt, sigma_points=scheme, noise_model="FIXED", forecast="FILTER"
+        )
+        with WorkerPool(1) as pool:
+            estimator = UnscentedFilter(model, config, pool=pool)
+            estimator.initialise(Measurement(qpos=np.array([0.1, 0.05]), qvel=np.array([0.3, -0.2])))
+            estimator._kf.P = estimator._kf.P + 1e-3 * np.ones_like(estimator._kf.P)
+            predicted = estimator.predict(ctrl=None)
+            updated = estimator.update(
+                Measurement(qpos=np.array([0.1011, 0.0502]), qvel=np.array([0.29, -0.21]))
+            )
+            ahead = estimator.extrapolate(0.01)
+            out[scheme] = (estimator.nsigma, predicted, updated, ahead)
+    assert (out["SIMPLEX"][0], out["SIMPLEX_LINEAR_FORCE"][0]) == (7, 5)
+    tolerances = (tolerance, tolerance, ahead_tolerance)
+    for full, linear, tol in zip(
+        out["SIMPLEX"][1:], out["SIMPLEX_LINEAR_FORCE"][1:], tolerances, strict=True
+    ):
+        scale = float(np.abs(full.covariance).max())
+        np.testing.assert_allclose(linear.state, full.state, rtol=0, atol=tol)
+        np.testing.assert_allclose(linear.covariance, full.covariance, rtol=0, atol=tol * scale)
+
+
+def test_the_force_is_kept_out_of_the_points_where_it_applies() -> None:
+    """PRESET_JITDYN on myoHand: DRIVEN (random walk) keeps its force out of the sigma points, 47
+    points instead of 70; DRIVEN with the integrated random walk and EXTERNAL keep simplex points
+    of their whole state; a model with a ball joint too."""
+    hand = load_myohand()
+    with WorkerPool(1) as pool:
+
+        def points(model: mujoco.MjModel, scenario: str, **requested: object) -> tuple[str, int]:
+            config = config_for(model, scenario, dt=0.002, **requested)
+            return str(config.sigma_points), UnscentedFilter(model, config, pool=pool).nsigma
+
+        assert points(hand, "DRIVEN") == ("SIMPLEX_LINEAR_FORCE", 2 * 23 + 1)
+        assert points(hand, "DRIVEN", force_model="INTEGRATED_RANDOM_WALK") == ("SIMPLEX", 4 * 23 + 1)
+        assert points(hand, "EXTERNAL") == ("SIMPLEX", 2 * 23 + 1)
+        # Asked for where it cannot apply: the whole state's simplex.
+        assert points(
+            hand, "DRIVEN", sigma_points="SIMPLEX_LINEAR_FORCE", force_model="INTEGRATED_RANDOM_WALK"
+        ) == (
+            "SIMPLEX_LINEAR_FORCE",
+            4 * 23 + 1,
+        )
+        # Four ball joints (nv 12, DRIVEN state 36 >= LARGE_STATE) on a motor: quaternions.
+        links = "".join(
+            f'<body pos="0 0 -0.1"><joint name="j{i}" type="ball"/><geom size="0.05"/>' for i in range(4)
+        )
+        chain = mujoco.MjModel.from_xml_string(
+            f"<mujoco><worldbody>{links}{'</body>' * 4}</worldbody>"
+            '<actuator><motor joint="j0" gear="1 0 0 0 0 0"/></actuator></mujoco>'
+        )
+        assert points(chain, "DRIVEN")[0] == "SIMPLEX"
 
 
 def test_snapshots_belong_to_their_filter_and_hand_out_read_only_state() -> None:
@@ -539,6 +637,9 @@ def test_thesis_weights_at_n_46_on_myohand_keep_running_sound() -> None:
         ({"alpha": 1e-6, "kappa": 0.0}, "CONTROLLED"),
         ({"sigma_points": "SIMPLEX", "alpha": 1e-4}, "PASSIVE"),
         ({"sigma_points": "UNIFORM", "q_var": 1e12, "r": 1e-12}, "EXTERNAL"),
+        ({"sigma_points": "SIMPLEX_LINEAR_FORCE", "force_var": 1e12, "r": 1e-12}, "DRIVEN"),
+        ({"sigma_points": "SIMPLEX_LINEAR_FORCE", "p0": 1e-300, "q_var": 0.0}, "DRIVEN"),
+        ({"sigma_points": "SIMPLEX_LINEAR_FORCE", "q_var": 1e12, "noise_model": "FIXED"}, "DRIVEN"),
     ],
 )
 def test_hostile_settings_never_crash_or_produce_nan(settings: dict[str, object], scenario: str) -> None:

@@ -756,7 +756,10 @@ class Result(_message.Message):
     absorbed: _builtins.bool
     """NOISE_MODEL_ADAPTIVE: the mean NIS of the last 20 updates was far outside its interval (the
     model, not the noise, is wrong) and the filter widened its covariance of q and qd to follow
-    the measurements.
+    the measurements; or this is the first frame after a gap and its NIS was past a million per
+    measured dimension (the prediction over the gap was overconfident), so the filter widened its
+    predicted covariance of q and qd the same way before using the frame (`nis` is then the NIS
+    against the widened prediction).
     """
     scenario: _common_pb2.Scenario.ValueType
     """ESTIMATOR_UKF: the scenario of the filter that answered: `SessionOpened.scenario`, or
