@@ -747,7 +747,12 @@ def run(
         merged.errors.extend(r["errors"])
         merged.cpu_seconds += r["cpu_seconds"]
     expected = sessions * ticks
-    late = np.array(merged.lateness_ms) if merged.lateness_ms else np.array([math.inf])
+    late = np.array(merged.lateness_ms or [math.inf])
+
+    def percentile(values: list[float], q: float) -> float:
+        # Nothing ran: inf, not numpy's nan (and its warning) from interpolating between infinities.
+        return float(np.percentile(values, q)) if values else math.inf
+
     return RunReport(
         model=model,
         scenario=scenario,
@@ -759,8 +764,8 @@ def run(
         ticks_sent=merged.ticks_sent,
         answered=merged.answered / expected,
         measured=merged.measured / expected,
-        late_p50_ms=float(np.percentile(late, 50)),
-        late_p99_ms=float(np.percentile(late, 99)),
+        late_p50_ms=percentile(merged.lateness_ms, 50),
+        late_p99_ms=percentile(merged.lateness_ms, 99),
         late_max_ms=float(late.max()),
         cpu_per_tick_us=(cpu2 - cpu1) / max(1, sum(t1 <= a < t2 for a in merged.arrivals)) * 1e6,
         shed=merged.shed / expected,
@@ -768,9 +773,9 @@ def run(
         rejected=merged.rejected,
         reject_reasons=merged.reject_reasons,
         reject_example=merged.reject_example,
-        server_late_p99_ms=float(np.percentile(merged.server_late_ms or [math.inf], 99)),
-        frame_delay_p50_ms=float(np.percentile(merged.frame_delay_ms or [math.inf], 50)),
-        frame_delay_p99_ms=float(np.percentile(merged.frame_delay_ms or [math.inf], 99)),
+        server_late_p99_ms=percentile(merged.server_late_ms, 99),
+        frame_delay_p50_ms=percentile(merged.frame_delay_ms, 50),
+        frame_delay_p99_ms=percentile(merged.frame_delay_ms, 99),
         ukf_cycle_us=ukf_us,
         client_cpu_per_tick_us=merged.cpu_seconds / max(1, merged.answered) * 1e6,
     )
