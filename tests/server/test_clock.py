@@ -25,7 +25,8 @@ def _exchange(
 def test_offset_and_round_trip_of_a_symmetric_exchange() -> None:
     sync = ClockSync()
     t4 = _exchange(sync, 1, t1=0.0, offset=0.25, up=0.01, down=0.01)
-    assert sync.offset == 0.0 and sync.round_trip == 0.0  # nothing complete yet
+    # Nothing complete yet: the one-way estimate t2 - t1, late by the uplink (0.01 s).
+    assert sync.offset == pytest.approx(0.26, abs=1e-12) and sync.round_trip == 0.0
     sync.on_probe(
         probe_id=2,
         client_send_time=t4 + 0.1,
@@ -109,3 +110,24 @@ def test_sync_over_the_stream_and_the_half_round_trip_horizon(client: Any) -> No
         r.horizon == pytest.approx(samples[-1].server_round_trip / 2, rel=0.5) for r in measured[1:]
     )
     assert all(r.t == pytest.approx(r.seq * 0.05 + r.horizon) for r in results)
+
+
+def test_before_an_exchange_completes_the_offset_is_the_smallest_one_way_estimate() -> None:
+    sync = ClockSync()
+    assert sync.offset == 0.0  # no probe yet: the client's clock started with `open`
+    t4 = _exchange(sync, 1, t1=0.0, offset=-0.003, up=0.004, down=0.001)
+    assert sync.offset == pytest.approx(0.001)  # -0.003 + 0.004 of uplink
+    _exchange(sync, 2, t1=0.5, offset=-0.003, up=0.0005, down=0.001)
+    assert sync.offset == pytest.approx(-0.0025)  # the faster uplink bounds it closer
+    _exchange(sync, 3, t1=0.6, offset=-0.003, up=0.002, down=0.001)
+    assert sync.offset == pytest.approx(-0.0025)
+    sync.on_probe(
+        probe_id=4,
+        client_send_time=1.0,
+        server_receive_time=1.0,
+        server_send_time=1.0,
+        previous_id=1,
+        previous_receive_time=t4,
+    )
+    # The first complete exchange replaces it: half its round-trip asymmetry, (0.004 - 0.001) / 2.
+    assert sync.offset == pytest.approx(-0.003 + 0.0015)
