@@ -25,7 +25,7 @@ import numpy as np
 from jitdyn.errors import InvalidArgument
 from jitdyn.server.estimation.pool import MIN_CHUNK_SECONDS, Backend, WorkerPool
 
-__all__ = ["Inputs", "Propagated", "Propagator", "process_model"]
+__all__ = ["Inputs", "Propagated", "Propagator", "process_model", "step_seconds"]
 
 _FULL: Final = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
 _CTRL: Final = int(mujoco.mjtState.mjSTATE_CTRL)
@@ -147,19 +147,22 @@ def _full_columns(model: mujoco.MjModel) -> slice | np.ndarray:
     return columns
 
 
-def _step_seconds(model: mujoco.MjModel, data: mujoco.MjData) -> float:
-    """A rough price of one mj_step of `model` (s): the best of a few runs of a few steps, from its
-    reference pose, in this thread's CPU time. Not the wall clock: estimators are built while other
-    sessions tick, and every mj_step gives up the GIL, so a wall-clock price counted the waits to
-    get it back. An inflated price split pendulum_3's 13 sigma points across two threads, a
-    hand-off per predict (profiled: a quarter of the event loop's busy time at 8 sessions)."""
+def step_seconds(model: mujoco.MjModel, data: mujoco.MjData, *, steps: int = _PRICED_STEPS) -> float:
+    """A price of one mj_step of `model` (s): the best of three runs of `steps` steps from its
+    reference pose, in this thread's CPU time. Not the wall clock: estimators are built and
+    sessions priced while other sessions tick, and every mj_step gives up the GIL, so a wall-clock
+    price counted the waits to get it back (31 ms "per tick" for a 0.4 ms pendulum_3 cycle under
+    load; an inflated price here split pendulum_3's 13 sigma points across two threads, a hand-off
+    per predict). The best of three: a first run on a cold cache priced the biped's tick 1.7x its
+    usual. `data` is left at the reference pose."""
     mujoco.mj_resetData(model, data)
+    mujoco.mj_forward(model, data)
     best = float("inf")
     for _ in range(3):
         start = time.thread_time()
-        for _ in range(_PRICED_STEPS):
+        for _ in range(steps):
             mujoco.mj_step(model, data)
-        best = min(best, (time.thread_time() - start) / _PRICED_STEPS)
+        best = min(best, (time.thread_time() - start) / steps)
     mujoco.mj_resetData(model, data)
     return best
 
@@ -247,7 +250,7 @@ class Propagator:
         self._ctrl = np.zeros(model.nu)
         self._qfrc = np.zeros(model.nv)
         self._buffers = {nstep: self._new_buffers(nstep)}
-        self._step_seconds = _step_seconds(model, self._data[0])
+        self._step_seconds = step_seconds(model, self._data[0])
         self._min_chunk_seconds = min_chunk_seconds
         # ROLLOUT and qacc wanted: per worker, a batch of the model on that worker's thread
         # (nthread=1 starts no thread of its own) takes the last step of its rows and reports the

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from dataclasses import dataclass
 
 import mujoco
 import numpy as np
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
+from jitdyn.server.estimation.propagate import step_seconds
 
 __all__ = [
     "DEFAULT_STREAM_LIMITS",
@@ -123,19 +123,7 @@ def snapshot_bytes(snapshot: object) -> int:
 def tick_cost(model: mujoco.MjModel, *, nsigma: int, steps_per_tick: int, state_dimension: int) -> float:
     """Estimated seconds of one tick: every sigma point stepped `steps_per_tick` times (one step
     of this model timed here) plus the filter's linear algebra (cubic in the state dimension)."""
-    data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)
-    # This thread's CPU time, not the wall clock: an open runs in a thread beside the event loop,
-    # and every mj_step gives up the GIL, so wall time counts the waits to get it back (up to the
-    # 5 ms switch interval each: 31 ms "per tick" for a 0.4 ms pendulum_3 cycle under load). The
-    # best of three runs: the price is measured once per process and kept, and a first run on a
-    # cold cache priced the biped's tick 1.7x its usual (3.7 against 2.2 ms, over its 2.5 ms share).
-    step = float("inf")
-    for _ in range(3):
-        started = time.thread_time()
-        for _ in range(_TIMED_STEPS):
-            mujoco.mj_step(model, data)
-        step = min(step, (time.thread_time() - started) / _TIMED_STEPS)
+    step = step_seconds(model, mujoco.MjData(model), steps=_TIMED_STEPS)
     n = state_dimension
     flops = n**3 + 4.0 * nsigma * n * n
     return nsigma * steps_per_tick * step + flops / _FLOPS
