@@ -10,6 +10,10 @@ one re-arm, and nothing spins.
     alarm = Alarm.of(asyncio.get_running_loop())
     await alarm.sleep_until(time.monotonic() + 0.002)
 
+    wakeup = alarm.wakeup()               # one sleeper whose wake-up can be moved while it sleeps
+    await wakeup.until(deadline)          # in one task
+    wakeup.move(later)                    # in another: the sleeper wakes at `later` instead
+
 Where there is no timerfd (not Linux, or a libc without it), `sleep_until` is asyncio.sleep.
 """
 
@@ -25,7 +29,7 @@ import time
 import weakref
 from typing import ClassVar, Final
 
-__all__ = ["Alarm"]
+__all__ = ["Alarm", "Wakeup"]
 
 _CLOCK_MONOTONIC: Final = 1  # the clock of time.monotonic() on Linux
 _TFD_NONBLOCK: Final = os.O_NONBLOCK
@@ -64,6 +68,17 @@ def _close_quietly(fd: int) -> None:
         pass  # closed already
 
 
+class _Entry:
+    """A pending wake-up in the heap; a moved one is left there dead, and dropped at the top."""
+
+    __slots__ = ("future", "live", "when")
+
+    def __init__(self, when: float, future: asyncio.Future[None]) -> None:
+        self.when = when
+        self.future = future
+        self.live = True
+
+
 class Alarm:
     """One timerfd per event loop, armed for the earliest pending wake-up."""
 
@@ -74,7 +89,7 @@ class Alarm:
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         # Weakly: the registry's values must not keep their keys (the loops) alive.
         self._loop_ref = weakref.ref(loop)
-        self._heap: list[tuple[float, int, asyncio.Future[None]]] = []
+        self._heap: list[tuple[float, int, _Entry]] = []
         self._order = itertools.count()
         self._armed = float("inf")  # the expiry the timer is set to
         self._spec = _Itimerspec()
@@ -111,10 +126,30 @@ class Alarm:
             await asyncio.sleep(when - time.monotonic())
             return
         future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        heapq.heappush(self._heap, (when, next(self._order), future))
+        self._push(when, future)
+        await future  # a cancelled sleeper's entry is dropped when it reaches the top
+
+    def wakeup(self) -> Wakeup:
+        """A sleeper of this loop whose wake-up can be moved while it sleeps."""
+        return Wakeup(self)
+
+    def _push(self, when: float, future: asyncio.Future[None]) -> _Entry:
+        entry = _Entry(when, future)
+        heapq.heappush(self._heap, (when, next(self._order), entry))
         if when < self._armed:
             self._arm(when)
-        await future  # a cancelled sleeper's entry is dropped when it reaches the top
+        return entry
+
+    def _drop(self, entry: _Entry) -> None:
+        """Forget a moved wake-up; when it was the one the timer is armed for, re-arm for the next,
+        so that the loop is not woken for nothing."""
+        entry.live = False
+        heap = self._heap
+        if heap and heap[0][2] is entry:
+            while heap and not heap[0][2].live:
+                heapq.heappop(heap)
+            if heap:
+                self._arm(heap[0][0])
 
     def close(self) -> None:
         """Stop watching the timer and cancel every sleeper (the loop's end does it too)."""
@@ -122,9 +157,9 @@ class Alarm:
         if self._fd >= 0 and loop is not None and not loop.is_closed():
             loop.remove_reader(self._fd)
         self._release()
-        for _, _, future in self._heap:
-            if not future.done():
-                future.cancel()
+        for _, _, entry in self._heap:
+            if entry.live and not entry.future.done():
+                entry.future.cancel()
         self._heap.clear()
         if loop is not None:
             Alarm._by_loop.pop(loop, None)
@@ -151,9 +186,60 @@ class Alarm:
         self._armed = float("inf")
         now = time.monotonic()
         heap = self._heap
-        while heap and (heap[0][0] <= now or heap[0][2].done()):
-            _, _, future = heapq.heappop(heap)
-            if not future.done():
-                future.set_result(None)
+        while heap and (heap[0][0] <= now or not heap[0][2].live or heap[0][2].future.done()):
+            _, _, entry = heapq.heappop(heap)
+            if entry.live and not entry.future.done():
+                entry.future.set_result(None)
         if heap:
             self._arm(heap[0][0])
+
+
+class Wakeup:
+    """One sleeper's wake-up, which another task can move without waking it.
+
+    A REALTIME session sleeps until its next tick's deadline; when the tick's frame arrives and is
+    answered first, the wake-up moves to the next deadline. Waking the sleeper only for it to find
+    its tick answered and sleep again cost a loop wake-up per tick (52 us of CPU here).
+    """
+
+    __slots__ = ("_alarm", "_entry")
+
+    def __init__(self, alarm: Alarm) -> None:
+        self._alarm = alarm
+        self._entry: _Entry | None = None
+
+    @property
+    def when(self) -> float | None:
+        """When the sleeper wakes (time.monotonic()), or None when nobody sleeps."""
+        entry = self._entry
+        return None if entry is None else entry.when
+
+    async def until(self, when: float) -> None:
+        """Sleep until `when`, or until the time a `move` sets meanwhile (one sleeper at a time)."""
+        if self._entry is not None:
+            raise RuntimeError("this wake-up has a sleeper already")
+        alarm = self._alarm
+        if when <= time.monotonic():
+            return
+        if not alarm.precise:
+            await asyncio.sleep(when - time.monotonic())  # `move` cannot reach asyncio's timers
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._entry = alarm._push(when, future)
+        try:
+            await future
+        finally:
+            entry, self._entry = self._entry, None
+            if entry is not None and entry.live and not future.done():
+                alarm._drop(entry)  # cancelled: its place in the heap goes too
+
+    def move(self, when: float) -> None:
+        """Wake the sleeper at `when` instead (at once when it has passed); nothing when nobody
+        sleeps or the time is the same."""
+        entry = self._entry
+        if entry is None or entry.when == when or entry.future.done():
+            return
+        alarm = self._alarm
+        replacement = alarm._push(when, entry.future)
+        alarm._drop(entry)
+        self._entry = replacement

@@ -77,3 +77,66 @@ def test_close_cancels_sleepers_and_releases_the_timer() -> None:
 
     gc.collect()  # the second alarm's timer goes with its loop
     assert len(os.listdir("/proc/self/fd")) <= before
+
+
+def test_a_moved_wakeup_wakes_at_its_new_time_and_not_before() -> None:
+    async def main() -> tuple[float, float, float]:
+        alarm = Alarm.of(asyncio.get_running_loop())
+        wakeup = alarm.wakeup()
+        start = time.monotonic()
+        sleeping = asyncio.create_task(wakeup.until(start + 0.01))
+        await asyncio.sleep(0)
+        assert wakeup.when == start + 0.01
+        wakeup.move(start + 0.06)  # later: the first time passes without waking it
+        await asyncio.sleep(0.03)
+        assert not sleeping.done()
+        later = time.monotonic() + 0.01
+        wakeup.move(later)  # earlier than 0.06 again
+        await sleeping
+        woke = time.monotonic()
+        assert wakeup.when is None
+        return start, later, woke
+
+    start, later, woke = asyncio.run(main())
+    assert woke >= later
+    assert woke - start < 0.06  # the move earlier took effect
+
+
+def test_moving_a_wakeup_into_the_past_wakes_it_at_once_and_leaves_others_on_time() -> None:
+    async def main() -> tuple[float, float]:
+        alarm = Alarm.of(asyncio.get_running_loop())
+        wakeup = alarm.wakeup()
+        other_due = time.monotonic() + 0.02
+        other = asyncio.create_task(alarm.sleep_until(other_due))
+        sleeping = asyncio.create_task(wakeup.until(time.monotonic() + 60))
+        await asyncio.sleep(0)
+        moved = time.monotonic()
+        wakeup.move(moved - 1.0)
+        await asyncio.wait_for(sleeping, timeout=1.0)
+        woke = time.monotonic() - moved
+        await other
+        return woke, time.monotonic() - other_due
+
+    woke, other_late = asyncio.run(main())
+    assert woke < 0.5
+    assert 0.0 <= other_late < 0.5
+
+
+def test_a_cancelled_wakeup_can_sleep_again_and_has_one_sleeper_at_a_time() -> None:
+    async def main() -> None:
+        alarm = Alarm.of(asyncio.get_running_loop())
+        wakeup = alarm.wakeup()
+        sleeping = asyncio.create_task(wakeup.until(time.monotonic() + 60))
+        await asyncio.sleep(0)
+        with pytest.raises(RuntimeError, match="sleeper already"):
+            await wakeup.until(time.monotonic() + 1)
+        sleeping.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await sleeping
+        assert wakeup.when is None
+        wakeup.move(time.monotonic())  # nobody sleeps: nothing happens
+        due = time.monotonic() + 0.01
+        await wakeup.until(due)
+        assert time.monotonic() >= due
+
+    asyncio.run(main())
