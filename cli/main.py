@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import logging
 import os
 import sys
@@ -26,7 +27,7 @@ from jitdyn.cli.extras import MissingExtra, require_extra
 from jitdyn.cli.limits import add_limit_arguments, limit_settings
 from jitdyn.errors import JitdynError, Unavailable
 from jitdyn.registry.builtins import BUILTIN_NAMES
-from jitdyn.settings import SettingError, Settings, add_arguments, parse_duration, resolve
+from jitdyn.settings import SettingError, Settings, add_arguments, default_workers, parse_duration, resolve
 
 __all__ = ["DEFAULT_SERVER", "EXIT_ERROR", "EXIT_USAGE", "build_parser", "main"]
 
@@ -283,6 +284,8 @@ def _server_config(settings: Settings, **overrides: Any) -> Any:
 def _serve(args: argparse.Namespace, settings: Settings) -> int:
     from jitdyn.server.transport.app import serve
 
+    if settings.workers is None:  # the CPUs shared among the processes (jitdyn.settings.default_workers)
+        settings = dataclasses.replace(settings, workers=default_workers(settings.processes))
     config = _server_config(settings, **limit_settings(args))
     if settings.processes > 1:
         from jitdyn.server.transport.processes import run_processes

@@ -113,7 +113,7 @@ class ServerConfig:
             "address": settings.address,
             "data_root": settings.data,
             "index_url": settings.index_url,
-            "workers": settings.workers,
+            "workers": settings.workers if settings.workers is not None else default_workers(),
             "secret_file": settings.secret_file,
             "tls_cert": settings.tls_cert,
             "tls_key": settings.tls_key,

@@ -135,9 +135,17 @@ def _boolean(text: str) -> bool:
     raise ValueError(f"expected 1/0, true/false, yes/no or on/off, got {text!r}")
 
 
-def default_workers() -> int:
-    """Threads propagating sigma points by default: one per CPU."""
-    return os.cpu_count() or 1
+def default_workers(processes: int = 1) -> int:
+    """Threads propagating sigma points by default: the CPUs, shared among the server's processes.
+
+    One per CPU for one process; one each when `jitdyn serve` already runs a process per CPU, where
+    a second worker per process only oversubscribes the cores. Measured on 2 CPUs, default two
+    processes, alternating runs (benchmarks/RESULTS.md, Round 4): two 200 Hz biped sessions took
+    2569 us of server CPU a tick with one worker each against 2829 us with two (means of 6 runs; a
+    split propagation hands half its points to a pool thread every tick), and a lone session lost
+    nothing by it (its "free" second core runs the load generator).
+    """
+    return max(1, (os.cpu_count() or 1) // max(1, processes))
 
 
 # -- the declaration of a setting ---------------------------------------------------------------------
@@ -225,10 +233,10 @@ class Settings:
         default_text="index.sqlite in the data folder",
         help="SQL index, e.g. postgresql+psycopg://user@host/db (needs jitdyn[postgres])",
     )
-    workers: int = setting(
+    workers: int | None = setting(
+        None,
         parse=_positive_int,
-        default_factory=default_workers,
-        default_text="the CPU count",
+        default_text="the CPU count, shared among --processes (one each at one process per CPU)",
         commands=("serve", "demo"),
         metavar="N",
         help="threads propagating sigma points, shared by all sessions",

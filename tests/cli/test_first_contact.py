@@ -201,17 +201,20 @@ def test_workers_default_is_one_definition() -> None:
         "import os\n"
         "from jitdyn.server.transport.app import ServerConfig\n"
         "from jitdyn.settings import resolve\n"
-        "print(ServerConfig().workers, resolve({}, {}).workers, os.cpu_count(),\n"
-        "      ServerConfig.from_settings(resolve({}, {'JITDYN_WORKERS': '3'})).workers)\n"
+        "from jitdyn.settings import default_workers\n"
+        "print(ServerConfig().workers, ServerConfig.from_settings(resolve({}, {})).workers, os.cpu_count(),\n"
+        "      ServerConfig.from_settings(resolve({}, {'JITDYN_WORKERS': '3'})).workers,\n"
+        "      default_workers(os.cpu_count()), default_workers(2 * os.cpu_count()))\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     ).stdout.split()
-    assert out[0] == out[1] == out[2] and out[3] == "3", out
+    # One server process: a worker per CPU; a process per CPU (serve's default): one each, never 0.
+    assert out[0] == out[1] == out[2] and out[3] == "3" and out[4] == out[5] == "1", out
     help_text = " ".join(ok(jitdyn("serve", "--help")).split())
     assert (
-        "threads propagating sigma points, shared by all sessions (env JITDYN_WORKERS; default the CPU count)"
-        in help_text
+        "threads propagating sigma points, shared by all sessions (env JITDYN_WORKERS; default the CPU "
+        "count, shared among --processes (one each at one process per CPU))" in help_text
     )
 
 
