@@ -235,6 +235,11 @@ class ForecastCombiner:
         i = self._n - 1
         if i < 0 or self._marks[i, _ORIGIN] != self._last_origin() or self._marks[i, _AGE] == 0:
             return None
+        if self._tick - int(self._marks[i, _ORIGIN]) > self._horizon:
+            # Past the scored horizon nothing says how good a predictor is, and the last frame's
+            # probe has stopped there (it waits to be scored): its answer would stand still for the
+            # rest of the gap. The filter answers, its prediction moving on.
+            return None
         h = min(int(self._marks[i, _AGE]), self._horizon)
         if self._count[h] < MIN_SAMPLES:
             return None

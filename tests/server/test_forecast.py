@@ -163,8 +163,8 @@ class _ReferenceCombiner:
     def forecast(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         origin = -1 if self.anchor is None else self.anchor[2]
         latest = next((p for p in reversed(self.probes) if p.age > 0 and p.origin == origin), None)
-        if latest is None:
-            return None
+        if latest is None or self.tick - latest.origin > self.horizon:
+            return None  # past the scored horizon the filter answers
         h = min(latest.age, self.horizon)
         if self.count[h] < MIN_SAMPLES:
             return None
@@ -490,3 +490,29 @@ def test_the_combination_is_jitdyns_driven_default_below_a_large_state(links: in
         model=model, scenario="DRIVEN", dt=0.01, requested={}, model_defaults={}, measured={"qpos", "qvel"}
     )
     assert config.forecast == forecast
+
+
+def test_past_the_scored_horizon_the_filter_answers_and_the_answer_keeps_moving(client: Any) -> None:
+    """A gap longer than the combination's horizon (0.2 s: 4 ticks at 50 ms): the last frame's probe
+    stops there (it waits to be scored), so the combination's answer would stand still for the rest
+    of the gap; past the horizon nothing is scored, and the filter answers, moving on."""
+    model = _pendulum(2)
+    frames = _driven_frames(model, 60)
+    options = SessionOptions(model_name="pendulum_2", dt=0.05)
+    with client.open_session(options) as session:
+        assert session.opened.estimator["forecast"] == "COMBINED"
+        gap: list[TickResult] = []
+        for k, (q, v) in enumerate(frames):
+            if k < 40 and not (k >= 20 and k % 10 in (0, 1)):  # scored gaps first, as a client's
+                result = session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
+            else:
+                result = session.skip(k)
+                if k >= 40:
+                    assert isinstance(result, TickResult)
+                    gap.append(result)
+            assert isinstance(result, TickResult)
+    horizon = 4
+    assert all(r.forecast_weights is not None for r in gap[:horizon])
+    assert all(r.forecast_weights is None for r in gap[horizon:])
+    moves = [float(np.max(np.abs(b.qpos - a.qpos))) for a, b in zip(gap[horizon:], gap[horizon + 1 :])]
+    assert min(moves) > 1e-6, moves
