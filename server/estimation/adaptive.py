@@ -144,7 +144,9 @@ class NoiseAdapter:
 
     r0 (m,): R's starting diagonal; q0 (n, n): the configured Q for one tick, whose structure is
     kept and whose diagonal sets the scale of s; adapt_q (n,) bool: the components whose Q adapts
-    (None: all).
+    (None: all); inflate: whether lambda and mu follow the NIS (a DRIVEN filter's: its NIS out of its
+    interval says the force moves faster than its random walk; a PASSIVE or EXTERNAL filter's says
+    its model is wrong, which the NIS window must see, not a wider Q hide).
     """
 
     def __init__(
@@ -153,6 +155,7 @@ class NoiseAdapter:
         r0: np.ndarray,
         q0: np.ndarray,
         adapt_q: np.ndarray | None = None,
+        inflate: bool = True,
         bounds: AdaptationBounds = BOUNDS,
     ) -> None:
         r0 = np.asarray(r0, dtype=np.float64)
@@ -162,6 +165,7 @@ class NoiseAdapter:
         if q0.shape != (q0.shape[0], q0.shape[0]):
             raise ValueError(f"q0 must be square, got shape {q0.shape}")
         self._bounds = bounds
+        self._inflate = bool(inflate)
         self._r0 = np.clip(r0, bounds.r_min, bounds.r_max)
         self._q0 = q0
         diag = np.diag(q0).copy()
@@ -281,7 +285,7 @@ class NoiseAdapter:
         absorb = False
         if nis is not None and np.isfinite(nis):
             m = innovation.size
-            if nis >= 0.0:
+            if nis >= 0.0 and self._inflate:
                 share = min(max(1.0 - noise_share, 0.0), 1.0)
                 step = b.inflation_gain * share * (nis / m - 1.0)
                 step = min(max(step, -b.inflation_step), b.inflation_step)
@@ -310,7 +314,7 @@ class NoiseAdapter:
     def observe_gap(self, *, nis: float, m: int) -> None:
         """The NIS (of dimension m) of the first frame after a gap, against the prediction over it."""
         b = self._bounds
-        if not (math.isfinite(nis) and nis >= 0.0):
+        if not (self._inflate and math.isfinite(nis) and nis >= 0.0):
             return
         step = min(max(b.gap_gain * (nis / m - 1.0), -b.gap_step), b.gap_step)
         low, high = math.log(b.inflation_min), math.log(b.inflation_max)

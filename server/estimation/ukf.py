@@ -366,7 +366,12 @@ class UnscentedFilter:
         self._kf.R = config.r * np.eye(z_tangent)
         self._P0 = self._initial_covariance()
         self._adapter = (
-            NoiseAdapter(r0=np.full(z_tangent, config.r), q0=self._Q, adapt_q=self._adapt_q_mask())
+            NoiseAdapter(
+                r0=np.full(z_tangent, config.r),
+                q0=self._Q,
+                adapt_q=self._adapt_q_mask(),
+                inflate=self._driven,
+            )
             if config.noise_model == NoiseModel.ADAPTIVE
             else None
         )

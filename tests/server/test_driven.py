@@ -114,7 +114,8 @@ def test_adaptive_noise_stays_inside_its_bounds() -> None:
         adapter.observe(z=np.zeros(2), consecutive=True, innovation=np.zeros(2), gain=gain, nis=0.0)
     np.testing.assert_array_equal(adapter.r_diagonal, [1e-8, 1e-8])
     np.testing.assert_array_equal(adapter.scale, [0.5, 0.5])
-    np.testing.assert_allclose(adapter.Q, 0.5 * q0)
+    assert adapter.inflation == pytest.approx(bounds.inflation_min)  # NIS 0: lambda to its floor
+    np.testing.assert_allclose(adapter.Q, 0.5 * bounds.inflation_min * q0)
 
 
 @pytest.mark.parametrize("frames", [4 + 8, 4 + 9, 4 + 64, 4 + 100])
@@ -169,10 +170,12 @@ def test_a_frame_far_from_the_prediction_after_a_gap_widens_the_prior_instead_of
             estimates[k] = estimate
     assert not any(e.reinitialised for e in estimates.values())
     back = estimates[350]
-    assert back.absorbed and back.nis is not None
+    assert back.nis is not None
     assert back.nis < NIS_LIMIT_PER_DIMENSION * 2 * hand.nv
     # Followed within a few frames, as far as the frames that follow a gap allow (the force is
-    # still being learnt): measured NIS 194 at that frame, 9e-4 rad 30 ticks on.
+    # still being learnt): measured NIS 194 at that frame, 9e-4 rad 30 ticks on. Since Q follows
+    # the NIS (lambda, mu), that frame's prediction is no longer past the guard's limit (NIS 7.4e5
+    # against 4.6e7): no widening was needed.
     assert float(np.abs(estimates[380].qpos - truths[380].qpos).max()) < 0.01
 
 
