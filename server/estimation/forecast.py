@@ -177,6 +177,7 @@ class ForecastCombiner:
         # for a forecast on every predict (a frame may not come), and solving every subset of the
         # predictors took 1.2 ms of myoElbow's 2 ms tick when done each time.
         self._weights: dict[int, np.ndarray] = {}
+        self._variances: dict[int, tuple[float, float]] = {}  # w' C_h w and w' D_h w, as _weights
         self._count = np.zeros(self._horizon + 1)
         self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # last frame's (q, v, tick)
 
@@ -282,15 +283,12 @@ class ForecastCombiner:
         noise_q: np.ndarray | None,
         noise_qd: np.ndarray | None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(nv,) each: the combination's error variances of q and qd at horizon h (O(nv + P^2))."""
-        var_q = np.full(self._nv, float(w @ self._cov[h] @ w))
-        var_qd = np.full(self._nv, float(w @ self._cov_v[h] @ w))
-        keep = 1.0 - MAX_NOISE_SHARE
-        if noise_q is not None:
-            var_q = np.maximum(var_q - noise_q, keep * var_q)
-        if noise_qd is not None:
-            var_qd = np.maximum(var_qd - noise_qd, keep * var_qd)
-        return np.maximum(var_q, VARIANCE_FLOOR), np.maximum(var_qd, VARIANCE_FLOOR)
+        """(nv,) each: the combination's error variances of q and qd at horizon h (O(nv); the
+        scored variances are kept with the weights until a score changes them)."""
+        scored = self._variances.get(h)
+        if scored is None:
+            scored = self._variances[h] = (float(w @ self._cov[h] @ w), float(w @ self._cov_v[h] @ w))
+        return _net_of_noise(scored[0], noise_q, self._nv), _net_of_noise(scored[1], noise_qd, self._nv)
 
     def snapshot(self) -> _Snapshot:
         n = self._n
@@ -316,6 +314,7 @@ class ForecastCombiner:
         self._count = snap.count.copy()
         self._anchor = snap.anchor
         self._weights = {}
+        self._variances = {}
 
     # -- internals --------------------------------------------------------------------------------
 
@@ -420,6 +419,7 @@ class ForecastCombiner:
                 self._count[h] += 1
         for h in ages.tolist():
             self._weights.pop(h, None)
+            self._variances.pop(h, None)
 
 
 def _fading(count: float) -> float:
@@ -435,6 +435,14 @@ _FADING: Final = np.array(
     list(itertools.takewhile(lambda d: d != 1.0 - FORGETTING, map(_fading, itertools.count(0.0))))
     + [1.0 - FORGETTING]
 )
+
+
+def _net_of_noise(scored: float, noise: np.ndarray | None, nv: int) -> np.ndarray:
+    """(nv,) a scored error variance less the scored frames' noise (nv,), to at most
+    MAX_NOISE_SHARE of it, and at least VARIANCE_FLOOR."""
+    if noise is None:
+        return np.full(nv, max(scored, VARIANCE_FLOOR))
+    return np.maximum(np.maximum(scored - noise, (1.0 - MAX_NOISE_SHARE) * scored), VARIANCE_FLOOR)
 
 
 def _min_variance_weights(C: np.ndarray) -> np.ndarray:
