@@ -18,7 +18,30 @@ of NIS that tells when the model is wrong (an adaptive UKF)::
   component, Q = S^1/2 Q0 S^1/2, where s_i matches the running mean of (K y)_i^2, the correction the
   filter had to make (Mohamed and Schwarz 1999's Q = K C_y K^T, diagonal), with Sage and Husa's
   fading memory, weight d_k = (1 - b) / (1 - b^(k+1)).
-- Both are clipped to `AdaptationBounds`: a filter that learns cannot learn itself into a singular
+- The whole Q (the unknown force's included) is also scaled by one factor, lambda, that matches the
+  mean NIS to m, its mean for a consistent filter (covariance matching on the innovations, Mohamed
+  and Schwarz 1999, with a scalar in place of their matrix; a stochastic-approximation step in the
+  log): after each update, log lambda += gain phi (NIS / m - 1), each step clipped to
+  +-`inflation_step`, phi = 1 - tr(S^-1 R) / m the share of the innovation covariance S that the
+  prediction makes (the sensitivity of E[NIS] to log lambda). A consistent filter's NIS leaves
+  lambda where it is on average; one whose prior is too narrow (a force that changes faster than
+  its random walk says) widens it, one whose prior is too wide (a perfect sensor on a smooth
+  motion) narrows it. Without phi, where R makes most of S (wearable frames at 500 Hz) the NIS
+  hardly answers lambda, which then wandered up and let the force follow the sensors' noise:
+  myoElbow's q error at 100 ms went from 4.9e-3 to 7.0e-3 rad (seeds 1 and 2). With phi alone a
+  NIS a few percent above m (R's estimate a little low) still pushed lambda up, by small steps
+  that nothing took back (seed 2: 4.7e-3 to 7.4e-3): log lambda leaks back towards 0 by
+  `inflation_leak` per update, so that it stays up only while the NIS keeps asking (3 %: myoElbow
+  as before, 4.7e-3; a NIS / m that stays at 20 still takes lambda to its bound). Matching the mean
+  of log NIS to chi-square's instead was tried: myoElbow's NIS, less spread than chi-square(2),
+  pushed lambda up and the q error at 100 ms from 5.8e-3 to 7.3e-3 rad (wearable frames); so was a
+  dead band (no step while the window's mean NIS is inside its 95 % interval): seed 2, 6.7e-3.
+- Over a gap the same Q is further scaled by mu, matched the same way to the NIS of the first frame
+  after each gap, the only frame that tests a prediction of many ticks: a random walk of the force
+  says its variance grows as the gap's length, where a muscle's or a controller's force drifts
+  along a trend (myoHand's filter, answering its gaps, was optimistic by 300 at their ends).
+  Once a gap: gap_gain and gap_step are larger than lambda's.
+- All are clipped to `AdaptationBounds`: a filter that learns cannot learn itself into a singular
   or absurd covariance.
 - NIS: the mean of the last `window` NIS values against its chi-square interval. Far above it
   for a whole window means the model is wrong, not the
@@ -30,6 +53,7 @@ timewarp.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Final
 
@@ -57,6 +81,13 @@ class AdaptationBounds:
     1.5 m for m = 6 and a window of 20; the thesis' EXTERNAL filters sat at 1e3 to 1e6 m).
     report_change: a relative change of R or Q that `Verdict.adapted` reports. window_r: fourth
     differences R is estimated from; min_differences: how many it needs before it replaces r0.
+    inflation_min, inflation_max: bounds of lambda, the factor on the whole Q; inflation_gain: the
+    step of log lambda per unit of NIS / m - 1; inflation_step: the largest step of log lambda of
+    one update (one wild frame moves Q by at most exp(inflation_step)); inflation_leak: the share
+    of log lambda forgotten per update (back towards 1, see the module docstring); gap_gain,
+    gap_step: the same for mu, the further factor over a gap (bounded by inflation_min and
+    inflation_max too). absorb_factor: what an absorption multiplies the adapted Q by
+    (`NoiseAdapter.absorbed`), within q_scale_max.
     """
 
     r_min: float = 1e-10
@@ -69,6 +100,14 @@ class AdaptationBounds:
     report_change: float = 0.1
     window_r: int = 64
     min_differences: int = 8
+    inflation_min: float = 1e-2
+    inflation_max: float = 1e3
+    inflation_gain: float = 0.2
+    inflation_leak: float = 0.03
+    inflation_step: float = 0.5
+    gap_gain: float = 0.5
+    gap_step: float = 1.5
+    absorb_factor: float = 100.0
 
 
 BOUNDS: Final = AdaptationBounds()
@@ -95,6 +134,9 @@ class _Snapshot:
     d4_count: int
     reported_r: np.ndarray
     reported_s: np.ndarray
+    log_inflation: float
+    log_gap_inflation: float
+    reported_inflation: float
 
 
 class NoiseAdapter:
@@ -102,7 +144,9 @@ class NoiseAdapter:
 
     r0 (m,): R's starting diagonal; q0 (n, n): the configured Q for one tick, whose structure is
     kept and whose diagonal sets the scale of s; adapt_q (n,) bool: the components whose Q adapts
-    (None: all).
+    (None: all); inflate: whether lambda and mu follow the NIS (a DRIVEN filter's: its NIS out of its
+    interval says the force moves faster than its random walk; a PASSIVE or EXTERNAL filter's says
+    its model is wrong, which the NIS window must see, not a wider Q hide).
     """
 
     def __init__(
@@ -111,6 +155,7 @@ class NoiseAdapter:
         r0: np.ndarray,
         q0: np.ndarray,
         adapt_q: np.ndarray | None = None,
+        inflate: bool = True,
         bounds: AdaptationBounds = BOUNDS,
     ) -> None:
         r0 = np.asarray(r0, dtype=np.float64)
@@ -120,6 +165,7 @@ class NoiseAdapter:
         if q0.shape != (q0.shape[0], q0.shape[0]):
             raise ValueError(f"q0 must be square, got shape {q0.shape}")
         self._bounds = bounds
+        self._inflate = bool(inflate)
         self._r0 = np.clip(r0, bounds.r_min, bounds.r_max)
         self._q0 = q0
         diag = np.diag(q0).copy()
@@ -143,6 +189,9 @@ class NoiseAdapter:
         self._d4_count = 0
         self._reported_r = self._r.copy()
         self._reported_s = np.ones_like(self._q_est)
+        self._log_inflation = 0.0
+        self._log_gap_inflation = 0.0
+        self._reported_inflation = 1.0
 
     @property
     def window_full(self) -> bool:
@@ -166,14 +215,28 @@ class NoiseAdapter:
         return np.asarray(np.clip(s, b.q_scale_min, b.q_scale_max))
 
     @property
+    def inflation(self) -> float:
+        """lambda, the factor on the whole Q that the NIS asks for."""
+        return math.exp(self._log_inflation)
+
+    @property
+    def gap_inflation(self) -> float:
+        """mu, the further factor on Q over a gap that the first frames after gaps ask for."""
+        return math.exp(self._log_gap_inflation)
+
+    @property
+    def Q_gap(self) -> np.ndarray:
+        """(n, n) the process noise of a tick of a gap after its first: mu lambda S^1/2 Q0 S^1/2."""
+        return self.gap_inflation * self.Q
+
+    @property
     def Q(self) -> np.ndarray:
-        """(n, n) the process noise in force for one tick: S^1/2 Q0 S^1/2."""
-        root = np.sqrt(self.scale)
-        return np.asarray(root[:, None] * self._q0 * root[None, :])
+        """(n, n) the process noise in force for one tick: lambda S^1/2 Q0 S^1/2."""
+        return self.q_for(self._q0)
 
     def q_for(self, q0: np.ndarray) -> np.ndarray:
         """Another horizon's configured Q (n, n), rescaled as this tick's is."""
-        root = np.sqrt(self.scale)
+        root = np.sqrt(self.scale * self.inflation)
         return np.asarray(root[:, None] * q0 * root[None, :])
 
     def observe(
@@ -184,13 +247,15 @@ class NoiseAdapter:
         innovation: np.ndarray,
         gain: np.ndarray,
         nis: float | None,
+        noise_share: float = 0.0,
     ) -> Verdict:
         """Learn from one update.
 
         z (m,): the measurement (no quaternions: models with ball or free joints do not adapt R
         from qpos differences correctly, see NoiseAdapter); consecutive: the frame before it was
         the previous tick's; innovation y (m,) = z - h(x-); gain K (n, m); nis: y^T S^-1 y (None
-        when not finite).
+        when not finite); noise_share: tr(S^-1 R) / m, the share of the innovation covariance that
+        is the measurement's noise (lambda's step is scaled by the rest, see the module docstring).
         """
         b = self._bounds
         if not (np.all(np.isfinite(innovation)) and np.all(np.isfinite(z))):
@@ -219,27 +284,49 @@ class NoiseAdapter:
             self._q_est = q_next
         absorb = False
         if nis is not None and np.isfinite(nis):
+            m = innovation.size
+            if nis >= 0.0 and self._inflate:
+                share = min(max(1.0 - noise_share, 0.0), 1.0)
+                step = b.inflation_gain * share * (nis / m - 1.0)
+                step = min(max(step, -b.inflation_step), b.inflation_step)
+                low, high = math.log(b.inflation_min), math.log(b.inflation_max)
+                leaked = (1.0 - b.inflation_leak) * self._log_inflation
+                self._log_inflation = min(max(leaked + step, low), high)
             self._nis[self._nis_count % b.window] = nis
             self._nis_count += 1
             if self._nis_count >= b.window:
-                m = innovation.size
                 if self._nis_limit is None:
                     self._nis_limit = float(chi2.ppf(b.absorb_quantile, b.window * m)) / b.window
                 absorb = float(self._nis.mean()) > self._nis_limit
         s = self.scale
+        inflation = self.inflation
         moved = bool(
             np.any(np.abs(self._r - self._reported_r) > b.report_change * self._reported_r)
             or np.any(np.abs(s - self._reported_s) > b.report_change * self._reported_s)
+            or abs(inflation - self._reported_inflation) > b.report_change * self._reported_inflation
         )
         if moved:
             self._reported_r = self._r.copy()
             self._reported_s = s
+            self._reported_inflation = inflation
         return Verdict(adapted=moved, absorb=absorb)
 
-    def absorbed(self, factor: float = 100.0) -> None:
-        """After an absorption: Q widened by `factor` (within bounds) and an empty NIS window, so
-        the next verdict comes from the updates after it."""
-        self._q_est = self._q_est * factor
+    def observe_gap(self, *, nis: float, m: int) -> None:
+        """The NIS (of dimension m) of the first frame after a gap, against the prediction over it."""
+        b = self._bounds
+        if not (self._inflate and math.isfinite(nis) and nis >= 0.0):
+            return
+        step = min(max(b.gap_gain * (nis / m - 1.0), -b.gap_step), b.gap_step)
+        low, high = math.log(b.inflation_min), math.log(b.inflation_max)
+        self._log_gap_inflation = min(max(self._log_gap_inflation + step, low), high)
+
+    def absorbed(self) -> None:
+        """After an absorption: the adapted part of Q widened by `absorb_factor`, within
+        q_scale_max (unbounded, repeated absorptions left q_est 1e6 times its bound, which its
+        fading memory then took hundreds of updates to forget), and an empty NIS window, so the
+        next verdict comes from the updates after it."""
+        b = self._bounds
+        self._q_est = np.minimum(self._q_est * b.absorb_factor, self._q0_diag * b.q_scale_max)
         self._nis[:] = 0.0
         self._nis_count = 0
 
@@ -255,6 +342,9 @@ class NoiseAdapter:
             d4_count=self._d4_count,
             reported_r=self._reported_r.copy(),
             reported_s=self._reported_s.copy(),
+            log_inflation=self._log_inflation,
+            log_gap_inflation=self._log_gap_inflation,
+            reported_inflation=self._reported_inflation,
         )
 
     def restore(self, snap: _Snapshot) -> None:
@@ -268,6 +358,9 @@ class NoiseAdapter:
         self._d4_count = snap.d4_count
         self._reported_r = snap.reported_r.copy()
         self._reported_s = snap.reported_s.copy()
+        self._log_inflation = snap.log_inflation
+        self._log_gap_inflation = snap.log_gap_inflation
+        self._reported_inflation = snap.reported_inflation
 
 
 def _column_medians(a: np.ndarray) -> np.ndarray:

@@ -22,6 +22,14 @@ over w >= 0, sum w = 1 (exact: every subset of the P = 4 predictors is tried). U
 MIN_SAMPLES samples the filter answers alone. A measurement's noise adds the same variance to every
 predictor's error (its covariance is R 11'), which moves no weight.
 
+The answer's own error variances: the variance of the combined error at horizon h, w' C_h w
+per dof for q, and the same with D_h, the fading covariance of the predictors' qd errors (scored
+against the frame's qvel, pooled over dofs as C_h is), for qd; less the noise of the frames they
+were scored against (R of q and qd, which is in every score but not in the answer's error against
+the truth). The filter reports, over [q, qd], the larger of these and its own predicted variances
+(estimation/ukf.py says why). Per-dof covariances (2P x 2P per dof) were tried first: they cost
+the scoring of a myoElbow tick 3.8x its probes' physics instead of 2.2x.
+
 Cost: the live probes are rows of one table and are stepped together, one `mujoco.batch.Batch`
 call per tick (each probe's own state and force; the batch reports the qacc of the last step as
 mj_step does, which the MODEL predictor answers with), and scored together, one stacked product
@@ -54,6 +62,11 @@ MIN_SAMPLES: Final = 3
 FORGETTING: Final = 0.8
 # Probes alive at once: the cost of scoring is this many single-point rollouts of one tick per tick.
 PROBES: Final = 16
+# The answer's variances: the most of them that the scored frames' noise may take out (an estimate
+# of R larger than a score is that estimate's error, not a perfect forecast), and a floor (rad^2,
+# m^2, (rad/s)^2, (m/s)^2) below which no answer claims to know a dof.
+MAX_NOISE_SHARE: Final = 0.9
+VARIANCE_FLOOR: Final = 1e-12
 
 # Columns of the probes' integer marks.
 _ORIGIN: Final = 0  # tick of the frame the probe starts from
@@ -65,12 +78,15 @@ _RAMP: Final = 3  # 1: its force ramps with its rate (integrated random walk)
 @dataclass(frozen=True)
 class Forecast:
     """The combination's answer h ticks after the last frame: weights (P,) in PREDICTORS' order,
-    qpos (nq,), qvel (nv,), qacc (nv,)."""
+    qpos (nq,), qvel (nv,), qacc (nv,); its error variances per dof, of q and qd (nv,) each
+    (see the module docstring)."""
 
     weights: np.ndarray
     qpos: np.ndarray
     qvel: np.ndarray
     qacc: np.ndarray
+    var_q: np.ndarray
+    var_qd: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -107,6 +123,7 @@ class _Snapshot:
     marks: np.ndarray  # (probes, 4)
     table: np.ndarray  # (probes, width)
     cov: np.ndarray
+    cov_v: np.ndarray
     count: np.ndarray
     anchor: tuple[np.ndarray, np.ndarray, int] | None
 
@@ -155,10 +172,12 @@ class ForecastCombiner:
         self._tick = 0
         self._n = 0  # live probes: rows [0, n) of the table, oldest first
         self._cov = np.zeros((self._horizon + 1, P, P))
+        self._cov_v = np.zeros((self._horizon + 1, P, P))  # D_h: the same of the qd errors
         # The weights of each horizon, as long as its covariance has not changed: the filter asks
         # for a forecast on every predict (a frame may not come), and solving every subset of the
         # predictors took 1.2 ms of myoElbow's 2 ms tick when done each time.
         self._weights: dict[int, np.ndarray] = {}
+        self._variances: dict[int, tuple[float, float]] = {}  # w' C_h w and w' D_h w, as _weights
         self._count = np.zeros(self._horizon + 1)
         self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # last frame's (q, v, tick)
 
@@ -198,7 +217,7 @@ class ForecastCombiner:
         # Only scoring probes score; the last frame's probe was kept for a gap alone.
         scoring = keep & (age >= 1) & (age <= self._horizon)
         if scoring.any():
-            self._score(np.flatnonzero(scoring), qpos)
+            self._score(np.flatnonzero(scoring), qpos, qvel)
         survive = keep & (age < self._horizon)
         if survive[:-1].all():
             m = n - 1 if n and not survive[-1] else n  # at most the last frame's probe goes
@@ -227,9 +246,13 @@ class ForecastCombiner:
         self._marks[m] = (self._tick, 0, streak and self._tick % self._stride == 0, rate is not None)
         self._n = m + 1
 
-    def forecast(self) -> Forecast | None:
+    def forecast(
+        self, *, noise_q: np.ndarray | None = None, noise_qd: np.ndarray | None = None
+    ) -> Forecast | None:
         """The combination's answer now, when the last frame is some ticks old and that horizon's
-        weights are learnt; else None (the filter answers)."""
+        weights are learnt; else None (the filter answers). noise_q, noise_qd (nv,): the variance of
+        the scored frames' noise on q and qd (R's diagonal), taken out of the answer's variances
+        (to at most MAX_NOISE_SHARE of them); None takes nothing out."""
         # The last frame's probe is the newest, the last row (a second frame of the same tick
         # starts a second one after it); it answers once it has been carried forward.
         i = self._n - 1
@@ -248,12 +271,29 @@ class ForecastCombiner:
             weights = self._weights[h] = _min_variance_weights(self._cov[h])
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
+        var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd)
         return Forecast(
             weights=weights,
             qpos=weights @ q,
             qvel=weights @ v,
             qacc=weights @ a,
+            var_q=var_q,
+            var_qd=var_qd,
         )
+
+    def _answer_covariance(
+        self,
+        h: int,
+        w: np.ndarray,
+        noise_q: np.ndarray | None,
+        noise_qd: np.ndarray | None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(nv,) each: the combination's error variances of q and qd at horizon h (O(nv); the
+        scored variances are kept with the weights until a score changes them)."""
+        scored = self._variances.get(h)
+        if scored is None:
+            scored = self._variances[h] = (float(w @ self._cov[h] @ w), float(w @ self._cov_v[h] @ w))
+        return _net_of_noise(scored[0], noise_q, self._nv), _net_of_noise(scored[1], noise_qd, self._nv)
 
     def snapshot(self) -> _Snapshot:
         n = self._n
@@ -262,6 +302,7 @@ class ForecastCombiner:
             marks=self._marks[:n].copy(),
             table=self._table[:n].copy(),
             cov=self._cov.copy(),
+            cov_v=self._cov_v.copy(),
             count=self._count.copy(),
             anchor=self._anchor,
         )
@@ -274,9 +315,11 @@ class ForecastCombiner:
         self._marks[:n], self._table[:n] = snap.marks, snap.table
         self._n = n
         self._cov = snap.cov.copy()
+        self._cov_v = snap.cov_v.copy()
         self._count = snap.count.copy()
         self._anchor = snap.anchor
         self._weights = {}
+        self._variances = {}
 
     # -- internals --------------------------------------------------------------------------------
 
@@ -342,8 +385,9 @@ class ForecastCombiner:
         a[0], a[1], a[2], a[3] = row[c.qacc], 0.0, 0.0, a0
         return q, v, a
 
-    def _score(self, ids: np.ndarray, qpos: np.ndarray) -> None:
-        """Scoring probes `ids` (their ages all differ) against a frame's qpos."""
+    def _score(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        """Scoring probes `ids` (their ages all differ) against a frame's qpos (the weights) and
+        qpos and qvel (the answer's covariance)."""
         c, rows = self._columns, self._table[ids]
         ages = self._marks[ids, _AGE]
         t = (ages * self._dt)[:, None]
@@ -353,26 +397,34 @@ class ForecastCombiner:
         positions[:, 2] = q0 + v0 * t
         positions[:, 3] = q0 + v0 * t + 0.5 * a0 * t * t
         errors = positions - qpos[None, None, :]  # (S, P, nv)
-        finite = np.isfinite(errors).all(axis=(1, 2))
+        verrors = np.empty_like(errors)  # the qd of `_predictions`, against the frame's
+        verrors[:, 0] = rows[:, c.qvel] - qvel
+        verrors[:, 1] = verrors[:, 2] = v0 - qvel
+        verrors[:, 3] = v0 + a0 * t - qvel
+        finite = np.isfinite(errors).all(axis=(1, 2)) & np.isfinite(verrors).all(axis=(1, 2))
         if not finite.all():
-            errors, ages = errors[finite], ages[finite]
+            errors, verrors, ages = errors[finite], verrors[finite], ages[finite]
         if ages.size == 0:
             return
         cov = errors @ errors.transpose(0, 2, 1) / self._nv
+        cov_v = verrors @ verrors.transpose(0, 2, 1) / self._nv
         # Rows are oldest first, so ages fall along them; only probes that waited at the horizon
         # through a gap share one, the horizon, at the front.
         if ages.size < 2 or ages[0] != ages[1]:
             d = _FADING[np.minimum(self._count[ages], _FADING.size - 1).astype(np.intp)][:, None, None]
             self._cov[ages] = (1.0 - d) * self._cov[ages] + d * cov
+            self._cov_v[ages] = (1.0 - d) * self._cov_v[ages] + d * cov_v
             self._count[ages] += 1
         else:
             # One sample after the other at the shared age, oldest first.
-            for h, c in zip(ages.tolist(), cov, strict=True):
+            for h, c, cv in zip(ages.tolist(), cov, cov_v, strict=True):
                 d1 = _fading(float(self._count[h]))
                 self._cov[h] = (1.0 - d1) * self._cov[h] + d1 * c
+                self._cov_v[h] = (1.0 - d1) * self._cov_v[h] + d1 * cv
                 self._count[h] += 1
         for h in ages.tolist():
             self._weights.pop(h, None)
+            self._variances.pop(h, None)
 
 
 def _fading(count: float) -> float:
@@ -388,6 +440,14 @@ _FADING: Final = np.array(
     list(itertools.takewhile(lambda d: d != 1.0 - FORGETTING, map(_fading, itertools.count(0.0))))
     + [1.0 - FORGETTING]
 )
+
+
+def _net_of_noise(scored: float, noise: np.ndarray | None, nv: int) -> np.ndarray:
+    """(nv,) a scored error variance less the scored frames' noise (nv,), to at most
+    MAX_NOISE_SHARE of it, and at least VARIANCE_FLOOR."""
+    if noise is None:
+        return np.full(nv, max(scored, VARIANCE_FLOOR))
+    return np.maximum(np.maximum(scored - noise, (1.0 - MAX_NOISE_SHARE) * scored), VARIANCE_FLOOR)
 
 
 def _min_variance_weights(C: np.ndarray) -> np.ndarray:
