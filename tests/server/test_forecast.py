@@ -279,7 +279,9 @@ def test_a_tick_of_the_combination_costs_little_more_than_its_probes_physics() -
     """myoElbow at 500 Hz, the default DRIVEN session of a driven model: advance, forecast and
     observe of a tick, in CPU time, against PROBES single steps of the same process model, measured
     alternately. Stepping each probe from Python was 4.8x (myoElbow's 6 us step is about the
-    interpreter's own cost per probe); batched 2.2x."""
+    interpreter's own cost per probe); batched 2.2x, and 3.0-3.6x since the probes also score qd
+    (the answer's own variances) on this busy machine: the bound catches a return to stepping
+    each probe alone (about 6x with the qd scores), not the machine's noise."""
     process = process_model(_myo_model("myoelbow"), scenario="DRIVEN")
     combiner = ForecastCombiner(process, dt=0.002, steps_per_tick=1, horizon=100)
     act, force = np.full(process.na, 0.3), np.zeros(process.nv)
@@ -305,7 +307,7 @@ def test_a_tick_of_the_combination_costs_little_more_than_its_probes_physics() -
     for r in range(7):
         before, tick, after = physics(200), ticks(300 + 200 * r, 200), physics(200)
         ratios.append(tick / (0.5 * (before + after)))
-    assert statistics.median(ratios) < 3.0, ratios
+    assert statistics.median(ratios) < 4.5, ratios
 
 
 def test_a_motion_of_constant_acceleration_is_answered_by_constant_acceleration() -> None:
