@@ -247,18 +247,23 @@ class ForecastCombiner:
         self._n = m + 1
 
     def forecast(
-        self, *, noise_q: np.ndarray | None = None, noise_qd: np.ndarray | None = None
+        self,
+        *,
+        noise_q: np.ndarray | None = None,
+        noise_qd: np.ndarray | None = None,
+        ended: bool = False,
     ) -> Forecast | None:
         """The combination's answer now, when the last frame is some ticks old and that horizon's
         weights are learnt; else None (the filter answers). noise_q, noise_qd (nv,): the variance of
         the scored frames' noise on q and qd (R's diagonal), taken out of the answer's variances
-        (to at most MAX_NOISE_SHARE of them); None takes nothing out."""
+        (to at most MAX_NOISE_SHARE of them); None takes nothing out. ended: asked on the frame
+        that ends a gap, for the answer the gap's last tick gave (one tick earlier)."""
         # The last frame's probe is the newest, the last row (a second frame of the same tick
         # starts a second one after it); it answers once it has been carried forward.
         i = self._n - 1
         if i < 0 or self._marks[i, _ORIGIN] != self._last_origin() or self._marks[i, _AGE] == 0:
             return None
-        if self._tick - int(self._marks[i, _ORIGIN]) > self._horizon:
+        if self._tick - int(self._marks[i, _ORIGIN]) - int(ended) > self._horizon:
             # Past the scored horizon nothing says how good a predictor is, and the last frame's
             # probe has stopped there (it waits to be scored): its answer would stand still for the
             # rest of the gap. The filter answers, its prediction moving on.

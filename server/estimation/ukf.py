@@ -847,8 +847,9 @@ class UnscentedFilter:
             forecast_weights=tuple(float(w) for w in answer.weights),
         )
 
-    def _forecast(self) -> ForecastAnswer | None:
-        """The combination's answer now, its variances net of the frames' noise (R's diagonal)."""
+    def _forecast(self, *, ended: bool = False) -> ForecastAnswer | None:
+        """The combination's answer now (ended: on the frame that ends a gap, the one its last tick
+        gave), its variances net of the frames' noise (R's diagonal)."""
         if self._forecasts is None:
             return None
         nv = self._nv
@@ -858,7 +859,7 @@ class UnscentedFilter:
             noise_q = r[:nv]
             if self._measures("qvel"):
                 noise_qd = r[nv : 2 * nv]
-        return self._forecasts.forecast(noise_q=noise_q, noise_qd=noise_qd)
+        return self._forecasts.forecast(noise_q=noise_q, noise_qd=noise_qd, ended=ended)
 
     def _answer_scale(self, P: np.ndarray, answer: ForecastAnswer) -> np.ndarray:
         """(2 nv,) the factors on the rows and columns of P's [q, qd] block that give the
@@ -875,10 +876,12 @@ class UnscentedFilter:
             return np.asarray(np.where(predicted > 0.0, np.sqrt(wanted / predicted), 1.0))
 
     def _answer_nis(self, z: np.ndarray, nis: float | None) -> float | None:
-        """The NIS of frame z against the answer this tick would have had without it: the filter's
-        prediction (its NIS, `nis`), or over a gap the combination's answer with its covariance.
-        One m x m solve, once a gap."""
-        answer = self._forecast() if self._x_manifold is None else None
+        """The NIS of the frame z that ends a gap against the gap's last answer: the combination's
+        with its covariance, or the filter's prediction (its NIS, `nis`) where the filter answered
+        (no combination, or a gap past its scored horizon). One m x m solve, once a gap."""
+        # The gap's last answer: mu learns what the answers given were worth (past the scored
+        # horizon they were the filter's, and `_forecast` says None).
+        answer = self._forecast(ended=True) if self._x_manifold is None else None
         if answer is None:
             return nis
         nq, nv, m = self._nq, self._nv, z.size
