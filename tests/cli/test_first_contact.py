@@ -353,7 +353,7 @@ def test_progress_is_not_drawn_into_redirected_output(demo_run: tuple[str, str, 
 
 
 def test_benchmarks_speak_of_targets_not_issues() -> None:
-    for module in ("benchmarks.storage", "benchmarks.ukf_cycle"):
+    for module in ("benchmarks.storage", "benchmarks.ukf_cycle", "benchmarks.forecast"):
         help_text = subprocess.run(
             [sys.executable, "-m", module, "--help"], cwd=ROOT, capture_output=True, text=True, check=True
         ).stdout
