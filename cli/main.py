@@ -458,6 +458,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             _fail("experiments", str(error))
         except JitdynError as error:
             _fail("experiments", f"{type(error).__name__}: {error}")
+        except OSError as error:
+            where = f" {error.filename}" if error.filename else ""
+            _fail("experiments", f"{error.strerror or error}:{where}")
         except KeyboardInterrupt:
             return 130
     args = build_parser().parse_args(argv)

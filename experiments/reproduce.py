@@ -165,7 +165,14 @@ def main(argv: Sequence[str] | None = None, *, verbose: bool = False) -> int:
     names = list(dict.fromkeys(args.names)) or list(EXPERIMENTS)
     experiments = [EXPERIMENTS[n] for n in names]
     out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    # Checked before the first experiment: a folder that cannot take the report would fail a
+    # full run at its end, after a quarter of an hour.
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        parser().error(f"--out {out}: cannot create the output folder ({error.strerror or error})")
+    if not os.access(out, os.W_OK | os.X_OK):
+        parser().error(f"--out {out}: the output folder is not writable")
     started = time.perf_counter()
     with contextlib.ExitStack() as stack:
         if args.server:

@@ -121,6 +121,14 @@ def test_verbose_before_experiments() -> None:
     assert "unknown experiment(s) ['table_9_9']" in result.stderr
 
 
+def test_an_output_folder_that_cannot_be_made_is_named_before_anything_runs(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder", encoding="utf-8")
+    result = jitdyn("experiments", "--out", str(blocker / "out"), "table_4_2")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert f"--out {blocker / 'out'}: cannot create the output folder (Not a directory)" in result.stderr
+
+
 def test_a_bad_environment_variable_is_named() -> None:
     result = jitdyn("sessions", "list", env={"JITDYN_WORKERS": "abc"})
     assert one_line_error(result, 2) == (
