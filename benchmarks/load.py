@@ -15,6 +15,7 @@ reports:
     python -m benchmarks.load --model pendulum_3 --rate 20 --sessions 100 --seconds 20
     python -m benchmarks.load --sweep                 # the four targets of RESULTS.md, largest N each
     python -m benchmarks.load --server 127.0.0.1:50051 --model biped --scenario CONTROLLED --rate 200 --sessions 6
+    python -m benchmarks.load --sessions 16 --estimator STATIC --floor   # what a tick costs without the filter
 
 Without --server it starts `jitdyn serve` with default settings on a free port and a temporary
 data folder, and stops it after each run (a fresh server per trial in a sweep).
@@ -645,6 +646,7 @@ def run(
     serve_args: Sequence[str] = (),
     states: dict[str, np.ndarray] | None = None,
     ukf_us: float | None = None,
+    estimator: str | None = None,
 ) -> RunReport:
     from jitdyn.client import Client, SessionOptions
 
@@ -675,6 +677,8 @@ def run(
             else:
                 info, _ = client.register_model(name=source.name, mjcf=source.mjcf, assets=source.assets)
                 options["model_id"] = info.id
+        if estimator is not None:
+            options["estimator"] = {"estimator": estimator}
         open_message = SessionOptions(**options)  # type: ignore[arg-type]
         measured = ["qpos", "qvel", "ctrl"] if scenario == "CONTROLLED" else ["qpos", "qvel"]
         from jitdyn.v1 import dynamics_pb2
@@ -855,6 +859,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--targets", nargs="*", default=None, help="with --sweep: models to sweep (default all four)"
     )
+    parser.add_argument(
+        "--estimator",
+        choices=("UKF", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION"),
+        help="the sessions' estimator (default: the server's, the UKF); STATIC measures what a tick "
+        "costs around the filter, with no filter",
+    )
     parser.add_argument("--json", type=Path, help="also write every report here")
     parser.add_argument(
         "--floor",
@@ -868,6 +878,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{' '.join(serve_args)}; {args.clients} client processes",
         flush=True,
     )
+    if args.sweep and args.estimator:
+        parser.error("--estimator is for single runs: the targets are the default estimator's")
     if args.sweep:
         reports = []
         for target in TARGETS:
@@ -894,6 +906,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             clients=args.clients,
             server=args.server,
             serve_args=serve_args,
+            estimator=args.estimator,
         )
         print(report.line())
         if args.floor:

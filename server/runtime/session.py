@@ -146,6 +146,12 @@ class SessionRuntime:
         """The first tick not yet answered."""
         return self._next
 
+    @property
+    def oldest_late_tick(self) -> int:
+        """The oldest tick a late frame can still be applied to: the first in the history, which
+        `skip` empties (then the next tick: no late frame replays across skipped ticks)."""
+        return next(iter(self._ticks), self._next)
+
     def classify(self, seq: int) -> str:
         """Where a frame for `seq` belongs: "next", "future", "late", "duplicate" or "too_old"."""
         if seq >= self._next:

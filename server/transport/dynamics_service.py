@@ -236,25 +236,7 @@ class _Stream:
                 )
             ]
         if place == "too_old":
-            oldest = max(0, self.runtime.next_tick - self.runtime.history)
-            return [
-                Response(
-                    rejected=self.record_rejection(
-                        Rejection(
-                            seq,
-                            "TOO_OLD",
-                            f"frame {seq}: late frames are applied back to tick {oldest} (history {self.runtime.history} ticks"
-                            + (
-                                f" of the {self.plan.history} asked for: their snapshots have grown past "
-                                "--max-history-bytes"
-                                if self.runtime.history < self.plan.history
-                                else ""
-                            )
-                            + f"), got {seq}",
-                        )
-                    )
-                )
-            ]
+            return [Response(rejected=self.record_rejection(Rejection(seq, "TOO_OLD", self._too_old(seq))))]
         if self.ticket is not None:
             # REALTIME: a timewarp replays every tick since the late one, on the event loop. It is
             # applied only when it fits, with the session's own next tick, in half a tick:
@@ -281,6 +263,24 @@ class _Stream:
                 ]
         outcome = self.runtime.apply_late(checked)
         return [Response(result=self.record_result(outcome, arrived=arrived))]
+
+    def _too_old(self, seq: int) -> str:
+        """Why a frame for `seq` can no longer be applied: past the history, or before ticks an
+        overloaded server skipped (their history went with them)."""
+        runtime = self.runtime
+        oldest = runtime.oldest_late_tick
+        if oldest > max(0, runtime.next_tick - runtime.history):
+            return (
+                f"frame {seq}: late frames are applied back to tick {oldest} only: the server was "
+                f"behind and skipped ticks before it ({runtime.counts.skipped} so far in this session), "
+                f"and no late frame replays across skipped ticks"
+            )
+        shrunk = (
+            f" of the {self.plan.history} asked for: their snapshots have grown past --max-history-bytes"
+            if runtime.history < self.plan.history
+            else ""
+        )
+        return f"frame {seq}: late frames are applied back to tick {oldest} (history {runtime.history} ticks{shrunk}), got {seq}"
 
     @_counting_warnings
     def on_skip(self, seq: int, arrived: float) -> Response:

@@ -123,3 +123,40 @@ def test_shedding_before_the_first_frame_answers_the_rest_pose() -> None:
         first = runtime.shed(None)
         assert (first.seq, first.source, first.late_compute) == (0, "PREDICTED", True)
         np.testing.assert_array_equal(first.qpos, model.qpos0)
+
+
+def test_after_skipped_ticks_late_frames_reach_back_only_to_the_first_tick_after_them() -> None:
+    """A server far behind skips ticks (answers them not at all) and drops the history with them:
+    a late frame for a tick before the skip is too old, and the runtime says from which tick late
+    frames apply again, which the server's TOO_OLD message names (it used to name the start of a
+    history that was gone)."""
+    model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
+    frames = _frames(model, 12)
+    config = resolve_config(
+        model=model,
+        scenario="PASSIVE",
+        dt=DT,
+        requested={},
+        model_defaults={},
+        preset="JITDYN",
+        measured={"qpos", "qvel"},
+    )
+    with WorkerPool(1) as pool:
+        runtime = SessionRuntime(
+            model=model,
+            estimator=make_estimator(model, config, pool=pool),
+            dynamics=Dynamics(model, outputs=frozenset({"INVERSE_DYNAMICS"})),
+            dt=DT,
+            scenario="PASSIVE",
+            history=50,
+        )
+        for k in range(4):
+            runtime.advance(frames[k] if k != 2 else None)
+        assert runtime.oldest_late_tick == 0 and runtime.classify(2) == "late"
+        runtime.skip(3)  # ticks 4, 5 and 6: never answered
+        assert runtime.next_tick == 7 and runtime.counts.skipped == 3
+        assert runtime.oldest_late_tick == 7
+        assert runtime.classify(2) == "too_old" and runtime.classify(5) == "too_old"
+        runtime.advance(None)  # tick 7, shed: the estimator is behind until a frame comes
+        runtime.advance(frames[8])
+        assert runtime.oldest_late_tick == 7 and runtime.classify(7) == "late"
