@@ -44,7 +44,7 @@ ESTIMATOR_SETTINGS: Mapping[str, tuple[str, ...] | None] = {
     "force_model": ("RANDOM_WALK", "INTEGRATED_RANDOM_WALK"),
     "noise_model": ("FIXED", "ADAPTIVE"),
     "forecast": ("FILTER", "COMBINED"),
-    "wrong_model": ("KEEP", "DRIVEN"),
+    "wrong_model": ("KEEP", "DRIVEN", "RESTART"),
     "force_var": None,
     "alpha": None,
     "beta": None,

@@ -98,10 +98,11 @@ class Forecast(enum.StrEnum):
 
 
 class WrongModel(enum.StrEnum):
-    """What a PASSIVE UKF does when a window of NIS says its model is wrong (estimation/switch.py)."""
+    """What a UKF does when its NIS says its model is wrong."""
 
-    KEEP = "KEEP"  # nothing: the filter stays PASSIVE (the thesis)
-    DRIVEN = "DRIVEN"  # the session's filter becomes DRIVEN, from that frame
+    KEEP = "KEEP"  # nothing but the divergence guard (the thesis)
+    DRIVEN = "DRIVEN"  # PASSIVE: the session's filter becomes DRIVEN, from that frame (switch.py)
+    RESTART = "RESTART"  # start again from the frame after RESTART_UPDATES far out (ukf.py)
 
 
 class NoiseModel(enum.StrEnum):
@@ -215,7 +216,7 @@ class EstimatorConfig:
     noise_model: NoiseModel = NoiseModel.FIXED
     # What answers a tick without a frame: the filter, or the scored combination (DRIVEN only).
     forecast: Forecast = Forecast.FILTER
-    # PASSIVE: what a window of NIS far out does.
+    # What a NIS far out does: nothing, PASSIVE becomes DRIVEN, or a restart from the frame.
     wrong_model: WrongModel = WrongModel.KEEP
 
     def __post_init__(self) -> None:
@@ -508,8 +509,17 @@ def preset_values(
         "forecast": (
             Forecast.COMBINED if scenario == Scenario.DRIVEN and n < LARGE_STATE else Forecast.FILTER
         ).value,
-        # A PASSIVE filter whose innovations say something drives the body becomes DRIVEN.
-        "wrong_model": (WrongModel.DRIVEN if scenario == Scenario.PASSIVE else WrongModel.KEEP).value,
+        # A PASSIVE filter whose innovations say something drives the body becomes DRIVEN. A
+        # CONTROLLED or EXTERNAL one that has lost the body starts again from the frame: over a gap
+        # a CONTROLLED filter holds the last control while the body's changes, and with its small
+        # Q it then took 4 % of each innovation and never caught up (the gaps experiment's
+        # CONTROLLED pendulum: 2 rad of error, its truth's law thrown off until MuJoCo gave up).
+        # DRIVEN's adaptive noise absorbs a wrong model instead.
+        "wrong_model": {
+            Scenario.PASSIVE: WrongModel.DRIVEN,
+            Scenario.CONTROLLED: WrongModel.RESTART,
+            Scenario.EXTERNAL: WrongModel.RESTART,
+        }.get(scenario, WrongModel.KEEP).value,
     }
 
 

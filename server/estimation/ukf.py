@@ -38,7 +38,9 @@ Numerics: P is symmetrised after every step and repaired (nearest positive defin
 eigenvalue clipping) when its Cholesky factorisation fails; a divergence guard re-initialises from
 the last measurement when the state turns non-finite, when the NIS stays absurd for
 DIVERGENCE_TICKS updates in a row, or when a posterior variance passes COVARIANCE_LIMIT, and says
-so in the estimate.
+so in the estimate. With wrong_model RESTART (the JITDYN preset's CONTROLLED and EXTERNAL) it also
+restarts when the NIS stays past chi-square's RESTART_QUANTILE for RESTART_UPDATES updates in a
+row: a filter that has lost the body, not one that has blown up.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ import numpy as np
 from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import UnscentedKalmanFilter, unscented_transform
 from scipy.linalg.lapack import dtrtrs
+from scipy.stats import chi2
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.estimation.adaptive import NoiseAdapter
@@ -65,6 +68,7 @@ from jitdyn.server.estimation.estimator import (
     NoiseModel,
     Scenario,
     SigmaScheme,
+    WrongModel,
     check_against_model,
     check_measurement,
     check_vector,
@@ -91,6 +95,8 @@ __all__ = [
     "COVARIANCE_LIMIT",
     "DIVERGENCE_TICKS",
     "NIS_LIMIT_PER_DIMENSION",
+    "RESTART_QUANTILE",
+    "RESTART_UPDATES",
     "UnscentedFilter",
     "process_noise",
 ]
@@ -105,6 +111,11 @@ COVARIANCE_LIMIT: Final = 1e14
 # An adaptive filter whose NIS window stays far out after this many absorptions in a row starts
 # again from the measurement.
 ABSORPTIONS_BEFORE_REINIT: Final = 3
+# WRONG_MODEL_RESTART: a NIS past this quantile of chi-square(m) in RESTART_UPDATES updates in a
+# row (about 1e-6 for a consistent filter) is a filter that has lost the body; it starts again
+# from the frame.
+RESTART_QUANTILE: Final = 0.999
+RESTART_UPDATES: Final = 2
 # DRIVEN's initial uncertainty of the unknown force (and its rate), as the acceleration it would
 # give each dof alone: 10 rad/s^2 (or m/s^2), 100 rad/s^3; scaled by the mass matrix's diagonal.
 FORCE_P0_ACCELERATION: Final = 10.0
@@ -265,6 +276,7 @@ class _Snapshot:
     last_qvel: np.ndarray
     ticks_since_update: int
     nis_run: int
+    far_run: int
     adapter: object | None
     absorptions: int
     forecasts: object | None
@@ -376,6 +388,9 @@ class UnscentedFilter:
             else None
         )
         self._absorptions = 0
+        self._restart_nis = (
+            float(chi2.ppf(RESTART_QUANTILE, z_tangent)) if config.wrong_model == WrongModel.RESTART else None
+        )
         # Plain vectors keep filterpy's own transform (and its arithmetic, bit for bit).
         self._ut = unscented_transform if not manifold else _tangent_unscented_transform
         self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
@@ -404,6 +419,7 @@ class UnscentedFilter:
         self._last_qvel = np.zeros(nv)
         self._ticks_since_update = 0
         self._nis_run = 0
+        self._far_run = 0  # updates in a row past the restart quantile (WRONG_MODEL_RESTART)
 
     @property
     def adapter(self) -> NoiseAdapter | None:
@@ -529,6 +545,8 @@ class UnscentedFilter:
             self._nis_run = 0
         else:
             self._nis_run += 1
+        if self._restart_nis is not None:
+            self._far_run = self._far_run + 1 if nis is None or nis > self._restart_nis else 0
         adapted, absorbed = False, widened
         if self._adapter is not None and self._finite() and nis is not None:
             verdict = self._adapter.observe(
@@ -556,6 +574,7 @@ class UnscentedFilter:
         if (
             not self._finite()
             or self._nis_run >= DIVERGENCE_TICKS
+            or self._far_run >= RESTART_UPDATES
             or self._blown_up()
             # DRIVEN absorbs a model error into its force; restarting would throw the force away.
             or (self._absorptions >= ABSORPTIONS_BEFORE_REINIT and not self._driven)
@@ -638,6 +657,7 @@ class UnscentedFilter:
             last_qvel=read_only(self._last_qvel),
             ticks_since_update=self._ticks_since_update,
             nis_run=self._nis_run,
+            far_run=self._far_run,
             adapter=self._adapter.snapshot() if self._adapter is not None else None,
             absorptions=self._absorptions,
             forecasts=self._forecasts.snapshot() if self._forecasts is not None else None,
@@ -654,6 +674,7 @@ class UnscentedFilter:
         self._last_qvel = snap.last_qvel.copy()
         self._ticks_since_update = snap.ticks_since_update
         self._nis_run = snap.nis_run
+        self._far_run = snap.far_run
         if self._adapter is not None and snap.adapter is not None:
             self._adapter.restore(snap.adapter)  # type: ignore[arg-type]
         self._absorptions = snap.absorptions
@@ -1001,6 +1022,7 @@ class UnscentedFilter:
         self._last_qvel = np.array(qvel)
         self._ticks_since_update = 0
         self._nis_run = 0
+        self._far_run = 0
 
     def _reinitialise(self, m: Measurement) -> None:
         """The divergence guard: back to the measurement, with what is still finite of the rest."""

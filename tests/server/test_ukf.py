@@ -25,7 +25,13 @@ from jitdyn.server.estimation.sigma import (
     make_sigma_points,
     nearest_positive_definite,
 )
-from jitdyn.server.estimation.ukf import DIVERGENCE_TICKS, UnscentedFilter, process_noise
+from jitdyn.server.estimation.ukf import (
+    DIVERGENCE_TICKS,
+    NIS_LIMIT_PER_DIMENSION,
+    RESTART_UPDATES,
+    UnscentedFilter,
+    process_noise,
+)
 
 
 def pendulum(n: int) -> mujoco.MjModel:
@@ -697,6 +703,57 @@ def test_guard_reinitialises_after_a_run_of_absurd_innovations() -> None:
         restarted = estimator.update(far)
     assert not restarted.reinitialised
     assert abs(restarted.qpos[0] - 3.1) < 0.01
+
+
+@pytest.mark.parametrize("wrong_model", ["RESTART", "KEEP"])
+def test_restart_starts_again_from_the_frame_once_the_filter_has_lost_the_body(wrong_model: str) -> None:
+    """A filter sure of itself (no process noise) whose frames jump 0.5 rad away, as a
+    CONTROLLED filter's do after a gap in which the control changed: its NIS, about 2500 per tick,
+    is far past chi-square's 0.999 quantile (13.8 for m = 2) but far below the divergence guard's
+    1e6 per dimension. RESTART starts again from the second such frame; KEEP takes a fraction of
+    each innovation and is still a tenth of the jump away after ten frames (the gaps experiment's
+    CONTROLLED pendulum, whose law was fed that lagging estimate, drifted to 2 rad this way)."""
+    model = pendulum(1)
+    config = config_for(model, "PASSIVE", q_var=0.0, p0=1e-4, r=1e-4, wrong_model=wrong_model)
+    assert config.wrong_model == wrong_model
+    truth = mujoco.MjData(model)
+    truth.qpos[:] = 0.3
+
+    def frame() -> Measurement:
+        return Measurement(qpos=truth.qpos.copy(), qvel=truth.qvel.copy())
+
+    with WorkerPool(1) as pool:
+        estimator = UnscentedFilter(model, config, pool=pool)
+        estimator.initialise(frame())
+        for _ in range(3):
+            mujoco.mj_step(model, truth, config.steps_per_tick)
+            estimator.predict(ctrl=None)
+            quiet = estimator.update(frame())
+        assert not quiet.reinitialised and quiet.nis is not None and quiet.nis < 1.0
+        truth.qpos[:] += 0.5  # the body is elsewhere now, and moves on from there
+        estimates = []
+        for _ in range(10):
+            mujoco.mj_step(model, truth, config.steps_per_tick)
+            estimator.predict(ctrl=None)
+            estimates.append(estimator.update(frame()))
+        jumped = truth.qpos[0]
+    flags = [e.reinitialised for e in estimates]
+    first = estimates[0].nis
+    assert first is not None and 100 < first < NIS_LIMIT_PER_DIMENSION  # far out, yet no divergence
+    if wrong_model == "RESTART":
+        assert flags == [False] * (RESTART_UPDATES - 1) + [True] + [False] * (10 - RESTART_UPDATES)
+        assert abs(estimates[-1].qpos[0] - jumped) < 1e-2
+    else:
+        assert not any(flags)
+        assert abs(estimates[-1].qpos[0] - jumped) > 0.03  # 0.055 rad here, a tenth of the jump
+
+
+def test_the_jitdyn_preset_restarts_controlled_and_external_filters_and_the_thesis_keeps() -> None:
+    model = pendulum(3)
+    jitdyn = {s: config_for(model, s).wrong_model for s in ("PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN")}
+    assert jitdyn == {"PASSIVE": "DRIVEN", "CONTROLLED": "RESTART", "EXTERNAL": "RESTART", "DRIVEN": "KEEP"}
+    for scenario in ("PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN"):
+        assert config_for(model, scenario, preset="THESIS").wrong_model == "KEEP"
 
 
 @pytest.mark.parametrize("q_var", [1e20, 1e300])  # a variance past the limit; one that overflows

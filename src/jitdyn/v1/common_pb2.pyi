@@ -342,11 +342,14 @@ class _WrongModel:
 class _WrongModelEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_WrongModel.ValueType], _builtins.type):
     DESCRIPTOR: _descriptor.EnumDescriptor
     WRONG_MODEL_UNSPECIFIED: _WrongModel.ValueType  # 0
-    """Not set: the preset decides (PRESET_JITDYN: WRONG_MODEL_DRIVEN in SCENARIO_PASSIVE;
-    PRESET_THESIS and the other scenarios: WRONG_MODEL_KEEP).
+    """Not set: the preset decides (PRESET_JITDYN: WRONG_MODEL_DRIVEN in SCENARIO_PASSIVE,
+    WRONG_MODEL_RESTART in SCENARIO_CONTROLLED and SCENARIO_EXTERNAL, WRONG_MODEL_KEEP in
+    SCENARIO_DRIVEN, whose adaptive noise absorbs it; PRESET_THESIS: WRONG_MODEL_KEEP).
     """
     WRONG_MODEL_KEEP: _WrongModel.ValueType  # 1
-    """Nothing: the filter stays PASSIVE, as in the thesis."""
+    """Nothing: the filter keeps its model, as in the thesis. Only the divergence guard (an NIS of
+    1e6 per measured dimension for 10 updates in a row, a non-finite state) restarts it.
+    """
     WRONG_MODEL_DRIVEN: _WrongModel.ValueType  # 2
     """When the mean NIS of 8 updates passes the 1 - 1e-9 quantile of the mean of 8 chi-square(m)
     samples (m the measurement dimension; 19.6 for m = 6), something the session does not
@@ -355,16 +358,26 @@ class _WrongModelEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_WrongModel
     `scenario` is SCENARIO_DRIVEN; `filter_state` and `covariance` then have the DRIVEN layout
     ([q, qd, f], 3 nv). The tick cost admitted at open (REALTIME) was the PASSIVE filter's.
     """
+    WRONG_MODEL_RESTART: _WrongModel.ValueType  # 3
+    """When the NIS passes its one-sample 0.999 quantile (chi-square with m degrees of freedom, m the
+    measurement dimension: 27.9 for m = 9) in 2 updates in a row, the filter has lost the body
+    (a control that changed over a gap, a force the model holds that the body no longer feels):
+    it starts again from that frame (`Result.reinitialised`), as at the first frame. A consistent
+    filter does that about once in 1e6 updates. Any scenario.
+    """
 
 class WrongModel(_WrongModel, metaclass=_WrongModelEnumTypeWrapper):
-    """What a SCENARIO_PASSIVE UKF does when its innovations say the model is wrong."""
+    """What a UKF does when its innovations say the model is wrong."""
 
 WRONG_MODEL_UNSPECIFIED: WrongModel.ValueType  # 0
-"""Not set: the preset decides (PRESET_JITDYN: WRONG_MODEL_DRIVEN in SCENARIO_PASSIVE;
-PRESET_THESIS and the other scenarios: WRONG_MODEL_KEEP).
+"""Not set: the preset decides (PRESET_JITDYN: WRONG_MODEL_DRIVEN in SCENARIO_PASSIVE,
+WRONG_MODEL_RESTART in SCENARIO_CONTROLLED and SCENARIO_EXTERNAL, WRONG_MODEL_KEEP in
+SCENARIO_DRIVEN, whose adaptive noise absorbs it; PRESET_THESIS: WRONG_MODEL_KEEP).
 """
 WRONG_MODEL_KEEP: WrongModel.ValueType  # 1
-"""Nothing: the filter stays PASSIVE, as in the thesis."""
+"""Nothing: the filter keeps its model, as in the thesis. Only the divergence guard (an NIS of
+1e6 per measured dimension for 10 updates in a row, a non-finite state) restarts it.
+"""
 WRONG_MODEL_DRIVEN: WrongModel.ValueType  # 2
 """When the mean NIS of 8 updates passes the 1 - 1e-9 quantile of the mean of 8 chi-square(m)
 samples (m the measurement dimension; 19.6 for m = 6), something the session does not
@@ -372,6 +385,13 @@ see drives the body: the session's filter becomes SCENARIO_DRIVEN with PRESET_JI
 settings, started from that frame. That result says `absorbed`, and every later result's
 `scenario` is SCENARIO_DRIVEN; `filter_state` and `covariance` then have the DRIVEN layout
 ([q, qd, f], 3 nv). The tick cost admitted at open (REALTIME) was the PASSIVE filter's.
+"""
+WRONG_MODEL_RESTART: WrongModel.ValueType  # 3
+"""When the NIS passes its one-sample 0.999 quantile (chi-square with m degrees of freedom, m the
+measurement dimension: 27.9 for m = 9) in 2 updates in a row, the filter has lost the body
+(a control that changed over a gap, a force the model holds that the body no longer feels):
+it starts again from that frame (`Result.reinitialised`), as at the first frame. A consistent
+filter does that about once in 1e6 updates. Any scenario.
 """
 Global___WrongModel: _TypeAlias = WrongModel  # noqa: Y015
 

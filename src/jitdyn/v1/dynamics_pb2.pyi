@@ -739,7 +739,9 @@ class Result(_message.Message):
     is yet.
     """
     reinitialised: _builtins.bool
-    """The divergence guard re-initialised the estimator from the last measurement at this tick."""
+    """The estimator started again from this tick's measurement: the divergence guard, or
+    WRONG_MODEL_RESTART, or an adaptive filter's third absorption in a row.
+    """
     horizon: _builtins.float
     """The horizon the estimate is extrapolated by (seconds)."""
     late_compute: _builtins.bool
