@@ -69,22 +69,34 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
-def _git_commit() -> str:
+def _git(*args: str) -> str | None:
     try:
         out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
+            ["git", *args],
             cwd=Path(__file__).resolve().parent,
             capture_output=True,
             text=True,
             timeout=5,
             check=False,
         )
-        return out.stdout.strip() or "unknown"
     except OSError:
+        return None
+    return out.stdout if out.returncode == 0 else None
+
+
+def _git_commit() -> str:
+    """The checkout's commit, read when the run starts (a commit landing during a long run must not
+    relabel it), and whether the code that runs differs from it."""
+    commit = (_git("rev-parse", "--short", "HEAD") or "").strip()
+    if not commit:
         return "unknown"
+    changed = _git("status", "--porcelain", "--untracked-files=no")
+    return f"{commit} with uncommitted changes" if changed else commit
 
 
-def _header(args: argparse.Namespace, names: Sequence[str], elapsed: float) -> str:
+def _header(
+    args: argparse.Namespace, names: Sequence[str], elapsed: float, *, began: datetime, commit: str
+) -> str:
     import mujoco
 
     mode = "quick (CI-sized runs: the numbers are not the full experiment's)" if args.quick else "full"
@@ -93,7 +105,7 @@ def _header(args: argparse.Namespace, names: Sequence[str], elapsed: float) -> s
         [
             "# jitdyn experiments: the thesis' chapter 4, reproduced",
             "",
-            f"- run: {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}, commit {_git_commit()}, {mode}",
+            f"- run: started {began.strftime('%Y-%m-%d %H:%M UTC')}, commit {commit}, {mode}",
             (
                 f"- server: {server}; MuJoCo {mujoco.__version__}; Python {platform.python_version()}; "
                 f"{os.cpu_count()} CPUs ({platform.machine()})"
@@ -173,7 +185,7 @@ def main(argv: Sequence[str] | None = None, *, verbose: bool = False) -> int:
         parser().error(f"--out {out}: cannot create the output folder ({error.strerror or error})")
     if not os.access(out, os.W_OK | os.X_OK):
         parser().error(f"--out {out}: the output folder is not writable")
-    started = time.perf_counter()
+    started, began, commit = time.perf_counter(), datetime.now(UTC), _git_commit()
     with contextlib.ExitStack() as stack:
         if args.server:
             address, servers = args.server, None
@@ -196,6 +208,8 @@ def main(argv: Sequence[str] | None = None, *, verbose: bool = False) -> int:
             seed=args.seed,
             servers=servers,
         )
-    report = write_report(out, sections, header=_header(args, names, time.perf_counter() - started))
+    report = write_report(
+        out, sections, header=_header(args, names, time.perf_counter() - started, began=began, commit=commit)
+    )
     print(f"report: {report}")
     return 0

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import csv
 import math
+import re
+import subprocess
 import time
 from pathlib import Path
 
@@ -38,6 +40,17 @@ def test_quick_run_writes_every_table_and_plot_with_finite_numbers(tmp_path: Pat
     assert main(["--quick", "--no-progress", "--out", str(out)]) == 0
     elapsed = time.perf_counter() - started
     report = (out / "report.md").read_text(encoding="utf-8")
+    head = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"],
+        cwd=Path(__file__).parent,
+        capture_output=True,
+        text=True,
+        check=False,
+    ).stdout.strip()
+    if head:  # a git checkout: the run names the commit it started on
+        assert re.search(rf"- run: started \d{{4}}-\d\d-\d\d \d\d:\d\d UTC, commit {head}\b", report), report[
+            :400
+        ]
     for experiment in EXPERIMENTS.values():
         assert experiment.name in report or experiment.title in report
     csvs = sorted(out.glob("*.csv"))
