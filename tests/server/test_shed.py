@@ -40,9 +40,8 @@ def _frames(model: mujoco.MjModel, ticks: int) -> list[FrameIn]:
     return frames
 
 
-def test_a_shed_tick_answers_from_the_frame_or_the_last_answer_and_the_session_recovers() -> None:
-    model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
-    frames = _frames(model, 14)
+def _runtime(model: mujoco.MjModel, pool: WorkerPool) -> SessionRuntime:
+    """A PASSIVE session's runtime with the JITDYN preset's filter, a history of 50 ticks."""
     config = resolve_config(
         model=model,
         scenario="PASSIVE",
@@ -52,15 +51,21 @@ def test_a_shed_tick_answers_from_the_frame_or_the_last_answer_and_the_session_r
         preset="JITDYN",
         measured={"qpos", "qvel"},
     )
+    return SessionRuntime(
+        model=model,
+        estimator=make_estimator(model, config, pool=pool),
+        dynamics=Dynamics(model, outputs=frozenset({"INVERSE_DYNAMICS"})),
+        dt=DT,
+        scenario="PASSIVE",
+        history=50,
+    )
+
+
+def test_a_shed_tick_answers_from_the_frame_or_the_last_answer_and_the_session_recovers() -> None:
+    model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
+    frames = _frames(model, 14)
     with WorkerPool(1) as pool:
-        runtime = SessionRuntime(
-            model=model,
-            estimator=make_estimator(model, config, pool=pool),
-            dynamics=Dynamics(model, outputs=frozenset({"INVERSE_DYNAMICS"})),
-            dt=DT,
-            scenario="PASSIVE",
-            history=50,
-        )
+        runtime = _runtime(model, pool)
         for k in range(4):
             assert not runtime.advance(frames[k]).late_compute
         predicted = runtime.advance(None)  # tick 4, the estimator's own prediction
@@ -102,24 +107,8 @@ def test_a_shed_tick_answers_from_the_frame_or_the_last_answer_and_the_session_r
 
 def test_shedding_before_the_first_frame_answers_the_rest_pose() -> None:
     model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_1")))
-    config = resolve_config(
-        model=model,
-        scenario="PASSIVE",
-        dt=DT,
-        requested={},
-        model_defaults={},
-        preset="JITDYN",
-        measured={"qpos", "qvel"},
-    )
     with WorkerPool(1) as pool:
-        runtime = SessionRuntime(
-            model=model,
-            estimator=make_estimator(model, config, pool=pool),
-            dynamics=Dynamics(model, outputs=frozenset({"INVERSE_DYNAMICS"})),
-            dt=DT,
-            scenario="PASSIVE",
-            history=50,
-        )
+        runtime = _runtime(model, pool)
         first = runtime.shed(None)
         assert (first.seq, first.source, first.late_compute) == (0, "PREDICTED", True)
         np.testing.assert_array_equal(first.qpos, model.qpos0)
@@ -132,24 +121,8 @@ def test_after_skipped_ticks_late_frames_reach_back_only_to_the_first_tick_after
     history that was gone)."""
     model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
     frames = _frames(model, 12)
-    config = resolve_config(
-        model=model,
-        scenario="PASSIVE",
-        dt=DT,
-        requested={},
-        model_defaults={},
-        preset="JITDYN",
-        measured={"qpos", "qvel"},
-    )
     with WorkerPool(1) as pool:
-        runtime = SessionRuntime(
-            model=model,
-            estimator=make_estimator(model, config, pool=pool),
-            dynamics=Dynamics(model, outputs=frozenset({"INVERSE_DYNAMICS"})),
-            dt=DT,
-            scenario="PASSIVE",
-            history=50,
-        )
+        runtime = _runtime(model, pool)
         for k in range(4):
             runtime.advance(frames[k] if k != 2 else None)
         assert runtime.oldest_late_tick == 0 and runtime.classify(2) == "late"
