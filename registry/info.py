@@ -233,6 +233,11 @@ def _check_setting(scenario: str, key: object, value: object) -> Any:
     if choices is not None:
         if value not in choices:
             raise InvalidArgument(f"{where}[{key!r}] must be one of {', '.join(choices)}, got {value!r}")
+        if key == "wrong_model" and value == "DRIVEN" and scenario != "PASSIVE":
+            # Refused at open too; here the registrant hears it, not the first user of the model.
+            raise InvalidArgument(
+                f"{where}['wrong_model'] DRIVEN is for PASSIVE, the only scenario that can turn DRIVEN"
+            )
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise InvalidArgument(f"{where}[{key!r}] must be a finite number, got {value!r}")

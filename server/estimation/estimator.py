@@ -619,5 +619,11 @@ def resolve_config(
         steps_per_tick=steps_per_tick(model, dt),
         measured=frozenset(measured),
     )
+    if config.wrong_model == WrongModel.DRIVEN and config.scenario != Scenario.PASSIVE:
+        # It would be a silent KEEP: only a PASSIVE filter has a DRIVEN filter to become.
+        raise InvalidArgument(
+            f"wrong_model DRIVEN turns a PASSIVE filter into a DRIVEN one; this session's scenario is "
+            f"{config.scenario}: choose RESTART or KEEP"
+        )
     check_against_model(model, config)
     return config

@@ -185,6 +185,11 @@ def test_invalid_mjcf_surfaces_mujocos_message(registry: ModelRegistry) -> None:
             ModelMetadata(defaults={"PASSIVE": {"preset": "FAST"}}),
             "['preset'] must be one of JITDYN, THESIS, got 'FAST'",
         ),
+        (
+            "arm",
+            ModelMetadata(defaults={"CONTROLLED": {"wrong_model": "DRIVEN"}}),
+            "metadata.defaults['CONTROLLED']['wrong_model'] DRIVEN is for PASSIVE",
+        ),
     ],
 )
 def test_names_and_metadata_are_validated(

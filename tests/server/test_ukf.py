@@ -684,6 +684,15 @@ def test_settings_that_cannot_work_are_refused_up_front(settings: dict[str, obje
         config_for(pendulum(3), "PASSIVE", **settings)
 
 
+@pytest.mark.parametrize("scenario", ["CONTROLLED", "EXTERNAL", "DRIVEN"])
+def test_a_switch_to_driven_is_refused_where_there_is_nothing_to_switch(scenario: str) -> None:
+    with pytest.raises(
+        InvalidArgument,
+        match=rf"^wrong_model DRIVEN turns a PASSIVE filter .* is {scenario}: choose RESTART or KEEP$",
+    ):
+        config_for(pendulum(3), scenario, wrong_model="DRIVEN")
+
+
 def test_guard_reinitialises_after_a_run_of_absurd_innovations() -> None:
     model = pendulum(1)
     config = config_for(model, "PASSIVE", q_var=0.0, p0=1e-8, r=1e-6)

@@ -357,6 +357,7 @@ class _WrongModelEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_WrongModel
     settings, started from that frame. That result says `absorbed`, and every later result's
     `scenario` is SCENARIO_DRIVEN; `filter_state` and `covariance` then have the DRIVEN layout
     ([q, qd, f], 3 nv). The tick cost admitted at open (REALTIME) was the PASSIVE filter's.
+    SCENARIO_PASSIVE only: asked for another scenario it is INVALID_ARGUMENT.
     """
     WRONG_MODEL_RESTART: _WrongModel.ValueType  # 3
     """When the NIS passes its one-sample 0.999 quantile (chi-square with m degrees of freedom, m the
@@ -385,6 +386,7 @@ see drives the body: the session's filter becomes SCENARIO_DRIVEN with PRESET_JI
 settings, started from that frame. That result says `absorbed`, and every later result's
 `scenario` is SCENARIO_DRIVEN; `filter_state` and `covariance` then have the DRIVEN layout
 ([q, qd, f], 3 nv). The tick cost admitted at open (REALTIME) was the PASSIVE filter's.
+SCENARIO_PASSIVE only: asked for another scenario it is INVALID_ARGUMENT.
 """
 WRONG_MODEL_RESTART: WrongModel.ValueType  # 3
 """When the NIS passes its one-sample 0.999 quantile (chi-square with m degrees of freedom, m the
