@@ -24,29 +24,14 @@ import argparse
 import statistics
 import sys
 import time
-import warnings
 from collections.abc import Callable
-from pathlib import Path
 
 import mujoco
 import numpy as np
 
+from benchmarks.ukf_cycle import load
 from jitdyn.server.estimation.forecast import PROBES, ForecastCombiner
 from jitdyn.server.estimation.propagate import process_model
-
-MODELS = Path(__file__).resolve().parents[1] / "models"
-
-
-def _load(name: str) -> mujoco.MjModel | None:
-    if name.startswith("pendulum"):
-        return mujoco.MjModel.from_xml_path(str(MODELS / f"{name}.xml"))
-    try:
-        import myo_sim
-    except ImportError:
-        return None
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # "Attaching a spec with an empty prefix": myo_sim's own
-        return myo_sim.load_model(name)
 
 
 def _thread_seconds(run: Callable[[], None], count: int) -> float:
@@ -57,8 +42,9 @@ def _thread_seconds(run: Callable[[], None], count: int) -> float:
 
 
 def measure(name: str, dt: float, rounds: int, ticks: int) -> dict[str, float] | None:
-    own = _load(name)
-    if own is None:
+    try:
+        own, _ = load(name)
+    except ImportError:  # myo_sim: the jitdyn[myo] extra
         return None
     process = process_model(own, scenario="DRIVEN")
     combiner = ForecastCombiner(process, dt=dt, steps_per_tick=1, horizon=100)
