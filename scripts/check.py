@@ -3,6 +3,10 @@ repository, then mypy strict over `jitdyn` with every first-party import resolve
 
     python scripts/check.py
 
+It also holds the server's functions short: none past MAX_FUNCTION_LINES lines (its `def` to its
+last line) or with more than MAX_POSITIONAL positional parameters (self and cls aside); past that,
+a function is hiding a step or a value object.
+
 mypy cannot follow setuptools' editable finder, and our folders (server/, client/, ...) are
 installed under `jitdyn` by `package-dir`, so this assembles the namespace as the wheel lays it
 out, as a tree of symlinks read from pyproject.toml, and checks that tree as package `jitdyn`.
@@ -10,6 +14,7 @@ out, as a tree of symlinks read from pyproject.toml, and checks that tree as pac
 
 from __future__ import annotations
 
+import ast
 import os
 import subprocess
 import sys
@@ -50,6 +55,35 @@ def namespace_tree(into: Path) -> Path:
     return into
 
 
+# Where functions are held short, and how short.
+SHORT_FUNCTION_PATHS = ["server"]
+MAX_FUNCTION_LINES = 60
+MAX_POSITIONAL = 6
+
+
+def long_functions(paths: list[str] = SHORT_FUNCTION_PATHS) -> list[str]:
+    """`path:line name: why` for every function under `paths` that is too long or takes too many
+    positional parameters."""
+    found = []
+    for folder in paths:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            tree = ast.parse(path.read_text(), filename=str(path))
+            for node in ast.walk(tree):
+                if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    continue
+                where = f"{path.relative_to(ROOT)}:{node.lineno} {node.name}"
+                lines = (node.end_lineno or node.lineno) - node.lineno + 1
+                if lines > MAX_FUNCTION_LINES:
+                    found.append(f"{where}: {lines} lines, more than {MAX_FUNCTION_LINES}")
+                positional = [a.arg for a in (*node.args.posonlyargs, *node.args.args)]
+                positional = [a for a in positional if a not in ("self", "cls")]
+                if len(positional) > MAX_POSITIONAL:
+                    found.append(
+                        f"{where}: {len(positional)} positional parameters, more than {MAX_POSITIONAL}"
+                    )
+    return found
+
+
 def _tool(name: str) -> str:
     return str(Path(sysconfig.get_path("scripts")) / name)
 
@@ -59,6 +93,10 @@ def main() -> int:
     for args in (["check", *RUFF_PATHS], ["format", "--check", *RUFF_PATHS]):
         print(f"$ ruff {' '.join(args[:2])} ...", flush=True)
         failed |= subprocess.run([_tool("ruff"), *args], cwd=ROOT, check=False).returncode != 0
+    print(f"$ function lengths in {', '.join(SHORT_FUNCTION_PATHS)}/ ...", flush=True)
+    for problem in long_functions():
+        print(problem)
+        failed = True
     with tempfile.TemporaryDirectory(prefix="jitdyn-typecheck-") as tmp:
         tree = namespace_tree(Path(tmp))
         print("$ mypy --strict -p jitdyn (the installed layout)", flush=True)
