@@ -186,6 +186,7 @@ class StreamSessionResponse(_message.Message):
     REJECTED_FIELD_NUMBER: _builtins.int
     SYNC_FIELD_NUMBER: _builtins.int
     CLOSED_FIELD_NUMBER: _builtins.int
+    MOVING_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def opened(self) -> Global___SessionOpened:
         """The session is open."""
@@ -206,6 +207,10 @@ class StreamSessionResponse(_message.Message):
     def closed(self) -> Global___SessionClosed:
         """The session is closed and stored."""
 
+    @_builtins.property
+    def moving(self) -> Global___Moving:
+        """The server is draining: resume this session on another replica now (see `resume`)."""
+
     def __init__(
         self,
         *,
@@ -214,16 +219,74 @@ class StreamSessionResponse(_message.Message):
         rejected: Global___Rejected | None = ...,
         sync: Global___SyncPong | None = ...,
         closed: Global___SessionClosed | None = ...,
+        moving: Global___Moving | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "opened", b"opened", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "opened", b"opened", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_payload: _TypeAlias = _typing.Literal["opened", "result", "rejected", "sync", "closed"]  # noqa: Y015
+    _WhichOneofReturnType_payload: _TypeAlias = _typing.Literal["opened", "result", "rejected", "sync", "closed", "moving"]  # noqa: Y015
     _WhichOneofArgType_payload: _TypeAlias = _typing.Literal["payload", b"payload"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_payload) -> _WhichOneofReturnType_payload | None: ...
 
 Global___StreamSessionResponse: _TypeAlias = StreamSessionResponse  # noqa: Y015
+
+@_typing.final
+class Moving(_message.Message):
+    """The replica serving the session is going away (it was told to drain). Nothing is lost: every
+    frame up to `durable_seq` is in the shared tier; the client reconnects (through the balancer),
+    opens again with `resume`, and re-sends the frames after `durable_seq`.
+    """
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    REASON_FIELD_NUMBER: _builtins.int
+    DURABLE_SEQ_FIELD_NUMBER: _builtins.int
+    reason: _builtins.str
+    """Why, for people (e.g. "the replica is draining for a restart")."""
+    durable_seq: _builtins.int
+    """Every frame up to this seq is durable off this host."""
+    def __init__(
+        self,
+        *,
+        reason: _builtins.str = ...,
+        durable_seq: _builtins.int | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "durable_seq", b"durable_seq"]  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "durable_seq", b"durable_seq", "reason", b"reason"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    _WhichOneofReturnType__durable_seq: _TypeAlias = _typing.Literal["durable_seq"]  # noqa: Y015
+    _WhichOneofArgType__durable_seq: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__durable_seq) -> _WhichOneofReturnType__durable_seq | None: ...
+
+Global___Moving: _TypeAlias = Moving  # noqa: Y015
+
+@_typing.final
+class Resume(_message.Message):
+    """Continues a session that another stream opened (its replica was lost, or said `moving`)."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    SESSION_ID_FIELD_NUMBER: _builtins.int
+    TOKEN_FIELD_NUMBER: _builtins.int
+    session_id: _builtins.str
+    """The session to continue (`SessionOpened.session_id`)."""
+    token: _builtins.str
+    """Its `SessionOpened.resume_token`; a wrong token is PERMISSION_DENIED."""
+    def __init__(
+        self,
+        *,
+        session_id: _builtins.str = ...,
+        token: _builtins.str = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["session_id", b"session_id", "token", b"token"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___Resume: _TypeAlias = Resume  # noqa: Y015
 
 @_typing.final
 class Subject(_message.Message):
@@ -301,6 +364,7 @@ class OpenSession(_message.Message):
     SUBJECT_FIELD_NUMBER: _builtins.int
     GRACE_FIELD_NUMBER: _builtins.int
     HISTORY_FIELD_NUMBER: _builtins.int
+    RESUME_FIELD_NUMBER: _builtins.int
     model_id: _builtins.str
     """A registered model by content id ("sha256:...")."""
     model_name: _builtins.str
@@ -349,6 +413,13 @@ class OpenSession(_message.Message):
     def subject(self) -> Global___Subject:
         """Who the data is about; anonymised before anything is stored."""
 
+    @_builtins.property
+    def resume(self) -> Global___Resume:
+        """Set to continue an existing session (see StreamSession): the other fields must be those of
+        the session's first `open`. A session that is closed, or unknown to the shared index, is
+        NOT_FOUND; one whose owner still holds it is FAILED_PRECONDITION until its lease ends.
+        """
+
     def __init__(
         self,
         *,
@@ -366,10 +437,11 @@ class OpenSession(_message.Message):
         subject: Global___Subject | None = ...,
         grace: _builtins.float = ...,
         history: _builtins.int = ...,
+        resume: Global___Resume | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["estimator", b"estimator", "inline_model", b"inline_model", "model", b"model", "model_id", b"model_id", "model_name", b"model_name", "subject", b"subject"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["estimator", b"estimator", "inline_model", b"inline_model", "model", b"model", "model_id", b"model_id", "model_name", b"model_name", "resume", b"resume", "subject", b"subject"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["clock", b"clock", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "horizon", b"horizon", "inline_model", b"inline_model", "measured", b"measured", "model", b"model", "model_id", b"model_id", "model_name", b"model_name", "model_version", b"model_version", "outputs", b"outputs", "scenario", b"scenario", "subject", b"subject"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["clock", b"clock", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "horizon", b"horizon", "inline_model", b"inline_model", "measured", b"measured", "model", b"model", "model_id", b"model_id", "model_name", b"model_name", "model_version", b"model_version", "outputs", b"outputs", "resume", b"resume", "scenario", b"scenario", "subject", b"subject"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType_model: _TypeAlias = _typing.Literal["model_id", "model_name", "inline_model"]  # noqa: Y015
     _WhichOneofArgType_model: _TypeAlias = _typing.Literal["model", b"model"]  # noqa: Y015
@@ -598,6 +670,9 @@ class SessionOpened(_message.Message):
     SCENARIO_FIELD_NUMBER: _builtins.int
     SCENARIO_REASON_FIELD_NUMBER: _builtins.int
     NOISE_REASON_FIELD_NUMBER: _builtins.int
+    RESUME_TOKEN_FIELD_NUMBER: _builtins.int
+    RESUME_FROM_SEQ_FIELD_NUMBER: _builtins.int
+    RESUME_REASON_FIELD_NUMBER: _builtins.int
     session_id: _builtins.str
     """The session's id (a UUID)."""
     state_dimension: _builtins.int
@@ -623,6 +698,18 @@ class SessionOpened(_message.Message):
     noise_reason: _builtins.str
     """Why the session got the noise model in `estimator.noise_model`: asked for, the model's
     defaults, or the preset's for the scenario.
+    """
+    resume_token: _builtins.str
+    """An opaque token that lets this session be resumed on any replica (`OpenSession.resume`);
+    empty when the server cannot resume sessions (no shared index).
+    """
+    resume_from_seq: _builtins.int
+    """A resumed session: the first tick this stream expects; frames before it are already stored.
+    Unset for a new session.
+    """
+    resume_reason: _builtins.str
+    """A resumed session: how its estimator continues ("restored from the snapshot at tick 812",
+    or "restarted from the next frame"); empty for a new session.
     """
     @_builtins.property
     def model(self) -> _model_registry_pb2.Model:
@@ -662,12 +749,17 @@ class SessionOpened(_message.Message):
         scenario: _common_pb2.Scenario.ValueType = ...,
         scenario_reason: _builtins.str = ...,
         noise_reason: _builtins.str = ...,
+        resume_token: _builtins.str = ...,
+        resume_from_seq: _builtins.int | None = ...,
+        resume_reason: _builtins.str = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["estimator", b"estimator", "model", b"model"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["_resume_from_seq", b"_resume_from_seq", "estimator", b"estimator", "model", b"model", "resume_from_seq", b"resume_from_seq"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["dropped_attributes", b"dropped_attributes", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "measured", b"measured", "model", b"model", "noise_reason", b"noise_reason", "outputs", b"outputs", "scenario", b"scenario", "scenario_reason", b"scenario_reason", "session_id", b"session_id", "state_dimension", b"state_dimension", "steps_per_tick", b"steps_per_tick", "subject_pseudonym", b"subject_pseudonym"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_resume_from_seq", b"_resume_from_seq", "dropped_attributes", b"dropped_attributes", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "measured", b"measured", "model", b"model", "noise_reason", b"noise_reason", "outputs", b"outputs", "resume_from_seq", b"resume_from_seq", "resume_reason", b"resume_reason", "resume_token", b"resume_token", "scenario", b"scenario", "scenario_reason", b"scenario_reason", "session_id", b"session_id", "state_dimension", b"state_dimension", "steps_per_tick", b"steps_per_tick", "subject_pseudonym", b"subject_pseudonym"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    def WhichOneof(self, oneof_group: _Never) -> None: ...
+    _WhichOneofReturnType__resume_from_seq: _TypeAlias = _typing.Literal["resume_from_seq"]  # noqa: Y015
+    _WhichOneofArgType__resume_from_seq: _TypeAlias = _typing.Literal["_resume_from_seq", b"_resume_from_seq"]  # noqa: Y015
+    def WhichOneof(self, oneof_group: _WhichOneofArgType__resume_from_seq) -> _WhichOneofReturnType__resume_from_seq | None: ...
 
 Global___SessionOpened: _TypeAlias = SessionOpened  # noqa: Y015
 

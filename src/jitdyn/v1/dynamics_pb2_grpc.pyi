@@ -44,7 +44,13 @@ class DynamicsServiceStub:
     the field, what was expected and what arrived), NOT_FOUND (unknown model), FAILED_PRECONDITION
     (a message before `open`), UNAUTHENTICATED, PERMISSION_DENIED, RESOURCE_EXHAUSTED (too many
     sessions, state dimension or frame rate over the server's limits), UNAVAILABLE (the server is
-    shutting down; the session is stored).
+    shutting down, or cannot reach the shared tier; the session is stored, and a client that holds
+    its `resume_token` may continue it on any replica).
+
+    Resumption: `opened.resume_token` lets a client whose stream broke (a replica lost, a
+    `moving` notice) continue the same session on any replica that shares the index and the data
+    root: it sends the `open` it first sent, with `resume` set, and then re-sends its frames from
+    `opened.resume_from_seq` on. The stored session stays one session with one id.
     """
 
 @_typing.type_check_only
@@ -63,7 +69,13 @@ class DynamicsServiceAsyncStub(DynamicsServiceStub):
     the field, what was expected and what arrived), NOT_FOUND (unknown model), FAILED_PRECONDITION
     (a message before `open`), UNAUTHENTICATED, PERMISSION_DENIED, RESOURCE_EXHAUSTED (too many
     sessions, state dimension or frame rate over the server's limits), UNAVAILABLE (the server is
-    shutting down; the session is stored).
+    shutting down, or cannot reach the shared tier; the session is stored, and a client that holds
+    its `resume_token` may continue it on any replica).
+
+    Resumption: `opened.resume_token` lets a client whose stream broke (a replica lost, a
+    `moving` notice) continue the same session on any replica that shares the index and the data
+    root: it sends the `open` it first sent, with `resume` set, and then re-sends its frames from
+    `opened.resume_from_seq` on. The stored session stays one session with one id.
     """
 
 class DynamicsServiceServicer(metaclass=_abc_1.ABCMeta):
@@ -85,7 +97,13 @@ class DynamicsServiceServicer(metaclass=_abc_1.ABCMeta):
         the field, what was expected and what arrived), NOT_FOUND (unknown model), FAILED_PRECONDITION
         (a message before `open`), UNAUTHENTICATED, PERMISSION_DENIED, RESOURCE_EXHAUSTED (too many
         sessions, state dimension or frame rate over the server's limits), UNAVAILABLE (the server is
-        shutting down; the session is stored).
+        shutting down, or cannot reach the shared tier; the session is stored, and a client that holds
+        its `resume_token` may continue it on any replica).
+
+        Resumption: `opened.resume_token` lets a client whose stream broke (a replica lost, a
+        `moving` notice) continue the same session on any replica that shares the index and the data
+        root: it sends the `open` it first sent, with `resume` set, and then re-sends its frames from
+        `opened.resume_from_seq` on. The stored session stays one session with one id.
         """
 
 def add_DynamicsServiceServicer_to_server(servicer: DynamicsServiceServicer, server: _typing.Union[_grpc.Server, _aio.Server]) -> None: ...
