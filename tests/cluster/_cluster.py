@@ -405,7 +405,7 @@ def _ip(*args: str) -> None:
 
 class NetnsHost:
     """A host of its own: a network namespace joined to this one by a veth pair on a /30, so a
-    test can cut it off (`cut()`: the link goes down, packets are dropped, nothing is refused).
+    test can cut it off (`cut()`: the link goes down; the processes inside run on, unreachable).
     The namespace reaches the host's PostgreSQL through a forward on the host's side of the pair."""
 
     def __init__(self) -> None:

@@ -19,6 +19,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from _cluster import Balancer, MotoS3, NetnsHost, Replica, Unavailable, postgres_database, tool
 
 REPLICA_HOSTS = ("127.0.0.2", "127.0.0.3", "127.0.0.4")
+SPARE_HOST = "127.0.0.9"
 
 
 @pytest.fixture(scope="session")
@@ -36,13 +37,15 @@ def index_url() -> Iterator[str]:
 
 
 @pytest.fixture(scope="session")
-def replicas(index_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[Replica]]:
-    """Three replicas started together (as a deployment rolls out), one per loopback address."""
+def _replica_processes(index_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[Replica]]:
+    """Every session-scoped replica, started together (as a deployment rolls out, and because each
+    takes seconds to start): the three of `replicas`, then `spare_replica`."""
     root = tmp_path_factory.mktemp("replicas")
-    with ExitStack() as stack, ThreadPoolExecutor(len(REPLICA_HOSTS)) as pool:
+    names = [*(f"r{n}" for n in range(1, len(REPLICA_HOSTS) + 1)), "spare"]
+    with ExitStack() as stack, ThreadPoolExecutor(len(names)) as pool:
         futures = [
-            pool.submit(Replica.start, f"r{n}", host=host, data=root / f"r{n}", index_url=index_url)
-            for n, host in enumerate(REPLICA_HOSTS, start=1)
+            pool.submit(Replica.start, name, host=host, data=root / name, index_url=index_url)
+            for name, host in zip(names, (*REPLICA_HOSTS, SPARE_HOST), strict=True)
         ]
         started = []
         for future in futures:
@@ -51,6 +54,18 @@ def replicas(index_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterat
             except Unavailable as reason:
                 pytest.skip(str(reason))
         yield started
+
+
+@pytest.fixture(scope="session")
+def replicas(_replica_processes: list[Replica]) -> list[Replica]:
+    """Three replicas, one per loopback address, sharing the run's PostgreSQL index."""
+    return _replica_processes[: len(REPLICA_HOSTS)]
+
+
+@pytest.fixture(scope="session")
+def spare_replica(_replica_processes: list[Replica]) -> Replica:
+    """A fourth replica on the same index, behind no session-scoped balancer: one test may kill it."""
+    return _replica_processes[-1]
 
 
 def _haproxy_or_skip() -> None:

@@ -121,11 +121,10 @@ def test_client_side_round_robin_over_the_replicas_addresses_spreads_sessions(
 
 def test_a_killed_replica_is_down_within_a_second_and_new_sessions_go_to_the_live_one(
     replicas: list[Replica],
-    start_replica: Callable[..., Replica],
+    spare_replica: Replica,
     start_balancer: Callable[[Sequence[Replica]], Balancer],
 ) -> None:
-    live = replicas[0]
-    doomed = start_replica("doomed", "127.0.0.9")
+    live, doomed = replicas[0], spare_replica
     balancer = start_balancer([live, doomed])
     with Client(balancer.address) as client:
         # Round robin puts one of two sessions on each replica; the doomed one's gauge says which.
@@ -137,7 +136,7 @@ def test_a_killed_replica_is_down_within_a_second_and_new_sessions_go_to_the_liv
 
         doomed.kill()
         killed_at = time.monotonic()
-        wait_for(lambda: balancer.server_states()["doomed"].startswith("DOWN"), timeout=5, what="not DOWN")
+        wait_for(lambda: balancer.server_states()[doomed.name].startswith("DOWN"), timeout=5, what="not DOWN")
         down_after = time.monotonic() - killed_at
 
         with pytest.raises(JitdynError) as broken:
@@ -151,7 +150,7 @@ def test_a_killed_replica_is_down_within_a_second_and_new_sessions_go_to_the_liv
             assert len(run(session)) == TICKS
             session.close()
     print(
-        f"doomed marked DOWN {down_after * 1000:.0f} ms after kill -9; its open session got "
+        f"{doomed.name} marked DOWN {down_after * 1000:.0f} ms after kill -9; its open session got "
         f"{type(broken.value).__name__}: {broken.value}"
     )
     assert down_after < 1.0

@@ -1,6 +1,7 @@
 """A replica on a host of its own (a network namespace, a veth pair, the shared PostgreSQL index
-reached across it) answers, and once its link is cut it does not: no refusal, no reset, only
-silence, as when a host drops off the network. Later tests cut replicas off this way."""
+reached across it) answers, and once its link is cut it does not, though the process runs on: new
+connections find no route (UNAVAILABLE at once) or silence (DEADLINE_EXCEEDED), and open ones go
+quiet, as when a host drops off the network. Later tests cut replicas off this way."""
 
 from __future__ import annotations
 
