@@ -1,0 +1,216 @@
+"""deploy/ as Kubernetes and Docker will read it, checked offline: every manifest against the
+Kubernetes API's own schemas (kubernetes-validate bundles them), the probes and the autoscaler
+against what jitdyn serves, every JITDYN_* setting against jitdyn's settings, and the Dockerfile's
+form (no Docker engine runs here)."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+import sys
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import kubernetes_validate
+import prometheus_client
+import pytest
+import yaml
+
+from jitdyn.settings import settings_for
+from jitdyn.v1 import dynamics_pb2
+
+REPO = Path(__file__).resolve().parents[2]
+KUBERNETES = REPO / "deploy" / "kubernetes"
+DOCKERFILE = REPO / "deploy" / "Dockerfile"
+KUBERNETES_VERSION = "1.30"  # the oldest minor still supported by the cloud providers, late 2026
+SESSION_SERVICE = dynamics_pb2.DESCRIPTOR.services_by_name["DynamicsService"].full_name
+# Read by the server but not `jitdyn serve` flags (JITDYN_SECRET), or by the shared-tier work to
+# come (JITDYN_DATA_ROOT).
+OTHER_JITDYN_ENV = {"JITDYN_SECRET", "JITDYN_DATA_ROOT"}
+
+
+def _resources() -> Iterator[tuple[str, dict[str, Any]]]:
+    for path in sorted(KUBERNETES.glob("*.yaml")):
+        for document in yaml.safe_load_all(path.read_text()):
+            if document:
+                yield path.name, document
+
+
+def _one(kind: str) -> dict[str, Any]:
+    (found,) = [r for _, r in _resources() if r["kind"] == kind]
+    return found
+
+
+@pytest.mark.parametrize("version", [KUBERNETES_VERSION, kubernetes_validate.latest_version()])
+def test_every_manifest_is_valid_against_the_kubernetes_schemas(version: str) -> None:
+    kinds = []
+    for name, resource in _resources():
+        try:
+            kubernetes_validate.validate(resource, version, strict=True)
+        except kubernetes_validate.ValidationError as error:
+            raise AssertionError(f"{name}: {resource['kind']} {error.path}: {error.message}") from None
+        kinds.append(resource["kind"])
+    assert sorted(kinds) == sorted(
+        [
+            "ConfigMap",
+            "Deployment",
+            "HorizontalPodAutoscaler",
+            "PodDisruptionBudget",
+            "Secret",
+            "Service",
+            "Service",
+        ]
+    )
+
+
+def test_the_selectors_pick_the_deployments_pods() -> None:
+    labels = _one("Deployment")["spec"]["template"]["metadata"]["labels"]
+    for name, resource in _resources():
+        selector = resource.get("spec", {}).get("selector")
+        if selector is None:
+            continue
+        wanted = selector.get("matchLabels", selector)
+        assert wanted.items() <= labels.items(), name
+    assert (
+        _one("HorizontalPodAutoscaler")["spec"]["scaleTargetRef"]["name"]
+        == _one("Deployment")["metadata"]["name"]
+    )
+
+
+def test_probes_ask_jitdyn_grpc_health_on_the_grpc_port() -> None:
+    (container,) = _one("Deployment")["spec"]["template"]["spec"]["containers"]
+    ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+    for probe in ("readinessProbe", "livenessProbe", "startupProbe"):
+        assert container[probe]["grpc"]["port"] == ports["grpc"], probe
+    # Readiness follows the session service: a draining replica (NOT_SERVING) takes no new sessions.
+    assert container["readinessProbe"]["grpc"]["service"] == SESSION_SERVICE
+
+
+def test_the_autoscaler_follows_a_metric_jitdyn_exports() -> None:
+    from jitdyn.server.transport.metrics import metrics
+
+    metrics()
+    exported = {family.name for family in prometheus_client.REGISTRY.collect()}
+    pods = [
+        m["pods"]["metric"]["name"]
+        for m in _one("HorizontalPodAutoscaler")["spec"]["metrics"]
+        if m["type"] == "Pods"
+    ]
+    assert pods and set(pods) <= exported, (pods, sorted(n for n in exported if n.startswith("jitdyn")))
+
+
+def _environment() -> dict[str, str]:
+    """Every environment variable the pod gets, from its env, the ConfigMap and the Secret."""
+    (container,) = _one("Deployment")["spec"]["template"]["spec"]["containers"]
+    environment = {e["name"]: e["value"] for e in container["env"]}
+    environment.update(_one("ConfigMap")["data"])
+    environment.update(_one("Secret")["stringData"])
+    return environment
+
+
+def test_every_jitdyn_setting_the_pod_gets_is_one_jitdyn_serve_reads_and_parses() -> None:
+    settings = {s.env: s for s in settings_for("serve")}
+    environment = _environment()
+    for name, value in environment.items():
+        if not name.startswith("JITDYN_") or name in OTHER_JITDYN_ENV:
+            continue
+        assert name in settings, f"{name} is not a setting of jitdyn serve"
+        settings[name].parse(value)
+    # A non-loopback address needs TLS and keys or JITDYN_INSECURE; keys stay required.
+    assert settings["JITDYN_INSECURE"].parse(environment["JITDYN_INSECURE"]) is True
+    assert environment["JITDYN_API_KEYS"].startswith("/etc/jitdyn/")
+    assert {"AWS_ENDPOINT_URL", "AWS_REGION", "JITDYN_DATA_ROOT", "JITDYN_INDEX_URL"} <= environment.keys()
+    assert environment["JITDYN_DATA_ROOT"].startswith("s3://")
+    secret = _one("Secret")["stringData"]
+    assert {
+        "AWS_ACCESS_KEY_ID",
+        "AWS_SECRET_ACCESS_KEY",
+        "JITDYN_SECRET",
+        "PGPASSWORD",
+        "api-keys",
+    } <= secret.keys()
+    assert not {"AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "PGPASSWORD"} & _one("ConfigMap")["data"].keys()
+
+
+def _instructions() -> list[tuple[str, str]]:
+    text = re.sub(r"\\\n", " ", DOCKERFILE.read_text())
+    lines = [line.strip() for line in text.splitlines()]
+    return [
+        (parts[0].upper(), parts[1] if len(parts) > 1 else "")
+        for parts in (line.split(None, 1) for line in lines if line and not line.startswith("#"))
+    ]
+
+
+def test_the_dockerfile_builds_the_wheel_and_runs_it_as_a_user_on_a_pinned_slim_python() -> None:
+    instructions = _instructions()
+    (base,) = [v for k, v in instructions if k == "ARG" and v.startswith("PYTHON_IMAGE=")]
+    assert re.fullmatch(r"PYTHON_IMAGE=python:3\.11\.\d+-slim-\w+(@sha256:[0-9a-f]{64})?", base), base
+    stages = [v for k, v in instructions if k == "FROM"]
+    assert stages == ["${PYTHON_IMAGE} AS build", "${PYTHON_IMAGE}"]
+    final = instructions[[k for k, _ in instructions].index("FROM", 2) :]
+    build = instructions[: len(instructions) - len(final)]
+    assert any(k == "RUN" and "pip wheel" in v and "--no-deps" in v for k, v in build)
+    assert ("COPY", "--from=build /wheels/ /wheels/") in final
+    assert any(k == "RUN" and "pip install" in v and "/wheels/jitdyn-" in v for k, v in final)
+    users = [v for k, v in final if k == "USER"]
+    assert users and users[-1].split(":")[0] not in ("root", "0")
+    assert ("ENTRYPOINT", '["jitdyn", "serve"]') in final
+    assert any(k == "EXPOSE" and "50051" in v.split() for k, v in final)
+    assert any(k == "ENV" and "JITDYN_ADDRESS=0.0.0.0:50051" in v for k, v in final)
+
+
+def test_the_dockerfile_copies_every_package_the_wheel_is_built_from() -> None:
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())
+    folders = {Path(folder).parts[0] for folder in config["tool"]["setuptools"]["package-dir"].values()}
+    copied = {
+        source.rstrip("/")
+        for kind, value in _instructions()
+        if kind == "COPY" and not value.startswith("--from")
+        for source in value.split()[:-1]
+    }
+    assert folders | {"pyproject.toml", config["project"]["readme"]} <= copied
+    ignored = (REPO / ".dockerignore").read_text().splitlines()
+    assert {f"!{name}/" for name in folders} <= set(ignored), (
+        "the build context must keep every package folder"
+    )
+
+
+def test_the_wheel_builds_from_what_the_dockerfile_copies(tmp_path: Path) -> None:
+    # The builder stage, without Docker: copy what it copies, build the wheel, look inside.
+    context = tmp_path / "src"
+    for kind, value in _instructions():
+        if kind == "COPY" and not value.startswith("--from"):
+            *sources, _ = value.split()
+            for source in sources:
+                origin = REPO / source.rstrip("/")
+                if origin.is_dir():
+                    shutil.copytree(
+                        origin, context / origin.name, ignore=shutil.ignore_patterns("__pycache__")
+                    )
+                else:
+                    context.mkdir(parents=True, exist_ok=True)
+                    shutil.copy(origin, context / origin.name)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            str(tmp_path / "w"),
+            ".",
+        ],
+        cwd=context,
+        check=True,
+    )
+    (wheel,) = (tmp_path / "w").glob("jitdyn-*.whl")
+    listing = subprocess.run(
+        [sys.executable, "-m", "zipfile", "-l", str(wheel)], check=True, capture_output=True, text=True
+    ).stdout
+    assert "jitdyn/server/transport/app.py" in listing and "jitdyn/cli/main.py" in listing
