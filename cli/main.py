@@ -189,30 +189,19 @@ def build_parser() -> argparse.ArgumentParser:
         choices=tuple(scenario.lower() for scenario in Scenario),
         help="default passive",
     )
-    demo.add_argument(
-        "--seconds",
-        type=argparse_type(_seconds, "seconds"),
-        default=10.0,
-        help="session length, s (default 10)",
-    )
-    demo.add_argument(
-        "--latency",
-        type=argparse_type(parse_duration, "duration"),
-        default=0.035,
-        help="one-way latency with a unit: 35ms, 0.1s (default 35ms)",
-    )
-    demo.add_argument(
-        "--jitter",
-        type=argparse_type(parse_duration, "duration"),
-        default=0.010,
-        help="latency spread with a unit (default 10ms)",
-    )
-    demo.add_argument(
-        "--loss",
-        type=argparse_type(_probability, "probability"),
-        default=0.05,
-        help="frame loss probability: 0.05 or 5%% (default 0.05)",
-    )
+    for flag, parse_text, kind, default, text in (
+        ("--seconds", _seconds, "seconds", 10.0, "session length, s (default 10)"),
+        (
+            "--latency",
+            parse_duration,
+            "duration",
+            0.035,
+            "one-way latency with a unit: 35ms, 0.1s (default 35ms)",
+        ),
+        ("--jitter", parse_duration, "duration", 0.010, "latency spread with a unit (default 10ms)"),
+        ("--loss", _probability, "probability", 0.05, "frame loss probability: 0.05 or 5%% (default 0.05)"),
+    ):
+        demo.add_argument(flag, type=argparse_type(parse_text, kind), default=default, help=text)
     demo.add_argument(
         "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
     )

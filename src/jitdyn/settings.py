@@ -188,6 +188,16 @@ def setting(
     return field(default=default, metadata=metadata)
 
 
+def _serve_file(help: str) -> Any:
+    """A file `serve` reads, none by default."""
+    return setting(None, parse=_path, commands=("serve",), metavar="FILE", help=help)
+
+
+def _quota(help: str) -> Any:
+    """A count of open sessions `serve` allows, 0 for no quota."""
+    return setting(0, parse=_count, commands=("serve",), metavar="N", default_text="0: no quota", help=help)
+
+
 @dataclass(frozen=True)
 class Settings:
     """Every setting of every command, typed; the defaults are the embedded, loopback set-up."""
@@ -241,23 +251,11 @@ class Settings:
         help="HMAC key of subject pseudonyms, mode 0600, outside the data folder, created at first start; "
         "JITDYN_SECRET=hex in the environment overrides it",
     )
-    tls_cert: Path | None = setting(
-        None,
-        parse=_path,
-        commands=("serve",),
-        metavar="FILE",
-        help="PEM certificate chain, to serve over TLS",
-    )
-    tls_key: Path | None = setting(
-        None, parse=_path, commands=("serve",), metavar="FILE", help="PEM private key of --tls-cert"
-    )
-    api_keys: Path | None = setting(
-        None,
-        parse=_path,
-        commands=("serve",),
-        metavar="FILE",
-        help="file of `KEY TENANT` lines: every RPC must then carry `authorization: Bearer KEY` and sees "
-        "only its tenant's sessions and models",
+    tls_cert: Path | None = _serve_file("PEM certificate chain, to serve over TLS")
+    tls_key: Path | None = _serve_file("PEM private key of --tls-cert")
+    api_keys: Path | None = _serve_file(
+        "file of `KEY TENANT` lines: every RPC must then carry `authorization: Bearer KEY` and sees "
+        "only its tenant's sessions and models"
     )
     insecure: bool = setting(
         False,
@@ -291,22 +289,10 @@ class Settings:
         default_text="none",
         help="serve Prometheus metrics there, e.g. 127.0.0.1:9464",
     )
-    max_sessions: int = setting(
-        0,
-        parse=_count,
-        commands=("serve",),
-        metavar="N",
-        default_text="0: no quota",
-        help="open sessions per process, a quota (REALTIME sessions are admitted by --tick-budget)",
+    max_sessions: int = _quota(
+        "open sessions per process, a quota (REALTIME sessions are admitted by --tick-budget)"
     )
-    max_sessions_per_tenant: int = setting(
-        0,
-        parse=_count,
-        commands=("serve",),
-        metavar="N",
-        default_text="0: no quota",
-        help="open sessions per tenant and process, a quota",
-    )
+    max_sessions_per_tenant: int = _quota("open sessions per tenant and process, a quota")
     max_state_dimension: int = setting(
         200, parse=positive_int, commands=("serve",), metavar="N", help="largest nv of a session's model"
     )
