@@ -114,15 +114,18 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     def leaf(
-        subparsers: argparse._SubParsersAction[argparse.ArgumentParser], name: str, group: str, **kwargs: Any
+        subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+        name: str,
+        group: str | None = None,
+        **kwargs: Any,
     ) -> argparse.ArgumentParser:
+        """A command's parser, with the settings of `group` (default: the command itself)."""
         return subparsers.add_parser(
-            name, parents=[common, _settings_parent(group)], epilog=_EPILOG, **kwargs
+            name, parents=[common, _settings_parent(group or name)], epilog=_EPILOG, **kwargs
         )
 
     serve = leaf(
         commands,
-        "serve",
         "serve",
         help="run the server",
         description="Run the jitdyn server until Ctrl-C or SIGTERM.",
@@ -131,7 +134,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     models = leaf(
         commands,
-        "models",
         "models",
         help="register, list and show models",
         description="The model registry, from the shell.",
@@ -175,7 +177,6 @@ def build_parser() -> argparse.ArgumentParser:
     demo = leaf(
         commands,
         "demo",
-        "demo",
         help="a simulated REALTIME session over an emulated network",
         description="Drive a simulated research object (truth simulated by MuJoCo here) through an emulated "
         "network against a local in-process server (or --server), show progress, and print a summary.",
@@ -209,7 +210,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     sessions = leaf(
         commands,
-        "sessions",
         "sessions",
         help="list, show, query and export stored sessions",
         description="The stored sessions, read from the data folder and the SQL index (no server needed).",

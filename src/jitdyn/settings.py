@@ -188,6 +188,11 @@ def setting(
     return field(default=default, metadata=metadata)
 
 
+def _serve_address(default: str | None, help: str) -> Any:
+    """An address `serve` listens on."""
+    return setting(default, parse=parse_address, commands=("serve",), metavar="HOST:PORT", help=help)
+
+
 def _serve_file(help: str) -> Any:
     """A file `serve` reads, none by default."""
     return setting(None, parse=_path, commands=("serve",), metavar="FILE", help=help)
@@ -202,12 +207,9 @@ def _quota(help: str) -> Any:
 class Settings:
     """Every setting of every command, typed; the defaults are the embedded, loopback set-up."""
 
-    address: str = setting(
+    address: str = _serve_address(
         "127.0.0.1:50051",
-        parse=parse_address,
-        commands=("serve",),
-        metavar="HOST:PORT",
-        help="where the server listens (port 0 picks one); a non-loopback address needs "
+        "where the server listens (port 0 picks one); a non-loopback address needs "
         "--tls-cert, --tls-key and --api-keys, or --insecure",
     )
     server: str | None = setting(
@@ -281,14 +283,7 @@ class Settings:
         help="share of one core each process may spend on REALTIME ticks; a session whose measured cost "
         "would exceed it is refused with RESOURCE_EXHAUSTED",
     )
-    metrics_address: str | None = setting(
-        None,
-        parse=parse_address,
-        commands=("serve",),
-        metavar="HOST:PORT",
-        default_text="none",
-        help="serve Prometheus metrics there, e.g. 127.0.0.1:9464",
-    )
+    metrics_address: str | None = _serve_address(None, "serve Prometheus metrics there, e.g. 127.0.0.1:9464")
     max_sessions: int = _quota(
         "open sessions per process, a quota (REALTIME sessions are admitted by --tick-budget)"
     )
