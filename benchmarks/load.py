@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from jitdyn.server.runtime.alarm import Alarm
+from jitdyn.vocabulary import Clock, Preset, Scenario
 
 GRACE_FRACTION = 0.5  # the server's default grace, dt / 2
 TARGET_P99_MS = 5.0
@@ -52,10 +53,10 @@ TARGET_MEASURED = 0.99
 
 @dataclass(frozen=True)
 class Target:
-    """One row of the issue's targets: `sessions` of `model` in `scenario` at `rate` Hz."""
+    """One row of the load targets: `sessions` of `model` in `scenario` at `rate` Hz."""
 
     model: str
-    scenario: str
+    scenario: Scenario
     rate: float
     sessions: int
     aim: int
@@ -63,10 +64,10 @@ class Target:
 
 
 TARGETS = (
-    Target("pendulum_3", "PASSIVE", 20.0, 100, 200, 20.0),
-    Target("biped", "CONTROLLED", 200.0, 6, 12, 20.0),
-    Target("myoelbow", "EXTERNAL", 500.0, 6, 12, 20.0),
-    Target("myohand", "EXTERNAL", 500.0, 1, 1, 60.0),
+    Target("pendulum_3", Scenario.PASSIVE, 20.0, 100, 200, 20.0),
+    Target("biped", Scenario.CONTROLLED, 200.0, 6, 12, 20.0),
+    Target("myoelbow", Scenario.EXTERNAL, 500.0, 6, 12, 20.0),
+    Target("myohand", Scenario.EXTERNAL, 500.0, 1, 1, 60.0),
 )
 
 
@@ -77,7 +78,6 @@ TARGETS = (
 def trajectory(model: str, scenario: str, rate: float, ticks: int) -> dict[str, np.ndarray]:
     """qpos, qvel, ctrl of the research object `model` driven as the experiments drive it, at `rate`."""
     from jitdyn.experiments import objects
-    from jitdyn.experiments.objects import Scenario
 
     dt = 1.0 / rate
     kinds = {
@@ -96,7 +96,7 @@ def trajectory(model: str, scenario: str, rate: float, ticks: int) -> dict[str, 
     for _ in range(ticks - 1):
         # CONTROLLED: the object's controller, fed the truth (a client's own controller would be).
         now = states[-1]
-        ctrl = obj.control(now.t, now.qpos, now.qvel) if scenario == "CONTROLLED" else None
+        ctrl = obj.control(now.t, now.qpos, now.qvel) if scenario == Scenario.CONTROLLED else None
         states.append(obj.step(ctrl))
     return {
         "qpos": np.array([s.qpos for s in states]),
@@ -602,14 +602,14 @@ def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.nd
     from jitdyn.server.estimation.pool import WorkerPool
 
     mj = load_source(model).compile()
-    measured = {"qpos", "qvel", "ctrl"} if scenario == "CONTROLLED" else {"qpos", "qvel"}
+    measured = {"qpos", "qvel", "ctrl"} if scenario == Scenario.CONTROLLED else {"qpos", "qvel"}
     config = resolve_config(
         model=mj,
         scenario=scenario,
         dt=1.0 / rate,
         requested={},
         model_defaults={},
-        preset="JITDYN",
+        preset=Preset.JITDYN,
         measured=measured,
     )
     with WorkerPool(1) as pool:
@@ -619,14 +619,14 @@ def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.nd
             return Measurement(
                 qpos=states["qpos"][k],
                 qvel=states["qvel"][k],
-                ctrl=states["ctrl"][k] if scenario == "CONTROLLED" else None,
+                ctrl=states["ctrl"][k] if scenario == Scenario.CONTROLLED else None,
             )
 
         estimator.initialise(measurement(0))
         samples = []
         n = min(len(states["qpos"]), 400)
         for k in range(1, n):
-            ctrl = states["ctrl"][k] if scenario == "CONTROLLED" else None
+            ctrl = states["ctrl"][k] if scenario == Scenario.CONTROLLED else None
             started = time.perf_counter()
             estimator.predict(ctrl=ctrl)
             estimator.update(measurement(k))
@@ -667,7 +667,7 @@ def run(
         folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="jitdyn-load-frames-")))
         frames_path = folder / "frames.npz"
         np.savez(frames_path, **states)
-        options: dict[str, object] = {"scenario": scenario, "dt": dt, "clock": "REALTIME"}
+        options: dict[str, object] = {"scenario": scenario, "dt": dt, "clock": Clock.REALTIME}
         from jitdyn.experiments.objects import load_source
 
         source = load_source(model)
@@ -680,7 +680,7 @@ def run(
         if estimator is not None:
             options["estimator"] = {"estimator": estimator}
         open_message = SessionOptions(**options)  # type: ignore[arg-type]
-        measured = ["qpos", "qvel", "ctrl"] if scenario == "CONTROLLED" else ["qpos", "qvel"]
+        measured = ["qpos", "qvel", "ctrl"] if scenario == Scenario.CONTROLLED else ["qpos", "qvel"]
         from jitdyn.v1 import dynamics_pb2
 
         open_bytes = dynamics_pb2.StreamSessionRequest(open=open_message.to_message()).SerializeToString()
@@ -846,7 +846,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--model", default="pendulum_3", help="pendulum_1..3, biped, myoelbow, myohand")
-    parser.add_argument("--scenario", default="PASSIVE", choices=("PASSIVE", "CONTROLLED", "EXTERNAL"))
+    parser.add_argument(
+        "--scenario",
+        type=Scenario,
+        default=Scenario.PASSIVE,
+        choices=(Scenario.PASSIVE, Scenario.CONTROLLED, Scenario.EXTERNAL),
+    )
     parser.add_argument("--rate", type=float, default=20.0, help="frames per second (Hz)")
     parser.add_argument("--sessions", type=int, default=10)
     parser.add_argument(

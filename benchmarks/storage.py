@@ -30,6 +30,7 @@ from jitdyn.storage.db import open_index
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.records import SessionHeader, TickRecord
+from jitdyn.vocabulary import Clock, EstimatorKind, Preset, Scenario, SigmaScheme, Source
 
 DT = 0.001
 
@@ -50,9 +51,13 @@ def header() -> SessionHeader:
         nsensordata=0,
         timestep=0.001,
         dt=DT,
-        scenario="PASSIVE",
-        clock="LOCKSTEP",
-        estimator={"estimator": "UKF", "preset": "JITDYN", "sigma_points": "MERWE"},
+        scenario=Scenario.PASSIVE,
+        clock=Clock.LOCKSTEP,
+        estimator={
+            "estimator": EstimatorKind.UKF,
+            "preset": Preset.JITDYN,
+            "sigma_points": SigmaScheme.MERWE,
+        },
         subject_pseudonym="",
         subject_attributes={},
         started_at=dt.datetime.now(dt.UTC),
@@ -81,7 +86,7 @@ class Trajectory:
         return TickRecord(
             kind="result",
             seq=i,
-            source="MEASURED",
+            source=Source.MEASURED,
             t=float(self.t[i]),
             server_time=float(self.t[i]) + 2e-4,
             frame_received=True,

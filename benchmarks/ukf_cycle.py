@@ -17,8 +17,7 @@ in EXTERNAL actuators off and inert tendons dropped); the model's own is printed
 
 Everything is measured side by side, round-robin, in one process: on a machine shared with other
 work, a slow moment then hits every configuration alike. Ground truth is MuJoCo itself, driven
-as the thesis drove it; models come from models/*.xml when present (else an inline stand-in, which
-the output flags) and from myo_sim.
+as the thesis drove it; models come from models/*.xml and from myo_sim.
 
     python benchmarks/ukf_cycle.py                   # full run, ~2 minutes
     python benchmarks/ukf_cycle.py --quick           # fewer rounds
@@ -43,60 +42,9 @@ from jitdyn.server.estimation.estimator import EstimatorConfig, Measurement, res
 from jitdyn.server.estimation.factory import make_estimator
 from jitdyn.server.estimation.pool import Backend, WorkerPool
 from jitdyn.server.estimation.propagate import process_model
+from jitdyn.vocabulary import Preset, Scenario, SigmaScheme
 
 MODELS = Path(__file__).resolve().parents[1] / "models"
-
-
-def _pendulum_xml(n: int) -> str:
-    bodies = "".join(
-        f'<body pos="0 0 {0 if i == 0 else -1}"><joint name="j{i}" type="hinge" axis="0 1 0"/>'
-        '<geom type="capsule" fromto="0 0 0 0 0 -1" size="0.05" mass="1" contype="0" conaffinity="0"/>'
-        for i in range(n)
-    )
-    motors = "".join(f'<motor joint="j{i}" gear="1"/>' for i in range(n))
-    return (
-        f'<mujoco><option timestep="0.01"/><worldbody>{bodies}{"</body>" * n}</worldbody>'
-        f"<actuator>{motors}</actuator></mujoco>"
-    )
-
-
-# Stand-in for models/biped.xml until it lands: 6 joints (x slide, z slide, two leg hinges, two
-# shock-absorber slides), rods of 1 m and 1 kg, contact with the ground, timestep 1 ms.
-_BIPED_XML = """
-<mujoco>
-  <option timestep="0.001"/>
-  <worldbody>
-    <geom type="plane" size="20 20 0.1"/>
-    <body pos="0 0 1.05">
-      <joint name="x" type="slide" axis="1 0 0"/>
-      <joint name="z" type="slide" axis="0 0 1"/>
-      <geom type="sphere" size="0.08" mass="0.5"/>
-      <body>
-        <joint name="left_hip" type="hinge" axis="0 1 0" range="-1 1" limited="true"/>
-        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="0.5"/>
-        <body pos="0 0 -0.5">
-          <joint name="left_absorber" type="slide" axis="0 0 1" range="-0.1 0.1" limited="true"
-                 stiffness="1000" damping="20"/>
-          <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="0.5"/>
-        </body>
-      </body>
-      <body>
-        <joint name="right_hip" type="hinge" axis="0 1 0" range="-1 1" limited="true"/>
-        <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="0.5"/>
-        <body pos="0 0 -0.5">
-          <joint name="right_absorber" type="slide" axis="0 0 1" range="-0.1 0.1" limited="true"
-                 stiffness="1000" damping="20"/>
-          <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05" mass="0.5"/>
-        </body>
-      </body>
-    </body>
-  </worldbody>
-  <actuator>
-    <motor joint="left_hip" gear="1"/><motor joint="left_absorber" gear="1"/>
-    <motor joint="right_hip" gear="1"/><motor joint="right_absorber" gear="1"/>
-  </actuator>
-</mujoco>
-"""
 
 
 def load(name: str) -> tuple[mujoco.MjModel, str]:
@@ -108,17 +56,14 @@ def load(name: str) -> tuple[mujoco.MjModel, str]:
             warnings.simplefilter("ignore")  # "Attaching a spec with an empty prefix": myo_sim's own
             return myo_sim.load_model(name), "myo_sim"
     path = MODELS / f"{name}.xml"
-    if path.exists():
-        return mujoco.MjModel.from_xml_path(str(path)), str(path.relative_to(MODELS.parent))
-    xml = _BIPED_XML if name == "biped" else _pendulum_xml(int(name.rsplit("_", 1)[1]))
-    return mujoco.MjModel.from_xml_string(xml), "inline stand-in"
+    return mujoco.MjModel.from_xml_path(str(path)), str(path.relative_to(MODELS.parent))
 
 
 @dataclass(frozen=True)
 class Case:
     name: str
     model: str
-    scenario: str
+    scenario: Scenario
     dt: float
     control: Callable[[mujoco.MjModel, int], np.ndarray]
 
@@ -141,16 +86,16 @@ def _none(model: mujoco.MjModel, k: int) -> np.ndarray:
 
 
 CASES = [
-    Case("pendulum_1 passive", "pendulum_1", "PASSIVE", 0.05, _none),
-    Case("pendulum_2 passive", "pendulum_2", "PASSIVE", 0.05, _none),
-    Case("pendulum_3 passive", "pendulum_3", "PASSIVE", 0.05, _none),
-    Case("pendulum_3 controlled", "pendulum_3", "CONTROLLED", 0.05, _sines),
-    Case("biped controlled", "biped", "CONTROLLED", 0.005, _gait),
-    Case("myoElbow external", "myoelbow", "EXTERNAL", 0.002, _excitation),
-    Case("myoHand external", "myohand", "EXTERNAL", 0.002, _excitation),
-    # What a myoHand session that names no scenario gets (issue 10): the unknown force in the state.
-    Case("myoElbow driven", "myoelbow", "DRIVEN", 0.002, _excitation),
-    Case("myoHand driven", "myohand", "DRIVEN", 0.002, _excitation),
+    Case("pendulum_1 passive", "pendulum_1", Scenario.PASSIVE, 0.05, _none),
+    Case("pendulum_2 passive", "pendulum_2", Scenario.PASSIVE, 0.05, _none),
+    Case("pendulum_3 passive", "pendulum_3", Scenario.PASSIVE, 0.05, _none),
+    Case("pendulum_3 controlled", "pendulum_3", Scenario.CONTROLLED, 0.05, _sines),
+    Case("biped controlled", "biped", Scenario.CONTROLLED, 0.005, _gait),
+    Case("myoElbow external", "myoelbow", Scenario.EXTERNAL, 0.002, _excitation),
+    Case("myoHand external", "myohand", Scenario.EXTERNAL, 0.002, _excitation),
+    # What a MyoSuite session that names no scenario gets: the unknown force in the state.
+    Case("myoElbow driven", "myoelbow", Scenario.DRIVEN, 0.002, _excitation),
+    Case("myoHand driven", "myohand", Scenario.DRIVEN, 0.002, _excitation),
 ]
 
 
@@ -178,7 +123,7 @@ class Runner:
         self.frames = frames
         self.estimator.initialise(frames[0])
         self.next = 1
-        self.controlled = config.scenario == "CONTROLLED"
+        self.controlled = config.scenario == Scenario.CONTROLLED
 
     def cycles(self, count: int) -> float:
         """Run `count` cycles; seconds per cycle."""
@@ -244,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
         "--seconds", type=float, default=0.05, help="target time per measurement (default 0.05 s)"
     )
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--preset", default="JITDYN", choices=["JITDYN", "THESIS"])
+    parser.add_argument("--preset", type=Preset, default=Preset.JITDYN, choices=list(Preset))
     parser.add_argument("--cases", nargs="+", help="substrings of case names to run")
     parser.add_argument("--quick", action="store_true", help="5 rounds")
     args = parser.parse_args(argv)
@@ -255,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     setups = []
     for case in cases:
         model, source = load(case.model)
-        measured = {"qpos", "qvel", "ctrl"} if case.scenario == "CONTROLLED" else {"qpos", "qvel"}
+        measured = {"qpos", "qvel", "ctrl"} if case.scenario is Scenario.CONTROLLED else {"qpos", "qvel"}
         config = resolve_config(
             model=model,
             scenario=case.scenario,
@@ -271,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         nsigma = int(getattr(some, "nsigma", 1))  # a UKF, or the switching filter around one
         stepped = (
             nsigma - 2 * model.nv
-            if case.scenario == "CONTROLLED" and config.sigma_points == "MERWE"
+            if case.scenario is Scenario.CONTROLLED and config.sigma_points == SigmaScheme.MERWE
             else nsigma
         )
         # Calibrate the cycles per measurement on the slowest configuration (one worker).

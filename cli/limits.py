@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import argparse
 import re
-from typing import Any
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Final
 
 from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
@@ -30,87 +32,123 @@ def _bytes(text: str) -> int:
     return value
 
 
-def add_limit_arguments(parser: argparse.ArgumentParser) -> None:
-    stream, registry = DEFAULT_STREAM_LIMITS, DEFAULT_LIMITS
-    group = parser.add_argument_group("limits per session, model and tenant")
-    group.add_argument(
+@dataclass(frozen=True)
+class _Unit:
+    """How a limit's flag is parsed, and how its default is written in the help."""
+
+    parse: Callable[[str], Any]
+    show: Callable[[Any], str]
+
+
+_BYTES = _Unit(_bytes, lambda value: f"{value // _MIB}MiB")
+_NUMBER = _Unit(float, lambda value: f"{value:g}")
+_COUNT = _Unit(int, str)
+
+
+@dataclass(frozen=True)
+class _Limit:
+    """One flag: the field it sets on StreamLimits or RegistryLimits, and what it limits."""
+
+    flag: str
+    limits: type[StreamLimits | RegistryLimits]
+    field: str
+    unit: _Unit
+    help: str
+
+    @property
+    def dest(self) -> str:
+        return self.flag.removeprefix("--").replace("-", "_")
+
+    @property
+    def default(self) -> Any:
+        return getattr(_DEFAULTS[self.limits], self.field)
+
+
+_DEFAULTS: Final[dict[type, StreamLimits | RegistryLimits]] = {
+    StreamLimits: DEFAULT_STREAM_LIMITS,
+    RegistryLimits: DEFAULT_LIMITS,
+}
+
+_LIMITS: Final = (
+    _Limit(
         "--max-history-bytes",
-        type=_bytes,
-        default=stream.max_history_bytes,
-        help=f"memory of one session's late-frame history (default {stream.max_history_bytes // _MIB}MiB)",
-    )
-    group.add_argument(
+        StreamLimits,
+        "max_history_bytes",
+        _BYTES,
+        "memory of one session's late-frame history",
+    ),
+    _Limit(
         "--max-clock-offset",
-        type=float,
-        default=stream.max_clock_offset,
-        help=f"seconds a REALTIME client's clock may be from the session's (default {stream.max_clock_offset:g})",
-    )
-    group.add_argument(
+        StreamLimits,
+        "max_clock_offset",
+        _NUMBER,
+        "seconds a REALTIME client's clock may be from the session's",
+    ),
+    _Limit(
         "--idle-timeout",
-        type=float,
-        default=stream.idle_timeout,
-        help=f"seconds a session may send nothing before it is ended (default {stream.idle_timeout:g})",
-    )
-    group.add_argument(
+        StreamLimits,
+        "idle_timeout",
+        _NUMBER,
+        "seconds a session may send nothing before it is ended",
+    ),
+    _Limit(
         "--max-tick-share",
-        type=float,
-        default=stream.max_tick_share,
-        help="largest share of dt a REALTIME tick's estimated cost may take (default "
-        f"{stream.max_tick_share:g})",
-    )
-    group.add_argument(
-        "--compile-timeout",
-        type=float,
-        default=registry.compile_timeout,
-        help=f"seconds a model may take to compile (default {registry.compile_timeout:g})",
-    )
-    group.add_argument(
-        "--max-compiled-bytes",
-        type=_bytes,
-        default=registry.max_compiled_bytes,
-        help=f"memory of one compiled model (default {registry.max_compiled_bytes // _MIB}MiB)",
-    )
-    group.add_argument(
+        StreamLimits,
+        "max_tick_share",
+        _NUMBER,
+        "largest share of dt a REALTIME tick's estimated cost may take",
+    ),
+    _Limit(
+        "--compile-timeout", RegistryLimits, "compile_timeout", _NUMBER, "seconds a model may take to compile"
+    ),
+    _Limit(
+        "--max-compiled-bytes", RegistryLimits, "max_compiled_bytes", _BYTES, "memory of one compiled model"
+    ),
+    _Limit(
         "--compile-memory-bytes",
-        type=_bytes,
-        default=registry.compile_memory_bytes,
-        help=f"address space of a compile worker (default {registry.compile_memory_bytes // _MIB}MiB)",
-    )
-    group.add_argument(
-        "--model-cache-bytes",
-        type=_bytes,
-        default=registry.cache_bytes,
-        help=f"memory of the compiled models kept (default {registry.cache_bytes // _MIB}MiB)",
-    )
-    group.add_argument(
+        RegistryLimits,
+        "compile_memory_bytes",
+        _BYTES,
+        "address space of a compile worker",
+    ),
+    _Limit(
+        "--model-cache-bytes", RegistryLimits, "cache_bytes", _BYTES, "memory of the compiled models kept"
+    ),
+    _Limit(
         "--max-models-per-tenant",
-        type=int,
-        default=registry.max_models_per_tenant,
-        help=f"models one tenant may register (default {registry.max_models_per_tenant})",
-    )
-    group.add_argument(
+        RegistryLimits,
+        "max_models_per_tenant",
+        _COUNT,
+        "models one tenant may register",
+    ),
+    _Limit(
         "--max-tenant-bytes",
-        type=_bytes,
-        default=registry.max_tenant_bytes,
-        help=f"MJCF and asset bytes one tenant may store (default {registry.max_tenant_bytes // _MIB}MiB)",
-    )
+        RegistryLimits,
+        "max_tenant_bytes",
+        _BYTES,
+        "MJCF and asset bytes one tenant may store",
+    ),
+)
+
+
+def add_limit_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("limits per session, model and tenant")
+    for limit in _LIMITS:
+        group.add_argument(
+            limit.flag,
+            type=limit.unit.parse,
+            default=limit.default,
+            help=f"{limit.help} (default {limit.unit.show(limit.default)})",
+        )
 
 
 def limit_settings(args: argparse.Namespace) -> dict[str, Any]:
     """The ServerConfig fields the limit flags set."""
+
+    def given(limits: type) -> dict[str, Any]:
+        return {limit.field: getattr(args, limit.dest) for limit in _LIMITS if limit.limits is limits}
+
     return {
-        "stream_limits": StreamLimits(
-            max_history_bytes=args.max_history_bytes,
-            max_clock_offset=args.max_clock_offset,
-            idle_timeout=args.idle_timeout,
-            max_tick_share=args.max_tick_share,
-        ),
-        "registry_limits": RegistryLimits(
-            compile_timeout=args.compile_timeout,
-            max_compiled_bytes=args.max_compiled_bytes,
-            compile_memory_bytes=args.compile_memory_bytes,
-            cache_bytes=args.model_cache_bytes,
-            max_models_per_tenant=args.max_models_per_tenant,
-            max_tenant_bytes=args.max_tenant_bytes,
-        ),
+        "stream_limits": StreamLimits(**given(StreamLimits)),
+        "registry_limits": RegistryLimits(**given(RegistryLimits)),
     }

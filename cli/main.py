@@ -27,7 +27,18 @@ from jitdyn.cli.extras import MissingExtra, require_extra
 from jitdyn.cli.limits import add_limit_arguments, limit_settings
 from jitdyn.errors import JitdynError, Unavailable
 from jitdyn.registry.builtins import BUILTIN_NAMES
-from jitdyn.settings import SettingError, Settings, add_arguments, default_workers, parse_duration, resolve
+from jitdyn.settings import (
+    SettingError,
+    Settings,
+    add_arguments,
+    argparse_type,
+    checked,
+    default_workers,
+    parse_duration,
+    positive_int,
+    resolve,
+)
+from jitdyn.vocabulary import EstimatorKind, Scenario, SessionStatus, parse
 
 __all__ = ["DEFAULT_SERVER", "EXIT_ERROR", "EXIT_USAGE", "build_parser", "main"]
 
@@ -38,35 +49,22 @@ DEFAULT_SERVER = "127.0.0.1:50051"
 _EPILOG = "exit codes: 0 done, 1 the command failed (one line on stderr says why), 2 usage error"
 
 
-def _argparse(parse: Callable[[str], Any], name: str) -> Callable[[str], Any]:
-    def convert(text: str) -> Any:
-        try:
-            return parse(text)
-        except ValueError as error:
-            raise argparse.ArgumentTypeError(str(error)) from None
-
-    convert.__name__ = name
-    return convert
+def _fraction_or_percent(text: str) -> float:
+    return float(text.rstrip("%")) / (100.0 if text.endswith("%") else 1.0)
 
 
-def _probability(text: str) -> float:
-    try:
-        value = float(text.rstrip("%")) / (100.0 if text.endswith("%") else 1.0)
-    except ValueError:
-        raise ValueError(f"expected a probability like 0.05 or 5%, got {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise ValueError(f"expected a probability in [0, 1], got {text!r}")
-    return value
-
-
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"expected a number of seconds > 0, like 10 or 2.5, got {text!r}") from None
-    if not value > 0:
-        raise ValueError(f"expected a number of seconds > 0, got {text!r}")
-    return value
+_probability = checked(
+    _fraction_or_percent,
+    lambda value: 0.0 <= value <= 1.0,
+    "a probability in [0, 1]",
+    malformed="a probability like 0.05 or 5%",
+)
+_seconds = checked(
+    float,
+    lambda value: value > 0,
+    "a number of seconds > 0",
+    malformed="a number of seconds > 0, like 10 or 2.5",
+)
 
 
 @dataclass(frozen=True)
@@ -116,15 +114,18 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     def leaf(
-        subparsers: argparse._SubParsersAction[argparse.ArgumentParser], name: str, group: str, **kwargs: Any
+        subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
+        name: str,
+        group: str | None = None,
+        **kwargs: Any,
     ) -> argparse.ArgumentParser:
+        """A command's parser, with the settings of `group` (default: the command itself)."""
         return subparsers.add_parser(
-            name, parents=[common, _settings_parent(group)], epilog=_EPILOG, **kwargs
+            name, parents=[common, _settings_parent(group or name)], epilog=_EPILOG, **kwargs
         )
 
     serve = leaf(
         commands,
-        "serve",
         "serve",
         help="run the server",
         description="Run the jitdyn server until Ctrl-C or SIGTERM.",
@@ -133,7 +134,6 @@ def build_parser() -> argparse.ArgumentParser:
 
     models = leaf(
         commands,
-        "models",
         "models",
         help="register, list and show models",
         description="The model registry, from the shell.",
@@ -171,12 +171,11 @@ def build_parser() -> argparse.ArgumentParser:
     listing.add_argument("--tag", default="", help="only models with this tag")
     show = leaf(model_commands, "show", "models", help="show one model (by id, NAME or NAME:VERSION)")
     show.add_argument(
-        "model", type=_argparse(_model_ref, "model"), help="sha256:... id, a name, or name:version"
+        "model", type=argparse_type(_model_ref, "model"), help="sha256:... id, a name, or name:version"
     )
 
     demo = leaf(
         commands,
-        "demo",
         "demo",
         help="a simulated REALTIME session over an emulated network",
         description="Drive a simulated research object (truth simulated by MuJoCo here) through an emulated "
@@ -188,38 +187,29 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--scenario",
         default="passive",
-        choices=("passive", "controlled", "external", "driven"),
+        choices=tuple(scenario.lower() for scenario in Scenario),
         help="default passive",
     )
+    for flag, parse_text, kind, default, text in (
+        ("--seconds", _seconds, "seconds", 10.0, "session length, s (default 10)"),
+        (
+            "--latency",
+            parse_duration,
+            "duration",
+            0.035,
+            "one-way latency with a unit: 35ms, 0.1s (default 35ms)",
+        ),
+        ("--jitter", parse_duration, "duration", 0.010, "latency spread with a unit (default 10ms)"),
+        ("--loss", _probability, "probability", 0.05, "frame loss probability: 0.05 or 5%% (default 0.05)"),
+    ):
+        demo.add_argument(flag, type=argparse_type(parse_text, kind), default=default, help=text)
     demo.add_argument(
-        "--seconds", type=_argparse(_seconds, "seconds"), default=10.0, help="session length, s (default 10)"
-    )
-    demo.add_argument(
-        "--latency",
-        type=_argparse(parse_duration, "duration"),
-        default=0.035,
-        help="one-way latency with a unit: 35ms, 0.1s (default 35ms)",
-    )
-    demo.add_argument(
-        "--jitter",
-        type=_argparse(parse_duration, "duration"),
-        default=0.010,
-        help="latency spread with a unit (default 10ms)",
-    )
-    demo.add_argument(
-        "--loss",
-        type=_argparse(_probability, "probability"),
-        default=0.05,
-        help="frame loss probability: 0.05 or 5%% (default 0.05)",
-    )
-    demo.add_argument(
-        "--estimator", default="UKF", choices=("UKF", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION")
+        "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
     )
     demo.add_argument("--seed", type=int, default=0, help="seed of the emulated network and the start state")
 
     sessions = leaf(
         commands,
-        "sessions",
         "sessions",
         help="list, show, query and export stored sessions",
         description="The stored sessions, read from the data folder and the SQL index (no server needed).",
@@ -227,9 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
     session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
     slist = leaf(session_commands, "list", "sessions", help="list sessions, newest first")
     slist.add_argument("--model", help="only this model name")
-    slist.add_argument("--status", choices=("OPEN", "COMPLETE", "RECOVERED", "FAILED", "ABANDONED"))
+    slist.add_argument("--status", choices=tuple(status.value for status in SessionStatus))
     slist.add_argument(
-        "--limit", type=_argparse(_positive, "limit"), default=50, help="at most N (default 50)"
+        "--limit", type=argparse_type(positive_int, "limit"), default=50, help="at most N (default 50)"
     )
     sshow = leaf(session_commands, "show", "sessions", help="show one session")
     sshow.add_argument("session_id")
@@ -263,16 +253,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     experiments.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
-
-
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"expected a whole number >= 1, got {text!r}") from None
-    if value < 1:
-        raise ValueError(f"expected a whole number >= 1, got {text!r}")
-    return value
 
 
 def _server_config(settings: Settings, **overrides: Any) -> Any:
@@ -379,13 +359,13 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
 
     demo = DemoSettings(
         model=args.model,
-        scenario=args.scenario,
+        scenario=parse(Scenario, args.scenario, argument="--scenario"),
         seconds=args.seconds,
         latency=args.latency,
         jitter=args.jitter,
         loss=args.loss,
         seed=args.seed,
-        estimator=args.estimator,
+        estimator=parse(EstimatorKind, args.estimator, argument="--estimator"),
     )
     progress = sys.stderr.isatty()
     if settings.server:

@@ -7,6 +7,7 @@ that runs sessions through the server and returns a report `Section`.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -20,10 +21,11 @@ from jitdyn.experiments import thesis
 from jitdyn.experiments.analysis import RunMetrics, gap_profile, summarise
 from jitdyn.experiments.metrics import gap_errors
 from jitdyn.experiments.netem import DelayedSender, Distribution, NetworkProfile, sample_delays
-from jitdyn.experiments.objects import Scenario, make_object
+from jitdyn.experiments.objects import make_object
 from jitdyn.experiments.progress import track
 from jitdyn.experiments.recorded import research_object
 from jitdyn.experiments.report import (
+    Column,
     Figure,
     Section,
     Table,
@@ -33,12 +35,13 @@ from jitdyn.experiments.report import (
     plot_gap_errors,
 )
 from jitdyn.experiments.runner import ModelCache, RunSpec, Trace, run_lockstep
+from jitdyn.vocabulary import Clock, EstimatorKind, Output, Preset, Scenario, Source
 
 __all__ = ["EXPERIMENTS", "GAPS", "Context", "Experiment"]
 
 GAPS = (0.035, 0.100, 0.200)  # s: the gap lengths the error is read at
-PRESETS = ("THESIS", "JITDYN")
-BASELINES = ("STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION")
+PRESETS = (Preset.THESIS, Preset.JITDYN)
+BASELINES = (EstimatorKind.STATIC, EstimatorKind.CONSTANT_VELOCITY, EstimatorKind.CONSTANT_ACCELERATION)
 
 # Run lengths (seconds): full, quick. The thesis does not give its run lengths; these cover ten
 # switches of the controlled pendulum, five rocking cycles of the biped, two raise-lower cycles
@@ -87,6 +90,13 @@ class Context:
             )
         return trace
 
+    def presets(self, obj: str, scenario: Scenario) -> dict[Preset, Trace]:
+        """A run of `obj` in `scenario` with each preset, as long as `seconds(obj)`."""
+        return {
+            preset: self.run(RunSpec(obj, scenario, self.seconds(obj), preset=preset, seed=self.seed))
+            for preset in PRESETS
+        }
+
 
 @dataclass(frozen=True)
 class Experiment:
@@ -94,6 +104,22 @@ class Experiment:
     title: str
     help: str
     run: Callable[[Context], Section]
+
+
+# --- the columns of the thesis' tables -----------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Scored:
+    """One preset's run of a thesis table: a row of its table."""
+
+    preset: Preset
+    metrics: RunMetrics
+
+
+@dataclass(frozen=True)
+class _PendulumScored(_Scored):
+    row: thesis.PendulumRow  # the thesis' numbers for this pendulum
 
 
 def _ci(interval: object) -> tuple[float, float]:
@@ -108,187 +134,156 @@ def _nees_cells(m: RunMetrics) -> tuple[object, ...]:
     return (c.mean, c.verdict, _ci(c.single), _ci(c.averaged), c.fraction_inside)
 
 
-def _nis_cell(m: RunMetrics) -> object:
-    return None if m.nis is None else m.nis.mean
+def _nees_column(index: int, header: str) -> Column[_Scored]:
+    return Column(header, lambda s: _nees_cells(s.metrics)[index])
+
+
+def _block_column(header: str, block: str, *, settled: bool = False) -> Column[_Scored]:
+    if settled:
+        return Column(header, lambda s: s.metrics.settled[block])
+    return Column(header, lambda s: s.metrics.armse[block])
+
+
+_NEES = tuple(
+    _nees_column(i, header)
+    for i, header in enumerate(("avg NEES", "verdict", "NEES CI (1 sample)", "avg-NEES CI", "in CI"))
+)
+# What every table of the thesis says of a run's consistency, after its errors.
+_CONSISTENCY: tuple[Column[_Scored], ...] = (
+    *_NEES,
+    Column("avg NIS", lambda s: None if s.metrics.nis is None else s.metrics.nis.mean),
+    Column("reinit", lambda s: s.metrics.reinitialised),
+)
+_PRESET: Column[_Scored] = Column("preset", lambda s: s.preset)
+
+
+def _blocks(scenario: Scenario) -> tuple[str, ...]:
+    """The state's blocks: [q, qd, qdd] when the frames carry the control, else [q, qd]."""
+    return ("q", "qd", "qdd") if scenario is Scenario.CONTROLLED else ("q", "qd")
+
+
+def _thesis_block(block: str) -> Column[_PendulumScored]:
+    """The thesis' aRMSE of `block` ("q", "qd", "qdd": the PendulumRow field of that name)."""
+    return Column(f"thesis {block} aRMSE", lambda s: getattr(s.row, block))
 
 
 # --- the pendulum tables (4.2, 4.4, 4.6) --------------------------------------------------------
 
 
-def _pendulum_table(
-    ctx: Context,
-    *,
-    name: str,
-    scenario: Scenario,
-    rows: Sequence[thesis.PendulumRow],
-    title: str,
-    figures: str,
-    text: str,
-) -> Section:
-    controlled = scenario is Scenario.CONTROLLED
-    blocks = ("q", "qd", "qdd") if controlled else ("q", "qd")
-    columns = (
-        "dof",
-        "preset",
-        *(f"{b} aRMSE" for b in blocks),
-        "q aRMSE from 1 s",
-        "avg NEES",
-        "verdict",
-        "NEES CI (1 sample)",
-        "avg-NEES CI",
-        "in CI",
-        "avg NIS",
-        "reinit",
-        *(f"thesis {b} aRMSE" for b in blocks),
-        "thesis avg NEES",
-        "thesis CI",
-    )
-    table_rows: list[tuple[object, ...]] = []
+@dataclass(frozen=True)
+class _PendulumTable:
+    name: str
+    scenario: Scenario
+    rows: Sequence[thesis.PendulumRow]
+    title: str
+    figures: str
+    text: str
+
+
+def _pendulum_table(ctx: Context, table: _PendulumTable) -> Section:
+    blocks = _blocks(table.scenario)
+    columns: list[Column[_PendulumScored]] = [
+        Column("dof", lambda s: s.row.dof),
+        _PRESET,
+        *(_block_column(f"{b} aRMSE", b) for b in blocks),
+        _block_column("q aRMSE from 1 s", "q", settled=True),
+        *_CONSISTENCY,
+        *(_thesis_block(b) for b in blocks),
+        Column("thesis avg NEES", lambda s: s.row.nees),
+        Column("thesis CI", lambda s: s.row.ci),
+    ]
+    scored: list[_PendulumScored] = []
     figs: list[Figure] = []
-    for row in rows:
-        traces: dict[str, Trace] = {}
-        for preset in PRESETS:
-            spec = RunSpec(
-                f"pendulum_{row.dof}", scenario, ctx.seconds("pendulum"), preset=preset, seed=ctx.seed
-            )
-            trace = ctx.run(spec)
-            traces[preset] = trace
-            m = summarise(trace)
-            thesis_blocks = (row.q, row.qd, row.qdd)[: len(blocks)]
-            table_rows.append(
-                (
-                    row.dof,
-                    preset,
-                    *(m.armse[b] for b in blocks),
-                    m.settled["q"],
-                    *_nees_cells(m),
-                    _nis_cell(m),
-                    m.reinitialised,
-                    *thesis_blocks,
-                    row.nees,
-                    row.ci,
-                )
-            )
-        file = f"{name}_{row.dof}dof.png"
-        plot_estimates(traces, ctx.out / file, title=f"{row.dof}-dof pendulum, {scenario.value.lower()}")
+    scenario = table.scenario.value.lower()
+    for row in table.rows:
+        traces = ctx.presets(f"pendulum_{row.dof}", table.scenario)
+        scored += [_PendulumScored(preset, summarise(trace), row) for preset, trace in traces.items()]
+        file = f"{table.name}_{row.dof}dof.png"
+        plot_estimates(traces, ctx.out / file, title=f"{row.dof}-dof pendulum, {scenario}")
         figs.append(
             Figure(
-                file,
-                f"{row.dof}-dof {scenario.value.lower()} pendulum: estimate against truth (thesis {figures})",
+                file, f"{row.dof}-dof {scenario} pendulum: estimate against truth (thesis {table.figures})"
             )
         )
-    table = Table(name, title, columns, tuple(table_rows))
-    return Section(name, title, text, (table,), tuple(figs))
+    result = Table.of(table.name, table.title, columns, scored)
+    return Section(table.name, table.title, table.text, (result,), tuple(figs))
 
 
-def table_4_2(ctx: Context) -> Section:
-    return _pendulum_table(
-        ctx,
-        name="table_4_2",
-        scenario=Scenario.PASSIVE,
-        rows=thesis.TABLE_4_2,
-        title="Table 4.2: constant-velocity (passive) pendulums",
-        figures="figures 4.2-4.4",
-        text=(
-            "Pendulums of 1-3 links released at rest with the first hinge at 45 degrees (plus a seeded "
-            "0.01 rad perturbation of every hinge), gravity only, dt = 50 ms, every frame on time. "
-            "The estimate is the filter's posterior at every tick."
-        ),
-    )
-
-
-def table_4_4(ctx: Context) -> Section:
-    return _pendulum_table(
-        ctx,
-        name="table_4_4",
-        scenario=Scenario.CONTROLLED,
-        rows=thesis.TABLE_4_4,
-        title="Table 4.4: controlled pendulums",
-        figures="figures 4.5-4.7",
-        text=(
-            "A computed-torque law, fed with the filter's state from the latest answer, moves the first "
-            "hinge to +45 degrees and -45 degrees in turn every second (the chain held straight); frames "
-            "carry q, qd, qdd and the control that acted; the state is [q, qd, qdd]."
-        ),
-    )
-
-
-def table_4_6(ctx: Context) -> Section:
-    return _pendulum_table(
-        ctx,
-        name="table_4_6",
-        scenario=Scenario.EXTERNAL,
-        rows=thesis.TABLE_4_6,
-        title="Table 4.6: externally controlled pendulums",
-        figures="figures 4.8-4.10",
-        text=(
-            "The same motion as table 4.4, driven by the same law on the true state; the server never "
-            "sees the control and restores the force that acted by inverse dynamics; the state is [q, qd]."
-        ),
-    )
+_TABLE_4_2 = _PendulumTable(
+    name="table_4_2",
+    scenario=Scenario.PASSIVE,
+    rows=thesis.TABLE_4_2,
+    title="Table 4.2: constant-velocity (passive) pendulums",
+    figures="figures 4.2-4.4",
+    text=(
+        "Pendulums of 1-3 links released at rest with the first hinge at 45 degrees (plus a seeded "
+        "0.01 rad perturbation of every hinge), gravity only, dt = 50 ms, every frame on time. "
+        "The estimate is the filter's posterior at every tick."
+    ),
+)
+_TABLE_4_4 = _PendulumTable(
+    name="table_4_4",
+    scenario=Scenario.CONTROLLED,
+    rows=thesis.TABLE_4_4,
+    title="Table 4.4: controlled pendulums",
+    figures="figures 4.5-4.7",
+    text=(
+        "A computed-torque law, fed with the filter's state from the latest answer, moves the first "
+        "hinge to +45 degrees and -45 degrees in turn every second (the chain held straight); frames "
+        "carry q, qd, qdd and the control that acted; the state is [q, qd, qdd]."
+    ),
+)
+_TABLE_4_6 = _PendulumTable(
+    name="table_4_6",
+    scenario=Scenario.EXTERNAL,
+    rows=thesis.TABLE_4_6,
+    title="Table 4.6: externally controlled pendulums",
+    figures="figures 4.8-4.10",
+    text=(
+        "The same motion as table 4.4, driven by the same law on the true state; the server never "
+        "sees the control and restores the force that acted by inverse dynamics; the state is [q, qd]."
+    ),
+)
 
 
 # --- the biped tables (4.8, 4.9) ----------------------------------------------------------------
 
 
-def _biped_table(
-    ctx: Context,
-    *,
-    name: str,
-    scenario: Scenario,
-    rows: Sequence[thesis.JointRow],
-    nees: tuple[float, tuple[float, float]],
-    title: str,
-    figure: str,
-) -> Section:
-    blocks = ("q", "qd", "qdd") if scenario is Scenario.CONTROLLED else ("q", "qd")
-    traces: dict[str, Trace] = {}
-    metrics: dict[str, RunMetrics] = {}
-    for preset in PRESETS:
-        trace = ctx.run(RunSpec("biped", scenario, ctx.seconds("biped"), preset=preset, seed=ctx.seed))
-        traces[preset], metrics[preset] = trace, summarise(trace)
-    joint_rows: list[tuple[object, ...]] = []
-    for j, row in enumerate(rows):
-        thesis_values = (row.x, row.xd, row.xdd)[: len(blocks)]
-        joint_rows.append(
-            (
-                j + 1,
-                row.joint,
-                *(metrics[p].per_joint[b][j] for p in PRESETS for b in blocks),
-                *thesis_values,
-            )
-        )
-    joint_columns = (
-        "#",
-        "joint",
-        *(f"{p} {b} RMSE" for p in PRESETS for b in blocks),
-        *(f"thesis {b} RMSE" for b in blocks),
-    )
-    consistency_rows = tuple(
-        (
-            p,
-            *(metrics[p].armse[b] for b in blocks),
-            *_nees_cells(metrics[p]),
-            _nis_cell(metrics[p]),
-            metrics[p].reinitialised,
-            nees[0],
-            nees[1],
-        )
-        for p in PRESETS
-    )
-    consistency_columns = (
-        "preset",
-        *(f"{b} aRMSE" for b in blocks),
-        "avg NEES",
-        "verdict",
-        "NEES CI (1 sample)",
-        "avg-NEES CI",
-        "in CI",
-        "avg NIS",
-        "reinit",
-        "thesis avg NEES",
-        "thesis CI",
-    )
+@dataclass(frozen=True)
+class _BipedTable:
+    name: str
+    scenario: Scenario
+    rows: Sequence[thesis.JointRow]
+    nees: tuple[float, tuple[float, float]]
+    title: str
+    figure: str
+
+
+def _biped_table(ctx: Context, table: _BipedTable) -> Section:
+    name, scenario, title = table.name, table.scenario, table.title
+    blocks = _blocks(scenario)
+    traces = ctx.presets("biped", scenario)
+    metrics = {preset: summarise(trace) for preset, trace in traces.items()}
+
+    def joint_rmse(preset: Preset, block: str) -> Column[tuple[int, thesis.JointRow]]:
+        return Column(f"{preset} {block} RMSE", lambda jr: metrics[preset].per_joint[block][jr[0]])
+
+    def thesis_rmse(i: int, block: str) -> Column[tuple[int, thesis.JointRow]]:
+        return Column(f"thesis {block} RMSE", lambda jr: (jr[1].x, jr[1].xd, jr[1].xdd)[i])
+
+    joint_columns: list[Column[tuple[int, thesis.JointRow]]] = [
+        Column("#", lambda jr: jr[0] + 1),
+        Column("joint", lambda jr: jr[1].joint),
+        *(joint_rmse(p, b) for p in PRESETS for b in blocks),
+        *(thesis_rmse(i, b) for i, b in enumerate(blocks)),
+    ]
+    consistency_columns: list[Column[_Scored]] = [
+        _PRESET,
+        *(_block_column(f"{b} aRMSE", b) for b in blocks),
+        *_CONSISTENCY,
+        Column("thesis avg NEES", lambda s: table.nees[0]),
+        Column("thesis CI", lambda s: table.nees[1]),
+    ]
     obj = make_object("biped", scenario)
     file = f"{name}.png"
     plot_estimates(traces, ctx.out / file, title=f"biped, {scenario.value.lower()}")
@@ -296,40 +291,35 @@ def _biped_table(
         f"The biped rocks in an A-frame stance: {obj.description}; dt = 5 ms, every frame on time. "
         "RMSE per joint (m for the slides, rad for the hinges)."
     )
+    scored = [_Scored(p, m) for p, m in metrics.items()]
     return Section(
         name,
         title,
         text,
         (
-            Table(name, title + ": RMSE per joint", joint_columns, tuple(joint_rows)),
-            Table(f"{name}_nees", title + ": consistency", consistency_columns, consistency_rows),
+            Table.of(name, title + ": RMSE per joint", joint_columns, enumerate(table.rows)),
+            Table.of(f"{name}_nees", title + ": consistency", consistency_columns, scored),
         ),
-        (Figure(file, f"biped {scenario.value.lower()}: estimate against truth (thesis {figure})"),),
+        (Figure(file, f"biped {scenario.value.lower()}: estimate against truth (thesis {table.figure})"),),
     )
 
 
-def table_4_8(ctx: Context) -> Section:
-    return _biped_table(
-        ctx,
-        name="table_4_8",
-        scenario=Scenario.CONTROLLED,
-        rows=thesis.TABLE_4_8,
-        nees=thesis.TABLE_4_8_NEES,
-        title="Table 4.8: controlled biped",
-        figure="figure 4.12",
-    )
-
-
-def table_4_9(ctx: Context) -> Section:
-    return _biped_table(
-        ctx,
-        name="table_4_9",
-        scenario=Scenario.EXTERNAL,
-        rows=thesis.TABLE_4_9,
-        nees=thesis.TABLE_4_9_NEES,
-        title="Table 4.9: externally controlled biped",
-        figure="figure 4.13",
-    )
+_TABLE_4_8 = _BipedTable(
+    name="table_4_8",
+    scenario=Scenario.CONTROLLED,
+    rows=thesis.TABLE_4_8,
+    nees=thesis.TABLE_4_8_NEES,
+    title="Table 4.8: controlled biped",
+    figure="figure 4.12",
+)
+_TABLE_4_9 = _BipedTable(
+    name="table_4_9",
+    scenario=Scenario.EXTERNAL,
+    rows=thesis.TABLE_4_9,
+    nees=thesis.TABLE_4_9_NEES,
+    title="Table 4.9: externally controlled biped",
+    figure="figure 4.13",
+)
 
 
 # --- the MyoSuite models (4.10, myoHand) ---------------------------------------------------------
@@ -338,46 +328,20 @@ def table_4_9(ctx: Context) -> Section:
 def table_4_10(ctx: Context) -> Section:
     name = "table_4_10"
     title = "Table 4.10: externally controlled myoElbow"
-    traces: dict[str, Trace] = {}
-    rows: list[tuple[object, ...]] = []
-    for preset in PRESETS:
-        trace = ctx.run(
-            RunSpec("myoelbow", Scenario.EXTERNAL, ctx.seconds("myoelbow"), preset=preset, seed=ctx.seed)
-        )
-        traces[preset] = trace
-        m = summarise(trace)
-        rows.append(
-            (
-                preset,
-                m.armse["q"],
-                m.armse["qd"],
-                m.settled["q"],
-                *_nees_cells(m),
-                _nis_cell(m),
-                m.reinitialised,
-                thesis.TABLE_4_10.x,
-                thesis.TABLE_4_10.xd,
-                thesis.TABLE_4_10_NEES[0],
-                thesis.TABLE_4_10_NEES[1],
-            )
-        )
-    columns = (
-        "preset",
-        "q RMSE",
-        "qd RMSE",
-        "q RMSE from 1 s",
-        "avg NEES",
-        "verdict",
-        "NEES CI (1 sample)",
-        "avg-NEES CI",
-        "in CI",
-        "avg NIS",
-        "reinit",
-        "thesis q RMSE",
-        "thesis qd RMSE",
-        "thesis avg NEES",
-        "thesis CI",
-    )
+    traces = ctx.presets("myoelbow", Scenario.EXTERNAL)
+    reference = thesis.TABLE_4_10
+    columns: list[Column[_Scored]] = [
+        _PRESET,
+        _block_column("q RMSE", "q"),
+        _block_column("qd RMSE", "qd"),
+        _block_column("q RMSE from 1 s", "q", settled=True),
+        *_CONSISTENCY,
+        Column("thesis q RMSE", lambda s: reference.x),
+        Column("thesis qd RMSE", lambda s: reference.xd),
+        Column("thesis avg NEES", lambda s: thesis.TABLE_4_10_NEES[0]),
+        Column("thesis CI", lambda s: thesis.TABLE_4_10_NEES[1]),
+    ]
+    scored = [_Scored(preset, summarise(trace)) for preset, trace in traces.items()]
     file = f"{name}.png"
     plot_estimates(traces, ctx.out / file, title="myoElbow, externally controlled")
     obj = make_object("myoelbow", Scenario.EXTERNAL)
@@ -389,52 +353,42 @@ def table_4_10(ctx: Context) -> Section:
         name,
         title,
         text,
-        (Table(name, title, columns, tuple(rows)),),
+        (Table.of(name, title, columns, scored),),
         (Figure(file, "myoElbow: estimate against truth (thesis figure 4.14)"),),
     )
+
+
+@dataclass(frozen=True)
+class _HandRun(_Scored):
+    trace: Trace
+
+    @property
+    def worst(self) -> int:
+        """The joint of the largest q RMSE (0 when none is finite)."""
+        q = self.metrics.per_joint["q"]
+        return int(np.nanargmax(q)) if np.isfinite(q).any() else 0
+
+
+_HAND_COLUMNS: tuple[Column[_HandRun], ...] = (
+    _PRESET,
+    Column("sigma points", lambda r: str(r.trace.settings.get("sigma_points", ""))),
+    _block_column("q aRMSE", "q"),
+    _block_column("qd aRMSE", "qd"),
+    Column("joint 23 q RMSE", lambda r: float(r.metrics.per_joint["q"][22])),
+    Column("worst joint", lambda r: r.trace.joint_names[r.worst]),
+    Column("its q RMSE", lambda r: float(r.metrics.per_joint["q"][r.worst])),
+    *_NEES[:2],
+    Column("reinit", lambda r: r.metrics.reinitialised),
+    Column("q error > 1 rad at (s)", lambda r: r.metrics.diverged_at),
+    Column("compute (ms/tick)", lambda r: r.metrics.mean_compute_us / 1000.0),
+)
 
 
 def myohand(ctx: Context) -> Section:
     name = "myohand"
     title = "MyoHand, externally controlled (thesis figure 4.15)"
-    traces: dict[str, Trace] = {}
-    rows: list[tuple[object, ...]] = []
-    for preset in PRESETS:
-        trace = ctx.run(
-            RunSpec("myohand", Scenario.EXTERNAL, ctx.seconds("myohand"), preset=preset, seed=ctx.seed)
-        )
-        traces[preset] = trace
-        m = summarise(trace)
-        worst = int(np.nanargmax(m.per_joint["q"])) if np.isfinite(m.per_joint["q"]).any() else 0
-        rows.append(
-            (
-                preset,
-                str(trace.settings.get("sigma_points", "")),
-                m.armse["q"],
-                m.armse["qd"],
-                float(m.per_joint["q"][22]),
-                trace.joint_names[worst],
-                float(m.per_joint["q"][worst]),
-                *_nees_cells(m)[:2],
-                m.reinitialised,
-                m.diverged_at,
-                m.mean_compute_us / 1000.0,
-            )
-        )
-    columns = (
-        "preset",
-        "sigma points",
-        "q aRMSE",
-        "qd aRMSE",
-        "joint 23 q RMSE",
-        "worst joint",
-        "its q RMSE",
-        "avg NEES",
-        "verdict",
-        "reinit",
-        "q error > 1 rad at (s)",
-        "compute (ms/tick)",
-    )
+    traces = ctx.presets("myohand", Scenario.EXTERNAL)
+    runs = [_HandRun(preset, summarise(trace), trace) for preset, trace in traces.items()]
     err_file, est_file = f"{name}_joint23.png", f"{name}.png"
     plot_error_over_time(traces, ctx.out / err_file, title="myoHand: error of the 23rd joint", joint=22)
     first = next(iter(traces.values()))
@@ -454,7 +408,7 @@ def myohand(ctx: Context) -> Section:
         name,
         title,
         text,
-        (Table(name, title, columns, tuple(rows)),),
+        (Table.of(name, title, _HAND_COLUMNS, runs),),
         (
             Figure(err_file, "myoHand: |q error| of the 23rd joint (md5_flexion) over time"),
             Figure(est_file, "myoHand: estimate against truth, three finger joints"),
@@ -464,8 +418,8 @@ def myohand(ctx: Context) -> Section:
 
 # --- dead reckoning over gaps ---------------------------------------------------------------------
 
-# A wearable's sensors (issue 10): white noise of 0.005 rad on q and 0.05 rad/s on qd (m, m/s on
-# slides), seeded.
+# A wearable's sensors: white noise of 0.005 rad on q and 0.05 rad/s on qd (m, m/s on slides),
+# seeded.
 WEARABLE = (0.005, 0.05)
 SENSORS: dict[str, tuple[float, float] | None] = {"perfect": None, "wearable": WEARABLE}
 
@@ -509,8 +463,8 @@ def _estimators(obj: _GapObject) -> list[_Estimator]:
         _Estimator(f"UKF, {obj.scenario.value} named", {}),
     ]
     if obj.driven:
-        # A driven motion opened with the wrong scenario (the Node client of issue 10).
-        rows.append(_Estimator("UKF, PASSIVE named (wrong)", {"open_as": "PASSIVE"}))
+        # A driven motion opened with the wrong scenario, as a client that knows no better would.
+        rows.append(_Estimator("UKF, PASSIVE named (wrong)", {"open_as": Scenario.PASSIVE}))
     rows += [_Estimator(b, {"estimator": b}) for b in BASELINES]
     return rows
 
@@ -535,7 +489,8 @@ def _fmt(x: float) -> str:
 
 
 def _targets(runs: Sequence[_GapRun]) -> list[tuple[object, ...]]:
-    """The targets of issue 10, each beside the number it must beat, from the gaps runs."""
+    """Each target of dead reckoning over gaps beside the number it must beat, from the gaps runs
+    (docs/decisions/0061-gaps-targets.md)."""
     rows: list[tuple[object, ...]] = []
     groups: dict[tuple[str, str], list[_GapRun]] = {}
     for r in runs:
@@ -621,7 +576,7 @@ def gaps(ctx: Context) -> Section:
         if obj_spec.name == "cmj":
             seconds = ctx.seconds("cmj")
         elif obj_spec.name == "myohand" and not ctx.quick:
-            seconds = 10.0  # issue 10's myoHand target is over 10 s
+            seconds = 10.0  # the myoHand targets are over 10 s
         else:
             seconds = ctx.seconds(obj_spec.name)
         if ctx.quick:
@@ -629,7 +584,7 @@ def gaps(ctx: Context) -> Section:
         for sensors, noise in SENSORS.items():
             profiles: dict[str, dict[int, float]] = {}
             for est in _estimators(obj_spec):
-                fields: dict[str, object] = {"preset": "JITDYN", **est.spec}
+                fields: dict[str, object] = {"preset": Preset.JITDYN, **est.spec}
                 spec = RunSpec(
                     obj_spec.name,
                     obj_spec.scenario,
@@ -756,12 +711,13 @@ def gaps(ctx: Context) -> Section:
 TRUSTING = {"r": 1e-6}
 
 
-def _network_estimators() -> list[tuple[str, str, str, dict[str, float]]]:
+def _network_estimators() -> list[tuple[str, EstimatorKind, Preset, dict[str, float]]]:
     """(label, estimator, preset, overrides) of every estimator compared in `network`."""
+    ukf = EstimatorKind.UKF
     return (
-        [("UKF " + p, "UKF", p, {}) for p in PRESETS]
-        + [("UKF JITDYN, R = 1e-6 I", "UKF", "JITDYN", TRUSTING)]
-        + [(b, b, "JITDYN", {}) for b in BASELINES]
+        [("UKF " + p, ukf, p, {}) for p in PRESETS]
+        + [("UKF JITDYN, R = 1e-6 I", ukf, Preset.JITDYN, TRUSTING)]
+        + [(b, b, Preset.JITDYN, {}) for b in BASELINES]
     )
 
 
@@ -795,7 +751,7 @@ def network(ctx: Context) -> Section:
             trace = ctx.run(spec)
             on_time = summarise(trace)
             after = summarise(trace, corrected=True)
-            predicted = sum(1 for s in trace.source if s == "PREDICTED") / len(trace.source)
+            predicted = sum(1 for s in trace.source if s == Source.PREDICTED) / len(trace.source)
             rows.append(
                 (
                     f"{obj_name}/{scenario.value}",
@@ -830,9 +786,11 @@ def network(ctx: Context) -> Section:
 # --- timing (figures 4.16, 4.17) -----------------------------------------------------------------
 
 
-def _timing_models(ctx: Context) -> list[tuple[str, Scenario, str]]:
+def _timing_models(ctx: Context) -> list[tuple[str, Scenario, Preset]]:
     pendulums = [
-        (f"pendulum_{n}", s, "THESIS") for n in (1, 2, 3) for s in (Scenario.PASSIVE, Scenario.CONTROLLED)
+        (f"pendulum_{n}", s, Preset.THESIS)
+        for n in (1, 2, 3)
+        for s in (Scenario.PASSIVE, Scenario.CONTROLLED)
     ]
     if ctx.quick:
         return pendulums[:2]
@@ -947,11 +905,11 @@ def _run_realtime(
     synced = 0
     options = SessionOptions(
         **ctx.models.options(obj),
-        scenario="PASSIVE",
+        scenario=Scenario.PASSIVE,
         dt=obj.dt,
-        clock="REALTIME",
-        estimator={"preset": "THESIS"},
-        outputs=("FILTER_STATE",),
+        clock=Clock.REALTIME,
+        estimator={"preset": Preset.THESIS},
+        outputs=(Output.FILTER_STATE,),
     )
     with ctx.client.open_session(options) as session:
         base = time.monotonic() - session.now()  # the session clock's zero on time.monotonic
@@ -968,7 +926,7 @@ def _run_realtime(
                 answers += 1
                 sent = r.seq * obj.dt
                 first.setdefault(r.seq, arrival - sent)
-                if r.source in ("MEASURED", "CORRECTED") and r.seq not in with_frame:
+                if r.source in (Source.MEASURED, Source.CORRECTED) and r.seq not in with_frame:
                     with_frame[r.seq] = arrival - sent
 
         # Clock sync first, over the plain loopback: each probe completes the exchange before it,
@@ -1080,7 +1038,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "passive pendulums",
             "Table 4.2: 1-3 link pendulums swinging under gravity "
             "(state [q, qd]); aRMSE, NEES and NIS per preset, estimate plots (figures 4.2-4.4).",
-            table_4_2,
+            functools.partial(_pendulum_table, table=_TABLE_4_2),
         ),
         Experiment(
             "table_4_4",
@@ -1088,27 +1046,27 @@ EXPERIMENTS: dict[str, Experiment] = {
             "Table 4.4: pendulums moved to the symmetrical "
             "position every second by a law fed with the filter's state (state [q, qd, qdd], control "
             "in the frames); figures 4.5-4.7.",
-            table_4_4,
+            functools.partial(_pendulum_table, table=_TABLE_4_4),
         ),
         Experiment(
             "table_4_6",
             "externally controlled pendulums",
             "Table 4.6: the same motion, control "
             "hidden from the server (inverse dynamics restores it); figures 4.8-4.10.",
-            table_4_6,
+            functools.partial(_pendulum_table, table=_TABLE_4_6),
         ),
         Experiment(
             "table_4_8",
             "controlled biped",
             "Table 4.8: the biped rocking under a law fed with the "
             "filter's state, dt 5 ms; RMSE per joint; figure 4.12.",
-            table_4_8,
+            functools.partial(_biped_table, table=_TABLE_4_8),
         ),
         Experiment(
             "table_4_9",
             "externally controlled biped",
             "Table 4.9: the same, control hidden; figure 4.13.",
-            table_4_9,
+            functools.partial(_biped_table, table=_TABLE_4_9),
         ),
         Experiment(
             "table_4_10",

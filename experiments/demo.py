@@ -24,6 +24,7 @@ from jitdyn.experiments.netem import DelayedSender, NetworkProfile
 from jitdyn.experiments.progress import progress_bar
 from jitdyn.registry import builtin_model_path
 from jitdyn.storage.summary import format_counts
+from jitdyn.vocabulary import Channel, Clock, EstimatorKind, Output, Scenario, Source
 
 __all__ = ["DemoSettings", "run_demo"]
 
@@ -31,14 +32,14 @@ __all__ = ["DemoSettings", "run_demo"]
 @dataclass(frozen=True)
 class DemoSettings:
     model: str = "pendulum_3"
-    scenario: str = "PASSIVE"
+    scenario: Scenario = Scenario.PASSIVE
     seconds: float = 10.0
     dt: float | None = None  # None: 50 ms for pendulums, else 10 model timesteps
     latency: float = 0.035  # s, one way
     jitter: float = 0.010  # s
     loss: float = 0.05
     seed: int = 0
-    estimator: str = "UKF"
+    estimator: EstimatorKind = EstimatorKind.UKF
 
 
 def _truth_model(name: str) -> mujoco.MjModel:
@@ -68,15 +69,15 @@ def run_demo(
     steps = max(1, round(dt / model.opt.timestep))
     ticks = max(1, round(settings.seconds / dt))
     profile = NetworkProfile(latency=settings.latency, jitter=settings.jitter, loss=settings.loss)
-    controlled = settings.scenario.upper() == "CONTROLLED"
+    controlled = settings.scenario is Scenario.CONTROLLED
     options = SessionOptions(
         model_name=settings.model,
-        scenario=settings.scenario.upper(),
+        scenario=settings.scenario,
         dt=dt,
-        clock="REALTIME",
+        clock=Clock.REALTIME,
         estimator={"estimator": settings.estimator},
-        measured=("qpos", "qvel", "ctrl") if controlled else ("qpos", "qvel"),
-        outputs=("INVERSE_DYNAMICS",),
+        measured=(Channel.QPOS, Channel.QVEL, Channel.CTRL) if controlled else (Channel.QPOS, Channel.QVEL),
+        outputs=(Output.INVERSE_DYNAMICS,),
     )
     truth: list[np.ndarray] = []
     results: dict[int, TickResult] = {}
@@ -108,7 +109,7 @@ def run_demo(
         def collect(answers: list[TickResult | Rejection | SyncSample]) -> None:
             for answer in answers:
                 if isinstance(answer, TickResult):
-                    if answer.source == "CORRECTED":
+                    if answer.source == Source.CORRECTED:
                         corrected.append(answer)
                     else:
                         results[answer.seq] = answer
@@ -195,12 +196,12 @@ def _report(
         by_source[r.source] = by_source.get(r.source, 0) + 1
     # Ticks due before any frame had arrived are answered from the model's rest pose: the
     # estimator has nothing to start from yet, so they say nothing about it.
-    arrived = [r.seq for r in [*results.values(), *corrected] if r.source != "PREDICTED"]
+    arrived = [r.seq for r in [*results.values(), *corrected] if r.source != Source.PREDICTED]
     first_frame = min(arrived) if arrived else ticks
     predicted_errors = [
         float(np.max(np.abs(r.qpos - truth[r.seq][:nq])))
         for r in results.values()
-        if r.source == "PREDICTED" and first_frame < r.seq < len(truth)
+        if r.source == Source.PREDICTED and first_frame < r.seq < len(truth)
     ]
     torques = np.array([r.qfrc_inverse for r in results.values() if r.qfrc_inverse.size])
     delays = np.array([r.receive_to_send_us for r in results.values()]) / 1e3

@@ -12,15 +12,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
 from scipy.stats import chi2
 
+from jitdyn.vocabulary import EstimatorKind
+
 __all__ = [
     "ChiSquareInterval",
     "Consistency",
-    "DeadReckoning",
     "GapErrors",
     "armse",
     "chi_square_interval",
@@ -172,16 +172,8 @@ def consistency(values: np.ndarray | Sequence[float], *, dof: int, confidence: f
     )
 
 
-class DeadReckoning(Enum):
-    """The dead-reckoning models of distributed interactive simulation (IEEE 1278.1, DRM F/R)."""
-
-    STATIC = "STATIC"
-    CONSTANT_VELOCITY = "CONSTANT_VELOCITY"
-    CONSTANT_ACCELERATION = "CONSTANT_ACCELERATION"
-
-
 def dead_reckon(
-    kind: DeadReckoning, *, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, horizon: float
+    kind: EstimatorKind, *, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, horizon: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """The open-loop extrapolation of (q, qd) by `horizon` seconds from the last frame's state.
 
@@ -194,13 +186,13 @@ def dead_reckon(
     q0, v0, a0 = (np.asarray(x, dtype=float) for x in (q, qd, qdd))
     if not q0.shape == v0.shape == a0.shape:
         raise ValueError(f"q, qd and qdd must have the same shape, got {q0.shape}, {v0.shape}, {a0.shape}")
-    if kind is DeadReckoning.STATIC:
+    if kind is EstimatorKind.STATIC:
         return q0.copy(), v0.copy()
-    if kind is DeadReckoning.CONSTANT_VELOCITY:
+    if kind is EstimatorKind.CONSTANT_VELOCITY:
         return q0 + v0 * horizon, v0.copy()
-    if kind is DeadReckoning.CONSTANT_ACCELERATION:
+    if kind is EstimatorKind.CONSTANT_ACCELERATION:
         return q0 + v0 * horizon + 0.5 * a0 * horizon**2, v0 + a0 * horizon
-    raise ValueError(f"kind must be a DeadReckoning, got {kind!r}")
+    raise ValueError(f"kind must be a dead-reckoning estimator (IEEE 1278.1, DRM F/R), got {kind!r}")
 
 
 def ticks_since_frame(received: np.ndarray | Sequence[bool]) -> np.ndarray:

@@ -26,6 +26,8 @@ from typing import Generic, Literal, TypeVar
 
 import numpy as np
 
+from jitdyn.lifecycle import Closeable
+
 __all__ = [
     "PERFECT",
     "DelayedSender",
@@ -227,7 +229,7 @@ def _schedule(ticks: int, dt: float, delays: np.ndarray, grace: float) -> Schedu
     return Schedule(ticks=ticks, dt=dt, deliveries=tuple(deliveries), delays=delays)
 
 
-class DelayedSender(Generic[T]):
+class DelayedSender(Closeable, Generic[T]):
     """Calls `send(item)` after each item's delay, from one background thread (REALTIME emulation).
 
     Delays come from `profile` with `seed`, in order of submission; lost items are never sent.
@@ -264,12 +266,6 @@ class DelayedSender(Generic[T]):
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="jitdyn-netem", daemon=True)
         self._thread.start()
-
-    def __enter__(self) -> DelayedSender[T]:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def next_delay(self) -> float:
         """The delay the next submitted item will get (inf: lost); the sequence is fixed by the seed."""

@@ -16,12 +16,13 @@ from __future__ import annotations
 import importlib.resources
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from enum import Enum
 
 import mujoco
 import numpy as np
+
+from jitdyn.vocabulary import Scenario
 
 __all__ = [
     "OBJECTS",
@@ -37,14 +38,6 @@ __all__ = [
     "load_source",
     "make_object",
 ]
-
-
-class Scenario(Enum):
-    """How the forces that act are known to the estimator (the names of the v1 contract)."""
-
-    PASSIVE = "PASSIVE"
-    CONTROLLED = "CONTROLLED"
-    EXTERNAL = "EXTERNAL"
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,6 +117,11 @@ class ResearchObject(ABC):
     description: str = ""  # the motion, for reports
 
     def __init__(self, source: ModelSource, *, scenario: Scenario, dt: float, jitter: float) -> None:
+        if scenario is Scenario.DRIVEN:
+            raise ValueError(
+                "DRIVEN is how a filter models an unknown force, not a motion: simulate the object "
+                "PASSIVE, CONTROLLED or EXTERNAL"
+            )
         self.source = source
         self.scenario = scenario
         self.model = source.compile()
@@ -319,15 +317,31 @@ class Pendulum(ResearchObject):
         return self._jittered(q, rng), np.zeros(self.nv)
 
 
-class MyoElbow(ResearchObject):
+class _MyoObject(ResearchObject):
+    """A MyoSuite model moved by muscle excitations the server never sees: EXTERNAL only."""
+
+    model_name: str
+
+    def __init__(self, scenario: Scenario, *, dt: float, jitter: float, source: ModelSource | None) -> None:
+        if scenario is not Scenario.EXTERNAL:
+            raise ValueError(f"{self.model_name} runs only in the EXTERNAL scenario, got {scenario.value}")
+        super().__init__(source or load_source(self.model_name), scenario=scenario, dt=dt, jitter=jitter)
+
+    def _actuators(self, names: Sequence[str]) -> list[int]:
+        """The indices of the actuators called `names`, in that order."""
+        actuators = [self.model.actuator(i).name for i in range(self.nu)]
+        return [actuators.index(n) for n in names]
+
+
+class MyoElbow(_MyoObject):
     """MyoSuite's elbow (1 joint, 6 muscles), raising and lowering the forearm gradually.
 
     The flexion target follows a raised cosine from `low` to `high` and back every `period`
     seconds; a PD law on the true state splits into flexor (BIClong, BICshort, BRA) and extensor
-    (TRIlong, TRIlat, TRImed) excitations over a small co-contraction. Only EXTERNAL: the server
-    never sees the excitations.
+    (TRIlong, TRIlat, TRImed) excitations over a small co-contraction. Only EXTERNAL.
     """
 
+    model_name = "myoelbow"
     _FLEXORS = ("BIClong", "BICshort", "BRA")
     _EXTENSORS = ("TRIlong", "TRIlat", "TRImed")
 
@@ -345,12 +359,9 @@ class MyoElbow(ResearchObject):
         jitter: float = 0.01,
         source: ModelSource | None = None,
     ) -> None:
-        if scenario is not Scenario.EXTERNAL:
-            raise ValueError(f"myoelbow runs only in the EXTERNAL scenario, got {scenario.value}")
-        super().__init__(source or load_source("myoelbow"), scenario=scenario, dt=dt, jitter=jitter)
-        names = [self.model.actuator(i).name for i in range(self.nu)]
-        self._flexors = [names.index(n) for n in self._FLEXORS]
-        self._extensors = [names.index(n) for n in self._EXTENSORS]
+        super().__init__(scenario, dt=dt, jitter=jitter, source=source)
+        self._flexors = self._actuators(self._FLEXORS)
+        self._extensors = self._actuators(self._EXTENSORS)
         self.low, self.high, self.period, self.kp, self.kd, self.tone = low, high, period, kp, kd, tone
         self.description = (
             f"elbow flexion {low}-{high} rad and back every {period} s (raised cosine), "
@@ -371,7 +382,7 @@ class MyoElbow(ResearchObject):
         return self._jittered(np.array([self.low]), rng), np.zeros(1)
 
 
-class MyoHand(ResearchObject):
+class MyoHand(_MyoObject):
     """MyoSuite's hand (23 joints, 39 muscles), bending the fingers in turn.
 
     Open-loop excitations: finger f (index to little) flexes (FDS and FDP up to `flex`) during half
@@ -379,6 +390,8 @@ class MyoHand(ResearchObject):
     extensor (EDC) up to `extend` while it is not flexing; every other muscle holds `tone`. Only
     EXTERNAL.
     """
+
+    model_name = "myohand"
 
     def __init__(
         self,
@@ -392,13 +405,9 @@ class MyoHand(ResearchObject):
         jitter: float = 0.0,
         source: ModelSource | None = None,
     ) -> None:
-        if scenario is not Scenario.EXTERNAL:
-            raise ValueError(f"myohand runs only in the EXTERNAL scenario, got {scenario.value}")
-        super().__init__(source or load_source("myohand"), scenario=scenario, dt=dt, jitter=jitter)
-        names = [self.model.actuator(i).name for i in range(self.nu)]
+        super().__init__(scenario, dt=dt, jitter=jitter, source=source)
         self._fingers = [
-            (names.index(f"FDS{f}_r"), names.index(f"FDP{f}_r"), names.index(f"EDC{f}_r"))
-            for f in (2, 3, 4, 5)
+            tuple(self._actuators((f"FDS{f}_r", f"FDP{f}_r", f"EDC{f}_r"))) for f in (2, 3, 4, 5)
         ]
         self.period, self.flex, self.extend, self.tone = period, flex, extend, tone
         self.description = f"fingers 2-5 flex in turn (a wave, period {period} s): FDS/FDP up to {flex}, EDC up to {extend} between"

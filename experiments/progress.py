@@ -12,15 +12,16 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Iterable, Iterator
-from types import TracebackType
-from typing import Any, Self, TextIO, TypeVar
+from typing import Any, TextIO, TypeVar
+
+from jitdyn.lifecycle import Closeable
 
 __all__ = ["ProgressBar", "progress_bar", "track"]
 
 _T = TypeVar("_T")
 
 
-class ProgressBar:
+class ProgressBar(Closeable):
     """`update(n)`, `n`, `close()` (safe twice); draws nothing when `enabled` is False."""
 
     def __init__(self, *, total: int, desc: str, unit: str, enabled: bool, stream: TextIO) -> None:
@@ -59,14 +60,6 @@ class ProgressBar:
             self._stream.write("\r\033[K")
             self._stream.flush()
         self._enabled = False
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
 
 def progress_bar(

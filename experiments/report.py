@@ -9,9 +9,10 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Generic, TypeVar
 
 import matplotlib
 
@@ -25,6 +26,7 @@ from PIL import Image
 from jitdyn.experiments.runner import Trace
 
 __all__ = [
+    "Column",
     "Figure",
     "Section",
     "Table",
@@ -38,6 +40,18 @@ __all__ = [
 
 # Small PNGs: the docs commit them.
 _DPI = 72
+
+_Item = TypeVar("_Item")
+_Label = TypeVar("_Label", bound=str)  # a run's name in a plot's legend
+_Item_contra = TypeVar("_Item_contra", contravariant=True)
+
+
+@dataclass(frozen=True)
+class Column(Generic[_Item_contra]):
+    """One column of a table: its header, and how a row's item gives its cell."""
+
+    header: str
+    cell: Callable[[_Item_contra], object]
 
 
 @dataclass(frozen=True)
@@ -55,6 +69,12 @@ class Table:
                 raise ValueError(
                     f"table {self.name}: every row must have {len(self.columns)} cells, got {len(row)}"
                 )
+
+    @classmethod
+    def of(cls, name: str, title: str, columns: Sequence[Column[_Item]], items: Iterable[_Item]) -> Table:
+        """The table whose header and rows both come from `columns`: a row per item."""
+        rows = tuple(tuple(column.cell(item) for column in columns) for item in items)
+        return cls(name, title, tuple(column.header for column in columns), rows)
 
     def write_csv(self, path: Path) -> None:
         with path.open("w", newline="", encoding="utf-8") as f:
@@ -157,7 +177,7 @@ def _finish(fig: matplotlib.figure.Figure, path: Path) -> None:
 
 
 def plot_estimates(
-    traces: Mapping[str, Trace], path: Path, *, title: str, joints: Sequence[int] | None = None
+    traces: Mapping[_Label, Trace], path: Path, *, title: str, joints: Sequence[int] | None = None
 ) -> None:
     """Estimate against truth as the thesis' figures 4.2-4.14: one panel per joint and component.
 
@@ -209,7 +229,7 @@ def plot_estimates(
     _finish(fig, path)
 
 
-def plot_error_over_time(traces: Mapping[str, Trace], path: Path, *, title: str, joint: int) -> None:
+def plot_error_over_time(traces: Mapping[_Label, Trace], path: Path, *, title: str, joint: int) -> None:
     """|q error| of one joint over time, log scale (the thesis' figure 4.15 for myoHand's 23rd joint)."""
     fig, ax = plt.subplots(figsize=(6, 2.8))
     for label, trace in traces.items():

@@ -1,7 +1,7 @@
 """Runs one research object through a real jitdyn session and records what the server answered
 beside the truth::
 
-    spec = RunSpec("pendulum_3", Scenario.PASSIVE, seconds=10, preset="THESIS")
+    spec = RunSpec("pendulum_3", Scenario.PASSIVE, seconds=10, preset=Preset.THESIS)
     trace = run_lockstep(client, spec)             # every tick: truth, filter state, covariance, source
     trace.truth_state, trace.estimate, trace.covariance
 
@@ -15,15 +15,16 @@ import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.experiments.netem import PERFECT, NetworkProfile, Schedule, gap_schedule, lockstep_schedule
-from jitdyn.experiments.objects import ResearchObject, Scenario, TrueState, UnstableSimulation
+from jitdyn.experiments.objects import ResearchObject, TrueState, UnstableSimulation
 from jitdyn.experiments.progress import progress_bar
 from jitdyn.experiments.recorded import research_object
+from jitdyn.vocabulary import Channel, Clock, EstimatorKind, Output, Preset, Scenario
 
 __all__ = ["ModelCache", "RunSpec", "Trace", "estimate_of", "run_lockstep"]
 
@@ -35,22 +36,22 @@ class RunSpec:
     object: str  # "pendulum_1".."pendulum_3", "biped", "myoelbow", "myohand"
     scenario: Scenario
     seconds: float
-    estimator: str = "UKF"  # UKF | STATIC | CONSTANT_VELOCITY | CONSTANT_ACCELERATION
-    preset: str = "JITDYN"  # JITDYN | THESIS
+    estimator: EstimatorKind = EstimatorKind.UKF
+    preset: Preset = Preset.JITDYN
     seed: int = 0
     network: NetworkProfile = PERFECT
     grace: float = 0.0  # s: a frame later than this after its tick is late (LOCKSTEP emulation)
     gaps: tuple[int, int] | None = None  # (gap ticks, period ticks): deterministic gaps instead of `network`
     overrides: Mapping[str, Any] = field(default_factory=dict)  # estimator settings beyond the preset
     # The scenario the session is opened with: None, the object's; "" the server's choice (the
-    # client names none); or a scenario name (a wrong one, to test absorption).
-    open_as: str | None = None
+    # client names none); or a scenario (a wrong one, to test absorption).
+    open_as: Scenario | Literal[""] | None = None
     noise: tuple[float, float] | None = None  # white sensor noise (q std, qd std), seeded by `seed`
     default_settings: bool = False  # send no estimator settings at all (every default of the server)
 
     @property
     def label(self) -> str:
-        estimator = self.preset if self.estimator == "UKF" else self.estimator
+        estimator: str = self.preset if self.estimator is EstimatorKind.UKF else self.estimator
         if self.default_settings:
             estimator = "defaults"
         extra = "".join(f",{k}={v}" for k, v in sorted(self.overrides.items()))
@@ -137,12 +138,12 @@ def estimate_of(result: TickResult, nq: int, nv: int) -> tuple[np.ndarray, np.nd
     return np.asarray(result.qpos), np.asarray(result.qvel)
 
 
-def _measured(scenario: Scenario) -> tuple[str, ...]:
+def _measured(scenario: Scenario) -> tuple[Channel, ...]:
     # The thesis' measurement vector is the whole state: [q, qd] or, controlled, [q, qd, qdd];
     # a controlled frame carries the control that acted too (not a measurement: an input).
     if scenario is Scenario.CONTROLLED:
-        return ("qpos", "qvel", "qacc", "ctrl")
-    return ("qpos", "qvel")
+        return (Channel.QPOS, Channel.QVEL, Channel.QACC, Channel.CTRL)
+    return (Channel.QPOS, Channel.QVEL)
 
 
 def _frame(
@@ -193,16 +194,18 @@ def run_lockstep(
         if spec.default_settings
         else {"estimator": spec.estimator, "preset": spec.preset, **spec.overrides}
     )
-    opened_as = spec.scenario.value if spec.open_as is None else (spec.open_as or None)
+    opened_as = spec.scenario if spec.open_as is None else (spec.open_as or None)
     noise_rng = np.random.default_rng(spec.seed + 7919)
     options = SessionOptions(
         **models.options(obj),
         scenario=opened_as,
         dt=dt,
-        clock="LOCKSTEP",
+        clock=Clock.LOCKSTEP,
         estimator=settings,
-        measured=_measured(Scenario(opened_as) if opened_as in ("PASSIVE", "CONTROLLED") else spec.scenario),
-        outputs=("FILTER_STATE",),
+        measured=_measured(
+            opened_as if opened_as in (Scenario.PASSIVE, Scenario.CONTROLLED) else spec.scenario
+        ),
+        outputs=(Output.FILTER_STATE,),
         # Every late frame of the emulated network is applied: a history as long as the run. A run
         # of deterministic gaps has no late frames (they are lost), and a history as long as the
         # run would pass the server's memory limit on myoHand's 5000 ticks.
@@ -284,7 +287,7 @@ def run_lockstep(
     bar.close()
     wall = time.perf_counter() - started
 
-    layout = 3 if opened.scenario == "CONTROLLED" else 2
+    layout = 3 if opened.scenario == Scenario.CONTROLLED else 2
     # DRIVEN filters carry the unknown force after [q, qd]; the truth has no such state (the force
     # the filter holds over a tick is a modelling device), so the trace keeps the [q, qd] block of
     # the mean and the covariance, and NEES is that marginal's.
@@ -297,7 +300,7 @@ def run_lockstep(
     covariance = (
         None if any(c is None for c in covariances) else np.array([c[:side, :side] for c in covariances])  # type: ignore[index]
     )
-    measured_channels = [c for c in opened.measured if c in ("qpos", "qvel", "qacc")]
+    measured_channels = [c for c in opened.measured if c in (Channel.QPOS, Channel.QVEL, Channel.QACC)]
     return Trace(
         spec=spec,
         dt=dt,

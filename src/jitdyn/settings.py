@@ -23,7 +23,7 @@ import re
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, Final, TypeVar
 
 __all__ = [
     "ENV_PREFIX",
@@ -31,15 +31,20 @@ __all__ = [
     "SettingError",
     "Settings",
     "add_arguments",
+    "argparse_type",
+    "checked",
     "default_workers",
     "parse_address",
     "parse_duration",
+    "positive_int",
     "resolve",
     "settings_for",
     "settings_table",
 ]
 
 ENV_PREFIX: Final = "JITDYN_"
+
+_V = TypeVar("_V")
 
 
 class SettingError(ValueError):
@@ -81,34 +86,27 @@ def parse_address(text: str) -> str:
     return text.strip()
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"expected a whole number >= 1, got {text!r}") from None
-    if value < 1:
-        raise ValueError(f"expected a whole number >= 1, got {text!r}")
-    return value
+def checked(
+    convert: Callable[[str], _V], accept: Callable[[_V], bool], expected: str, *, malformed: str | None = None
+) -> Callable[[str], _V]:
+    """A parser: `convert` the text, then `accept` the value; otherwise ValueError "expected
+    {expected}, got {text!r}" ({malformed} instead where `convert` itself fails)."""
+
+    def parse(text: str) -> _V:
+        try:
+            value = convert(text)
+        except ValueError:
+            raise ValueError(f"expected {malformed or expected}, got {text!r}") from None
+        if not accept(value):
+            raise ValueError(f"expected {expected}, got {text!r}")
+        return value
+
+    return parse
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise ValueError(f"expected a whole number >= 0, got {text!r}") from None
-    if value < 0:
-        raise ValueError(f"expected a whole number >= 0, got {text!r}")
-    return value
-
-
-def _fraction(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"expected a number in (0, 1], got {text!r}") from None
-    if not 0.0 < value <= 1.0:
-        raise ValueError(f"expected a number in (0, 1], got {text!r}")
-    return value
+positive_int = checked(int, lambda value: value >= 1, "a whole number >= 1")
+_count = checked(int, lambda value: value >= 0, "a whole number >= 0")
+_fraction = checked(float, lambda value: 0.0 < value <= 1.0, "a number in (0, 1]")
 
 
 def _path(text: str) -> Path:
@@ -136,15 +134,8 @@ def _boolean(text: str) -> bool:
 
 
 def default_workers(processes: int = 1) -> int:
-    """Threads propagating sigma points by default: the CPUs, shared among the server's processes.
-
-    One per CPU for one process; one each when `jitdyn serve` already runs a process per CPU, where
-    a second worker per process only oversubscribes the cores. Measured on 2 CPUs, default two
-    processes, alternating runs (benchmarks/RESULTS.md, Round 4): two 200 Hz biped sessions took
-    2569 us of server CPU a tick with one worker each against 2829 us with two (means of 6 runs; a
-    split propagation hands half its points to a pool thread every tick), and a lone session lost
-    nothing by it (its "free" second core runs the load generator).
-    """
+    """Threads propagating sigma points by default: the CPUs, shared among the server's processes
+    (one each at one process per CPU). Why: docs/decisions/0060-one-worker-per-process.md."""
     return max(1, (os.cpu_count() or 1) // max(1, processes))
 
 
@@ -197,16 +188,28 @@ def setting(
     return field(default=default, metadata=metadata)
 
 
+def _serve_address(default: str | None, help: str) -> Any:
+    """An address `serve` listens on."""
+    return setting(default, parse=parse_address, commands=("serve",), metavar="HOST:PORT", help=help)
+
+
+def _serve_file(help: str) -> Any:
+    """A file `serve` reads, none by default."""
+    return setting(None, parse=_path, commands=("serve",), metavar="FILE", help=help)
+
+
+def _quota(help: str) -> Any:
+    """A count of open sessions `serve` allows, 0 for no quota."""
+    return setting(0, parse=_count, commands=("serve",), metavar="N", default_text="0: no quota", help=help)
+
+
 @dataclass(frozen=True)
 class Settings:
     """Every setting of every command, typed; the defaults are the embedded, loopback set-up."""
 
-    address: str = setting(
+    address: str = _serve_address(
         "127.0.0.1:50051",
-        parse=parse_address,
-        commands=("serve",),
-        metavar="HOST:PORT",
-        help="where the server listens (port 0 picks one); a non-loopback address needs "
+        "where the server listens (port 0 picks one); a non-loopback address needs "
         "--tls-cert, --tls-key and --api-keys, or --insecure",
     )
     server: str | None = setting(
@@ -235,7 +238,7 @@ class Settings:
     )
     workers: int | None = setting(
         None,
-        parse=_positive_int,
+        parse=positive_int,
         default_text="the CPU count, shared among --processes (one each at one process per CPU)",
         commands=("serve", "demo"),
         metavar="N",
@@ -250,23 +253,11 @@ class Settings:
         help="HMAC key of subject pseudonyms, mode 0600, outside the data folder, created at first start; "
         "JITDYN_SECRET=hex in the environment overrides it",
     )
-    tls_cert: Path | None = setting(
-        None,
-        parse=_path,
-        commands=("serve",),
-        metavar="FILE",
-        help="PEM certificate chain, to serve over TLS",
-    )
-    tls_key: Path | None = setting(
-        None, parse=_path, commands=("serve",), metavar="FILE", help="PEM private key of --tls-cert"
-    )
-    api_keys: Path | None = setting(
-        None,
-        parse=_path,
-        commands=("serve",),
-        metavar="FILE",
-        help="file of `KEY TENANT` lines: every RPC must then carry `authorization: Bearer KEY` and sees "
-        "only its tenant's sessions and models",
+    tls_cert: Path | None = _serve_file("PEM certificate chain, to serve over TLS")
+    tls_key: Path | None = _serve_file("PEM private key of --tls-cert")
+    api_keys: Path | None = _serve_file(
+        "file of `KEY TENANT` lines: every RPC must then carry `authorization: Bearer KEY` and sees "
+        "only its tenant's sessions and models"
     )
     insecure: bool = setting(
         False,
@@ -276,7 +267,7 @@ class Settings:
         help="allow a non-loopback address without TLS and API keys",
     )
     processes: int = setting(
-        parse=_positive_int,
+        parse=positive_int,
         default_factory=lambda: os.cpu_count() or 1,
         default_text="the CPU count",
         commands=("serve",),
@@ -292,32 +283,13 @@ class Settings:
         help="share of one core each process may spend on REALTIME ticks; a session whose measured cost "
         "would exceed it is refused with RESOURCE_EXHAUSTED",
     )
-    metrics_address: str | None = setting(
-        None,
-        parse=parse_address,
-        commands=("serve",),
-        metavar="HOST:PORT",
-        default_text="none",
-        help="serve Prometheus metrics there, e.g. 127.0.0.1:9464",
+    metrics_address: str | None = _serve_address(None, "serve Prometheus metrics there, e.g. 127.0.0.1:9464")
+    max_sessions: int = _quota(
+        "open sessions per process, a quota (REALTIME sessions are admitted by --tick-budget)"
     )
-    max_sessions: int = setting(
-        0,
-        parse=_count,
-        commands=("serve",),
-        metavar="N",
-        default_text="0: no quota",
-        help="open sessions per process, a quota (REALTIME sessions are admitted by --tick-budget)",
-    )
-    max_sessions_per_tenant: int = setting(
-        0,
-        parse=_count,
-        commands=("serve",),
-        metavar="N",
-        default_text="0: no quota",
-        help="open sessions per tenant and process, a quota",
-    )
+    max_sessions_per_tenant: int = _quota("open sessions per tenant and process, a quota")
     max_state_dimension: int = setting(
-        200, parse=_positive_int, commands=("serve",), metavar="N", help="largest nv of a session's model"
+        200, parse=positive_int, commands=("serve",), metavar="N", help="largest nv of a session's model"
     )
 
 
@@ -368,21 +340,23 @@ def add_arguments(parser: argparse.ArgumentParser, command: str) -> None:
             parser.add_argument(
                 s.flag,
                 dest=s.name,
-                type=_argparse_type(s),
+                type=argparse_type(s.parse, s.name),
                 default=argparse.SUPPRESS,
                 metavar=s.metavar,
                 help=text,
             )
 
 
-def _argparse_type(s: Setting) -> Callable[[str], Any]:
+def argparse_type(parse: Callable[[str], Any], name: str) -> Callable[[str], Any]:
+    """`parse` as an argparse `type=`: its ValueError becomes argparse's one-line usage error."""
+
     def convert(text: str) -> Any:
         try:
-            return s.parse(text)
+            return parse(text)
         except ValueError as error:
             raise argparse.ArgumentTypeError(str(error)) from None
 
-    convert.__name__ = s.name  # argparse names the type in some messages
+    convert.__name__ = name  # argparse names the type in some messages
     return convert
 
 

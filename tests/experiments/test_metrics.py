@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from jitdyn.experiments.metrics import (
-    DeadReckoning,
     armse,
     chi_square_interval,
     consistency,
@@ -19,6 +18,7 @@ from jitdyn.experiments.metrics import (
     rmse,
     ticks_since_frame,
 )
+from jitdyn.vocabulary import EstimatorKind
 
 
 def test_rmse_per_joint_and_armse():
@@ -98,10 +98,10 @@ def test_consistency_needs_a_finite_sample():
 def test_dead_reckoning_models():
     state = {"q": np.array([1.0]), "qd": np.array([2.0]), "qdd": np.array([4.0]), "horizon": 0.5}
     expected = {
-        DeadReckoning.STATIC: ([1.0], [2.0]),
-        DeadReckoning.CONSTANT_VELOCITY: ([2.0], [2.0]),
+        EstimatorKind.STATIC: ([1.0], [2.0]),
+        EstimatorKind.CONSTANT_VELOCITY: ([2.0], [2.0]),
         # 1 + 2 * 0.5 + 0.5 * 4 * 0.25 = 2.5; 2 + 4 * 0.5 = 4
-        DeadReckoning.CONSTANT_ACCELERATION: ([2.5], [4.0]),
+        EstimatorKind.CONSTANT_ACCELERATION: ([2.5], [4.0]),
     }
     for kind, (q, qd) in expected.items():
         got_q, got_qd = dead_reckon(kind, **state)
