@@ -14,7 +14,9 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import MerweScaledSigmaPoints, SimplexSigmaPoints, UnscentedKalmanFilter
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from jitdyn.server.estimation.estimator import EstimatorConfig, Measurement, resolve_config
+from jitdyn.server.estimation.config import EstimatorConfig, resolve_config
+from jitdyn.server.estimation.guard import DIVERGENCE_TICKS, NIS_LIMIT_PER_DIMENSION, RESTART_UPDATES
+from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.manifold import SplitManifold
 from jitdyn.server.estimation.pool import Backend, WorkerPool
 from jitdyn.server.estimation.sigma import (
@@ -25,13 +27,7 @@ from jitdyn.server.estimation.sigma import (
     make_sigma_points,
     nearest_positive_definite,
 )
-from jitdyn.server.estimation.ukf import (
-    DIVERGENCE_TICKS,
-    NIS_LIMIT_PER_DIMENSION,
-    RESTART_UPDATES,
-    UnscentedFilter,
-    process_noise,
-)
+from jitdyn.server.estimation.ukf import UnscentedFilter, process_noise
 
 
 def pendulum(n: int) -> mujoco.MjModel:
@@ -532,7 +528,7 @@ def test_snapshots_belong_to_their_filter_and_hand_out_read_only_state() -> None
         a, b = UnscentedFilter(model, config, pool=pool), UnscentedFilter(model, config, pool=pool)
         a.initialise(Measurement(qpos=np.array([0.1]), qvel=np.array([0.0])))
         with pytest.raises(
-            InvalidArgument, match="^snap must be a snapshot of this estimator, got _Snapshot$"
+            InvalidArgument, match="^snap must be a snapshot of this estimator, got FilterSnapshot$"
         ):
             b.restore(a.snapshot())
         with pytest.raises(InvalidArgument, match="^snap must be a snapshot of this estimator, got dict$"):
