@@ -11,7 +11,7 @@ when the model is wrong (an adaptive UKF)::
   smooth signal is of order its fourth derivative times dt^4, negligible at the ticks of wearables.
   R is the square of a robust scale of the last `window_r` fourth differences (1.4826 median |d4| /
   sqrt(70), the MAD), so that the kinks of a motion (a force that jumps) do not pass for noise.
-  Why not covariance matching on the innovations: docs/decisions/0024-adaptive-r-from-differences.md.
+  Why not covariance matching on the innovations: docs/decisions/0023-adaptive-r-from-differences.md.
 - Q keeps its configured structure (the discrete white-noise blocks) and is rescaled per state
   component, Q = S^1/2 Q0 S^1/2, where s_i matches the running mean of (K y)_i^2, the correction the
   filter had to make (Mohamed and Schwarz 1999's Q = K C_y K^T, diagonal), with Sage and Husa's
@@ -23,7 +23,7 @@ when the model is wrong (an adaptive UKF)::
   +-`inflation_step`, phi = 1 - tr(S^-1 R) / m the share of the innovation covariance S that the
   prediction makes (the sensitivity of E[NIS] to log lambda), and log lambda leaks back towards 0
   by `inflation_leak` per update, so that it stays up only while the NIS keeps asking. Why phi and
-  the leak, and what else was measured: docs/decisions/0025-noise-inflation.md.
+  the leak, and what else was measured: docs/decisions/0024-noise-inflation.md.
 - Over a gap the same Q is further scaled by mu, matched the same way to the NIS of the first frame
   after each gap, the only frame that tests a prediction of many ticks (a random walk of the force
   says its variance grows as the gap's length, where a muscle's or a controller's force drifts
@@ -326,8 +326,7 @@ class NoiseAdapter:
 
     def absorbed(self) -> None:
         """After an absorption: the adapted part of Q widened by `absorb_factor`, within
-        q_scale_max (unbounded, repeated absorptions left q_est 1e6 times its bound, which its
-        fading memory then took hundreds of updates to forget), and an empty NIS window, so the
+        q_scale_max (so that its fading memory can forget it), and an empty NIS window, so the
         next verdict comes from the updates after it."""
         b = self._bounds
         self._q_est = np.minimum(self._q_est * b.absorb_factor, self._q0_diag * b.q_scale_max)

@@ -215,7 +215,7 @@ def _jitdyn_values(model: mujoco.MjModel, scenario: Scenario, n: int) -> dict[st
     applies). DRIVEN: the unknown force carries what the thesis' q_var stood for, the spread is
     narrower (alpha 0.3), the noise adaptive, and gaps below LARGE_STATE are answered by the scored
     combination. A wrong model: PASSIVE becomes DRIVEN, CONTROLLED and EXTERNAL restart
-    (docs/decisions/0022-wrong-model-restart.md), DRIVEN's adaptive noise absorbs it.
+    (docs/decisions/0021-wrong-model-restart.md), DRIVEN's adaptive noise absorbs it.
     """
     driven = scenario == Scenario.DRIVEN
     values: dict[str, SettingValue] = {"q_var": DRIVEN_Q_VAR, "r": DRIVEN_R} if driven else {}

@@ -27,8 +27,7 @@ per dof for q, and the same with D_h, the fading covariance of the predictors' q
 against the frame's qvel, pooled over dofs as C_h is), for qd; less the noise of the frames they
 were scored against (R of q and qd, which is in every score but not in the answer's error against
 the truth). The filter reports, over [q, qd], the larger of these and its own predicted variances
-(estimation/ukf.py says why). Per-dof covariances (2P x 2P per dof) were tried first: they cost
-the scoring of a myoElbow tick 3.8x its probes' physics instead of 2.2x.
+(estimation/ukf.py says why). Why pooled over dofs: docs/decisions/0025-forecast-pooled-covariances.md.
 
 Cost: the live probes are rows of one table and are stepped together, one `mujoco.batch.Batch`
 call per tick (each probe's own state and force; the batch reports the qacc of the last step as

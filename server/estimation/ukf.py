@@ -417,7 +417,7 @@ class UnscentedFilter:
     def _correct_widened(self, z: np.ndarray, prior: tuple[np.ndarray, np.ndarray]) -> float | None:
         """The frame that ends a gap, past the divergence guard's NIS limit, used again against the
         prior widened as an absorption widens it: [q, qd] follow the frame, the force its evidence
-        (docs/decisions/0023-widen-after-a-gap.md)."""
+        (docs/decisions/0022-widen-after-a-gap.md)."""
         x, P = prior
         k = self._order * self._nv
         P[:k, :k] += self._P0[:k, :k]
