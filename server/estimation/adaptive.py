@@ -1,19 +1,17 @@
-"""Noise that the filter learns from its measurements and innovations, within bounds, and a window
-of NIS that tells when the model is wrong (an adaptive UKF)::
+"""Noise that the filter learns from its innovations, within bounds, and a window of NIS that tells
+when the model is wrong (an adaptive UKF)::
 
     adapter = NoiseAdapter(r0=np.full(m, 1e-2), q0=Q0, bounds=BOUNDS)
     R, Q = adapter.R, adapter.Q
-    verdict = adapter.observe(z=z, consecutive=True, innovation=y, gain=K, nis=nis)
+    verdict = adapter.observe(innovation=y, consecutive=True, gain=K, nis=nis)
     verdict.adapted, verdict.absorb
 
-- R (diagonal) from the measurements themselves: the fourth difference of five consecutive frames
-  of white noise of variance s^2 has variance 70 s^2, while that of a smooth motion is of order
-  x^(4) dt^4, negligible at the ticks of wearables. R is the square of a robust scale of the last
-  `window_r` fourth differences (1.4826 median |d4| / sqrt(70), the MAD), so that the kinks of a
-  motion (a force that jumps) do not pass for noise. Innovation-based covariance matching (Mehra
-  1972, Sage and Husa 1969: E[y y^T] = H P- H^T + R) was tried first and fails where it matters:
-  while the unknown force's prior is wide, y^2 - H P- H^T is negative and R collapses to its floor,
-  so a DRIVEN filter fed noisy frames believed them perfect (docs/experiments.md).
+- R (diagonal) from the innovations y = z - h(x-) of consecutive ticks: the fourth difference of
+  five consecutive samples of white noise of variance s^2 has variance 70 s^2, while that of a
+  smooth signal is of order its fourth derivative times dt^4, negligible at the ticks of wearables.
+  R is the square of a robust scale of the last `window_r` fourth differences (1.4826 median |d4| /
+  sqrt(70), the MAD), so that the kinks of a motion (a force that jumps) do not pass for noise.
+  Why not covariance matching on the innovations: docs/decisions/0023-adaptive-r-from-differences.md.
 - Q keeps its configured structure (the discrete white-noise blocks) and is rescaled per state
   component, Q = S^1/2 Q0 S^1/2, where s_i matches the running mean of (K y)_i^2, the correction the
   filter had to make (Mohamed and Schwarz 1999's Q = K C_y K^T, diagonal), with Sage and Husa's
@@ -23,29 +21,18 @@ of NIS that tells when the model is wrong (an adaptive UKF)::
   and Schwarz 1999, with a scalar in place of their matrix; a stochastic-approximation step in the
   log): after each update, log lambda += gain phi (NIS / m - 1), each step clipped to
   +-`inflation_step`, phi = 1 - tr(S^-1 R) / m the share of the innovation covariance S that the
-  prediction makes (the sensitivity of E[NIS] to log lambda). A consistent filter's NIS leaves
-  lambda where it is on average; one whose prior is too narrow (a force that changes faster than
-  its random walk says) widens it, one whose prior is too wide (a perfect sensor on a smooth
-  motion) narrows it. Without phi, where R makes most of S (wearable frames at 500 Hz) the NIS
-  hardly answers lambda, which then wandered up and let the force follow the sensors' noise:
-  myoElbow's q error at 100 ms went from 4.9e-3 to 7.0e-3 rad (seeds 1 and 2). With phi alone a
-  NIS a few percent above m (R's estimate a little low) still pushed lambda up, by small steps
-  that nothing took back (seed 2: 4.7e-3 to 7.4e-3): log lambda leaks back towards 0 by
-  `inflation_leak` per update, so that it stays up only while the NIS keeps asking (3 %: myoElbow
-  as before, 4.7e-3; a NIS / m that stays at 20 still takes lambda to its bound). Matching the mean
-  of log NIS to chi-square's instead was tried: myoElbow's NIS, less spread than chi-square(2),
-  pushed lambda up and the q error at 100 ms from 5.8e-3 to 7.3e-3 rad (wearable frames); so was a
-  dead band (no step while the window's mean NIS is inside its 95 % interval): seed 2, 6.7e-3.
+  prediction makes (the sensitivity of E[NIS] to log lambda), and log lambda leaks back towards 0
+  by `inflation_leak` per update, so that it stays up only while the NIS keeps asking. Why phi and
+  the leak, and what else was measured: docs/decisions/0024-noise-inflation.md.
 - Over a gap the same Q is further scaled by mu, matched the same way to the NIS of the first frame
-  after each gap, the only frame that tests a prediction of many ticks: a random walk of the force
+  after each gap, the only frame that tests a prediction of many ticks (a random walk of the force
   says its variance grows as the gap's length, where a muscle's or a controller's force drifts
-  along a trend (myoHand's filter, answering its gaps, was optimistic by 300 at their ends).
-  Once a gap: gap_gain and gap_step are larger than lambda's.
+  along a trend). Once a gap: gap_gain and gap_step are larger than lambda's.
 - All are clipped to `AdaptationBounds`: a filter that learns cannot learn itself into a singular
   or absurd covariance.
-- NIS: the mean of the last `window` NIS values against its chi-square interval. Far above it
-  for a whole window means the model is wrong, not the
-  noise: the caller absorbs it (widens P). Far above: past the 0.999 quantile of that mean.
+- NIS: the mean of the last `window` NIS values against its chi-square interval. Far above it (past
+  the 0.999 quantile of that mean) for a whole window means the model is wrong, not the noise: the
+  caller absorbs it (widens P).
 
 Pure numpy; one adapter per filter, driven from one thread; `snapshot()`/`restore()` for the
 timewarp.
@@ -60,7 +47,7 @@ from typing import Final
 import numpy as np
 from scipy.stats import chi2
 
-__all__ = ["BOUNDS", "AdaptationBounds", "NoiseAdapter", "Verdict"]
+__all__ = ["BOUNDS", "AdaptationBounds", "NoiseAdapter", "NoiseSnapshot", "Verdict"]
 
 
 _MAD_TO_SIGMA: Final = 1.4826  # median |N(0, 1)| = 0.6745 = 1 / 1.4826
@@ -123,7 +110,9 @@ class Verdict:
 
 
 @dataclass(frozen=True)
-class _Snapshot:
+class NoiseSnapshot:
+    """A NoiseAdapter's whole state."""
+
     r: np.ndarray
     q_est: np.ndarray
     count: int
@@ -242,39 +231,26 @@ class NoiseAdapter:
     def observe(
         self,
         *,
-        z: np.ndarray,
-        consecutive: bool,
         innovation: np.ndarray,
+        consecutive: bool,
         gain: np.ndarray,
         nis: float | None,
         noise_share: float = 0.0,
     ) -> Verdict:
         """Learn from one update.
 
-        z (m,): the measurement (no quaternions: models with ball or free joints do not adapt R
-        from qpos differences correctly, see NoiseAdapter); consecutive: the frame before it was
-        the previous tick's; innovation y (m,) = z - h(x-); gain K (n, m); nis: y^T S^-1 y (None
-        when not finite); noise_share: tr(S^-1 R) / m, the share of the innovation covariance that
-        is the measurement's noise (lambda's step is scaled by the rest, see the module docstring).
+        innovation y (m,) = z - h(x-), which R is learnt from (its fourth differences) and Q (the
+        correction K y); consecutive: the frame before it was the previous tick's; gain K (n, m);
+        nis: y^T S^-1 y (None when not finite); noise_share: tr(S^-1 R) / m, the share of the
+        innovation covariance that is the measurement's noise (lambda's step is scaled by the rest,
+        see the module docstring).
         """
-        b = self._bounds
-        if not (np.all(np.isfinite(innovation)) and np.all(np.isfinite(z))):
+        if not np.all(np.isfinite(innovation)):
             return Verdict(adapted=False, absorb=False)
+        b = self._bounds
         d = (1.0 - b.forgetting) / (1.0 - b.forgetting ** (self._count + 1))
         self._count += 1
-        if not consecutive:
-            self._recent = []
-        self._recent.append(np.array(z, dtype=np.float64))
-        if len(self._recent) > 5:
-            self._recent.pop(0)
-        if len(self._recent) == 5 and z.size == self._r.size:
-            z0, z1, z2, z3, z4 = self._recent
-            self._d4[self._d4_count % b.window_r] = z4 - 4.0 * z3 + 6.0 * z2 - 4.0 * z1 + z0
-            self._d4_count += 1
-            if self._d4_count >= b.min_differences:
-                filled = self._d4[: min(self._d4_count, b.window_r)]
-                scale = _MAD_TO_SIGMA * _column_medians(np.abs(filled))
-                self._r = np.clip(scale**2 / _D4_VARIANCE, b.r_min, b.r_max)
+        self._learn_r(innovation, consecutive=consecutive)
         # A filter on its way to the divergence guard can have gains whose squares overflow: such
         # an update teaches nothing (the guard re-initialises).
         with np.errstate(over="ignore", invalid="ignore"):
@@ -284,20 +260,48 @@ class NoiseAdapter:
             self._q_est = q_next
         absorb = False
         if nis is not None and np.isfinite(nis):
-            m = innovation.size
-            if nis >= 0.0 and self._inflate:
-                share = min(max(1.0 - noise_share, 0.0), 1.0)
-                step = b.inflation_gain * share * (nis / m - 1.0)
-                step = min(max(step, -b.inflation_step), b.inflation_step)
-                low, high = math.log(b.inflation_min), math.log(b.inflation_max)
-                leaked = (1.0 - b.inflation_leak) * self._log_inflation
-                self._log_inflation = min(max(leaked + step, low), high)
-            self._nis[self._nis_count % b.window] = nis
-            self._nis_count += 1
-            if self._nis_count >= b.window:
-                if self._nis_limit is None:
-                    self._nis_limit = float(chi2.ppf(b.absorb_quantile, b.window * m)) / b.window
-                absorb = float(self._nis.mean()) > self._nis_limit
+            absorb = self._learn_nis(nis, m=innovation.size, noise_share=noise_share)
+        return Verdict(adapted=self._moved(), absorb=absorb)
+
+    def _learn_r(self, y: np.ndarray, *, consecutive: bool) -> None:
+        """R from the robust scale of the last fourth differences of y (m,), over consecutive ticks."""
+        b = self._bounds
+        if not consecutive:
+            self._recent = []
+        self._recent.append(np.array(y, dtype=np.float64))
+        if len(self._recent) > 5:
+            self._recent.pop(0)
+        if len(self._recent) == 5 and y.size == self._r.size:
+            y0, y1, y2, y3, y4 = self._recent
+            self._d4[self._d4_count % b.window_r] = y4 - 4.0 * y3 + 6.0 * y2 - 4.0 * y1 + y0
+            self._d4_count += 1
+            if self._d4_count >= b.min_differences:
+                filled = self._d4[: min(self._d4_count, b.window_r)]
+                scale = _MAD_TO_SIGMA * _column_medians(np.abs(filled))
+                self._r = np.clip(scale**2 / _D4_VARIANCE, b.r_min, b.r_max)
+
+    def _learn_nis(self, nis: float, *, m: int, noise_share: float) -> bool:
+        """lambda's step towards NIS / m = 1 (inflate only), and the NIS window: whether its mean is
+        far out (absorb)."""
+        b = self._bounds
+        if nis >= 0.0 and self._inflate:
+            share = min(max(1.0 - noise_share, 0.0), 1.0)
+            step = b.inflation_gain * share * (nis / m - 1.0)
+            step = min(max(step, -b.inflation_step), b.inflation_step)
+            low, high = math.log(b.inflation_min), math.log(b.inflation_max)
+            leaked = (1.0 - b.inflation_leak) * self._log_inflation
+            self._log_inflation = min(max(leaked + step, low), high)
+        self._nis[self._nis_count % b.window] = nis
+        self._nis_count += 1
+        if self._nis_count < b.window:
+            return False
+        if self._nis_limit is None:
+            self._nis_limit = float(chi2.ppf(b.absorb_quantile, b.window * m)) / b.window
+        return float(self._nis.mean()) > self._nis_limit
+
+    def _moved(self) -> bool:
+        """R, s or lambda moved by more than report_change since they were last reported."""
+        b = self._bounds
         s = self.scale
         inflation = self.inflation
         moved = bool(
@@ -309,7 +313,7 @@ class NoiseAdapter:
             self._reported_r = self._r.copy()
             self._reported_s = s
             self._reported_inflation = inflation
-        return Verdict(adapted=moved, absorb=absorb)
+        return moved
 
     def observe_gap(self, *, nis: float, m: int) -> None:
         """The NIS (of dimension m) of the first frame after a gap, against the prediction over it."""
@@ -322,16 +326,15 @@ class NoiseAdapter:
 
     def absorbed(self) -> None:
         """After an absorption: the adapted part of Q widened by `absorb_factor`, within
-        q_scale_max (unbounded, repeated absorptions left q_est 1e6 times its bound, which its
-        fading memory then took hundreds of updates to forget), and an empty NIS window, so the
+        q_scale_max (so that its fading memory can forget it), and an empty NIS window, so the
         next verdict comes from the updates after it."""
         b = self._bounds
         self._q_est = np.minimum(self._q_est * b.absorb_factor, self._q0_diag * b.q_scale_max)
         self._nis[:] = 0.0
         self._nis_count = 0
 
-    def snapshot(self) -> _Snapshot:
-        return _Snapshot(
+    def snapshot(self) -> NoiseSnapshot:
+        return NoiseSnapshot(
             r=self._r.copy(),
             q_est=self._q_est.copy(),
             count=self._count,
@@ -347,7 +350,7 @@ class NoiseAdapter:
             reported_inflation=self._reported_inflation,
         )
 
-    def restore(self, snap: _Snapshot) -> None:
+    def restore(self, snap: NoiseSnapshot) -> None:
         self._r = snap.r.copy()
         self._q_est = snap.q_est.copy()
         self._count = snap.count

@@ -24,16 +24,10 @@ import mujoco
 import numpy as np
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from jitdyn.server.estimation.estimator import (
-    Estimate,
-    EstimatorConfig,
-    EstimatorKind,
-    Measurement,
-    check_against_model,
-    check_measurement,
-    derivative_order,
-    read_only,
-)
+from jitdyn.server.estimation.config import EstimatorConfig, check_against_model
+from jitdyn.server.estimation.interface import Estimate, Measurement, check_measurement, read_only
+from jitdyn.server.estimation.layout import derivative_order
+from jitdyn.vocabulary import EstimatorKind
 
 __all__ = ["DeadReckoning"]
 

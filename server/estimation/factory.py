@@ -1,5 +1,5 @@
-"""Making the estimator a configuration names. Apart from `estimator.py`, which only declares the
-interface and its settings, so that the implementations can import the interface without a cycle.
+"""Making the estimator a configuration names, and pricing one tick of it. Apart from
+`interface.py` and `config.py`, so that the implementations can import those without a cycle.
 """
 
 from __future__ import annotations
@@ -9,19 +9,13 @@ import time
 import mujoco
 import numpy as np
 
+from jitdyn.server.estimation.config import EstimatorConfig, check_against_model
 from jitdyn.server.estimation.deadreckoning import DeadReckoning
-from jitdyn.server.estimation.estimator import (
-    Estimator,
-    EstimatorConfig,
-    EstimatorKind,
-    Measurement,
-    Scenario,
-    WrongModel,
-    check_against_model,
-)
+from jitdyn.server.estimation.interface import Estimator, Measurement
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.switch import SwitchingFilter
 from jitdyn.server.estimation.ukf import UnscentedFilter
+from jitdyn.vocabulary import Channel, EstimatorKind, Scenario, WrongModel
 
 __all__ = ["make_estimator", "measure_cycle"]
 
@@ -52,12 +46,12 @@ def measure_cycle(
     zeros = np.zeros(model.nv)
     measurement = Measurement(
         qpos=model.qpos0.copy(),
-        qvel=zeros if "qvel" in config.measured else None,
-        qacc=zeros if "qacc" in config.measured else None,
-        ctrl=np.zeros(model.nu) if "ctrl" in config.measured else None,
+        qvel=zeros if Channel.QVEL in config.measured else None,
+        qacc=zeros if Channel.QACC in config.measured else None,
+        ctrl=np.zeros(model.nu) if Channel.CTRL in config.measured else None,
     )
     estimator.initialise(measurement)
-    ctrl = np.zeros(model.nu) if config.scenario == "CONTROLLED" else None
+    ctrl = np.zeros(model.nu) if config.scenario == Scenario.CONTROLLED else None
     best = float("inf")
     for _ in range(repeats):
         started = time.thread_time()

@@ -5,7 +5,7 @@ filter without its mixing)::
     forecasts = ForecastCombiner(process, dt=0.05, steps_per_tick=10, horizon=4)
     forecasts.advance()                         # every tick, before the frame is used
     forecasts.observe(z_qpos, z_qvel, mean_qpos=q, mean_qvel=qd, act=act, force=f, rate=None)
-    answer = forecasts.forecast()               # over a gap: Forecast(weights, qpos, ...) or None
+    answer = forecasts.forecast()               # over a gap: CombinedForecast(weights, qpos, ...) or None
 
 The predictors, from the last frame and the filter's last posterior:
 - MODEL: the posterior mean rolled out by the process model under its estimated force (the force
@@ -27,8 +27,7 @@ per dof for q, and the same with D_h, the fading covariance of the predictors' q
 against the frame's qvel, pooled over dofs as C_h is), for qd; less the noise of the frames they
 were scored against (R of q and qd, which is in every score but not in the answer's error against
 the truth). The filter reports, over [q, qd], the larger of these and its own predicted variances
-(estimation/ukf.py says why). Per-dof covariances (2P x 2P per dof) were tried first: they cost
-the scoring of a myoElbow tick 3.8x its probes' physics instead of 2.2x.
+(estimation/ukf.py says why). Why pooled over dofs: docs/decisions/0025-forecast-pooled-covariances.md.
 
 Cost: the live probes are rows of one table and are stepped together, one `mujoco.batch.Batch`
 call per tick (each probe's own state and force; the batch reports the qacc of the last step as
@@ -51,7 +50,7 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-__all__ = ["MIN_SAMPLES", "PREDICTORS", "Forecast", "ForecastCombiner"]
+__all__ = ["MIN_SAMPLES", "PREDICTORS", "CombinedForecast", "CombinerSnapshot", "ForecastCombiner"]
 
 # The predictors' order in weights (Result.forecast_weights).
 PREDICTORS: Final = ("MODEL", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION")
@@ -76,7 +75,7 @@ _RAMP: Final = 3  # 1: its force ramps with its rate (integrated random walk)
 
 
 @dataclass(frozen=True)
-class Forecast:
+class CombinedForecast:
     """The combination's answer h ticks after the last frame: weights (P,) in PREDICTORS' order,
     qpos (nq,), qvel (nv,), qacc (nv,); its error variances per dof, of q and qd (nv,) each
     (see the module docstring)."""
@@ -118,7 +117,9 @@ class _Columns:
 
 
 @dataclass(frozen=True)
-class _Snapshot:
+class CombinerSnapshot:
+    """A ForecastCombiner's whole state: its probes, scores and last frame's anchor."""
+
     tick: int
     marks: np.ndarray  # (probes, 4)
     table: np.ndarray  # (probes, width)
@@ -252,7 +253,7 @@ class ForecastCombiner:
         noise_q: np.ndarray | None = None,
         noise_qd: np.ndarray | None = None,
         ended: bool = False,
-    ) -> Forecast | None:
+    ) -> CombinedForecast | None:
         """The combination's answer now, when the last frame is some ticks old and that horizon's
         weights are learnt; else None (the filter answers). noise_q, noise_qd (nv,): the variance of
         the scored frames' noise on q and qd (R's diagonal), taken out of the answer's variances
@@ -277,7 +278,7 @@ class ForecastCombiner:
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd)
-        return Forecast(
+        return CombinedForecast(
             weights=weights,
             qpos=weights @ q,
             qvel=weights @ v,
@@ -300,9 +301,9 @@ class ForecastCombiner:
             scored = self._variances[h] = (float(w @ self._cov[h] @ w), float(w @ self._cov_v[h] @ w))
         return _net_of_noise(scored[0], noise_q, self._nv), _net_of_noise(scored[1], noise_qd, self._nv)
 
-    def snapshot(self) -> _Snapshot:
+    def snapshot(self) -> CombinerSnapshot:
         n = self._n
-        return _Snapshot(
+        return CombinerSnapshot(
             tick=self._tick,
             marks=self._marks[:n].copy(),
             table=self._table[:n].copy(),
@@ -312,7 +313,7 @@ class ForecastCombiner:
             anchor=self._anchor,
         )
 
-    def restore(self, snap: _Snapshot) -> None:
+    def restore(self, snap: CombinerSnapshot) -> None:
         n = snap.marks.shape[0]
         if n > self._capacity:
             self._grow(n)

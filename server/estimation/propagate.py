@@ -278,6 +278,14 @@ class Propagator:
             nv=self._model.nv,
         )
 
+    def _buffers_for(self, nstep: int) -> _Buffers:
+        buffers = self._buffers.get(nstep)
+        if buffers is None:
+            # An extrapolation horizon; keep the tick's buffers and at most one other count.
+            self._buffers = {self._nstep: self._buffers[self._nstep], nstep: self._new_buffers(nstep)}
+            buffers = self._buffers[nstep]
+        return buffers
+
     def __call__(
         self,
         qpos: np.ndarray,
@@ -304,11 +312,7 @@ class Propagator:
         count = qpos.shape[0]
         if not 1 <= count <= self._nsigma:
             raise InvalidArgument(f"qpos must have 1 to {self._nsigma} rows, got {count}")
-        buffers = self._buffers.get(nstep)
-        if buffers is None:
-            # An extrapolation horizon; keep the tick's buffers and at most one other count.
-            self._buffers = {self._nstep: self._buffers[self._nstep], nstep: self._new_buffers(nstep)}
-            buffers = self._buffers[nstep]
+        buffers = self._buffers_for(nstep)
         # Only as many workers as the work is worth (server/estimation/pool.py, MIN_CHUNK_SECONDS).
         work = count * nstep * self._step_seconds
         chunks = int(work / self._min_chunk_seconds) if self._min_chunk_seconds > 0 else count

@@ -1,5 +1,5 @@
-"""A PASSIVE filter that turns into a DRIVEN one when its own innovations say the model is wrong:
-the absorption of a wrong scenario (issue 10)::
+"""A PASSIVE filter that turns into a DRIVEN one when its own innovations say the model is wrong
+(wrong_model DRIVEN)::
 
     estimator = SwitchingFilter(model, config, pool=pool)   # config.scenario PASSIVE,
     ...                                                     # config.wrong_model DRIVEN
@@ -19,24 +19,18 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Final
+from typing import Any, Final
 
 import mujoco
 import numpy as np
 from scipy.stats import chi2
 
 from jitdyn.errors import InvalidArgument
-from jitdyn.server.estimation.estimator import (
-    Estimate,
-    EstimatorConfig,
-    Measurement,
-    Preset,
-    Scenario,
-    WrongModel,
-    preset_values,
-)
+from jitdyn.server.estimation.config import SETTING_FIELDS, EstimatorConfig, preset_values
+from jitdyn.server.estimation.interface import Estimate, Measurement
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.ukf import UnscentedFilter
+from jitdyn.server.estimation.ukf import FilterSnapshot, UnscentedFilter
+from jitdyn.vocabulary import Channel, Preset, Scenario, WrongModel
 
 __all__ = ["ABSORB_QUANTILE", "WINDOW", "SwitchingFilter"]
 
@@ -46,26 +40,18 @@ __all__ = ["ABSORB_QUANTILE", "WINDOW", "SwitchingFilter"]
 # updates: a pendulum at 50 ms ticks switches within 0.4 s, before the gaps experiment's first gap.
 WINDOW: Final = 8
 ABSORB_QUANTILE: Final = 1.0 - 1e-9
-# The settings of the DRIVEN filter that replaces a wrong PASSIVE one: PRESET_JITDYN's for DRIVEN.
-_DRIVEN_FIELDS: Final = (
-    "sigma_points",
-    "alpha",
-    "kappa",
-    "q_var",
-    "r",
-    "force_model",
-    "force_var",
-    "noise_model",
-    "forecast",
-)
+# The settings of the DRIVEN filter that replaces a wrong PASSIVE one: PRESET_JITDYN's for DRIVEN,
+# but for what stays the session's own: its estimator, its prior (beta, p0) and its wrong_model.
+_KEPT_FIELDS: Final = ("estimator", "beta", "p0", "wrong_model")
+_DRIVEN_FIELDS: Final = tuple(name for name in SETTING_FIELDS if name not in _KEPT_FIELDS)
 
 
 @dataclass(frozen=True)
 class _Snapshot:
     owner: int
     switched: bool
-    first: object
-    second: object | None
+    first: FilterSnapshot
+    second: FilterSnapshot | None
     nis: tuple[float, ...]
     log: tuple[Measurement | None, ...]
 
@@ -82,11 +68,9 @@ class SwitchingFilter:
             )
         self._first = UnscentedFilter(model, config, pool=pool)
         driven = preset_values(Preset.JITDYN, model=model, scenario=Scenario.DRIVEN)
-        self._driven_config = dataclasses.replace(
-            config,
-            scenario=Scenario.DRIVEN,
-            **{k: driven[k] for k in _DRIVEN_FIELDS},  # type: ignore[arg-type]
-        )
+        # Members and floats of the table's rows, which EstimatorConfig checks again.
+        settings: dict[str, Any] = {name: driven[name] for name in _DRIVEN_FIELDS}
+        self._driven_config = dataclasses.replace(config, scenario=Scenario.DRIVEN, **settings)
         self._model = model
         self._pool = pool
         self._second: UnscentedFilter | None = None
@@ -94,7 +78,7 @@ class SwitchingFilter:
         self._nis: list[float] = []
         # The ticks of the window, from its first frame: the frame, or None for a tick without one.
         self._log: list[Measurement | None] = []
-        m = (2 if "qvel" in config.measured else 1) * int(model.nv)
+        m = (2 if Channel.QVEL in config.measured else 1) * int(model.nv)
         self._limit = float(chi2.ppf(ABSORB_QUANTILE, WINDOW * m)) / WINDOW
 
     @property

@@ -1,6 +1,6 @@
 """jitdyn's unscented Kalman filter: filterpy's UnscentedKalmanFilter, built whole from an
 `EstimatorConfig`, with MuJoCo as the process model and the sigma points propagated in one batched
-call (server/estimation/propagate.py) instead of filterpy's per-point loop.
+call (estimation/batched.py, estimation/propagate.py) instead of filterpy's per-point loop.
 
     estimator = UnscentedFilter(model, config, pool=pool)
     estimator.initialise(Measurement(qpos=q0, qvel=v0))
@@ -19,109 +19,82 @@ The scenarios are the thesis' (reference/thesis-experiments.md):
 
 DRIVEN with Forecast.COMBINED (PRESET_JITDYN's default): a tick without a frame is answered by the
 combination of the model's rollout and IEEE 1278's extrapolators that scored best on the session's
-own frames (server/estimation/forecast.py); its variance over [q, qd] is the larger of the
-combination's scored error and the filter's prediction (the filter's own mean and covariance go on
-predicting under it, unchanged).
-
-DRIVEN with SIMPLEX_LINEAR_FORCE (PRESET_JITDYN's from a state dimension of 32, random walk):
-the sigma points span [q, qd] only, each under the force's mean given its [q, qd]; what the force
-has of its own (its covariance given [q, qd]) acts through B, the tick's response of [q, qd] to a
-generalized force, linearised at the mean. Exact where the force enters linearly (tested against
-the full simplex on such a model); a third fewer physics steps. The measurement is linear in the
-state, so its update is the Kalman filter's (what the unscented update computes for it).
+own frames (estimation/forecast.py); its variance over [q, qd] is the larger of the combination's
+scored error and the filter's prediction (the filter's own mean and covariance go on predicting
+under it, unchanged). DRIVEN with SIMPLEX_LINEAR_FORCE: estimation/linear_force.py.
 
 Muscle activations (act, na of them) are physics state but not filter state: every sigma point
 starts a tick from the same act, and the filter keeps the weighted mean of the propagated acts
 (clipped to the actuators' ranges). In EXTERNAL, with actuation off, act simply stays.
 
 Numerics: P is symmetrised after every step and repaired (nearest positive definite matrix by
-eigenvalue clipping) when its Cholesky factorisation fails; a divergence guard re-initialises from
-the last measurement when the state turns non-finite, when the NIS stays absurd for
-DIVERGENCE_TICKS updates in a row, or when a posterior variance passes COVARIANCE_LIMIT, and says
-so in the estimate. With wrong_model RESTART (the JITDYN preset's CONTROLLED and EXTERNAL) it also
-restarts when the NIS stays past chi-square's RESTART_QUANTILE for RESTART_UPDATES updates in a
-row: a filter that has lost the body, not one that has blown up.
+eigenvalue clipping) when its Cholesky factorisation fails; when to start again from a frame (the
+divergence guard, wrong_model RESTART) is estimation/guard.py's, and the estimate says so.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
 import mujoco
 import numpy as np
 from filterpy.common import Q_discrete_white_noise
-from filterpy.kalman import UnscentedKalmanFilter, unscented_transform
-from scipy.linalg.lapack import dtrtrs
-from scipy.stats import chi2
+from filterpy.kalman import unscented_transform
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from jitdyn.server.estimation.adaptive import NoiseAdapter
-from jitdyn.server.estimation.estimator import (
+from jitdyn.server.estimation.adaptive import NoiseAdapter, NoiseSnapshot
+from jitdyn.server.estimation.batched import BatchedUKF, tangent_unscented_transform
+from jitdyn.server.estimation.config import EstimatorConfig, check_against_model
+from jitdyn.server.estimation.forecast import CombinedForecast, CombinerSnapshot, ForecastCombiner
+from jitdyn.server.estimation.guard import Guard, GuardState
+from jitdyn.server.estimation.interface import (
     Estimate,
-    EstimatorConfig,
-    EstimatorKind,
-    Forecast,
     Measurement,
-    NoiseModel,
-    Scenario,
-    SigmaScheme,
-    WrongModel,
-    check_against_model,
     check_measurement,
     check_vector,
-    derivative_order,
-    force_blocks,
-    linear_force_applies,
     read_only,
 )
-from jitdyn.server.estimation.forecast import Forecast as ForecastAnswer
-from jitdyn.server.estimation.forecast import ForecastCombiner
+from jitdyn.server.estimation.layout import derivative_order, force_blocks, linear_force_applies
+from jitdyn.server.estimation.linear_force import LinearForceUKF, force_response
 from jitdyn.server.estimation.manifold import SplitManifold, has_manifold
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
 from jitdyn.server.estimation.sigma import (
+    MerweScaled,
     RobustCholesky,
     Simplex,
+    UniformSpherical,
     cholesky_upper,
     make_sigma_points,
     nearest_positive_definite,
 )
+from jitdyn.vocabulary import (
+    Channel,
+    EstimatorKind,
+    Forecast,
+    NoiseModel,
+    Scenario,
+    SigmaScheme,
+    WrongModel,
+)
 
-__all__ = [
-    "ABSORPTIONS_BEFORE_REINIT",
-    "COVARIANCE_LIMIT",
-    "DIVERGENCE_TICKS",
-    "NIS_LIMIT_PER_DIMENSION",
-    "RESTART_QUANTILE",
-    "RESTART_UPDATES",
-    "UnscentedFilter",
-    "process_noise",
-]
+__all__ = ["FilterSnapshot", "UnscentedFilter", "process_noise"]
 
-# The divergence guard. An NIS of 1e6 per measured dimension is an innovation a thousand standard
-# deviations out; one such tick can be a bad frame, DIVERGENCE_TICKS in a row is a filter that has
-# lost track. A posterior variance of 1e14 (rad^2, m^2, (rad/s^2)^2, ...) is no estimate at all,
-# and beyond it P - K S K^T loses every digit of R = 0.01.
-NIS_LIMIT_PER_DIMENSION: Final = 1e6
-DIVERGENCE_TICKS: Final = 10
-COVARIANCE_LIMIT: Final = 1e14
-# An adaptive filter whose NIS window stays far out after this many absorptions in a row starts
-# again from the measurement.
-ABSORPTIONS_BEFORE_REINIT: Final = 3
-# WRONG_MODEL_RESTART: a NIS past this quantile of chi-square(m) in RESTART_UPDATES updates in a
-# row (about 1e-6 for a consistent filter) is a filter that has lost the body; it starts again
-# from the frame.
-RESTART_QUANTILE: Final = 0.999
-RESTART_UPDATES: Final = 2
 # DRIVEN's initial uncertainty of the unknown force (and its rate), as the acceleration it would
 # give each dof alone: 10 rad/s^2 (or m/s^2), 100 rad/s^3; scaled by the mass matrix's diagonal.
 FORCE_P0_ACCELERATION: Final = 10.0
 FORCE_RATE_P0_JERK: Final = 100.0
 # The longest gap the forecast combination learns its weights for, s (a longer gap keeps these).
 FORECAST_HORIZON: Final = 0.2
+# What moves the sigma points besides the model's own forces, per scenario.
+_INPUTS: Final = {
+    Scenario.PASSIVE: Inputs.NONE,
+    Scenario.CONTROLLED: Inputs.CTRL,
+    Scenario.EXTERNAL: Inputs.QFRC,
+    Scenario.DRIVEN: Inputs.QFRC,
+}
 
 
 def process_noise(*, order: int, dt: float, var: float, nv: int) -> np.ndarray:
@@ -136,132 +109,8 @@ def process_noise(*, order: int, dt: float, var: float, nv: int) -> np.ndarray:
     )
 
 
-class _BatchedUKF(UnscentedKalmanFilter):  # type: ignore[misc]
-    """filterpy's filter with its two per-point Python loops over the state replaced: the process
-    model runs on the whole sigma set at once, and the cross-covariance is one matrix product.
-    The maths is filterpy's, unchanged (tests/server/test_ukf.py runs both side by side).
-    """
-
-    def __init__(self, *, propagate: _Propagate, vector: bool, **kwargs: object) -> None:
-        super().__init__(**kwargs)
-        self._propagate = propagate
-        self._vector = vector
-
-    def compute_process_sigmas(self, dt: float, fx: object = None, **fx_args: object) -> None:
-        sigmas = self.points_fn.sigma_points(self.x, self.P)
-        self.sigmas_f = self._propagate(sigmas, nstep=None)
-
-    def cross_variance(
-        self, x: np.ndarray, z: np.ndarray, sigmas_f: np.ndarray, sigmas_h: np.ndarray
-    ) -> np.ndarray:
-        if self._vector:
-            dx = sigmas_f - x
-            dz = sigmas_h - z
-        else:
-            dx = self.residual_x(sigmas_f, x)
-            dz = self.residual_z(sigmas_h, z)
-        return np.asarray(dx.T @ (self.Wc[:, None] * dz))
-
-
-class _LinearForceUKF(_BatchedUKF):
-    """DRIVEN under SIMPLEX_LINEAR_FORCE (see the module docstring). x = [s, f], s = [q, qd] (k),
-    f the force (nv); the points are simplex points of s."""
-
-    x: np.ndarray
-    P: np.ndarray
-
-    def __init__(
-        self, *, owner: UnscentedFilter, motion: int, propagate: _Propagate, vector: bool, **kwargs: object
-    ) -> None:
-        super().__init__(propagate=propagate, vector=vector, **kwargs)
-        self._owner = owner
-        self._k = motion
-
-    def prior(self, x: np.ndarray, P: np.ndarray, *, nstep: int | None) -> tuple[np.ndarray, np.ndarray]:
-        """Mean (len x,) and covariance (n, n) after nstep physics steps, before process noise.
-
-        With U the upper factor of Pss, the force given s is f + G' U^-T (s - s_mean), G = U^-T Psf,
-        with covariance Pff - G'G; a simplex point s + U' e carries f + G' e. Its propagation gives
-        the part of [s', f] that moves with s; B (Pff - G'G) B' and (Pff - G'G) B' add the rest.
-        """
-        k, owner = self._k, self._owner
-        s, f = x[:k], x[k:]
-        Pss, Psf, Pff = P[:k, :k], P[:k, k:], P[k:, k:]
-        U = self.msqrt(Pss)
-        G, info = dtrtrs(U, Psf, lower=0, trans=1)
-        if info != 0 or not np.all(np.isfinite(U)):
-            G = np.full_like(Psf, np.nan)  # a poisoned factor: the divergence guard restarts
-        points: Simplex = self.points_fn
-        chi = points.from_factor(s, U)
-        forces = f + (G.T @ points.unit).T
-        moved = owner._propagate_linear_force(chi, forces, nstep=nstep)
-        mean = self.Wm @ moved
-        spread = moved - mean
-        weighted = self.Wc[:, None] * spread
-        rest = Pff - G.T @ G
-        B = owner._force_response(s, f, nstep=nstep)
-        BR = B @ rest
-        out = np.empty_like(P)
-        out[:k, :k] = spread.T @ weighted + BR @ B.T
-        out[:k, k:] = weighted.T @ (forces - f) + BR
-        out[k:, :k] = out[:k, k:].T
-        out[k:, k:] = Pff
-        self.sigmas_f = moved
-        return np.concatenate([mean, f]), out
-
-    def predict(self, dt: object = None, UT: object = None, fx: object = None, **fx_args: object) -> None:
-        x, P = self.prior(np.asarray(self.x), np.asarray(self.P), nstep=None)
-        self.x, self.P = x, P + self.Q
-        self.x_prior = np.copy(self.x)
-        self.P_prior = np.copy(self.P)
-
-    def update(
-        self, z: np.ndarray, R: object = None, UT: object = None, hx: object = None, **hx_args: object
-    ) -> None:
-        index = self._owner._z_index
-        x, P = self.x, self.P
-        PHt = P[:, index]
-        self.S = PHt[index] + self.R
-        self.SI = self.inv(self.S)
-        self.K = PHt @ self.SI
-        self.y = z - x[index]
-        self.x = x + self.K @ self.y
-        self.P = P - self.K @ (self.S @ self.K.T)
-        self.z = np.array(z)
-        self.x_post = self.x.copy()
-        self.P_post = self.P.copy()
-
-
-def _tangent_unscented_transform(
-    sigmas: np.ndarray,
-    Wm: np.ndarray,
-    Wc: np.ndarray,
-    noise_cov: np.ndarray | None,
-    mean_fn: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    residual_fn: Callable[[np.ndarray, np.ndarray], np.ndarray],
-) -> tuple[np.ndarray, np.ndarray]:
-    """filterpy's unscented transform for points on a manifold: points (nsigma, dim) give a mean
-    (dim,) but a covariance in the tangent space (n, n), which filterpy's own cannot shape."""
-    mean = mean_fn(sigmas, Wm)
-    spread = residual_fn(sigmas, mean)
-    P = spread.T @ (Wc[:, None] * spread)
-    if noise_cov is not None:
-        P = P + noise_cov
-    return mean, P
-
-
-class _Propagate:
-    """The process model over a whole sigma set: (nsigma, len x) -> (nsigma, len x)."""
-
-    def __init__(self, owner: UnscentedFilter) -> None:
-        self._owner = owner
-
-    def __call__(self, sigmas: np.ndarray, *, nstep: int | None) -> np.ndarray:
-        return self._owner._propagate_sigmas(sigmas, nstep=nstep)
-
-
 @dataclass(frozen=True)
-class _Snapshot:
+class FilterSnapshot:
     """An UnscentedFilter's whole mutable state; arrays are read-only copies."""
 
     owner: int  # id() of the filter it came from
@@ -275,11 +124,9 @@ class _Snapshot:
     last: Measurement | None
     last_qvel: np.ndarray
     ticks_since_update: int
-    nis_run: int
-    far_run: int
-    adapter: object | None
-    absorptions: int
-    forecasts: object | None
+    guard: GuardState
+    adapter: NoiseSnapshot | None
+    forecasts: CombinerSnapshot | None
 
 
 class UnscentedFilter:
@@ -303,123 +150,134 @@ class UnscentedFilter:
         self._n = (self._order + self._fblocks) * self._nv  # tangent dimension: filterpy's dim_x
         self._size = self._nq + (self._order - 1 + self._fblocks) * self._nv  # len(x)
         self._controlled = self._scenario == Scenario.CONTROLLED
+        self._z_index, z_size, self._z_tangent = self._measurement_layout()
+        self._manifold = has_manifold(m)
+        self._x_manifold = SplitManifold(m, rest=self._size - self._nq) if self._manifold else None
+        self._sqrt = RobustCholesky()
+        # SIMPLEX_LINEAR_FORCE keeps the force out of the points where it applies; else it is SIMPLEX.
+        self._linear_force = config.sigma_points == SigmaScheme.SIMPLEX_LINEAR_FORCE and linear_force_applies(
+            m, self._scenario, config.force_model
+        )
+        self._points = self._sigma_points()
+        self._propagator = Propagator(
+            m,
+            pool=pool,
+            nsigma=self._points.num_sigmas(),
+            nstep=config.steps_per_tick,
+            inputs=_INPUTS[self._scenario],
+            want_qacc=self._controlled,
+        )
+        self._kf = self._filter(z_size)
+        self._mass = self._mass_diagonal()
+        self._Q = self._process_noise(config.dt)
+        self._kf.Q = self._Q
+        self._kf.R = config.r * np.eye(self._z_tangent)
+        self._P0 = self._initial_covariance()
+        self._adapter = self._noise_adapter()
+        restart = config.wrong_model == WrongModel.RESTART
+        self._guard = Guard(m=self._z_tangent, restart=restart, driven=self._driven)
+        # Plain vectors keep filterpy's own transform (and its arithmetic, bit for bit).
+        self._ut = tangent_unscented_transform if self._manifold else unscented_transform
+        self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
+        self._act_bounds = self._activation_bounds()
+        self._forecasts = self._forecast_combiner()
+        self._clear()
 
-        # The measurement: qpos, then qvel, then qacc (CONTROLLED only: the other states have no
-        # qdd), each a slice of the state.
+    def _measurement_layout(self) -> tuple[slice | np.ndarray, int, int]:
+        """Where the measurement sits in x, how many entries of x it has, and its tangent
+        dimension: qpos, then qvel, then qacc (CONTROLLED only: the other states have no qdd)."""
         nq, nv = self._nq, self._nv
         index = list(range(nq))
         z_tangent = nv
-        if "qvel" in config.measured:
+        if Channel.QVEL in self._config.measured:
             index += range(nq, nq + nv)
             z_tangent += nv
-        if self._controlled and "qacc" in config.measured:
+        if self._controlled and Channel.QACC in self._config.measured:
             index += range(nq + nv, nq + 2 * nv)
             z_tangent += nv
         # A slice when the measured entries are contiguous (qpos and qvel): cheaper than fancy
         # indexing in filterpy's per-point measurement loop.
         contiguous = index == list(range(len(index)))
-        self._z_index: slice | np.ndarray = slice(0, len(index)) if contiguous else np.array(index)
-        self._z_tangent = z_tangent
+        return (slice(0, len(index)) if contiguous else np.array(index)), len(index), z_tangent
 
-        manifold = has_manifold(m)
-        self._x_manifold = SplitManifold(m, rest=self._size - nq) if manifold else None
-        z_manifold = SplitManifold(m, rest=len(index) - nq) if manifold else None
-        self._sqrt = RobustCholesky()
-        # SIMPLEX_LINEAR_FORCE keeps the force out of the points where it applies; else it is SIMPLEX.
+    def _sigma_points(self) -> MerweScaled | Simplex | UniformSpherical:
+        config = self._config
         linear = config.sigma_points == SigmaScheme.SIMPLEX_LINEAR_FORCE
-        self._linear_force = linear and linear_force_applies(m, self._scenario, config.force_model)
-        motion = self._order * nv
-        self._points = make_sigma_points(
+        return make_sigma_points(
             SigmaScheme.SIMPLEX if linear else config.sigma_points,
-            n=motion if self._linear_force else self._n,
+            n=self._order * self._nv if self._linear_force else self._n,
             alpha=config.alpha,
             beta=config.beta,
             kappa=config.kappa,
             sqrt=self._sqrt,
             add=self._x_manifold.add if self._x_manifold is not None else None,
         )
-        inputs = {
-            Scenario.PASSIVE: Inputs.NONE,
-            Scenario.CONTROLLED: Inputs.CTRL,
-            Scenario.EXTERNAL: Inputs.QFRC,
-            Scenario.DRIVEN: Inputs.QFRC,
-        }
-        self._propagator = Propagator(
-            m,
-            pool=pool,
-            nsigma=self._points.num_sigmas(),
-            nstep=config.steps_per_tick,
-            inputs=inputs[self._scenario],
-            want_qacc=self._controlled,
-        )
+
+    def _filter(self, z_size: int) -> BatchedUKF:
+        """filterpy's filter over this state and measurement, its process model ours."""
+        x_manifold = self._x_manifold
+        z_manifold = SplitManifold(self._model, rest=z_size - self._nq) if self._manifold else None
         kwargs: dict[str, object] = {
             "dim_x": self._n,
-            "dim_z": z_tangent,
-            "dt": config.dt,
+            "dim_z": self._z_tangent,
+            "dt": self._config.dt,
             "hx": self._hx,
             "fx": None,
             "points": self._points,
             "sqrt_fn": self._sqrt,
-            "x_mean_fn": self._x_manifold.mean if self._x_manifold is not None else None,
+            "x_mean_fn": x_manifold.mean if x_manifold is not None else None,
             "z_mean_fn": z_manifold.mean if z_manifold is not None else None,
-            "residual_x": self._x_manifold.residual if self._x_manifold is not None else None,
+            "residual_x": x_manifold.residual if x_manifold is not None else None,
             "residual_z": z_manifold.residual if z_manifold is not None else None,
-            "state_add": self._x_manifold.add if self._x_manifold is not None else None,
+            "state_add": x_manifold.add if x_manifold is not None else None,
         }
         if self._linear_force:
-            self._kf: _BatchedUKF = _LinearForceUKF(
-                owner=self, motion=motion, propagate=_Propagate(self), vector=True, **kwargs
+            return LinearForceUKF(
+                motion=self._order * self._nv,
+                propagate_forced=self._propagate_linear_force,
+                response=self._force_response,
+                z_index=self._z_index,
+                propagate=self._propagate_sigmas,
+                vector=True,
+                **kwargs,
             )
-        else:
-            self._kf = _BatchedUKF(propagate=_Propagate(self), vector=not manifold, **kwargs)
-        self._mass = self._mass_diagonal()
-        self._Q = self._process_noise(config.dt)
-        self._kf.Q = self._Q
-        self._kf.R = config.r * np.eye(z_tangent)
-        self._P0 = self._initial_covariance()
-        self._adapter = (
-            NoiseAdapter(
-                r0=np.full(z_tangent, config.r),
-                q0=self._Q,
-                adapt_q=self._adapt_q_mask(),
-                inflate=self._driven,
-            )
-            if config.noise_model == NoiseModel.ADAPTIVE
-            else None
-        )
-        self._absorptions = 0
-        self._restart_nis = (
-            float(chi2.ppf(RESTART_QUANTILE, z_tangent)) if config.wrong_model == WrongModel.RESTART else None
-        )
-        # Plain vectors keep filterpy's own transform (and its arithmetic, bit for bit).
-        self._ut = unscented_transform if not manifold else _tangent_unscented_transform
-        self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
-        self._act_bounds = self._activation_bounds()
-        self._forecasts = (
-            ForecastCombiner(
-                self._model,
-                dt=config.dt,
-                steps_per_tick=config.steps_per_tick,
-                horizon=int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9)),
-            )
-            if config.forecast == Forecast.COMBINED and self._driven and not manifold
-            else None
+        return BatchedUKF(propagate=self._propagate_sigmas, vector=not self._manifold, **kwargs)
+
+    def _noise_adapter(self) -> NoiseAdapter | None:
+        if self._config.noise_model != NoiseModel.ADAPTIVE:
+            return None
+        return NoiseAdapter(
+            r0=np.full(self._z_tangent, self._config.r),
+            q0=self._Q,
+            adapt_q=self._adapt_q_mask(),
+            inflate=self._driven,
         )
 
-        # Mutable state; snapshot() copies all of it.
+    def _forecast_combiner(self) -> ForecastCombiner | None:
+        config = self._config
+        if config.forecast != Forecast.COMBINED or not self._driven or self._manifold:
+            return None
+        return ForecastCombiner(
+            self._model,
+            dt=config.dt,
+            steps_per_tick=config.steps_per_tick,
+            horizon=int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9)),
+        )
+
+    def _clear(self) -> None:
+        """The mutable state of a filter not yet initialised; snapshot() copies all of it."""
         self._initialised = False
         self._kf.x = np.zeros(self._size)
-        self._kf.x[:nq] = m.qpos0
+        self._kf.x[: self._nq] = self._model.qpos0
         self._kf.P = self._P0.copy()
         self._act = np.zeros(self._na)
         self._propagated_act = np.zeros(self._na)
         self._ctrl = np.zeros(self._nu)
-        self._qfrc = np.zeros(nv)
+        self._qfrc = np.zeros(self._nv)
         self._last: Measurement | None = None
-        self._last_qvel = np.zeros(nv)
+        self._last_qvel = np.zeros(self._nv)
         self._ticks_since_update = 0
-        self._nis_run = 0
-        self._far_run = 0  # updates in a row past the restart quantile (WRONG_MODEL_RESTART)
+        self._guard.reset()
 
     @property
     def adapter(self) -> NoiseAdapter | None:
@@ -461,7 +319,7 @@ class UnscentedFilter:
         self._qfrc = np.zeros(self._nv)
         if self._adapter is not None:
             self._adapter.reset()
-        self._absorptions = 0
+        self._guard.reset()
         self._start_from(m, qvel_fallback=np.zeros(self._nv))
         if self._scenario == Scenario.EXTERNAL and m.qacc is not None:
             self._qfrc = self._inverse(m.qpos, self._last_qvel, m.qacc)
@@ -497,7 +355,7 @@ class UnscentedFilter:
         if self._finite():
             self._kf.P = _symmetric(self._kf.P)
             self._repair_if_indefinite()
-        if not self._finite() or self._blown_up():
+        if self._guard.diverged(finite=self._finite(), largest_variance=self._largest_variance()):
             # No new measurement to start from: the last one is the best that is known.
             if self._last is None:
                 raise RuntimeError("unreachable: an initialised filter has a last measurement")
@@ -508,94 +366,113 @@ class UnscentedFilter:
     def update(self, m: Measurement) -> Estimate:
         self._require_initialised("update")
         m = check_measurement(m, self._model, self._config.measured)
-        z = np.concatenate([m.qpos] + [getattr(m, c) for c in ("qvel", "qacc") if self._measures(c)])
+        z = np.concatenate(
+            [m.qpos] + [getattr(m, c) for c in (Channel.QVEL, Channel.QACC) if self._measures(c)]
+        )
         if self._adapter is not None:
             self._kf.R = self._adapter.R
-        after_gap = self._adapter is not None and self._ticks_since_update > 1
-        prior = (self._kf.x.copy(), self._kf.P.copy(), self._kf.sigmas_f) if after_gap else None
+        prior = self._gap_prior()
         # What the gap's answers were worth: the frame against the answer it ends (before the
         # correction changes the prior).
         gap_nis = self._answer_nis(z, None) if prior is not None and self._forecasts is not None else None
         nis = self._correct(z)
-        if self._adapter is not None and prior is not None:
-            gap_nis = nis if self._forecasts is None or gap_nis is None else gap_nis
-            if gap_nis is not None:
-                self._adapter.observe_gap(nis=gap_nis, m=self._z_tangent)
-        widened = False
-        if prior is not None and nis is not None and nis > NIS_LIMIT_PER_DIMENSION * self._z_tangent:
-            # The first frame after a gap, a thousand standard deviations from the prediction:
-            # the prediction was overconfident, not lost (a DRIVEN filter holds its force over the
-            # gap while the body's changes; myoHand's first gap ended at NIS 3e8). Corrected from
-            # that prior, the force took the whole innovation and the next frames overshot, ten in
-            # a row past the divergence guard. The prior is widened as an absorption widens it and
-            # the frame used again: [q, qd] follow the frame, the force its evidence.
-            x, P, _ = prior
-            k = self._order * self._nv
-            P[:k, :k] += self._P0[:k, :k]
-            self._kf.x, self._kf.P = x, P
-            if not self._linear_force:
-                self._kf.sigmas_f = self._points.sigma_points(x, P)  # what filterpy's update uses
-            nis = self._correct(z)
-            widened = True
-        reinitialised = False
-        if self._finite():
-            self._kf.P = _symmetric(self._kf.P)
-            self._repair_if_indefinite()
-        if nis is not None and nis <= NIS_LIMIT_PER_DIMENSION * self._z_tangent:
-            self._nis_run = 0
+        if prior is not None:
+            self._observe_gap(gap_nis, nis)
+        widened = prior is not None and self._guard.far_out(nis)
+        if prior is not None and widened:
+            nis = self._correct_widened(z, prior)
+        self._tidy_covariance()
+        self._guard.count(nis)
+        adapted, absorbed = self._adapt(nis)
+        reinitialised = self._guard.restart_due(
+            finite=self._finite(), largest_variance=self._largest_variance()
+        )
+        if reinitialised:
+            self._restart(m)
         else:
-            self._nis_run += 1
-        if self._restart_nis is not None:
-            self._far_run = self._far_run + 1 if nis is None or nis > self._restart_nis else 0
-        adapted, absorbed = False, widened
-        if self._adapter is not None and self._finite() and nis is not None:
-            verdict = self._adapter.observe(
-                z=np.asarray(self._kf.y),
-                consecutive=self._ticks_since_update == 1,
-                innovation=np.asarray(self._kf.y),
-                gain=np.asarray(self._kf.K),
-                nis=nis,
-                noise_share=float(np.diagonal(self._kf.SI) @ np.diagonal(self._kf.R)) / self._z_tangent,
-            )
-            adapted = verdict.adapted
-            if verdict.absorb:
-                absorbed = True
-                self._absorptions += 1
-                if self._absorptions < ABSORPTIONS_BEFORE_REINIT or self._driven:
-                    # The model is wrong, not the noise: forget what P says was known, and let Q
-                    # follow the corrections the filter has to make.
-                    # Only q and qd widen: a force spread as wide as P0 throws the sigma points
-                    # of a pendulum over (measured, docs/experiments.md).
-                    k = self._order * self._nv
-                    self._kf.P[:k, :k] += self._P0[:k, :k]
-                    self._adapter.absorbed()
-            elif self._adapter.window_full:
-                self._absorptions = 0
-        if (
-            not self._finite()
-            or self._nis_run >= DIVERGENCE_TICKS
-            or self._far_run >= RESTART_UPDATES
-            or self._blown_up()
-            # DRIVEN absorbs a model error into its force; restarting would throw the force away.
-            or (self._absorptions >= ABSORPTIONS_BEFORE_REINIT and not self._driven)
-        ):
-            self._reinitialise(m)
-            if self._adapter is not None:
-                self._adapter.reset()
-            self._absorptions = 0
-            reinitialised = True
-        else:
-            qvel = m.qvel if m.qvel is not None else self._kf.x[self._nq : self._nq + self._nv]
-            if self._scenario == Scenario.EXTERNAL:
-                self._qfrc = self._restored_force(m, qvel)
-            self._last = m
-            self._last_qvel = np.array(qvel)
-            self._ticks_since_update = 0
+            self._accept(m)
         if self._forecasts is not None:
             self._observe_forecast(m)
         if m.ctrl is not None:
             self._ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
-        return self._estimate(nis=nis, reinitialised=reinitialised, adapted=adapted, absorbed=absorbed)
+        return self._estimate(
+            nis=nis, reinitialised=reinitialised, adapted=adapted, absorbed=absorbed or widened
+        )
+
+    def _gap_prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A copy of the prior (x, P) when this frame ends a gap and the noise adapts, else None."""
+        if self._adapter is None or self._ticks_since_update <= 1:
+            return None
+        return self._kf.x.copy(), self._kf.P.copy()
+
+    def _observe_gap(self, gap_nis: float | None, nis: float | None) -> None:
+        """The adaptive noise learns from the frame that ends a gap: its NIS against the gap's last
+        answer (`gap_nis`, the combination's), or against the filter's prediction (`nis`)."""
+        if self._adapter is None:
+            return
+        gap_nis = nis if self._forecasts is None or gap_nis is None else gap_nis
+        if gap_nis is not None:
+            self._adapter.observe_gap(nis=gap_nis, m=self._z_tangent)
+
+    def _correct_widened(self, z: np.ndarray, prior: tuple[np.ndarray, np.ndarray]) -> float | None:
+        """The frame that ends a gap, past the divergence guard's NIS limit, used again against the
+        prior widened as an absorption widens it: [q, qd] follow the frame, the force its evidence
+        (docs/decisions/0022-widen-after-a-gap.md)."""
+        x, P = prior
+        k = self._order * self._nv
+        P[:k, :k] += self._P0[:k, :k]
+        self._kf.x, self._kf.P = x, P
+        if not self._linear_force:
+            self._kf.sigmas_f = self._points.sigma_points(x, P)  # what filterpy's update uses
+        return self._correct(z)
+
+    def _tidy_covariance(self) -> None:
+        """P symmetrised, and repaired when indefinite, while the filter is finite."""
+        if self._finite():
+            self._kf.P = _symmetric(self._kf.P)
+            self._repair_if_indefinite()
+
+    def _adapt(self, nis: float | None) -> tuple[bool, bool]:
+        """The adaptive noise learns from this update: whether it adapted, and whether its NIS window
+        asked for an absorption (which widens P on [q, qd] while the guard allows)."""
+        if self._adapter is None or not self._finite() or nis is None:
+            return False, False
+        kf = self._kf
+        verdict = self._adapter.observe(
+            innovation=np.asarray(kf.y),
+            consecutive=self._ticks_since_update == 1,
+            gain=np.asarray(kf.K),
+            nis=nis,
+            noise_share=float(np.diagonal(kf.SI) @ np.diagonal(kf.R)) / self._z_tangent,
+        )
+        if not verdict.absorb:
+            if self._adapter.window_full:
+                self._guard.settle()
+            return verdict.adapted, False
+        if self._guard.absorb():
+            # The model is wrong, not the noise: forget what P says was known, and let Q follow
+            # the corrections the filter has to make. Only q and qd widen: a force spread as wide
+            # as P0 throws the sigma points of a pendulum over (measured, docs/experiments.md).
+            k = self._order * self._nv
+            kf.P[:k, :k] += self._P0[:k, :k]
+            self._adapter.absorbed()
+        return verdict.adapted, True
+
+    def _restart(self, m: Measurement) -> None:
+        """The guard's restart after an update: from this frame, the noise and the guard as new."""
+        self._reinitialise(m)
+        if self._adapter is not None:
+            self._adapter.reset()
+        self._guard.reset()
+
+    def _accept(self, m: Measurement) -> None:
+        """The frame becomes the last one: the force it restores (EXTERNAL), and no gap since."""
+        qvel = m.qvel if m.qvel is not None else self._kf.x[self._nq : self._nq + self._nv]
+        if self._scenario == Scenario.EXTERNAL:
+            self._qfrc = self._restored_force(m, qvel)
+        self._last = m
+        self._last_qvel = np.array(qvel)
+        self._ticks_since_update = 0
 
     def _correct(self, z: np.ndarray) -> float | None:
         """The filter's update with measurement z; its NIS, None when not finite."""
@@ -627,7 +504,7 @@ class UnscentedFilter:
             self._extrapolation_Q = {self._config.steps_per_tick: self._Q, nstep: Q}
         if self._adapter is not None:
             Q = self._adapter.q_for(Q)
-        if isinstance(self._kf, _LinearForceUKF):
+        if isinstance(self._kf, LinearForceUKF):
             sigmas_f = self._kf.sigmas_f
             x, P = self._kf.prior(self._kf.x, self._kf.P, nstep=nstep)
             self._kf.sigmas_f = sigmas_f
@@ -642,9 +519,9 @@ class UnscentedFilter:
         act = self._clip_act(self._propagated_act)
         return self._make_estimate(x, P, act=act)
 
-    def snapshot(self) -> _Snapshot:
+    def snapshot(self) -> FilterSnapshot:
         kf = self._kf
-        return _Snapshot(
+        return FilterSnapshot(
             owner=id(self),
             initialised=self._initialised,
             x=read_only(kf.x),
@@ -656,15 +533,13 @@ class UnscentedFilter:
             last=self._last,  # immutable: check_measurement made it read-only
             last_qvel=read_only(self._last_qvel),
             ticks_since_update=self._ticks_since_update,
-            nis_run=self._nis_run,
-            far_run=self._far_run,
+            guard=self._guard.state,
             adapter=self._adapter.snapshot() if self._adapter is not None else None,
-            absorptions=self._absorptions,
             forecasts=self._forecasts.snapshot() if self._forecasts is not None else None,
         )
 
     def restore(self, snap: object) -> None:
-        if not isinstance(snap, _Snapshot) or snap.owner != id(self):
+        if not isinstance(snap, FilterSnapshot) or snap.owner != id(self):
             raise InvalidArgument(f"snap must be a snapshot of this estimator, got {type(snap).__name__}")
         kf = self._kf
         kf.x, kf.P, kf.sigmas_f = snap.x.copy(), snap.P.copy(), snap.sigmas_f.copy()
@@ -673,19 +548,17 @@ class UnscentedFilter:
         self._last = snap.last
         self._last_qvel = snap.last_qvel.copy()
         self._ticks_since_update = snap.ticks_since_update
-        self._nis_run = snap.nis_run
-        self._far_run = snap.far_run
+        self._guard.restore(snap.guard)
         if self._adapter is not None and snap.adapter is not None:
-            self._adapter.restore(snap.adapter)  # type: ignore[arg-type]
-        self._absorptions = snap.absorptions
+            self._adapter.restore(snap.adapter)
         if self._forecasts is not None and snap.forecasts is not None:
-            self._forecasts.restore(snap.forecasts)  # type: ignore[arg-type]
+            self._forecasts.restore(snap.forecasts)
 
     # -- internals ------------------------------------------------------------------------------
 
-    def _measures(self, channel: str) -> bool:
-        if channel == "qacc":
-            return self._controlled and "qacc" in self._config.measured
+    def _measures(self, channel: Channel) -> bool:
+        if channel == Channel.QACC:
+            return self._controlled and Channel.QACC in self._config.measured
         return channel in self._config.measured
 
     def _hx(self, x: np.ndarray) -> np.ndarray:
@@ -700,8 +573,8 @@ class UnscentedFilter:
     def _finite(self) -> bool:
         return bool(np.isfinite(self._kf.x).all() and np.isfinite(self._kf.P).all())
 
-    def _blown_up(self) -> bool:
-        return float(self._kf.P.diagonal().max()) > COVARIANCE_LIMIT
+    def _largest_variance(self) -> float:
+        return float(self._kf.P.diagonal().max())
 
     def _repair_if_indefinite(self) -> None:
         if cholesky_upper(self._kf.P) is None:
@@ -790,38 +663,9 @@ class UnscentedFilter:
         return moved
 
     def _force_response(self, s: np.ndarray, f: np.ndarray, *, nstep: int | None) -> np.ndarray:
-        """B = d[q', qd'] / df (2 nv, nv) over nstep physics steps from s = [q, qd] under force f.
-
-        The acceleration's response to a generalized force is H^-1, H = M + J' D J over the
-        constraint rows active at s (their Hessian in MuJoCo's primal problem; M alone when none
-        is); Euler's implicit damping then maps it through (M + h diag(damping))^-1 M. n
-        semi-implicit Euler steps of h with that response held give qd' = n h A f and
-        q' = h^2 n (n + 1) / 2 A f."""
-        m, d = self._model, self._data
-        nq, nv = self._nq, self._nv
-        d.qpos[:], d.qvel[:], d.act[:], d.ctrl[:], d.qfrc_applied[:] = s[:nq], s[nq:], self._act, 0.0, f
-        mujoco.mj_forward(m, d)
-        M = np.zeros((nv, nv))
-        mujoco.mj_fullM(m, d, M)
-        H = M.copy()
-        active = np.flatnonzero(d.efc_state == int(mujoco.mjtConstraintState.mjCNSTRSTATE_QUADRATIC))
-        if active.size:
-            J = _constraint_jacobian(m, d)[active]
-            H += J.T @ (d.efc_D[active][:, None] * J)
-        A = np.linalg.inv(H)
-        h = float(m.opt.timestep)
-        damping = m.dof_damping
-        if (
-            int(m.opt.integrator) == int(mujoco.mjtIntegrator.mjINT_EULER)
-            and np.any(damping > 0)
-            and not int(m.opt.disableflags) & int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
-        ):
-            A = np.linalg.solve(M + h * np.diag(damping), M @ A)
-        n = self._config.steps_per_tick if nstep is None else nstep
-        B = np.empty((2 * nv, nv))
-        B[:nv] = (h * h * n * (n + 1) / 2.0) * A
-        B[nv:] = (n * h) * A
-        return B
+        """B (2 nv, nv) at s = [q, qd] under force f (estimation/linear_force.py)."""
+        steps = self._config.steps_per_tick if nstep is None else nstep
+        return force_response(self._model, self._data, s, f, act=self._act, nstep=steps)
 
     def _observe_forecast(self, m: Measurement) -> None:
         """Score the forecasts against frame m and start this tick's, from the posterior."""
@@ -868,7 +712,7 @@ class UnscentedFilter:
             forecast_weights=tuple(float(w) for w in answer.weights),
         )
 
-    def _forecast(self, *, ended: bool = False) -> ForecastAnswer | None:
+    def _forecast(self, *, ended: bool = False) -> CombinedForecast | None:
         """The combination's answer now (ended: on the frame that ends a gap, the one its last tick
         gave), its variances net of the frames' noise (R's diagonal)."""
         if self._forecasts is None:
@@ -878,11 +722,11 @@ class UnscentedFilter:
         if self._adapter is not None:
             r = self._adapter.r_diagonal
             noise_q = r[:nv]
-            if self._measures("qvel"):
+            if self._measures(Channel.QVEL):
                 noise_qd = r[nv : 2 * nv]
         return self._forecasts.forecast(noise_q=noise_q, noise_qd=noise_qd, ended=ended)
 
-    def _answer_scale(self, P: np.ndarray, answer: ForecastAnswer) -> np.ndarray:
+    def _answer_scale(self, P: np.ndarray, answer: CombinedForecast) -> np.ndarray:
         """(2 nv,) the factors on the rows and columns of P's [q, qd] block that give the
         combination's answer its variance: per component the larger of the combination's own (its
         scored errors at this horizon) and the filter's prediction's, the filter's correlations kept.
@@ -1021,8 +865,7 @@ class UnscentedFilter:
         self._last = m
         self._last_qvel = np.array(qvel)
         self._ticks_since_update = 0
-        self._nis_run = 0
-        self._far_run = 0
+        self._guard.start()
 
     def _reinitialise(self, m: Measurement) -> None:
         """The divergence guard: back to the measurement, with what is still finite of the rest."""
@@ -1121,12 +964,3 @@ class UnscentedFilter:
 
 def _symmetric(P: np.ndarray) -> np.ndarray:
     return np.asarray(0.5 * (P + P.T))
-
-
-def _constraint_jacobian(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
-    """(nefc, nv) the constraint Jacobian, dense whatever MuJoCo keeps."""
-    if not mujoco.mj_isSparse(m):
-        return np.asarray(d.efc_J).reshape(d.nefc, m.nv)
-    J = np.zeros((d.nefc, m.nv))
-    mujoco.mju_sparse2dense(J, d.efc_J, d.efc_J_rownnz, d.efc_J_rowadr, d.efc_J_colind)
-    return J

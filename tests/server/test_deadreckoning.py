@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.server.estimation.config import EstimatorConfig, resolve_config
 from jitdyn.server.estimation.deadreckoning import DeadReckoning
-from jitdyn.server.estimation.estimator import EstimatorConfig, Measurement, resolve_config
+from jitdyn.server.estimation.interface import Measurement
 
 # Two slides: generalized coordinates are plain positions, so every formula can be checked exactly.
 SLIDES = """

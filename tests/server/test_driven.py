@@ -14,9 +14,13 @@ import pytest
 
 from jitdyn.client import FrameData, SessionOptions, TickResult
 from jitdyn.server.estimation.adaptive import AdaptationBounds, NoiseAdapter
-from jitdyn.server.estimation.estimator import Measurement, resolve_config, state_dimension
+from jitdyn.server.estimation.config import resolve_config
+from jitdyn.server.estimation.guard import NIS_LIMIT_PER_DIMENSION
+from jitdyn.server.estimation.interface import Measurement
+from jitdyn.server.estimation.layout import state_dimension
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.ukf import NIS_LIMIT_PER_DIMENSION, UnscentedFilter
+from jitdyn.server.estimation.ukf import UnscentedFilter
+from jitdyn.vocabulary import Scenario
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 
@@ -57,7 +61,7 @@ def test_driven_state_holds_the_unknown_force_that_acted() -> None:
     frames = _driven_truth(model, 40, amplitude=4.0)
     with WorkerPool(1) as pool:
         ukf = UnscentedFilter(model, config, pool=pool)
-        assert ukf.state_dimension == state_dimension(model, "DRIVEN") == 3 * model.nv
+        assert ukf.state_dimension == state_dimension(model, Scenario.DRIVEN) == 3 * model.nv
         ukf.initialise(frames[0][0])
         errors = []
         for k in range(1, len(frames)):
@@ -106,12 +110,12 @@ def test_adaptive_noise_stays_inside_its_bounds() -> None:
     rng = np.random.default_rng(0)
     for _ in range(100):  # white innovations of variance 1: R would be 1, its bound is 1e-3
         y = rng.standard_normal(2)
-        adapter.observe(z=y, consecutive=True, innovation=y, gain=gain, nis=5.0)
+        adapter.observe(innovation=y, consecutive=True, gain=gain, nis=5.0)
     np.testing.assert_array_equal(adapter.r_diagonal, [1e-3, 1e-3])
     assert np.all(adapter.scale <= 4.0)
     np.testing.assert_array_equal(adapter.scale, [4.0, 4.0])
     for _ in range(500):  # perfect predictions: R and Q fall to their floors, not below
-        adapter.observe(z=np.zeros(2), consecutive=True, innovation=np.zeros(2), gain=gain, nis=0.0)
+        adapter.observe(innovation=np.zeros(2), consecutive=True, gain=gain, nis=0.0)
     np.testing.assert_array_equal(adapter.r_diagonal, [1e-8, 1e-8])
     np.testing.assert_array_equal(adapter.scale, [0.5, 0.5])
     assert adapter.inflation == pytest.approx(bounds.inflation_min)  # NIS 0: lambda to its floor
@@ -128,7 +132,7 @@ def test_r_is_the_squared_mad_of_the_fourth_differences(frames: int) -> None:
     rng = np.random.default_rng(frames)
     z = np.cumsum(rng.standard_normal((frames, m)), axis=0) * 1e-3 + rng.standard_normal((frames, m)) * 1e-4
     for k in range(frames):
-        adapter.observe(z=z[k], consecutive=True, innovation=np.zeros(m), gain=np.zeros((2 * m, m)), nis=1.0)
+        adapter.observe(innovation=z[k], consecutive=True, gain=np.zeros((2 * m, m)), nis=1.0)
     d4 = z[4:] - 4.0 * z[3:-1] + 6.0 * z[2:-2] - 4.0 * z[1:-3] + z[:-4]
     window = np.abs(d4[-bounds.window_r :])
     expected = np.clip((1.4826 * np.median(window, axis=0)) ** 2 / 70.0, bounds.r_min, bounds.r_max)
@@ -317,7 +321,7 @@ def test_q_inflation_follows_the_nis_within_its_bounds() -> None:
 
     def observe(nis: float, count: int, share: float = 0.0) -> None:
         for _ in range(count):
-            adapter.observe(z=zero, consecutive=False, innovation=zero, gain=gain, nis=nis, noise_share=share)
+            adapter.observe(innovation=zero, consecutive=False, gain=gain, nis=nis, noise_share=share)
 
     observe(2.0, 50)  # NIS = m: consistent
     assert adapter.inflation == 1.0
@@ -365,11 +369,11 @@ def test_repeated_absorptions_widen_q_only_up_to_its_bound() -> None:
     zero, gain = np.zeros(2), np.eye(2)
     steady = np.sqrt(np.diag(q0))  # corrections of Q0's size: the scale stays 1
     for _ in range(50):
-        adapter.observe(z=zero, consecutive=False, innovation=steady, gain=gain, nis=2.0)
+        adapter.observe(innovation=steady, consecutive=False, gain=gain, nis=2.0)
     np.testing.assert_allclose(adapter.scale, [1.0, 1.0])
     for _ in range(5):
         adapter.absorbed()
     np.testing.assert_allclose(adapter.scale, [1e4, 1e4])
     for _ in range(100):
-        adapter.observe(z=zero, consecutive=False, innovation=zero, gain=gain, nis=2.0)
+        adapter.observe(innovation=zero, consecutive=False, gain=gain, nis=2.0)
     assert np.all(adapter.scale < 1.0), adapter.scale

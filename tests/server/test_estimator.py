@@ -1,8 +1,10 @@
 """Estimator settings (presets, precedence, checks), the factory, and LOCKSTEP-like skip sequences
-driven straight on the estimators against MuJoCo's ground truth (server/estimation/estimator.py)."""
+driven straight on the estimators against MuJoCo's ground truth (server/estimation/config.py,
+interface.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 
@@ -11,18 +13,20 @@ import numpy as np
 import pytest
 
 from jitdyn.errors import InvalidArgument
-from jitdyn.server.estimation.deadreckoning import DeadReckoning
-from jitdyn.server.estimation.estimator import (
-    Estimator,
+from jitdyn.estimator_settings import SETTINGS
+from jitdyn.server.estimation.config import (
+    SETTING_FIELDS,
     EstimatorConfig,
-    Measurement,
     is_pendulum_like,
     preset_values,
     resolve_config,
 )
+from jitdyn.server.estimation.deadreckoning import DeadReckoning
 from jitdyn.server.estimation.factory import make_estimator
+from jitdyn.server.estimation.interface import Estimator, Measurement
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.ukf import UnscentedFilter
+from jitdyn.vocabulary import Preset, Scenario
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
 
@@ -185,14 +189,17 @@ def test_request_beats_model_defaults_beats_preset() -> None:
         ({"requested": {"r": "small"}}, r"^r must be a number, got 'small'$"),
         (
             {"requested": {"estimator": "EKF"}},
-            r"^estimator must be one of \['UKF', 'STATIC', 'CONSTANT_VELOCITY', 'CONSTANT_ACCELERATION'\], got 'EKF'$",
+            r"^estimator must be one of UKF, STATIC, CONSTANT_VELOCITY, CONSTANT_ACCELERATION, got 'EKF'$",
         ),
         (
-            {"requested": {"sigma_points": "merwe"}},
-            r"^sigma_points must be one of \['MERWE', 'SIMPLEX', 'UNIFORM', 'SIMPLEX_LINEAR_FORCE'\], got 'merwe'$",
+            {"requested": {"sigma_points": "CUBATURE"}},
+            r"^sigma_points must be one of MERWE, SIMPLEX, UNIFORM, SIMPLEX_LINEAR_FORCE, got 'CUBATURE'$",
         ),
-        ({"dt": 0.055}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.055$"),
-        ({"dt": 0.0}, r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.0$"),
+        (
+            {"dt": 0.055},
+            r"^dt must be a whole multiple \(>= 1\) of the model's timestep 0.025 s, got 0.055 \(2.2 timesteps\)$",
+        ),
+        ({"dt": 0.0}, r"^dt must be a positive number of seconds, got 0.0$"),
         ({"measured": {"qvel"}}, r"^measured must include 'qpos', got \['qvel'\]$"),
         (
             {"measured": {"qpos", "torque"}},
@@ -209,10 +216,10 @@ def test_settings_are_checked_with_messages_naming_the_field(kwargs: dict[str, o
 def test_unknown_scenario_and_preset_are_refused() -> None:
     with pytest.raises(
         InvalidArgument,
-        match=r"^scenario must be one of \['PASSIVE', 'CONTROLLED', 'EXTERNAL', 'DRIVEN'\], got 'IDLE'$",
+        match=r"^scenario must be one of PASSIVE, CONTROLLED, EXTERNAL, DRIVEN, got 'IDLE'$",
     ):
         resolve(pendulum(1), "IDLE")
-    with pytest.raises(InvalidArgument, match=r"^preset must be one of \['JITDYN', 'THESIS'\], got 'PAPER'$"):
+    with pytest.raises(InvalidArgument, match=r"^preset must be one of JITDYN, THESIS, got 'PAPER'$"):
         resolve(pendulum(1), "PASSIVE", "PAPER")
 
 
@@ -382,3 +389,28 @@ def test_controlled_and_external_pendulums_track_through_skips(n: int) -> None:
     assert errors["controlled"].max() < 0.01
     # Holding the restored force is a constant-acceleration guess: better than constant velocity.
     assert np.mean(errors["external"]) < np.mean(errors["cv"])
+
+
+@pytest.mark.parametrize("preset", list(Preset))
+@pytest.mark.parametrize("scenario", list(Scenario))
+@pytest.mark.parametrize("model", ["pendulum", "biped", "ball"])
+def test_the_settings_table_is_the_config_and_every_preset_fills_it(
+    preset: Preset, scenario: Scenario, model: str
+) -> None:
+    """Every row of jitdyn.estimator_settings.SETTINGS but the preset is a field of EstimatorConfig
+    and a setting of every preset for every scenario, and the presets' values pass the table."""
+    mj_model = {
+        "pendulum": pendulum(2),
+        "biped": mujoco.MjModel.from_xml_string(BIPED),
+        "ball": mujoco.MjModel.from_xml_string(
+            '<mujoco><worldbody><body><joint name="b" type="ball"/><geom size="0.1" mass="1"/></body>'
+            '</worldbody><actuator><motor joint="b" gear="1 0 0 0 0 0"/></actuator></mujoco>'
+        ),
+    }[model]
+    fields = {f.name for f in dataclasses.fields(EstimatorConfig)}
+    assert set(SETTING_FIELDS) == set(SETTINGS) - {"preset"}
+    assert set(SETTING_FIELDS) <= fields
+    values = preset_values(preset, model=mj_model, scenario=scenario)
+    assert set(values) == set(SETTING_FIELDS)
+    for name, value in values.items():
+        assert SETTINGS[name].check(value, argument=name) == value

@@ -17,7 +17,7 @@ import pytest
 from scipy.optimize import minimize
 
 from jitdyn.client import FrameData, SessionOptions, TickResult
-from jitdyn.server.estimation.estimator import Measurement, resolve_config
+from jitdyn.server.estimation.config import resolve_config
 from jitdyn.server.estimation.forecast import (
     FORGETTING,
     MIN_SAMPLES,
@@ -26,6 +26,7 @@ from jitdyn.server.estimation.forecast import (
     ForecastCombiner,
     _min_variance_weights,
 )
+from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.propagate import process_model
 from jitdyn.server.estimation.ukf import UnscentedFilter

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from jitdyn.client import FrameData, SessionOptions, TickResult
-from jitdyn.server.estimation.estimator import Measurement, resolve_config
+from jitdyn.server.estimation.config import resolve_config
 from jitdyn.server.estimation.factory import make_estimator
+from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.switch import WINDOW, SwitchingFilter
 
