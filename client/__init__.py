@@ -3,23 +3,24 @@
     from jitdyn.client import Client, SessionOptions, FrameData
     from jitdyn.client import AsyncClient      # the same over asyncio (grpc.aio)
 
-It may import jitdyn.v1, jitdyn.errors and jitdyn.registry (model packing); never the server
-or the research harness.
+Value types live in `_models.py`, what both transports share in `_transport.py`, the sync transport
+in `_client.py` and the async one in `aio.py`. It may import the contract (jitdyn.v1, errors,
+vocabulary, estimator_settings) and jitdyn.registry (model packing); never the server or the
+research harness.
 """
 
-from jitdyn.client.aio import AsyncClient, AsyncSession
-from jitdyn.client.sdk import (
-    Client,
+from jitdyn.client._client import Client, Session
+from jitdyn.client._models import (
     FrameData,
     ModelRef,
     Opened,
     Rejection,
-    Session,
     SessionOptions,
     Summary,
     SyncSample,
     TickResult,
 )
+from jitdyn.client.aio import AsyncClient, AsyncSession
 
 __all__ = [
     "AsyncClient",

@@ -5,7 +5,7 @@
     async with AsyncClient("127.0.0.1:50051") as c:
         async with await c.open_session(SessionOptions(model_name="pendulum_1", dt=0.05)) as s:
             r = await s.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0]))
-            (await s.skip(1)).source      # "PREDICTED"
+            (await s.skip(1)).source      # Source.PREDICTED
             summary = await s.close()
 
 Make the client inside a running event loop: a grpc.aio channel belongs to the loop it was made in.
@@ -22,9 +22,7 @@ from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar
 
 import grpc
 
-from jitdyn.client.sdk import (
-    _CHANNEL_OPTIONS,
-    _END,
+from jitdyn.client._models import (
     FrameData,
     ModelRef,
     Opened,
@@ -33,15 +31,13 @@ from jitdyn.client.sdk import (
     Summary,
     SyncSample,
     TickResult,
-    _answer,
-    _auth_metadata,
-    _End,
-    _first_answer,
-    _register_request,
-    _status_error,
-    _sync_request,
+    opened_from_response,
+    register_request,
+    session_answer,
+    sync_request,
 )
-from jitdyn.errors import FailedPrecondition, JitdynError, error_for_status
+from jitdyn.client._transport import CHANNEL_OPTIONS, END, End, auth_metadata, status_error
+from jitdyn.errors import FailedPrecondition, NoAnswer, error_for_status
 from jitdyn.v1 import (
     dynamics_pb2,
     dynamics_pb2_grpc,
@@ -50,6 +46,7 @@ from jitdyn.v1 import (
     session_pb2,
     session_pb2_grpc,
 )
+from jitdyn.vocabulary import Clock
 
 if TYPE_CHECKING:
     # The async stubs exist for type checkers only; at run time the sync stub class builds them.
@@ -87,7 +84,7 @@ class AsyncSession:
     ) -> None:
         self._on_end = on_end  # called once the stream has ended: the client closes its connection
         self._open_request = dynamics_pb2.StreamSessionRequest(open=options.to_message())
-        self._responses: asyncio.Queue[_Received | grpc.RpcError | _End] = asyncio.Queue()
+        self._responses: asyncio.Queue[_Received | grpc.RpcError | End] = asyncio.Queue()
         self._write_lock = asyncio.Lock()
         self._close_lock = asyncio.Lock()
         self._timeout = timeout
@@ -95,7 +92,7 @@ class AsyncSession:
         self._clock_start = time.monotonic()
         self._last_probe: tuple[int, float] | None = None
         self._probe_id = 0
-        self._realtime = options.clock.upper() == "REALTIME"
+        self._realtime = options.clock == Clock.REALTIME
         self._sync_interval = sync_interval
         self._last_sync_sent = -float("inf")
         self._closed = False
@@ -110,7 +107,7 @@ class AsyncSession:
             first = await self._get(self._timeout)
             if first is None:
                 raise FailedPrecondition("the session stream has ended")
-            opened = _first_answer(first[1])
+            opened = opened_from_response(first[1])
         except BaseException:
             self.cancel()
             await self._reader_done()
@@ -136,7 +133,7 @@ class AsyncSession:
         except grpc.RpcError as error:
             self._responses.put_nowait(error)
         finally:
-            self._responses.put_nowait(_END)
+            self._responses.put_nowait(END)
             if self._on_end is not None:
                 self._on_end()
 
@@ -148,19 +145,19 @@ class AsyncSession:
     async def _wait(self, timeout: float | None) -> _Received | None:
         """The next response; None once the stream has ended. Raises TimeoutError after `timeout`."""
         item = await asyncio.wait_for(self._responses.get(), timeout)
-        if item is _END:
-            self._responses.put_nowait(_END)
+        if item is END:
+            self._responses.put_nowait(END)
             return None
         if isinstance(item, grpc.RpcError):
-            self._responses.put_nowait(_END)
-            raise _status_error(item)
+            self._responses.put_nowait(END)
+            raise status_error(item)
         return item
 
     async def _get(self, timeout: float | None) -> _Received | None:
         try:
             return await self._wait(timeout)
         except TimeoutError:
-            raise JitdynError(f"no answer from the server within {timeout} s") from None
+            raise NoAnswer(f"no answer from the server within {timeout} s") from None
 
     async def _next_response(self, timeout: float | None) -> dynamics_pb2.StreamSessionResponse:
         item = await self._get(timeout)
@@ -170,7 +167,7 @@ class AsyncSession:
 
     def _convert(self, item: _Received) -> TickResult | Rejection | SyncSample | Summary:
         received_at, response = item
-        answer = _answer(response, received_at=received_at, clock_start=self._clock_start)
+        answer = session_answer(response, received_at=received_at, clock_start=self._clock_start)
         if isinstance(answer, Summary):
             self.summary = answer
         return answer
@@ -190,7 +187,7 @@ class AsyncSession:
                 else:
                     await self._call.write(request)
             except grpc.RpcError as error:
-                raise _status_error(error) from None
+                raise status_error(error) from None
             except asyncio.InvalidStateError:
                 # The stream has already ended: say how, as a read would.
                 code = await self._call.code()
@@ -259,10 +256,10 @@ class AsyncSession:
         answers: list[TickResult | Rejection | SyncSample] = []
         while not self._responses.empty():
             item = self._responses.get_nowait()
-            if item is _END or isinstance(item, grpc.RpcError):
-                self._responses.put_nowait(_END)
+            if item is END or isinstance(item, grpc.RpcError):
+                self._responses.put_nowait(END)
                 if isinstance(item, grpc.RpcError):
-                    raise _status_error(item)
+                    raise status_error(item)
                 return answers
             answer = self._convert(item)
             if not isinstance(answer, Summary):
@@ -273,7 +270,7 @@ class AsyncSession:
         """Send a clock probe; its answer comes back among the results (a `SyncSample`)."""
         self._probe_id += 1
         self._last_sync_sent = self.now()
-        await self._send(_sync_request(self._probe_id, self._last_sync_sent, self._last_probe))
+        await self._send(sync_request(self._probe_id, self._last_sync_sent, self._last_probe))
 
     # Ending.
 
@@ -299,7 +296,7 @@ class AsyncSession:
             return self.summary
 
     def cancel(self) -> None:
-        """Drop the stream without closing (the server stores the session as FAILED)."""
+        """Drop the stream without closing (the server stores the session as ABANDONED)."""
         self._closed = True
         self._call.cancel()
 
@@ -337,7 +334,7 @@ class AsyncClient:
         self._connection_per_session = connection_per_session
         self._session_channels: set[grpc.aio.Channel] = set()
         self._closing: set[asyncio.Task[None]] = set()
-        self._metadata = _auth_metadata(api_key)
+        self._metadata = auth_metadata(api_key)
         self._timeout = timeout
         self._checksum = checksum
         self._closed = False
@@ -360,7 +357,7 @@ class AsyncClient:
         try:
             return await method(request, timeout=self._timeout, metadata=self._metadata)
         except grpc.RpcError as error:
-            raise _status_error(error) from None
+            raise status_error(error) from None
 
     async def register_model(
         self,
@@ -372,7 +369,7 @@ class AsyncClient:
         tags: Sequence[str] = (),
     ) -> tuple[ModelRef, bool]:
         """Register a model; returns it and whether it was new."""
-        request = _register_request(name=name, mjcf=mjcf, assets=assets, description=description, tags=tags)
+        request = register_request(name=name, mjcf=mjcf, assets=assets, description=description, tags=tags)
         response = await self._unary(self._registry.RegisterModel, request)
         return ModelRef.from_message(response.model), response.created
 
@@ -427,7 +424,7 @@ class AsyncClient:
     def _new_channel(self, *, shared: bool) -> grpc.aio.Channel:
         # gRPC shares one connection between channels of the same target and arguments unless a
         # channel asks for its own subchannel pool.
-        options = _CHANNEL_OPTIONS if shared else (*_CHANNEL_OPTIONS, ("grpc.use_local_subchannel_pool", 1))
+        options = CHANNEL_OPTIONS if shared else (*CHANNEL_OPTIONS, ("grpc.use_local_subchannel_pool", 1))
         if self._root_certificates is not None:
             return grpc.aio.secure_channel(
                 self._address, grpc.ssl_channel_credentials(self._root_certificates), options=options

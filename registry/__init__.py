@@ -9,8 +9,6 @@ from jitdyn.registry.builtins import BUILTIN_NAMES, BuiltinModel, builtin_model_
 from jitdyn.registry.compile import ModelCompiler, compile_model
 from jitdyn.registry.content_id import content_id
 from jitdyn.registry.info import (
-    ESTIMATOR_SETTINGS,
-    SCENARIOS,
     ActuatorInfo,
     JointInfo,
     ModelInfo,
@@ -24,9 +22,7 @@ __all__ = [
     "BUILTIN_NAMES",
     "DEFAULT_LIMITS",
     "DEFAULT_PAGE_SIZE",
-    "ESTIMATOR_SETTINGS",
     "MAX_PAGE_SIZE",
-    "SCENARIOS",
     "ActuatorInfo",
     "BuiltinModel",
     "JointInfo",

@@ -1,11 +1,11 @@
 """What the registry says about a model: small frozen types, how a compiled model fills them, and the
-rules on names, tags, descriptions and estimator defaults."""
+rules on names, tags, descriptions and estimator defaults (the settings' own rules are
+jitdyn.estimator_settings')."""
 
 from __future__ import annotations
 
 import dataclasses
 import datetime
-import math
 import re
 from collections.abc import Iterable, Mapping
 from typing import Any
@@ -13,10 +13,10 @@ from typing import Any
 import mujoco
 
 from jitdyn.errors import InvalidArgument
+from jitdyn.estimator_settings import SETTINGS, SettingValue, check_for_scenario, check_settings
+from jitdyn.vocabulary import JointType, Scenario, parse
 
 __all__ = [
-    "ESTIMATOR_SETTINGS",
-    "SCENARIOS",
     "ActuatorInfo",
     "JointInfo",
     "ModelInfo",
@@ -26,6 +26,7 @@ __all__ = [
     "check_name",
     "check_tag",
     "describe_model",
+    "stored_defaults",
 ]
 
 _NAME = re.compile(r"[A-Za-z][A-Za-z0-9_.-]{0,63}")
@@ -33,32 +34,11 @@ _TAG = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 MAX_TAGS = 32
 MAX_DESCRIPTION = 4096
 
-# The keys of `ModelMetadata.defaults`: jitdyn.v1.Scenario names without their prefix.
-SCENARIOS = ("PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN")
-# The settings one scenario's defaults may hold (the fields of jitdyn.v1.EstimatorSettings): enum
-# fields take the enum's value names without prefix, the others a number.
-ESTIMATOR_SETTINGS: Mapping[str, tuple[str, ...] | None] = {
-    "estimator": ("UKF", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION"),
-    "preset": ("JITDYN", "THESIS"),
-    "sigma_points": ("MERWE", "SIMPLEX", "UNIFORM", "SIMPLEX_LINEAR_FORCE"),
-    "force_model": ("RANDOM_WALK", "INTEGRATED_RANDOM_WALK"),
-    "noise_model": ("FIXED", "ADAPTIVE"),
-    "forecast": ("FILTER", "COMBINED"),
-    "wrong_model": ("KEEP", "DRIVEN", "RESTART"),
-    "force_var": None,
-    "alpha": None,
-    "beta": None,
-    "kappa": None,
-    "p0": None,
-    "q_var": None,
-    "r": None,
-}
-
 _JOINT_TYPES = {
-    int(mujoco.mjtJoint.mjJNT_FREE): "free",
-    int(mujoco.mjtJoint.mjJNT_BALL): "ball",
-    int(mujoco.mjtJoint.mjJNT_SLIDE): "slide",
-    int(mujoco.mjtJoint.mjJNT_HINGE): "hinge",
+    int(mujoco.mjtJoint.mjJNT_FREE): JointType.FREE,
+    int(mujoco.mjtJoint.mjJNT_BALL): JointType.BALL,
+    int(mujoco.mjtJoint.mjJNT_SLIDE): JointType.SLIDE,
+    int(mujoco.mjtJoint.mjJNT_HINGE): JointType.HINGE,
 }
 
 # What an actuator's transmission acts on, and what an unnamed one of those is called.
@@ -74,16 +54,20 @@ _TRANSMISSION_TARGETS = {
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class JointInfo:
-    """One joint: `type` is 'free', 'ball', 'slide' or 'hinge'; `lower`/`upper` (m or rad) are 0
-    unless `limited`; the addresses index qpos and qvel."""
+    """One joint: `type` is its JointType (its MJCF name is accepted and parsed); `lower`/`upper`
+    (m or rad) are 0 unless `limited`; the addresses index qpos and qvel."""
 
     name: str
-    type: str
+    type: JointType
     limited: bool
     lower: float
     upper: float
     qpos_address: int
     dof_address: int
+
+    def __post_init__(self) -> None:
+        # Frozen: the member replaces the stored text ("hinge") once, here.
+        object.__setattr__(self, "type", parse(JointType, self.type, argument="joint.type"))
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -106,7 +90,8 @@ class ModelMetadata:
       description: free text, at most 4096 characters.
       tags: at most 32 tags of 1-64 characters of [A-Za-z0-9_.-].
       defaults: estimator settings per scenario, e.g. {"PASSIVE": {"alpha": 0.001, "preset":
-        "THESIS"}}: keys in SCENARIOS, settings in ESTIMATOR_SETTINGS.
+        "THESIS"}}: keys name a vocabulary Scenario, settings rows of
+        jitdyn.estimator_settings.SETTINGS. `check_metadata` makes them members and floats.
     """
 
     description: str = ""
@@ -225,30 +210,25 @@ def check_tag(tag: object, *, argument: str = "tag") -> str:
     return tag
 
 
-def _check_setting(scenario: str, key: object, value: object) -> Any:
-    where = f"metadata.defaults[{scenario!r}]"
-    if not isinstance(key, str) or key not in ESTIMATOR_SETTINGS:
-        raise InvalidArgument(f"{where} has setting {key!r}; expected one of {', '.join(ESTIMATOR_SETTINGS)}")
-    choices = ESTIMATOR_SETTINGS[key]
-    if choices is not None:
-        if value not in choices:
-            raise InvalidArgument(f"{where}[{key!r}] must be one of {', '.join(choices)}, got {value!r}")
-        if key == "wrong_model" and value == "DRIVEN" and scenario != "PASSIVE":
-            # Refused at open too; here the registrant hears it, not the first user of the model.
-            raise InvalidArgument(
-                f"{where}['wrong_model'] DRIVEN is for PASSIVE, the only scenario that can turn DRIVEN"
-            )
-        return value
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InvalidArgument(f"{where}[{key!r}] must be a finite number, got {value!r}")
-    number = float(value)
-    if key == "alpha" and not 0 < number <= 1:
-        raise InvalidArgument(f"{where}['alpha'] must be in (0, 1], got {number!r}")
-    if key in ("p0", "r") and not number > 0:
-        raise InvalidArgument(f"{where}[{key!r}] must be positive, got {number!r}")
-    if key in ("q_var", "force_var") and not number >= 0:
-        raise InvalidArgument(f"{where}[{key!r}] must be non-negative, got {number!r}")
-    return number
+def _scenario(key: object) -> Scenario:
+    try:
+        return parse(Scenario, key, argument="metadata.defaults")
+    except InvalidArgument:
+        choices = ", ".join(member.name for member in Scenario)
+        raise InvalidArgument(f"metadata.defaults has scenario {key!r}; expected one of {choices}") from None
+
+
+def stored_defaults(stored: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, SettingValue]]:
+    """Defaults as the registry stored them (text), as members and floats again. Not re-checked:
+    they passed `check_metadata` when registered, and a rule added since must not hide a model."""
+    defaults: dict[str, dict[str, SettingValue]] = {}
+    for key, settings in stored.items():
+        scenario = Scenario[key]
+        defaults[scenario] = {}
+        for name, value in settings.items():
+            choices = SETTINGS[name].choices
+            defaults[scenario][name] = choices[str(value)] if choices is not None else float(value)
+    return defaults
 
 
 def check_metadata(metadata: object) -> ModelMetadata:
@@ -273,15 +253,14 @@ def check_metadata(metadata: object) -> ModelMetadata:
     tags = tuple(dict.fromkeys(tags))  # a repeated tag says nothing more
     if not isinstance(metadata.defaults, Mapping):
         raise InvalidArgument(f"metadata.defaults must map scenarios to settings, got {metadata.defaults!r}")
-    defaults: dict[str, dict[str, Any]] = {}
-    for scenario, settings in metadata.defaults.items():
-        if scenario not in SCENARIOS:
-            raise InvalidArgument(
-                f"metadata.defaults has scenario {scenario!r}; expected one of {', '.join(SCENARIOS)}"
-            )
-        if not isinstance(settings, Mapping):
-            raise InvalidArgument(
-                f"metadata.defaults[{scenario!r}] must map settings to values, got {settings!r}"
-            )
-        defaults[scenario] = {key: _check_setting(scenario, key, value) for key, value in settings.items()}
+    # Keyed by Scenario members, which are str: readers look them up by either.
+    defaults: dict[str, dict[str, SettingValue]] = {}
+    for key, settings in metadata.defaults.items():
+        scenario = _scenario(key)
+        if scenario in defaults:
+            raise InvalidArgument(f"metadata.defaults has more than one entry for scenario {scenario}")
+        argument = f"metadata.defaults.{scenario}"
+        defaults[scenario] = check_settings(settings, argument=argument)
+        # Refused at open too; here the registrant hears it, not the first user of the model.
+        check_for_scenario(scenario, defaults[scenario], argument=argument)
     return ModelMetadata(description=description, tags=tags, defaults=defaults)

@@ -45,6 +45,7 @@ from jitdyn.registry.info import (
     check_name,
     check_tag,
     describe_model,
+    stored_defaults,
 )
 from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
 from jitdyn.registry.store import read_blob, write_blob
@@ -195,7 +196,7 @@ class ModelRegistry:
             actuators=tuple(ActuatorInfo(**actuator) for actuator in described["actuators"]),
             description=described["description"],
             tags=tuple(row.tags.split()),
-            defaults=described["defaults"],
+            defaults=stored_defaults(described["defaults"]),
             created_at=_utc(row.created_at),
         )
 

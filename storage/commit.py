@@ -36,16 +36,9 @@ from jitdyn.storage.records import TickRecord
 
 __all__ = ["COMMIT_SHARE", "MAX_WINDOW", "CommitStats", "GroupCommitter", "default_committer"]
 
-# A commit costs about the same whatever it carries: an Arrow batch of every column (0.35-0.6 ms
-# for 1 to 20 pendulum records, 9 us a record beyond), a write per log and one syncfs. A few
-# sessions at 20 Hz put one or two records in a 10 ms window, so the commit thread spent 1 ms of
-# CPU per record (profiled: 1.7 s of 10 s, 8 sessions of pendulum_3), fighting the event loop for
-# the GIL. The window therefore widens until commits cost at most COMMIT_SHARE of a core, and
-# never past MAX_WINDOW, which bounds how far durable_seq trails the newest answer. At 5 % the
-# commit thread still took 405 us per record of 10 pendulum_3 sessions at 20 Hz (74 commits a
-# second of 2.7 records, each ~1 ms whatever it carries: a write and a flush per session log); at
-# 1 %, 120 us (20 commits a second), with durable_seq 100 ms behind at p99 instead of 30 ms
-# (`python -m benchmarks.storage --sessions 10`, 2026-11-23).
+# A commit costs about the same whatever it carries, so the window widens until commits cost at most
+# COMMIT_SHARE of a core, and never past MAX_WINDOW, which bounds how far durable_seq trails the
+# newest answer (the measurements: docs/decisions/0040-group-commit-window.md).
 COMMIT_SHARE: Final = 0.01
 MAX_WINDOW: Final = 0.1  # s
 _COST_EWMA: Final = 0.2

@@ -29,12 +29,13 @@ from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
 from jitdyn.storage.columns import ARRAY_FIELDS, LOG_SCHEMA, SCALAR_FIELDS
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.parquet import read_metadata
+from jitdyn.vocabulary import Source, to_proto
 
 __all__ = ["FORMATS", "SOURCE_LEGEND", "element_names", "export_session"]
 
 FORMATS: Final = ("csv", "sto")
 # Source as numbers in .sto, whose columns are all numeric: the proto's enum values.
-_SOURCE_CODES: Final = {"MEASURED": 1.0, "PREDICTED": 2.0, "CORRECTED": 3.0}
+_SOURCE_CODES: Final = {source: float(to_proto(source)) for source in Source}
 # A .sto holds numbers only: the header says what the codes of the `source` column mean (a
 # key=value line, which OpenSim keeps as metadata).
 SOURCE_LEGEND: Final = "source=" + ", ".join(f"{code:g} {name}" for name, code in _SOURCE_CODES.items())
@@ -137,7 +138,8 @@ def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> Non
         headers += [f"{column}_{e}" for e in element_names(column, metadata, matrix.shape[1])]
         blocks.append(matrix)
     nis = ticks["nis"].to_numpy(zero_copy_only=False).astype(np.float64)
-    source = np.array([_SOURCE_CODES.get(s, math.nan) for s in ticks["source"].to_pylist()])
+    codes = {source.value: code for source, code in _SOURCE_CODES.items()}
+    source = np.array([codes.get(s, math.nan) for s in ticks["source"].to_pylist()])
     headers += ["nis", "source"]
     blocks += [nis.reshape(-1, 1), source.reshape(-1, 1)]
     data = np.hstack(blocks) if ticks.num_rows else np.zeros((0, len(headers)))

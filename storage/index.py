@@ -24,13 +24,13 @@ from typing import Any, Final
 import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
-from jitdyn.storage.records import SCENARIOS, STATUSES, SessionHeader, SessionSummaryInfo
+from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, stored_word
 from jitdyn.storage.schema import sessions
+from jitdyn.vocabulary import Clock, Scenario, SessionStatus
 
 __all__ = ["MAX_PAGE_SIZE", "SessionIndex", "SessionRow"]
 
 MAX_PAGE_SIZE: Final = 1000
-_FINAL_STATUSES: Final = STATUSES[1:]
 _TOKEN_VERSION: Final = 1
 
 
@@ -44,15 +44,15 @@ class SessionRow:
     model_id: str
     model_name: str
     model_version: int
-    scenario: str
-    clock: str
+    scenario: Scenario
+    clock: Clock
     dt: float
     estimator: dict[str, object]
     subject_pseudonym: str
     subject_attributes: dict[str, str]
     started_at: _dt.datetime
     ended_at: _dt.datetime | None
-    status: str
+    status: SessionStatus
     summary: SessionSummaryInfo
     location: str
     log_path: str
@@ -78,15 +78,15 @@ def _row(mapping: sa.RowMapping) -> SessionRow:
         model_id=mapping["model_id"],
         model_name=mapping["model_name"],
         model_version=int(mapping["model_version"]),
-        scenario=mapping["scenario"],
-        clock=mapping["clock"],
+        scenario=Scenario(mapping["scenario"]),
+        clock=Clock(mapping["clock"]),
         dt=float(mapping["dt"]),
         estimator=json.loads(mapping["estimator_json"]),
         subject_pseudonym=mapping["subject_pseudonym"],
         subject_attributes=json.loads(mapping["subject_attributes_json"]),
         started_at=_utc(mapping["started_at"]),
         ended_at=None if mapping["ended_at"] is None else _utc(mapping["ended_at"]),
-        status=mapping["status"],
+        status=SessionStatus(mapping["status"]),
         summary=SessionSummaryInfo(
             ticks=int(mapping["ticks"]),
             frames=int(mapping["frames"]),
@@ -171,14 +171,14 @@ class SessionIndex:
             "model_id": header.model_id,
             "model_name": header.model_name,
             "model_version": header.model_version,
-            "scenario": header.scenario,
-            "clock": header.clock,
+            "scenario": str(header.scenario),
+            "clock": str(header.clock),
             "dt": header.dt,
             "estimator_json": json.dumps(header.estimator),
             "subject_pseudonym": header.subject_pseudonym,
             "subject_attributes_json": json.dumps(header.subject_attributes),
             "started_at": _aware("started_at", header.started_at),
-            "status": "OPEN",
+            "status": SessionStatus.OPEN.value,
             "log_path": log_path,
         }
         try:
@@ -192,7 +192,7 @@ class SessionIndex:
         with self._engine.begin() as conn:
             conn.execute(
                 sa.update(sessions)
-                .where(sessions.c.session_id == session_id, sessions.c.status == "OPEN")
+                .where(sessions.c.session_id == session_id, sessions.c.status == SessionStatus.OPEN.value)
                 .values(**_summary_values(summary))
             )
 
@@ -200,7 +200,7 @@ class SessionIndex:
         self,
         session_id: str,
         *,
-        status: str,
+        status: SessionStatus | str,
         summary: SessionSummaryInfo,
         location: str,
         ended_at: _dt.datetime | None = None,
@@ -210,15 +210,18 @@ class SessionIndex:
         Raises FailedPrecondition when the session is not OPEN (already ended, or recovered by
         another server), NotFound when the index has no such session.
         """
-        if status not in _FINAL_STATUSES:
-            raise InvalidArgument(f"status must be one of {', '.join(_FINAL_STATUSES)}, got {status!r}")
+        status = stored_word(SessionStatus, status, argument="status", among=FINAL_STATUSES)
         end = _dt.datetime.now(_dt.UTC) if ended_at is None else _aware("ended_at", ended_at)
         with self._engine.begin() as conn:
             result = conn.execute(
                 sa.update(sessions)
-                .where(sessions.c.session_id == session_id, sessions.c.status == "OPEN")
+                .where(sessions.c.session_id == session_id, sessions.c.status == SessionStatus.OPEN.value)
                 .values(
-                    status=status, ended_at=end, location=location, log_path="", **_summary_values(summary)
+                    status=status.value,
+                    ended_at=end,
+                    location=location,
+                    log_path="",
+                    **_summary_values(summary),
                 )
             )
             if result.rowcount == 1:
@@ -235,7 +238,9 @@ class SessionIndex:
         before `opened` was sent): no frame of it exists, so nothing is to be kept."""
         with self._engine.begin() as conn:
             conn.execute(
-                sa.delete(sessions).where(sessions.c.session_id == session_id, sessions.c.status == "OPEN")
+                sa.delete(sessions).where(
+                    sessions.c.session_id == session_id, sessions.c.status == SessionStatus.OPEN.value
+                )
             )
 
     def get(self, session_id: str, *, tenant: str) -> SessionRow:
@@ -260,11 +265,11 @@ class SessionIndex:
         tenant: str,
         model_name: str | None = None,
         model_id: str | None = None,
-        scenario: str | None = None,
+        scenario: Scenario | str | None = None,
         pseudonym: str | None = None,
         started_after: _dt.datetime | None = None,
         started_before: _dt.datetime | None = None,
-        status: str | None = None,
+        status: SessionStatus | str | None = None,
         page_size: int = 50,
         page_token: str = "",
     ) -> tuple[tuple[SessionRow, ...], str]:
@@ -272,10 +277,10 @@ class SessionIndex:
         the last). Sessions started at or after `started_after` and before `started_before`."""
         if not 1 <= page_size <= MAX_PAGE_SIZE:
             raise InvalidArgument(f"page_size must be between 1 and {MAX_PAGE_SIZE}, got {page_size}")
-        if scenario is not None and scenario not in SCENARIOS:
-            raise InvalidArgument(f"scenario must be one of {', '.join(SCENARIOS)}, got {scenario!r}")
-        if status is not None and status not in STATUSES:
-            raise InvalidArgument(f"status must be one of {', '.join(STATUSES)}, got {status!r}")
+        if scenario is not None:
+            scenario = stored_word(Scenario, scenario, argument="scenario").value
+        if status is not None:
+            status = stored_word(SessionStatus, status, argument="status").value
         after = None if started_after is None else _aware("started_after", started_after)
         before = None if started_before is None else _aware("started_before", started_before)
         if after is not None and before is not None and after > before:
@@ -338,6 +343,10 @@ class SessionIndex:
     def unfinished(self) -> builtins.list[SessionRow]:
         """Every OPEN session of every tenant: the server's own recovery at start is the one reader
         that is not a tenant's."""
-        query = sa.select(sessions).where(sessions.c.status == "OPEN").order_by(sessions.c.started_at)
+        query = (
+            sa.select(sessions)
+            .where(sessions.c.status == SessionStatus.OPEN.value)
+            .order_by(sessions.c.started_at)
+        )
         with self._engine.connect() as conn:
             return [_row(m) for m in conn.execute(query).mappings()]

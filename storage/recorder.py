@@ -42,8 +42,9 @@ from jitdyn.storage.parquet import (
     to_frame_table,
     write_parquet_stream,
 )
-from jitdyn.storage.records import STATUSES, SessionHeader, SessionSummaryInfo, TickRecord
+from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, TickRecord, stored_word
 from jitdyn.storage.summary import Summariser
+from jitdyn.vocabulary import SessionStatus
 
 __all__ = ["SessionRecorder", "recover_unfinished"]
 
@@ -229,13 +230,17 @@ class SessionRecorder:
             self._registered = False
             self._committer.unregister(self._key)
 
-    def close(self, summary: SessionSummaryInfo | None = None, *, status: str = "COMPLETE") -> str:
+    def close(
+        self,
+        summary: SessionSummaryInfo | None = None,
+        *,
+        status: SessionStatus | str = SessionStatus.COMPLETE,
+    ) -> str:
         """End the session: commit what is queued, compact the log to Parquet, mark the session
         `status` with `summary` (None: computed from the rows) in one index transaction, delete the
         log. Returns the Parquet location relative to the data root. Blocks for the compaction;
         call it off the event loop. A second call returns the same location and does nothing."""
-        if status not in STATUSES[1:]:
-            raise InvalidArgument(f"status must be one of {', '.join(STATUSES[1:])}, got {status!r}")
+        status = stored_word(SessionStatus, status, argument="status", among=FINAL_STATUSES)
         with self._cond:
             if self._state is _State.CLOSED:
                 if self._close_error is not None:
@@ -291,7 +296,7 @@ class SessionRecorder:
 
     def fail(self, summary: SessionSummaryInfo | None = None) -> str:
         """`close` with status FAILED: the session ended by an error; what was received is kept."""
-        return self.close(summary, status="FAILED")
+        return self.close(summary, status=SessionStatus.FAILED)
 
     def __enter__(self) -> Self:
         return self
@@ -329,7 +334,7 @@ def _recover_one(*, data_root: Path, index: SessionIndex, row: SessionRow) -> bo
             if log.torn:
                 _log.info("session %s: dropped a torn last batch (never acknowledged)", row.session_id)
         summary = summariser.result()
-        index.finish(row.session_id, status="RECOVERED", summary=summary, location=location)
+        index.finish(row.session_id, status=SessionStatus.RECOVERED, summary=summary, location=location)
         _delete_log(path)
         return True
     finally:

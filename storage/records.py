@@ -11,37 +11,48 @@ import datetime as _dt
 import json
 import re
 import uuid
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Final, Literal
+from enum import StrEnum
+from typing import Final, Literal, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 from jitdyn.errors import InvalidArgument
+from jitdyn.vocabulary import Clock, JointType, Scenario, SessionStatus
 
 __all__ = [
-    "CLOCKS",
-    "JOINT_TYPES",
+    "FINAL_STATUSES",
     "KINDS",
-    "SCENARIOS",
-    "SOURCES",
-    "STATUSES",
     "SessionHeader",
     "SessionSummaryInfo",
     "TickRecord",
     "dof_units",
     "qpos_names",
+    "stored_word",
 ]
 
 Vector = npt.NDArray[np.float64]
 
 KINDS: Final = ("result", "rejected")
-SOURCES: Final = ("MEASURED", "PREDICTED", "CORRECTED")
-SCENARIOS: Final = ("PASSIVE", "CONTROLLED", "EXTERNAL", "DRIVEN")
-CLOCKS: Final = ("LOCKSTEP", "REALTIME")
-STATUSES: Final = ("OPEN", "COMPLETE", "RECOVERED", "FAILED", "ABANDONED")
-# MuJoCo's joint types by their mjtJoint names, lower case as in MJCF.
-JOINT_TYPES: Final = ("free", "ball", "slide", "hinge")
+# What a session can end as; it is OPEN until then.
+FINAL_STATUSES: Final = tuple(status for status in SessionStatus if status != SessionStatus.OPEN)
+
+_Word = TypeVar("_Word", bound=StrEnum)
+
+
+def stored_word(
+    kind: type[_Word], text: object, *, argument: str, among: Iterable[_Word] | None = None
+) -> _Word:
+    """The vocabulary member whose stored text is exactly `text` (and one of `among`, when given):
+    what storage writes and reads is the member's value, never a guess at another spelling."""
+    allowed = tuple(kind) if among is None else tuple(among)
+    for member in allowed:
+        if text == member.value:
+            return member
+    raise InvalidArgument(f"{argument} must be one of {', '.join(allowed)}, got {text!r}")
+
 
 # Model names become a Hive partition folder (`model=<name>`), so they must be safe as one path
 # component and need no escaping in any engine that reads the dataset.
@@ -63,7 +74,7 @@ class TickRecord:
     kind: Literal["result", "rejected"]
     # The tick index the event belongs to.
     seq: int
-    # MEASURED, PREDICTED or CORRECTED for a result; "" for a rejected frame.
+    # A result's Source value (MEASURED, PREDICTED or CORRECTED); "" for a rejected frame.
     source: str = ""
     # The tick's time on the client clock (seconds since session start).
     t: float = 0.0
@@ -98,35 +109,39 @@ class TickRecord:
     reject_message: str = ""
 
 
-def _joint_widths(joint_type: str) -> tuple[int, int]:
-    """(qpos values, dofs) of one joint."""
-    return {"free": (7, 6), "ball": (4, 3), "slide": (1, 1), "hinge": (1, 1)}[joint_type]
+# (qpos values, dofs) of one joint of each type.
+_JOINT_WIDTHS: Final = {
+    JointType.FREE: (7, 6),
+    JointType.BALL: (4, 3),
+    JointType.SLIDE: (1, 1),
+    JointType.HINGE: (1, 1),
+}
 
 
-def qpos_names(joint_names: tuple[str, ...], joint_types: tuple[str, ...]) -> tuple[str, ...]:
+def qpos_names(joint_names: tuple[str, ...], joint_types: tuple[JointType, ...]) -> tuple[str, ...]:
     """Names of the nq qpos values: the joint's name for hinge and slide joints, suffixed with the
     component for ball (`_qw`..`_qz`) and free joints (`_x`, `_y`, `_z`, `_qw`..`_qz`)."""
     names: list[str] = []
     for name, joint_type in zip(joint_names, joint_types, strict=True):
-        if joint_type == "free":
+        if joint_type == JointType.FREE:
             names += [f"{name}_{c}" for c in ("x", "y", "z", "qw", "qx", "qy", "qz")]
-        elif joint_type == "ball":
+        elif joint_type == JointType.BALL:
             names += [f"{name}_{c}" for c in ("qw", "qx", "qy", "qz")]
         else:
             names.append(name)
     return tuple(names)
 
 
-def dof_units(joint_types: tuple[str, ...]) -> tuple[str, ...]:
+def dof_units(joint_types: tuple[JointType, ...]) -> tuple[str, ...]:
     """The unit of each of the nv degrees of freedom: "m" for translations, "rad" for rotations.
     Generalized forces along them are then N and N m."""
     units: list[str] = []
     for joint_type in joint_types:
-        if joint_type == "free":
+        if joint_type == JointType.FREE:
             units += ["m", "m", "m", "rad", "rad", "rad"]
-        elif joint_type == "ball":
+        elif joint_type == JointType.BALL:
             units += ["rad", "rad", "rad"]
-        elif joint_type == "slide":
+        elif joint_type == JointType.SLIDE:
             units.append("m")
         else:
             units.append("rad")
@@ -159,16 +174,17 @@ class SessionHeader:
     # The model's physics timestep and the frame period (seconds).
     timestep: float
     dt: float
-    scenario: str
-    clock: str
+    # The member, or its exact text (as a log's JSON holds it), made the member on creation.
+    scenario: Scenario | str
+    clock: Clock | str
     estimator: dict[str, object]
     subject_pseudonym: str
     subject_attributes: dict[str, str]
     started_at: _dt.datetime
-    # The joints' types from JOINT_TYPES, one per joint. They give the units of each dof and the
-    # names of the qpos values; empty: units unknown ("") and qpos named by index unless nq equals
-    # the number of joints.
-    joint_types: tuple[str, ...] = field(default=())
+    # The joints' types (JointType, or its MJCF name), one per joint. They give the units of each
+    # dof and the names of the qpos values; empty: units unknown ("") and qpos named by index unless
+    # nq equals the number of joints.
+    joint_types: tuple[JointType | str, ...] = field(default=())
     # Names of the nu actuators, for export column names; empty: numbered.
     actuator_names: tuple[str, ...] = field(default=())
 
@@ -187,10 +203,9 @@ class SessionHeader:
                 "model_name must be 1 to 64 letters, digits, '_', '.' or '-', starting with a letter "
                 f"or digit (it names a Parquet partition folder), got {self.model_name!r}"
             )
-        if self.scenario not in SCENARIOS:
-            raise InvalidArgument(f"scenario must be one of {', '.join(SCENARIOS)}, got {self.scenario!r}")
-        if self.clock not in CLOCKS:
-            raise InvalidArgument(f"clock must be one of {', '.join(CLOCKS)}, got {self.clock!r}")
+        # Frozen: the members replace the text once, here.
+        object.__setattr__(self, "scenario", stored_word(Scenario, self.scenario, argument="scenario"))
+        object.__setattr__(self, "clock", stored_word(Clock, self.clock, argument="clock"))
         for name in ("nq", "nv", "nu", "nsensordata"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 0:
@@ -204,14 +219,16 @@ class SessionHeader:
                 f"joint_types must have one entry per joint ({len(self.joint_names)}), "
                 f"got {len(self.joint_types)}"
             )
-        unknown = [t for t in self.joint_types if t not in JOINT_TYPES]
+        unknown = [t for t in self.joint_types if t not in _JOINT_WIDTHS]
         if unknown:
-            raise InvalidArgument(f"joint_types must be among {', '.join(JOINT_TYPES)}, got {unknown!r}")
-        nq = sum(_joint_widths(t)[0] for t in self.joint_types)
-        nv = sum(_joint_widths(t)[1] for t in self.joint_types)
+            raise InvalidArgument(f"joint_types must be among {', '.join(JointType)}, got {unknown!r}")
+        joint_types = tuple(JointType(t) for t in self.joint_types)
+        object.__setattr__(self, "joint_types", joint_types)
+        nq = sum(_JOINT_WIDTHS[t][0] for t in joint_types)
+        nv = sum(_JOINT_WIDTHS[t][1] for t in joint_types)
         if self.joint_types and (nq, nv) != (self.nq, self.nv):
             raise InvalidArgument(
-                f"the joints {list(self.joint_types)} span nq={nq}, nv={nv}, "
+                f"the joints {[t.value for t in joint_types]} span nq={nq}, nv={nv}, "
                 f"but the header says nq={self.nq}, nv={self.nv}"
             )
         if len(self.dof_names) != self.nv:
@@ -231,7 +248,7 @@ class SessionHeader:
     def qpos_names(self) -> tuple[str, ...]:
         """Names of the nq qpos values (see `qpos_names`)."""
         if self.joint_types:
-            return qpos_names(self.joint_names, self.joint_types)
+            return qpos_names(self.joint_names, tuple(JointType(t) for t in self.joint_types))
         if len(self.joint_names) == self.nq:
             return self.joint_names
         return tuple(str(i) for i in range(self.nq))
@@ -241,7 +258,7 @@ class SessionHeader:
         """Unit of each degree of freedom, "m" or "rad" (see `dof_units`); "" when the joint
         types are not known."""
         if self.joint_types:
-            return dof_units(self.joint_types)
+            return dof_units(tuple(JointType(t) for t in self.joint_types))
         return ("",) * self.nv
 
     @property

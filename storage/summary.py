@@ -14,6 +14,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from jitdyn.storage.records import SessionSummaryInfo
+from jitdyn.vocabulary import Source
 
 __all__ = ["COUNTS", "Counts", "Summariser", "format_counts", "summarise"]
 
@@ -66,7 +67,7 @@ class Summariser:
         self._results = 0
         self._seen = np.zeros(0, dtype=bool)
         self._frames = 0
-        self._sources = {"MEASURED": 0, "PREDICTED": 0, "CORRECTED": 0}
+        self._sources = dict.fromkeys(Source, 0)
         self._late = 0
         self._compute_sum = 0.0
         self._compute_count = 0
@@ -84,8 +85,8 @@ class Summariser:
         results = table.filter(pc.equal(table["kind"], "result"))
         self._results += results.num_rows
         self._frames += _count(results["frame_received"]) + (table.num_rows - results.num_rows)
-        for name in self._sources:
-            self._sources[name] += _count(pc.equal(results["source"], name))
+        for source in self._sources:
+            self._sources[source] += _count(pc.equal(results["source"], source.value))
         self._late += _count(pc.greater(results["late_ticks"], 0))
         duration = pc.max(table["server_time"]).as_py()
         if duration is not None:
@@ -139,9 +140,9 @@ class Summariser:
         return SessionSummaryInfo(
             ticks=int(self._seen.sum()),
             frames=self._frames,
-            measured=self._sources["MEASURED"],
-            predicted=self._sources["PREDICTED"],
-            corrected=self._sources["CORRECTED"],
+            measured=self._sources[Source.MEASURED],
+            predicted=self._sources[Source.PREDICTED],
+            corrected=self._sources[Source.CORRECTED],
             rejected=self._rows - self._results,
             late=self._late,
             mean_compute_us=self._compute_sum / self._compute_count if self._compute_count else 0.0,

@@ -8,7 +8,8 @@ place, server/transport/status.py) and the client (which maps statuses back)::
     ├── ResourceExhausted    RESOURCE_EXHAUSTED
     ├── Unauthenticated      UNAUTHENTICATED
     ├── PermissionDenied     PERMISSION_DENIED
-    └── Unavailable          UNAVAILABLE
+    ├── Unavailable          UNAVAILABLE
+    └── NoAnswer             DEADLINE_EXCEEDED   (also a TimeoutError: nothing came back in time)
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ __all__ = [
     "FailedPrecondition",
     "InvalidArgument",
     "JitdynError",
+    "NoAnswer",
     "NotFound",
     "PermissionDenied",
     "ResourceExhausted",
@@ -62,6 +64,12 @@ class Unavailable(JitdynError):
     code = grpc.StatusCode.UNAVAILABLE
 
 
+class NoAnswer(JitdynError, TimeoutError):
+    """The server did not answer within the caller's timeout (the client's wait, or a call's deadline)."""
+
+    code = grpc.StatusCode.DEADLINE_EXCEEDED
+
+
 _BY_CODE: dict[grpc.StatusCode, type[JitdynError]] = {
     cls.code: cls
     for cls in (
@@ -72,6 +80,7 @@ _BY_CODE: dict[grpc.StatusCode, type[JitdynError]] = {
         Unauthenticated,
         PermissionDenied,
         Unavailable,
+        NoAnswer,
     )
 }
 

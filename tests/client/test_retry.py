@@ -1,5 +1,5 @@
 """The SDK's idempotent unary calls ride out a server restart: gRPC's service-config retry policy
-retries them on UNAVAILABLE (client/sdk.py, RETRY_POLICY), without any loop of ours."""
+retries them on UNAVAILABLE (client/_transport.py, RETRY_POLICY), without any loop of ours."""
 
 from __future__ import annotations
 

@@ -14,6 +14,7 @@ import sqlalchemy as sa
 from jitdyn.errors import InvalidArgument, NotFound
 from jitdyn.registry import BUILTIN_NAMES, ModelMetadata, ModelRegistry, content_id
 from jitdyn.storage.schema import models
+from jitdyn.vocabulary import JointType, Preset
 
 OBJ = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
 
@@ -83,6 +84,8 @@ def test_register_describes_the_compiled_model(registry: ModelRegistry) -> None:
     assert (push.name, push.target, push.ctrl_limited) == ("push", "slider", False)
     assert (info.description, info.tags) == ("A two-link arm.", ("lab", "arm"))
     assert info.defaults == {"PASSIVE": {"alpha": 0.001, "preset": "THESIS"}}
+    # Stored as text, read back as the vocabulary's members.
+    assert info.defaults["PASSIVE"]["preset"] is Preset.THESIS and shoulder.type is JointType.HINGE
     assert info.created_at.tzinfo is not None
     assert abs(info.created_at - datetime.datetime.now(datetime.UTC)) < datetime.timedelta(minutes=1)
     assert registry.get(model_id=info.id) == info
@@ -167,28 +170,33 @@ def test_invalid_mjcf_surfaces_mujocos_message(registry: ModelRegistry) -> None:
         ),
         (
             "arm",
+            ModelMetadata(defaults={"PASSIVE": {}, "passive": {}}),
+            "metadata.defaults has more than one entry for scenario PASSIVE",
+        ),
+        (
+            "arm",
             ModelMetadata(defaults={"PASSIVE": {"gamma": 1}}),
-            "metadata.defaults['PASSIVE'] has setting 'gamma'",
+            "metadata.defaults.PASSIVE has unknown setting 'gamma'; expected one of estimator, preset,",
         ),
         (
             "arm",
             ModelMetadata(defaults={"PASSIVE": {"alpha": 2.0}}),
-            "metadata.defaults['PASSIVE']['alpha'] must be in (0, 1], got 2.0",
+            "metadata.defaults.PASSIVE.alpha must be in (0, 1], got 2",
         ),
         (
             "arm",
             ModelMetadata(defaults={"PASSIVE": {"r": float("inf")}}),
-            "['r'] must be a finite number, got inf",
+            "metadata.defaults.PASSIVE.r must be finite, got inf",
         ),
         (
             "arm",
             ModelMetadata(defaults={"PASSIVE": {"preset": "FAST"}}),
-            "['preset'] must be one of JITDYN, THESIS, got 'FAST'",
+            "metadata.defaults.PASSIVE.preset must be one of JITDYN, THESIS, got 'FAST'",
         ),
         (
             "arm",
             ModelMetadata(defaults={"CONTROLLED": {"wrong_model": "DRIVEN"}}),
-            "metadata.defaults['CONTROLLED']['wrong_model'] DRIVEN is for PASSIVE",
+            "metadata.defaults.CONTROLLED.wrong_model DRIVEN turns a PASSIVE filter into a DRIVEN one",
         ),
     ],
 )

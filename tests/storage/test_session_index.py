@@ -16,6 +16,7 @@ from jitdyn.storage.db import upgrade
 from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
 from jitdyn.storage.schema import metadata
+from jitdyn.vocabulary import Scenario, SessionStatus
 
 T0 = dt.datetime(2026, 11, 21, 10, 0, 0, tzinfo=dt.UTC)
 
@@ -46,7 +47,8 @@ def test_create_get_and_finish(index: SessionIndex, make_header: Callable[..., S
         ),
     )
     row = index.get(header.session_id, tenant="lab-a")
-    assert row.status == "OPEN"
+    # The index holds text; a row holds the vocabulary's members.
+    assert row.status is SessionStatus.OPEN and row.scenario is Scenario(header.scenario)
     assert row.started_at == dt.datetime(2026, 11, 21, 10, 0, 0, 123456, tzinfo=dt.UTC)
     assert row.started_at.tzinfo == dt.UTC
     assert row.ended_at is None

@@ -1,0 +1,80 @@
+"""What the sync and the async transports share: the channel's options and retry policy, the
+authorization metadata, the status-to-exception mapping and the end marker of a session's queues."""
+
+from __future__ import annotations
+
+import json
+from enum import Enum, auto
+from typing import Final
+
+import grpc
+
+from jitdyn.errors import JitdynError, error_for_status
+
+__all__ = [
+    "CHANNEL_OPTIONS",
+    "END",
+    "IDEMPOTENT_METHODS",
+    "MAX_MESSAGE_BYTES",
+    "RETRY_POLICY",
+    "End",
+    "auth_metadata",
+    "status_error",
+]
+
+MAX_MESSAGE_BYTES = 128 * 1024 * 1024
+
+# The unary calls that change nothing are retried by gRPC itself (its service-config retry policy)
+# when the server is UNAVAILABLE: a restart, a deploy, a replica going away behind a balancer.
+# RegisterModel is left out: it is content-addressed, but a retry after a lost answer would say
+# `created` false for a model the first attempt created. Streams (sessions) are never retried.
+IDEMPOTENT_METHODS: Final = (
+    ("jitdyn.v1.ModelRegistryService", "GetModel"),
+    ("jitdyn.v1.ModelRegistryService", "ListModels"),
+    ("jitdyn.v1.SessionService", "ListSessions"),
+    ("jitdyn.v1.SessionService", "GetSession"),
+)
+# 5 attempts with backoffs of about 0.25, 0.5, 1 and 2 s (gRPC randomises each): a server that is
+# back within about 3.5 s is not noticed.
+RETRY_POLICY: Final = {
+    "maxAttempts": 5,
+    "initialBackoff": "0.25s",
+    "maxBackoff": "2s",
+    "backoffMultiplier": 2,
+    "retryableStatusCodes": ["UNAVAILABLE"],
+}
+_SERVICE_CONFIG: Final = json.dumps(
+    {
+        "methodConfig": [
+            {
+                "name": [{"service": service, "method": method} for service, method in IDEMPOTENT_METHODS],
+                "retryPolicy": RETRY_POLICY,
+            }
+        ]
+    }
+)
+CHANNEL_OPTIONS: Final = (
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.enable_retries", 1),
+    ("grpc.service_config", _SERVICE_CONFIG),
+)
+
+
+class End(Enum):
+    """The end of a session's request or response queue."""
+
+    END = auto()
+
+
+END: Final = End.END
+
+
+def status_error(error: grpc.RpcError) -> JitdynError:
+    """The `jitdyn.errors` exception for the status an RPC ended with (sync or grpc.aio)."""
+    return error_for_status(error.code(), error.details() or "")
+
+
+def auth_metadata(api_key: str | None) -> tuple[tuple[str, str], ...]:
+    """The call metadata that carries `api_key`; none without one."""
+    return (("authorization", f"Bearer {api_key}"),) if api_key else ()
