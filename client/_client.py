@@ -40,6 +40,7 @@ from jitdyn.client._models import (
 )
 from jitdyn.client._transport import CHANNEL_OPTIONS, END, End, auth_metadata, status_error
 from jitdyn.errors import FailedPrecondition, NoAnswer, error_for_status
+from jitdyn.lifecycle import Closeable
 from jitdyn.v1 import (
     dynamics_pb2,
     dynamics_pb2_grpc,
@@ -280,7 +281,7 @@ class Session:
             self.cancel()
 
 
-class Client:
+class Client(Closeable):
     """A connection to a jitdyn server. Keyword-only options beyond the address."""
 
     def __init__(
@@ -438,9 +439,3 @@ class Client:
         for channel in channels:
             channel.close()
         self._channel.close()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -23,12 +23,11 @@ import threading
 from collections.abc import Mapping
 from multiprocessing.connection import Connection
 from pathlib import Path
-from types import TracebackType
-from typing import Self
 
 import mujoco
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
+from jitdyn.lifecycle import Closeable
 from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
 from jitdyn.registry.references import check_asset_names, check_model
 
@@ -146,7 +145,7 @@ class _Worker:
         self.kill()
 
 
-class ModelCompiler:
+class ModelCompiler(Closeable):
     """Compiles models in up to `workers` reusable worker processes; thread-safe.
 
     Each compile checks the request against `limits` first. Workers start on first use; `close()`
@@ -215,14 +214,6 @@ class ModelCompiler:
             idle, self._idle = self._idle, []
         for worker in idle:
             worker.stop()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
     def __del__(self) -> None:
         if not getattr(self, "_closed", True):

@@ -25,13 +25,13 @@ import threading
 from collections import OrderedDict
 from collections.abc import Mapping
 from pathlib import Path
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
 import mujoco
 import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
+from jitdyn.lifecycle import Closeable
 from jitdyn.registry.builtins import builtin_models
 from jitdyn.registry.compile import ModelCompiler, check_request
 from jitdyn.registry.content_id import check_content_id, content_id
@@ -108,7 +108,7 @@ class _ModelCache:
         self.bytes = 0
 
 
-class ModelRegistry:
+class ModelRegistry(Closeable):
     """Registers, finds and loads models; thread-safe. A context manager; `close()` is safe twice.
 
     Args:
@@ -153,14 +153,6 @@ class ModelRegistry:
         self._compiler.close()
         with self._cache_lock:
             self._cache.clear()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
     def _check_open(self) -> None:
         if self._closed:

@@ -25,11 +25,12 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Final, Self
+from typing import Final
 
 import pyarrow as pa
 
 from jitdyn.errors import InvalidArgument, JitdynError, Unavailable
+from jitdyn.lifecycle import Closeable
 from jitdyn.storage.columns import check_lengths, records_to_batch
 from jitdyn.storage.failures import storage_failure
 from jitdyn.storage.records import TickRecord
@@ -102,7 +103,7 @@ class CommitStats:
     window: float  # s: the least commit window now, widened to keep commits under COMMIT_SHARE
 
 
-class GroupCommitter:
+class GroupCommitter(Closeable):
     """The commit thread of a process. Thread-safe; `close` is safe to call twice."""
 
     def __init__(self, *, name: str = "jitdyn-commit") -> None:
@@ -208,12 +209,6 @@ class GroupCommitter:
                 session.flush = True
             self._cond.notify_all()
         self._thread.join()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     # The thread.
 

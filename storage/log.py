@@ -14,10 +14,11 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Final, Self
+from typing import Final
 
 import pyarrow as pa
 
+from jitdyn.lifecycle import Closeable
 from jitdyn.storage.columns import LOG_SCHEMA
 from jitdyn.storage.layout import fsync_dir
 
@@ -146,7 +147,7 @@ def read_log(path: Path) -> LogContents:
     return LogContents(table, raw.decode() if raw is not None else None, torn=torn)
 
 
-class LogStream:
+class LogStream(Closeable):
     """A log read batch by batch, in bounded memory: each batch is read into its own buffers and
     freed when dropped (a memory map would keep every page it touched resident until it closes).
     `header_json` (None when even the header did not reach the disk), `batches()` once, then `torn`
@@ -191,12 +192,6 @@ class LogStream:
             self._source.close()
             self._source = None
         self._reader = None
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def stream_log(path: Path) -> LogStream:

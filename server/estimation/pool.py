@@ -32,8 +32,7 @@ import enum
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from types import TracebackType
-from typing import Final, Self
+from typing import Final
 
 import mujoco
 import mujoco.rollout
@@ -42,6 +41,7 @@ import scipy.linalg  # noqa: F401  (its OpenBLAS is loaded, so that the limit be
 from threadpoolctl import ThreadpoolController
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.lifecycle import Closeable
 from jitdyn.mujoco_log import counting, current_counter
 
 __all__ = ["DEFAULT_BACKEND", "MAX_WORKERS", "MIN_CHUNK_SECONDS", "Backend", "WorkerPool"]
@@ -79,7 +79,7 @@ def _single_threaded_blas() -> None:
             _blas_limited = True
 
 
-class WorkerPool:
+class WorkerPool(Closeable):
     """`workers` threads shared by all sessions. A context manager; `close()` is safe twice.
 
     Estimators never call the pool's methods themselves; server/estimation/propagate.py does.
@@ -136,17 +136,6 @@ class WorkerPool:
             if self._executor is not None:
                 self._executor.shutdown(wait=True)
                 self._executor = None
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
