@@ -3,9 +3,9 @@
     model_message(info) -> jitdyn.v1.Model
     metadata_from_message(message) -> registry.ModelMetadata     # validated
 
-Estimator defaults travel as `ScenarioDefaults` messages and live in the registry as plain dicts
-keyed by the enums' value names without their prefix: {"PASSIVE": {"preset": "THESIS", "alpha":
-0.001}}.
+Estimator defaults travel as `ScenarioDefaults` messages and live in the registry as dicts keyed
+by scenario, one entry per row of estimator_settings.SETTINGS that is set, enum settings as their
+vocabulary members: {"PASSIVE": {"preset": Preset.THESIS, "alpha": 0.001}}.
 """
 
 from __future__ import annotations
