@@ -20,22 +20,20 @@ cannot carry it (Linux: /proc/stat; elsewhere the process budget alone).
 from __future__ import annotations
 
 import os
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
 from typing import Final
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
+from jitdyn.server.runtime.switch_interval import SwitchInterval
 
 __all__ = ["DEFAULT_TICK_BUDGET", "TRANSPORT_COST", "Admission", "Ticket"]
 
 DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
 # Server CPU per tick outside the estimator (receiving the frame, checking it, the result message,
-# sending it, recording it, the event loop): the starting guess, on this project's reference
-# machine (benchmarks/load.py measured 1.2-2.3 ms per pendulum_3 tick beyond a 0.4 ms filter);
-# each process then learns its own from its CPU and its ticks. Too low a guess over-admits the
-# first burst of opens, before a 2 s window has measured anything (26 sessions instead of ~15).
+# sending it, recording it, the event loop): the starting guess, which each process then replaces
+# with its own, learnt from its CPU and its ticks (docs/decisions/0005-admission-starting-guesses.md).
 TRANSPORT_COST: Final = 2e-3  # s
 _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 # Cores of the machine kept free of new sessions: the slack that keeps ticks on time when the
@@ -55,8 +53,7 @@ def _machine_times() -> tuple[int, int] | None:
         return None
     # user nice system idle iowait irq softirq steal (guest time is inside user). Niced work
     # counts as busy: with the kernel's autogroup scheduling a niced program of another login
-    # session still gets its session's share (measured here: SCHED_IDLE experiments took a quarter
-    # of two cores from two busy loops at normal priority).
+    # session still gets its session's share of the CPU.
     total = sum(fields[:8])
     free = fields[3] + (fields[4] if len(fields) > 4 else 0)
     return total - free, total
@@ -70,33 +67,6 @@ def _usable_cpus() -> int:
 
 
 _CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
-
-# How often the interpreter hands the GIL to another thread. A frame is read on the event loop only
-# once gRPC's poller thread has had the GIL, and CPython makes a waiting thread wait up to the
-# switch interval (5 ms) while the loop runs Python: a 200 Hz biped session (2.5 ms grace) had
-# 13 % of its frames past their deadline at 5 ms, 2.5 % at 0.5 ms. For many slow sessions a short
-# interval only adds switches (12 pendulum_3 sessions at 20 Hz: 5-10 % more CPU per tick, frames
-# later at p99). So it follows the tightest grace of the REALTIME sessions open in the process.
-SWITCH_DEFAULT: Final = sys.getswitchinterval()
-SWITCH_SHARE: Final = 0.2  # of the tightest grace
-SWITCH_FLOOR: Final = 2e-4  # s
-# The graces of the REALTIME sessions open in this process, whatever Admission admitted them (the
-# switch interval is the process's).
-_graces: dict[float, int] = {}
-_graces_lock = threading.Lock()
-
-
-def _count_grace(grace: float, change: int) -> None:
-    with _graces_lock:
-        count = _graces.get(grace, 0) + change
-        if count > 0:
-            _graces[grace] = count
-        else:
-            _graces.pop(grace, None)
-        interval = SWITCH_DEFAULT
-        if _graces:
-            interval = min(SWITCH_DEFAULT, max(SWITCH_FLOOR, SWITCH_SHARE * min(_graces)))
-        sys.setswitchinterval(interval)
 
 
 @dataclass
@@ -137,6 +107,8 @@ class Admission:
     count_process_cpu: bool = True
     # False: ignore what the rest of the machine does (the process budget alone).
     count_machine_cpu: bool = True
+    # The process's GIL switch interval, told of each admitted session's grace; None: left alone.
+    switch: SwitchInterval | None = None
     _by_id: dict[int, Ticket] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _cpu_mark: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
@@ -154,8 +126,8 @@ class Admission:
 
     def start_window(self) -> None:
         """Measure the process's CPU from now: called once it serves, so that starting up (imports,
-        the registry, migrations: 38 % of a core over the first window, measured) is not taken for
-        the load of sessions, which refused a lone 500 Hz session on a fresh server."""
+        the registry, migrations) is not taken for the load of sessions
+        (docs/decisions/0005-admission-starting-guesses.md)."""
         with self._lock:
             self._cpu_mark = (time.monotonic(), time.process_time())
             self._cpu_load = 0.0
@@ -220,7 +192,7 @@ class Admission:
         saying why (the measured load, the session's estimated cost, the setting that raises it).
         filter_seconds: the part of the cost that is the session's own filter, measured (the rest is
         the guessed transport); an idle process admits the session if that part fits.
-        grace: the session's grace, which sets how often the GIL changes hands while it is open."""
+        grace: the session's grace, for the process's switch interval while it is open."""
         if filter_seconds is None:
             filter_seconds = cost_per_tick
         if not dt > 0:
@@ -258,8 +230,8 @@ class Admission:
                         "Try again later, on another server, or at a lower rate"
                     )
             self._by_id[id(ticket)] = ticket
-        if grace is not None:
-            _count_grace(grace, +1)
+        if grace is not None and self.switch is not None:
+            self.switch.add(grace)
         return ticket
 
     def _release(self, ticket: Ticket) -> None:
@@ -268,5 +240,5 @@ class Admission:
                 return
             ticket.released = True
             self._by_id.pop(id(ticket), None)
-        if ticket.grace is not None:
-            _count_grace(ticket.grace, -1)
+        if ticket.grace is not None and self.switch is not None:
+            self.switch.remove(ticket.grace)

@@ -109,12 +109,9 @@ class ClockSync:
                     best = min(self._samples, key=lambda s: s.round_trip)
                     self._offset, self._round_trip = best.offset, best.round_trip
         if not self._samples:
-            # Until an exchange is complete (the next probe brings its t4: a client probing every
-            # second leaves a second), the one-way estimate t2 - t1: late by the uplink's transit,
-            # where the initial 0 was early by opened's transit and the client's time to read it.
-            # That was 3 ms for a 200 Hz biped session in some runs: every frame of its first second
-            # counted past the 2.5 ms grace (199 of 223 rejected frames; 86 % MEASURED, 99.5 % in
-            # runs where it was less).
+            # Until an exchange is complete (the next probe brings its t4), the smallest one-way
+            # estimate t2 - t1: late by the uplink's transit, where 0 would be early by opened's
+            # transit and more (docs/decisions/0004-clock-offset-before-the-first-exchange.md).
             one_way = server_receive_time - client_send_time
             self._one_way = min(self._one_way, one_way)
             self._offset = self._one_way

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from jitdyn.vocabulary import RejectReason
+
 __all__ = ["CHANNELS", "FrameIn", "Rejection"]
 
 # Frame fields in the order of the contract; ctrl and sensordata are channels too.
@@ -33,5 +35,5 @@ class Rejection:
     """Why a frame or skip was not used."""
 
     seq: int
-    reason: str  # RejectReason name without its prefix, e.g. "BAD_SHAPE"
+    reason: RejectReason
     message: str

@@ -2,8 +2,11 @@
 `jitdyn serve` flag, which the refusal names.
 
     limits = StreamLimits(max_history_bytes=64 << 20, idle_timeout=60.0)
-    limits.check_history(history=500, snapshot_bytes=estimator_snapshot_bytes(estimator))
-    limits.check_tick_cost(model, nsigma=..., steps_per_tick=..., state_dimension=..., dt=...)
+    limits.check_history(
+        history=500, snapshot_bytes=snapshot_bytes(estimator.snapshot()), state_dimension=n
+    )
+    cost = tick_cost(model, nsigma=nsigma, steps_per_tick=steps, state_dimension=n)
+    limits.check_tick_cost(cost, dt=0.002, state_dimension=n, nsigma=nsigma, steps=steps)
 """
 
 from __future__ import annotations

@@ -14,9 +14,10 @@ REALTIME sessions on the event loop (their deadlines are its timers).
 from __future__ import annotations
 
 import dataclasses
+import enum
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -26,10 +27,21 @@ from jitdyn.server.estimation.dynamics import Dynamics, DynamicsResult
 from jitdyn.server.estimation.estimator import Estimate, Estimator, Measurement
 from jitdyn.server.runtime.frames import FrameIn, Rejection
 from jitdyn.server.runtime.limits import snapshot_bytes
+from jitdyn.vocabulary import Scenario, Source
 
-__all__ = ["SessionCounts", "SessionRuntime", "TickOutcome"]
+__all__ = ["Place", "SessionCounts", "SessionRuntime", "TickOutcome"]
 
 _RESIZE_EVERY = 64  # ticks between two measures of the snapshots' size (it creeps as windows fill)
+
+
+class Place(enum.Enum):
+    """Where a frame belongs among a session's ticks (`SessionRuntime.classify`)."""
+
+    NEXT = enum.auto()  # the first tick not yet answered
+    FUTURE = enum.auto()  # a tick after it
+    LATE = enum.auto()  # a tick answered PREDICTED and still in the history: a timewarp applies it
+    DUPLICATE = enum.auto()  # a tick that has its frame already
+    TOO_OLD = enum.auto()  # a tick past the history
 
 
 @dataclass(frozen=True, slots=True)
@@ -38,7 +50,7 @@ class TickOutcome:
 
     seq: int
     t: float  # the tick's time on the client clock, plus the horizon (s)
-    source: str  # "MEASURED" | "PREDICTED" | "CORRECTED"
+    source: Source
     qpos: np.ndarray  # (nq,)
     qvel: np.ndarray  # (nv,)
     qacc: np.ndarray  # (nv,)
@@ -92,7 +104,6 @@ class _Tick:
     before: object | None  # estimator snapshot before this tick; None: not yet initialised
     frame: FrameIn | None
     ctrl: np.ndarray | None  # the control the prediction of this tick used (CONTROLLED)
-    outcome_source: str = field(default="PREDICTED")
 
 
 class SessionRuntime:
@@ -105,7 +116,7 @@ class SessionRuntime:
         estimator: Estimator,
         dynamics: Dynamics,
         dt: float,
-        scenario: str,
+        scenario: Scenario,
         history: int,
         max_history_bytes: int | None = None,
     ) -> None:
@@ -113,7 +124,7 @@ class SessionRuntime:
         self._estimator = estimator
         self._dynamics = dynamics
         self._dt = dt
-        self._controlled = scenario == "CONTROLLED"
+        self._controlled = scenario == Scenario.CONTROLLED
         self._history = history
         # The ticks kept: `history`, or fewer when their snapshots would pass max_history_bytes at
         # the size the newest has (the open checks the size the estimator starts with; it grows,
@@ -152,14 +163,14 @@ class SessionRuntime:
         `skip` empties (then the next tick: no late frame replays across skipped ticks)."""
         return next(iter(self._ticks), self._next)
 
-    def classify(self, seq: int) -> str:
-        """Where a frame for `seq` belongs: "next", "future", "late", "duplicate" or "too_old"."""
+    def classify(self, seq: int) -> Place:
+        """Where a frame for `seq` belongs."""
         if seq >= self._next:
-            return "next" if seq == self._next else "future"
+            return Place.NEXT if seq == self._next else Place.FUTURE
         tick = self._ticks.get(seq)
         if tick is None:
-            return "too_old"
-        return "duplicate" if tick.frame is not None else "late"
+            return Place.TOO_OLD
+        return Place.DUPLICATE if tick.frame is not None else Place.LATE
 
     def release(self) -> None:
         """Drop the history (its snapshots are most of a session's memory) once the session has
@@ -187,7 +198,6 @@ class SessionRuntime:
         if frame is not None:
             self.counts.frames += 1
             self.counts.measured += 1
-            tick.outcome_source = "MEASURED"
         else:
             self.counts.predicted += 1
         outcome = self._outcome(tick, estimate, late_ticks=0, started=started, horizon=horizon)
@@ -211,7 +221,6 @@ class SessionRuntime:
             self._initialised = True
             self._stale_since = None
             estimate = dataclasses.replace(self._estimator.extrapolate(0.0), reinitialised=True)
-            tick.outcome_source = "MEASURED"
         elif self._initialised and self._stale_since is None:
             self._stale_since = seq
         self._ticks[seq] = tick
@@ -264,7 +273,7 @@ class SessionRuntime:
             last,
             seq=tick.seq,
             t=tick.seq * self._dt,
-            source="PREDICTED",
+            source=Source.PREDICTED,
             frame=None,
             late_ticks=0,
             horizon=0.0,
@@ -291,7 +300,6 @@ class SessionRuntime:
                 corrected = estimate
         if self._stale_since is not None and frame.seq <= self._stale_since:
             self._stale_since = None  # every skipped tick was just replayed properly
-        target.outcome_source = "CORRECTED"
         # Ticks answered since this one was due, itself included: 1 = just missed its deadline.
         late_ticks = self._next - frame.seq
         self.counts.frames += 1
@@ -392,14 +400,14 @@ class SessionRuntime:
                 else (estimate.qvel if estimate is not None else self._zero_nv)
             )
             qacc = self._frame_qacc(tick, estimate)
-            source = "CORRECTED" if late_ticks else "MEASURED"
+            source = Source.CORRECTED if late_ticks else Source.MEASURED
             horizon = 0.0 if late_ticks else horizon
         elif estimate is not None:
             qpos, qvel, qacc = estimate.qpos, estimate.qvel, estimate.qacc
-            source = "PREDICTED"
+            source = Source.PREDICTED
         else:
             qpos, qvel, qacc = self._qpos0, self._zero_nv, self._zero_nv
-            source = "PREDICTED"
+            source = Source.PREDICTED
         if horizon > 0.0 and self._initialised:
             ahead = self._estimator.extrapolate(horizon)
             qpos, qvel, qacc = ahead.qpos, ahead.qvel, ahead.qacc

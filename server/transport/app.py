@@ -29,6 +29,7 @@ from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
+from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
 from jitdyn.server.transport.metrics import metrics, serve_metrics
@@ -261,7 +262,11 @@ async def _services(
         data_root=data_root,
         limits=config.session_limits,
         admission=Admission(
-            budget=config.session_limits.tick_budget, count_process_cpu=not config.shares_process
+            budget=config.session_limits.tick_budget,
+            count_process_cpu=not config.shares_process,
+            # A server owns its process's GIL switch interval: short while a fast REALTIME session
+            # is open, so that gRPC's poller hands frames to the loop in time.
+            switch=PROCESS_SWITCH_INTERVAL,
         ),
     )
     model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(

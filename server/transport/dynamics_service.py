@@ -8,45 +8,25 @@ loop, writes one response per request in order (LOCKSTEP) or one result per tick
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import functools
 import logging
 import math
-import threading
 import traceback
-import uuid
 from collections.abc import AsyncIterator, Callable
-from datetime import UTC, datetime
 from typing import Any, TypeVar
 
 import grpc
-import mujoco
 
-from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, ResourceExhausted
+from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError
 from jitdyn.mujoco_log import counting
-from jitdyn.registry import ModelInfo
-from jitdyn.server.estimation.dynamics import Dynamics
-from jitdyn.server.estimation.estimator import (
-    SETTING_FIELDS,
-    Estimator,
-    EstimatorConfig,
-    default_scenario,
-    resolve_config,
-)
-from jitdyn.server.estimation.factory import make_estimator, measure_cycle
-from jitdyn.server.runtime.admission import Ticket
 from jitdyn.server.runtime.alarm import Alarm
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
 from jitdyn.server.runtime.frames import FrameIn, Rejection
-from jitdyn.server.runtime.limits import (
-    DEFAULT_STREAM_LIMITS,
-    IdleTimeout,
-    StreamLimits,
-    snapshot_bytes,
-    tick_cost,
-)
+from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, IdleTimeout, StreamLimits
+from jitdyn.server.runtime.opening import OpenedSession, SessionOpener
+from jitdyn.server.runtime.plan import OpenRequest
 from jitdyn.server.runtime.services import Services
-from jitdyn.server.runtime.session import SessionRuntime, TickOutcome
+from jitdyn.server.runtime.session import Place, TickOutcome
 from jitdyn.server.transport.auth import tenant_of
 from jitdyn.server.transport.frame_check import check_frame
 from jitdyn.server.transport.messages import (
@@ -57,14 +37,13 @@ from jitdyn.server.transport.messages import (
     tick_record,
 )
 from jitdyn.server.transport.metrics import metrics
-from jitdyn.server.transport.model_messages import metadata_from_message, model_message, settings_message
-from jitdyn.server.transport.opening import SessionPlan, plan_session
+from jitdyn.server.transport.opening import open_request, opened_message
 from jitdyn.server.transport.session_service import summary_to_pb
 from jitdyn.server.transport.status import abort
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
-from jitdyn.storage.recorder import SessionRecorder
-from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
-from jitdyn.v1 import common_pb2, dynamics_pb2, dynamics_pb2_grpc
+from jitdyn.storage.records import SessionSummaryInfo
+from jitdyn.v1 import dynamics_pb2, dynamics_pb2_grpc
+from jitdyn.vocabulary import Clock, Horizon, RejectReason, SessionStatus, Source
 
 __all__ = ["DynamicsServicer"]
 
@@ -101,30 +80,20 @@ def _counting_warnings(method: Callable[..., _R]) -> Callable[..., _R]:
 class _Stream:
     """One open session on one stream: the runtime, the recorder, the clock."""
 
-    def __init__(
-        self,
-        *,
-        services: Services,
-        plan: SessionPlan,
-        runtime: SessionRuntime,
-        recorder: SessionRecorder,
-        sizes: dict[str, int],
-        clock: MonotonicClock,
-        ticket: Ticket | None = None,
-    ) -> None:
-        self.services = services
-        self.ticket = ticket  # REALTIME: this session's share of the process's tick budget
-        m, process, model = metrics(), metrics().process, recorder.header.model_name
-        self._m_ticks = {s: m.ticks.labels(process, model, s) for s in ("MEASURED", "PREDICTED", "CORRECTED")}
+    def __init__(self, opened: OpenedSession) -> None:
+        self.ticket = opened.ticket  # REALTIME: this session's share of the process's tick budget
+        m, process, model = metrics(), metrics().process, opened.info.name
+        self._m_ticks = {s: m.ticks.labels(process, model, s) for s in Source}
         self._m_shed = m.shed.labels(process, model)
         self._m_compute = m.compute.labels(process, model)
         self._m_lateness = m.lateness.labels(process, model)
         self._m_lag = m.durable_lag.labels(process)
-        self.plan = plan
-        self.runtime = runtime
-        self.recorder = recorder
-        self.sizes = sizes
-        self.clock = clock
+        self.opened = opened
+        self.plan = opened.plan
+        self.runtime = opened.runtime
+        self.recorder = opened.recorder
+        self.sizes = opened.sizes
+        self.clock = MonotonicClock()
         self.sync = ClockSync()
         self.lock = asyncio.Lock()
         self.pending: dict[int, FrameIn] = {}
@@ -135,7 +104,7 @@ class _Stream:
     def frame_delay(self, frame: FrameIn | None) -> float | None:
         if frame is None:
             return None
-        if self.plan.clock != "REALTIME":
+        if self.plan.clock != Clock.REALTIME:
             return 0.0
         return frame.received - self.sync.to_server(frame.seq * self.plan.dt)
 
@@ -161,16 +130,20 @@ class _Stream:
             durable_seq=durable,
         )
 
-    def record_rejection(self, rejection: Rejection) -> dynamics_pb2.Rejected:
+    def record_rejection(self, rejection: Rejection) -> Response:
+        """Count, record and answer a frame or skip that is not used."""
         self.runtime.reject(rejection)
         metrics().rejections.labels(metrics().process, rejection.reason).inc()
         self.recorder.append(
             rejection_record(rejection, server_time=self.clock.now(), t=rejection.seq * self.plan.dt)
         )
-        return rejected_message(rejection)
+        return Response(rejected=rejected_message(rejection))
+
+    def reject(self, seq: int, reason: RejectReason, message: str) -> list[Response]:
+        return [self.record_rejection(Rejection(seq, reason, message))]
 
     def horizon(self) -> float:
-        if self.plan.horizon == "HALF_ROUND_TRIP":
+        if self.plan.horizon == Horizon.HALF_ROUND_TRIP:
             return self.sync.round_trip / 2.0
         return 0.0
 
@@ -178,91 +151,71 @@ class _Stream:
     def on_frame(self, message: dynamics_pb2.Frame, arrived: float) -> list[Response]:
         checked = check_frame(message, sizes=self.sizes, measured=self.plan.measured, received=arrived)
         if isinstance(checked, Rejection):
-            return [Response(rejected=self.record_rejection(checked))]
+            return [self.record_rejection(checked)]
         seq = checked.seq
         place = self.runtime.classify(seq)
-        lockstep = self.plan.clock == "LOCKSTEP"
-        if place == "next" and lockstep:
+        lockstep = self.plan.clock == Clock.LOCKSTEP
+        if place == Place.NEXT and lockstep:
             outcome = self.runtime.advance(checked)
             return [Response(result=self.record_result(outcome, arrived=arrived))]
-        if place in ("next", "future") and not lockstep:
-            if seq in self.pending:
-                return [
-                    Response(
-                        rejected=self.record_rejection(
-                            Rejection(
-                                seq,
-                                "DUPLICATE",
-                                f"frame {seq}: tick {seq} already has a frame waiting for its deadline",
-                            )
-                        )
-                    )
-                ]
-            if seq - self.runtime.next_tick >= _MAX_TICKS_AHEAD:
-                return [
-                    Response(
-                        rejected=self.record_rejection(
-                            Rejection(
-                                seq,
-                                "OUT_OF_ORDER",
-                                f"frame {seq}: seq must be less than {self.runtime.next_tick + _MAX_TICKS_AHEAD} "
-                                f"(the clock is at tick {self.runtime.next_tick}), got {seq}",
-                            )
-                        )
-                    )
-                ]
-            self.pending[seq] = checked
-            self.catch_up()
-            return self.answer_ready()
-        if place == "future":
-            return [
-                Response(
-                    rejected=self.record_rejection(
-                        Rejection(
-                            seq,
-                            "OUT_OF_ORDER",
-                            f"frame {seq}: LOCKSTEP expects the next tick {self.runtime.next_tick} or a skipped tick "
-                            f"within the history, got {seq}",
-                        )
-                    )
-                )
-            ]
-        if place == "duplicate":
-            return [
-                Response(
-                    rejected=self.record_rejection(
-                        Rejection(seq, "DUPLICATE", f"frame {seq}: tick {seq} already has a frame")
-                    )
-                )
-            ]
-        if place == "too_old":
-            return [Response(rejected=self.record_rejection(Rejection(seq, "TOO_OLD", self._too_old(seq))))]
-        if self.ticket is not None:
-            # REALTIME: a timewarp replays every tick since the late one, on the event loop. It is
-            # applied only when it fits, with the session's own next tick, in half a tick:
-            # replays on a server that is already behind made it fall further behind (late frames
-            # begot late frames: a 200 Hz biped session that replayed a 1-tick-late frame whenever
-            # it fitted in half of what its ticks leave free had 10 % of its frames late, and they
-            # reached the loop 5 ms late at p99 instead of 1.1 ms).
-            replay = self.runtime.next_tick - seq
-            cost = replay * self.ticket.compute_per_tick
-            free = max(0.0, self.plan.dt / 2 - self.ticket.cost_per_tick)
-            if cost > free:
-                return [
-                    Response(
-                        rejected=self.record_rejection(
-                            Rejection(
-                                seq,
-                                "TOO_OLD",
-                                f"frame {seq}: {replay} ticks late; replaying them would take about "
-                                f"{1e3 * cost:.1f} ms, and with this session's own ticks at {1e3 * self.ticket.cost_per_tick:.1f} ms "
-                                f"only {1e3 * free:.1f} ms of half its {1e3 * self.plan.dt:g} ms tick is free, so it is not applied",
-                            )
-                        )
-                    )
-                ]
+        if place in (Place.NEXT, Place.FUTURE) and not lockstep:
+            return self._wait_for_tick(checked)
+        if place == Place.FUTURE:
+            return self.reject(
+                seq,
+                RejectReason.OUT_OF_ORDER,
+                f"frame {seq}: LOCKSTEP expects the next tick {self.runtime.next_tick} or a skipped tick "
+                f"within the history, got {seq}",
+            )
+        if place == Place.DUPLICATE:
+            return self.reject(seq, RejectReason.DUPLICATE, f"frame {seq}: tick {seq} already has a frame")
+        if place == Place.TOO_OLD:
+            return self.reject(seq, RejectReason.TOO_OLD, self._too_old(seq))
+        unaffordable = self._unaffordable_replay(seq)
+        if unaffordable is not None:
+            return self.reject(seq, RejectReason.TOO_OLD, unaffordable)
         outcome = self.runtime.apply_late(checked)
         return [Response(result=self.record_result(outcome, arrived=arrived))]
+
+    def _wait_for_tick(self, frame: FrameIn) -> list[Response]:
+        """REALTIME: keep a frame for the next or a later tick until its time, then answer what is due."""
+        seq = frame.seq
+        if seq in self.pending:
+            return self.reject(
+                seq,
+                RejectReason.DUPLICATE,
+                f"frame {seq}: tick {seq} already has a frame waiting for its deadline",
+            )
+        if seq - self.runtime.next_tick >= _MAX_TICKS_AHEAD:
+            return self.reject(
+                seq,
+                RejectReason.OUT_OF_ORDER,
+                f"frame {seq}: seq must be less than {self.runtime.next_tick + _MAX_TICKS_AHEAD} "
+                f"(the clock is at tick {self.runtime.next_tick}), got {seq}",
+            )
+        self.pending[seq] = frame
+        self.catch_up()
+        return self.answer_ready()
+
+    def _unaffordable_replay(self, seq: int) -> str | None:
+        """REALTIME: why a late frame's timewarp is not applied, or None when it fits.
+
+        The timewarp replays every tick since the late one, on the event loop; it is applied only
+        when it fits, with the session's own next tick, in half a tick, because replays on a server
+        that is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md).
+        """
+        if self.ticket is None:
+            return None
+        replay = self.runtime.next_tick - seq
+        cost = replay * self.ticket.compute_per_tick
+        free = max(0.0, self.plan.dt / 2 - self.ticket.cost_per_tick)
+        if cost <= free:
+            return None
+        return (
+            f"frame {seq}: {replay} ticks late; replaying them would take about "
+            f"{1e3 * cost:.1f} ms, and with this session's own ticks at {1e3 * self.ticket.cost_per_tick:.1f} ms "
+            f"only {1e3 * free:.1f} ms of half its {1e3 * self.plan.dt:g} ms tick is free, so it is not applied"
+        )
 
     def _too_old(self, seq: int) -> str:
         """Why a frame for `seq` can no longer be applied: past the history, or before ticks an
@@ -284,23 +237,19 @@ class _Stream:
 
     @_counting_warnings
     def on_skip(self, seq: int, arrived: float) -> Response:
-        if self.plan.clock != "LOCKSTEP":
-            return Response(
-                rejected=self.record_rejection(
-                    Rejection(
-                        seq,
-                        "WRONG_CLOCK",
-                        f"skip {seq}: skip is for CLOCK_LOCKSTEP sessions; this session is CLOCK_REALTIME",
-                    )
+        if self.plan.clock != Clock.LOCKSTEP:
+            return self.record_rejection(
+                Rejection(
+                    seq,
+                    RejectReason.WRONG_CLOCK,
+                    f"skip {seq}: skip is for CLOCK_LOCKSTEP sessions; this session is CLOCK_REALTIME",
                 )
             )
         expected = self.runtime.next_tick
         if seq != expected:
-            reason = "DUPLICATE" if seq < expected else "OUT_OF_ORDER"
-            return Response(
-                rejected=self.record_rejection(
-                    Rejection(seq, reason, f"skip {seq}: skip must name the next tick {expected}, got {seq}")
-                )
+            reason = RejectReason.DUPLICATE if seq < expected else RejectReason.OUT_OF_ORDER
+            return self.record_rejection(
+                Rejection(seq, reason, f"skip {seq}: skip must name the next tick {expected}, got {seq}")
             )
         outcome = self.runtime.advance(None)
         return Response(result=self.record_result(outcome, arrived=arrived))
@@ -372,55 +321,64 @@ class _Stream:
         return responses
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class _TickPrice:
-    """What one REALTIME tick of a model and its settings costs in this process."""
+class _RealtimeClock:
+    """REALTIME: the task that answers a session's ticks at their time, and the one writer of its
+    stream. It sleeps on one wake-up, moved as frames answer ticks: it wakes only for a deadline
+    that finds its frame missing (or a frame that came early), not once a tick."""
 
-    cost: float  # s: the physics and linear algebra, priced (the --max-tick-share check)
-    cycle: float | None  # s: one predict + update, measured once the price alone admits it
-    nsigma: int
-    state_dimension: int
+    def __init__(self, stream: _Stream, context: _Context) -> None:
+        self._stream = stream
+        self._context = context
+        self._write_lock = asyncio.Lock()
+        self._wakeup = Alarm.of(asyncio.get_running_loop()).wakeup()
+
+    async def write(self, response: Response) -> None:
+        async with self._write_lock:
+            await self._context.write(response)
+
+    def due(self) -> float:
+        """When to wake: a tick whose frame is here waits only for its own time; one without, for
+        its deadline (monotonic seconds)."""
+        stream = self._stream
+        seq = stream.runtime.next_tick
+        at = stream.sync.to_server(seq * stream.plan.dt) if seq in stream.pending else stream.deadline(seq)
+        return stream.clock.to_monotonic(at)
+
+    def moved(self) -> None:
+        """A request may have answered the next tick or moved its deadline."""
+        self._wakeup.move(self.due())
+
+    async def run(self) -> None:
+        stream = self._stream
+        while True:
+            await self._wakeup.until(self.due())
+            if stream.closed:
+                return
+            stream.catch_up()
+            seq = stream.runtime.next_tick
+            if seq in stream.pending:
+                responses = stream.answer_ready()
+            elif stream.clock.now() >= stream.deadline(seq):
+                responses = stream.on_deadline(stream.deadline(seq))
+            else:
+                continue  # a clock probe moved the deadline later
+            for response in responses:
+                await self.write(response)
 
 
 class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
-    """Serves StreamSession."""
+    """Serves StreamSession: converts its messages and statuses; the runtime opens and runs the
+    session (server/runtime/opening.py, server/runtime/session.py)."""
 
     def __init__(self, services: Services, *, limits: StreamLimits = DEFAULT_STREAM_LIMITS) -> None:
         self._services = services
         self._limits = limits
-        # What a tick of (model, settings) costs here, measured at its first REALTIME open and
-        # reused: every open of a hundred sessions of one model would otherwise time its own
-        # throwaway filter while the others' ticks wait.
-        self._costs: dict[tuple[str, EstimatorConfig], _TickPrice] = {}
-        self._costs_lock = threading.Lock()
+        self._opener = SessionOpener(services, limits=limits, on_admission=self._count_admission)
 
-    def _tick_price(
-        self, info: ModelInfo, model: mujoco.MjModel, config: EstimatorConfig, *, cycle: bool
-    ) -> _TickPrice:
-        """What a tick of `config` costs on this model, priced at its first REALTIME open in this
-        process (on a throwaway estimator) and reused; `cycle`: also time one predict + update,
-        once (a session that the price alone refuses never costs the others that)."""
-        key = (info.id, config)
-        with self._costs_lock:
-            known = self._costs.get(key)
-            if known is None:
-                probe = make_estimator(model, config, pool=self._services.pool)
-                nsigma = int(getattr(probe, "nsigma", 1))
-                known = self._costs[key] = _TickPrice(
-                    cost=tick_cost(
-                        model,
-                        nsigma=nsigma,
-                        steps_per_tick=config.steps_per_tick,
-                        state_dimension=probe.state_dimension,
-                    ),
-                    cycle=None,
-                    nsigma=nsigma,
-                    state_dimension=probe.state_dimension,
-                )
-            if cycle and known.cycle is None:
-                measured = measure_cycle(model, config, pool=self._services.pool)
-                known = self._costs[key] = dataclasses.replace(known, cycle=measured)
-            return known
+    def _count_admission(self, refused: bool) -> None:
+        if refused:
+            metrics().refusals.labels(metrics().process).inc()
+        metrics().load.labels(metrics().process).set(self._services.admission.load())
 
     # grpc.aio also takes a stream handler that writes through `context.write` and returns None,
     # which the generated servicer's signature (iterators of responses) does not describe.
@@ -440,9 +398,9 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             await abort(
                 context, FailedPrecondition(f"the first message of a session must be `open`, got `{kind}`")
             )
-        tenant = tenant_of(context)
         try:
-            stream, opened = await self._open(first.open, tenant)
+            request = open_request(first.open, tenant=tenant_of(context))
+            stream, opened = await self._open(request)
         except JitdynError as error:
             await abort(context, error)
         except Exception:  # noqa: BLE001 (a bug: logged with its traceback, as translate_errors does)
@@ -454,7 +412,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         # is inside the try, so that a cancel arriving while `opened` is written still stores the
         # session and releases its slot.
         metrics().open_sessions.labels(metrics().process).inc()
-        status = "ABANDONED"
+        status = SessionStatus.ABANDONED
         try:
             # The session clock starts as `opened` leaves, as the client's starts as it arrives:
             # opening (the log's fsync, the index row) took milliseconds, tens under load, which the
@@ -462,12 +420,13 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             # probe completed.
             stream.clock.restart()
             await context.write(Response(opened=opened))
-            if stream.plan.clock == "REALTIME":
+            if stream.plan.clock == Clock.REALTIME:
                 await self._realtime(stream, request_iterator, context)
             else:
                 await self._lockstep(stream, request_iterator, context)
         except JitdynError as error:
-            await self._finish_quietly(stream, "ABANDONED" if isinstance(error, IdleTimeout) else "FAILED")
+            ended = SessionStatus.ABANDONED if isinstance(error, IdleTimeout) else SessionStatus.FAILED
+            await self._finish_quietly(stream, ended)
             # The status is set and the handler returns, rather than raising through
             # context.abort: a raised abort keeps this frame (and the session's estimator and
             # models) alive in its traceback's reference cycle until the garbage collector runs.
@@ -478,12 +437,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 # The client went away or the server is stopping: what arrived is stored.
                 await asyncio.shield(self._finish_quietly(stream, status))
 
-    async def _open(
-        self, request: dynamics_pb2.OpenSession, tenant: str
-    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
-        services = self._services
+    async def _open(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        services, tenant = self._services, request.tenant
         services.admit(tenant)
-        opening = asyncio.ensure_future(asyncio.to_thread(self._open_sync, request, tenant))
+        opening = asyncio.ensure_future(asyncio.to_thread(self._open_sync, request))
         try:
             return await asyncio.shield(opening)
         except JitdynError as error:
@@ -508,242 +465,19 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     ) -> None:
         try:
             stream, _ = await opening
-            if stream.ticket is not None:
-                stream.ticket.release()  # its share of the tick budget, too
-            await asyncio.to_thread(stream.recorder.discard)
+            await asyncio.to_thread(stream.opened.discard)
         except Exception:  # noqa: BLE001 (the open failed anyway, or the discard did: both only logged)
             _log.debug("an abandoned open ended with an error", exc_info=True)
         finally:
             self._services.release(tenant)
 
-    def _open_sync(
-        self, request: dynamics_pb2.OpenSession, tenant: str
-    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
-        services = self._services
-        registry = services.registry
-        which = request.WhichOneof("model")
-        if which is None:
-            raise InvalidArgument("open.model must be set: model_id, model_name or inline_model")
-        if which != "model_name" and request.model_version:
-            raise InvalidArgument(
-                f"open.model_version must be 0 with open.{which}, got {request.model_version}"
-            )
-        if which == "model_id":
-            info = registry.get(tenant=tenant, model_id=request.model_id)
-        elif which == "model_name":
-            info = registry.get(tenant=tenant, name=request.model_name, version=request.model_version)
-        else:
-            inline = request.inline_model
-            info, _ = registry.register(
-                name=inline.name,
-                mjcf=inline.mjcf,
-                assets=dict(inline.assets),
-                metadata=metadata_from_message(inline.metadata),
-                tenant=tenant,
-            )
-        model = registry.load(info.id, tenant=tenant)
-        plan = plan_session(request, timestep=info.timestep)
-        if model.nv > services.limits.max_state_dimension:
-            raise ResourceExhausted(
-                f"model {info.name!r} has nv = {model.nv}; this server allows at most "
-                f"{services.limits.max_state_dimension} (--max-state-dimension)"
-            )
-        if plan.scenario is None:
-            chosen, scenario_reason = default_scenario(model)
-            plan = dataclasses.replace(plan, scenario=chosen.value)
-            scenario_reason = f"open.scenario unset: {scenario_reason}"
-        else:
-            scenario_reason = f"open.scenario asked for SCENARIO_{plan.scenario}"
-        scenario = str(plan.scenario)
-        model_defaults = info.defaults.get(scenario, {})
-        config = resolve_config(
-            model=model,
-            scenario=scenario,
-            dt=plan.dt,
-            requested=plan.estimator_request,
-            model_defaults=model_defaults,
-            preset=plan.preset,
-            measured=plan.measured,
-        )
-        # REALTIME: admitted (or refused) before anything is built for the session, from a price
-        # measured once per model and settings, so that a burst of opens past capacity costs the
-        # sessions already running next to nothing.
-        ticket: Ticket | None = None
-        if plan.clock == "REALTIME":
-            price = self._tick_price(info, model, config, cycle=False)
-            self._limits.check_tick_cost(
-                price.cost,
-                dt=plan.dt,
-                state_dimension=price.state_dimension,
-                nsigma=price.nsigma,
-                steps=plan.steps_per_tick,
-            )
-            try:
-                cycle = self._tick_price(info, model, config, cycle=True).cycle
-                if cycle is None:  # pragma: no cover - measured just above
-                    raise RuntimeError("the filter cycle was not measured")
-                ticket = services.admission.admit(
-                    cost_per_tick=cycle + services.admission.overhead,
-                    filter_seconds=cycle,
-                    grace=plan.grace,
-                    dt=plan.dt,
-                    what=f"{info.name} ({scenario.lower()}) at {1 / plan.dt:g} Hz",
-                )
-            except ResourceExhausted:
-                metrics().refusals.labels(metrics().process).inc()
-                raise
-            finally:
-                metrics().load.labels(metrics().process).set(services.admission.load())
+    def _open_sync(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        opened = self._opener.open_session(request)
         try:
-            estimator = make_estimator(model, config, pool=services.pool)
-            self._limits.check_history(
-                history=plan.history,
-                snapshot_bytes=snapshot_bytes(estimator.snapshot()),
-                state_dimension=estimator.state_dimension,
-            )
+            return _Stream(opened), opened_message(opened)
         except BaseException:
-            if ticket is not None:
-                ticket.release()
+            opened.discard()
             raise
-        try:
-            return self._build_stream(
-                request, tenant, info, model, plan, config, estimator, ticket, scenario_reason
-            )
-        except BaseException:
-            if ticket is not None:
-                ticket.release()
-            raise
-
-    def _build_stream(
-        self,
-        request: dynamics_pb2.OpenSession,
-        tenant: str,
-        info: ModelInfo,
-        model: mujoco.MjModel,
-        plan: SessionPlan,
-        config: EstimatorConfig,
-        estimator: Estimator,
-        ticket: Ticket | None,
-        scenario_reason: str,
-    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
-        services = self._services
-        scenario = str(plan.scenario)
-        model_defaults = info.defaults.get(scenario, {})
-        settings = {k: v for k, v in dataclasses.asdict(config).items() if k in SETTING_FIELDS}
-        settings["preset"] = plan.preset
-        if "noise_model" in plan.estimator_request:
-            noise_reason = f"open.estimator.noise_model asked for NOISE_MODEL_{config.noise_model}"
-        elif "noise_model" in model_defaults:
-            noise_reason = (
-                f"the model's defaults for SCENARIO_{scenario} set NOISE_MODEL_{config.noise_model}"
-            )
-        else:
-            noise_reason = f"PRESET_{plan.preset}'s default for SCENARIO_{scenario}"
-        kept = services.anonymiser.check_attributes(plan.subject_attributes)
-        pseudonym = services.anonymiser.pseudonym(plan.subject_id, tenant=tenant)
-        session_id = str(uuid.uuid4())
-        header = SessionHeader(
-            session_id=session_id,
-            tenant=tenant,
-            model_id=info.id,
-            model_name=info.name,
-            model_version=info.version,
-            joint_names=tuple(j.name for j in info.joints),
-            dof_names=_dof_names(model, info),
-            nq=model.nq,
-            nv=model.nv,
-            nu=model.nu,
-            nsensordata=model.nsensordata,
-            timestep=info.timestep,
-            dt=plan.dt,
-            scenario=scenario,
-            clock=plan.clock,
-            estimator=settings,
-            subject_pseudonym=pseudonym,
-            subject_attributes=kept,
-            started_at=datetime.now(UTC),
-            joint_types=tuple(j.type for j in info.joints),
-            actuator_names=tuple(a.name for a in info.actuators),
-        )
-        recorder = SessionRecorder(
-            data_root=services.data_root, index=services.index, header=header, committer=services.committer
-        )
-        try:
-            return self._start(
-                plan,
-                model,
-                info,
-                estimator,
-                recorder,
-                settings,
-                pseudonym,
-                ticket=ticket,
-                scenario_reason=scenario_reason,
-                noise_reason=noise_reason,
-            )
-        except BaseException:
-            recorder.discard()
-            raise
-
-    def _start(
-        self,
-        plan: SessionPlan,
-        model: mujoco.MjModel,
-        info: ModelInfo,
-        estimator: Estimator,
-        recorder: SessionRecorder,
-        settings: dict[str, object],
-        pseudonym: str,
-        *,
-        ticket: Ticket | None,
-        scenario_reason: str,
-        noise_reason: str,
-    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
-        services = self._services
-        session_id = recorder.header.session_id
-        scenario = str(plan.scenario)
-        runtime = SessionRuntime(
-            model=model,
-            estimator=estimator,
-            dynamics=Dynamics(model, outputs=plan.outputs),
-            dt=plan.dt,
-            scenario=scenario,
-            history=plan.history,
-            max_history_bytes=self._limits.max_history_bytes,
-        )
-        sizes = {
-            "qpos": model.nq,
-            "qvel": model.nv,
-            "qacc": model.nv,
-            "ctrl": model.nu,
-            "sensordata": model.nsensordata,
-        }
-        stream = _Stream(
-            services=services,
-            plan=plan,
-            runtime=runtime,
-            recorder=recorder,
-            sizes=sizes,
-            clock=MonotonicClock(),
-            ticket=ticket,
-        )
-        opened = dynamics_pb2.SessionOpened(
-            session_id=session_id,
-            model=model_message(info),
-            estimator=settings_message(settings),
-            state_dimension=estimator.state_dimension,
-            measured=[common_pb2.Channel.Value("CHANNEL_" + c.upper()) for c in sorted(plan.measured)],
-            outputs=[common_pb2.Output.Value("OUTPUT_" + o) for o in sorted(plan.outputs)],
-            grace=plan.grace,
-            history=plan.history,
-            subject_pseudonym=pseudonym,
-            dt=plan.dt,
-            steps_per_tick=plan.steps_per_tick,
-            scenario=common_pb2.Scenario.Value("SCENARIO_" + scenario),
-            scenario_reason=scenario_reason,
-            noise_reason=noise_reason,
-        )
-        return stream, opened
 
     async def _lockstep(
         self,
@@ -773,47 +507,12 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         requests: AsyncIterator[dynamics_pb2.StreamSessionRequest],
         context: _Context,
     ) -> None:
-        write_lock = asyncio.Lock()
-
-        async def write(response: Response) -> None:
-            async with write_lock:
-                await context.write(response)
-
-        # REALTIME runs on the event loop itself: a tick's work (a few hundred microseconds for most
-        # models) costs less than the two thread hand-offs per tick it replaced (profiled: the
-        # executor's wake-ups and GIL hand-overs were a third of a tick's CPU), and one loop per
-        # process (`jitdyn serve --processes`) keeps every deadline in one queue, earliest first.
-        # Deadlines wake the loop through a timerfd: asyncio's own timers are whole milliseconds
-        # late, a 500 Hz session's whole grace (server/runtime/alarm.py).
-        # One wake-up per session, moved as frames answer its ticks: the clock task wakes only for a
-        # deadline that finds its frame missing (or a frame that came early), not once a tick to
-        # find the tick answered already (a loop wake-up, 52 us of CPU, on every tick).
-        wakeup = Alarm.of(asyncio.get_running_loop()).wakeup()
-        dt = stream.plan.dt
-
-        def due() -> float:
-            # A tick whose frame is here waits only for its own time; one without, for its deadline.
-            seq = stream.runtime.next_tick
-            at = stream.sync.to_server(seq * dt) if seq in stream.pending else stream.deadline(seq)
-            return stream.clock.to_monotonic(at)
-
-        async def ticker() -> None:
-            while True:
-                await wakeup.until(due())
-                if stream.closed:
-                    return
-                stream.catch_up()
-                seq = stream.runtime.next_tick
-                if seq in stream.pending:
-                    responses = stream.answer_ready()
-                elif stream.clock.now() >= stream.deadline(seq):
-                    responses = stream.on_deadline(stream.deadline(seq))
-                else:
-                    continue  # a clock probe moved the deadline later
-                for response in responses:
-                    await write(response)
-
-        tick_task = asyncio.create_task(ticker())
+        # REALTIME runs on the event loop itself: a tick's work costs less than the two thread
+        # hand-offs per tick a worker thread would add, and one loop per process (`jitdyn serve
+        # --processes`) keeps every deadline in one queue, earliest first. Deadlines wake the loop
+        # through a timerfd (server/runtime/alarm.py); see docs/decisions/0002-realtime-on-the-loop.md.
+        clock = _RealtimeClock(stream, context)
+        tick_task = asyncio.create_task(clock.run())
         try:
             async for request in self._until_idle(requests):
                 if tick_task.done():
@@ -822,20 +521,20 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 kind = request.WhichOneof("payload")
                 if kind == "frame":
                     for response in stream.on_frame(request.frame, arrived):
-                        await write(response)
+                        await clock.write(response)
                 elif kind == "skip":
-                    await write(stream.on_skip(request.skip.seq, arrived))
+                    await clock.write(stream.on_skip(request.skip.seq, arrived))
                 elif kind == "sync":
-                    await write(self._pong(stream, request.sync, arrived))  # may move the deadline
+                    await clock.write(self._pong(stream, request.sync, arrived))  # may move the deadline
                 elif kind == "close":
                     tick_task.cancel()
                     for response in stream.drain():
-                        await write(response)
-                    await write(await self._close(stream))
+                        await clock.write(response)
+                    await clock.write(await self._close(stream))
                     return
                 else:
                     raise InvalidArgument(_unexpected(kind))
-                wakeup.move(due())
+                clock.moved()
         finally:
             tick_task.cancel()
             # The clock's own end (cancelled, or failed while the stream ends) is not news here.
@@ -872,7 +571,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             if ping.HasField("previous_receive_time")
             else None,
         )
-        if stream.plan.clock == "REALTIME":
+        if stream.plan.clock == Clock.REALTIME:
             # A client clock that leaps would make the session tick as fast as the CPU allows
             # (ahead) or never (behind); either way it is refused.
             self._limits.check_clock_offset(stream.sync.offset)
@@ -888,10 +587,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         )
 
     async def _close(self, stream: _Stream) -> Response:
-        summary, location = await self._finish(stream, "COMPLETE")
+        summary, location = await self._finish(stream, SessionStatus.COMPLETE)
         return Response(closed=dynamics_pb2.SessionClosed(summary=summary_to_pb(summary, location=location)))
 
-    async def _finish_quietly(self, stream: _Stream, status: str) -> None:
+    async def _finish_quietly(self, stream: _Stream, status: SessionStatus) -> None:
         """End a session that is ending anyway; a store that fails now keeps its log, which the
         next start recovers, so the failure is logged rather than raised over the first error."""
         try:
@@ -902,7 +601,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 stream.recorder.header.session_id,
             )
 
-    async def _finish(self, stream: _Stream, status: str) -> tuple[SessionSummaryInfo, str]:
+    async def _finish(self, stream: _Stream, status: SessionStatus) -> tuple[SessionSummaryInfo, str]:
         async with stream.lock:
             if stream.closed:
                 raise FailedPrecondition("the session is already closed")
@@ -936,14 +635,3 @@ def _unexpected(kind: str | None) -> str:
     if kind == "open":
         return "open must be sent once, as the first message; got a second `open`"
     return f"a request must carry one of open, frame, skip, sync, close; got {kind or 'nothing'}"
-
-
-def _dof_names(model: mujoco.MjModel, info: ModelInfo) -> tuple[str, ...]:
-    """One name per degree of freedom: the joint's name, suffixed for multi-dof joints."""
-    names: list[str] = []
-    for joint in info.joints:
-        ndof = {"free": 6, "ball": 3}.get(joint.type, 1)
-        names.extend([joint.name] if ndof == 1 else [f"{joint.name}_{i}" for i in range(ndof)])
-    if len(names) != model.nv:
-        names = [f"dof{i}" for i in range(model.nv)]
-    return tuple(names)

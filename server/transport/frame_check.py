@@ -13,6 +13,7 @@ import numpy as np
 from jitdyn.checksum import vectors_checksum
 from jitdyn.server.runtime.frames import CHANNELS, FrameIn, Rejection
 from jitdyn.v1 import dynamics_pb2
+from jitdyn.vocabulary import RejectReason
 
 __all__ = ["check_frame"]
 
@@ -48,35 +49,21 @@ def check_frame(
         if expected != frame.checksum:
             return Rejection(
                 seq,
-                "BAD_CHECKSUM",
+                RejectReason.BAD_CHECKSUM,
                 f"frame {seq}: checksum is 0x{frame.checksum:08x}, the frame's bytes give 0x{expected:08x}",
             )
-    for name in CHANNELS:
-        array = arrays[name]
-        size = 0 if array is None else array.size
-        if name in measured or (name == "sensordata" and size):
-            if size != sizes[name]:
-                return Rejection(
-                    seq,
-                    "BAD_SHAPE",
-                    f"frame {seq}: {name} must have {sizes[name]} values, got {size}",
-                )
-            if array is None:  # a measured channel of a model with no such values (nu = 0)
-                arrays[name] = _EMPTY
-        elif size:
-            return Rejection(
-                seq,
-                "BAD_SHAPE",
-                f"frame {seq}: {name} must be empty, since the session does not measure it "
-                f"(measured: {', '.join(sorted(measured))}), got {size} values",
-            )
+    shape = _check_shapes(seq, arrays, sizes=sizes, measured=measured)
+    if shape is not None:
+        return shape
     if not math.isfinite(frame.t):
-        return Rejection(seq, "NOT_FINITE", f"frame {seq}: t must be finite, got {frame.t}")
+        return Rejection(seq, RejectReason.NOT_FINITE, f"frame {seq}: t must be finite, got {frame.t}")
     for name, array in arrays.items():
         if array is not None and not np.isfinite(array).all():
             index = int(np.flatnonzero(~np.isfinite(array))[0])
             return Rejection(
-                seq, "NOT_FINITE", f"frame {seq}: {name}[{index}] must be finite, got {array[index]}"
+                seq,
+                RejectReason.NOT_FINITE,
+                f"frame {seq}: {name}[{index}] must be finite, got {array[index]}",
             )
     qpos = arrays["qpos"]
     if qpos is None:  # qpos is always measured; kept for the type checker
@@ -91,3 +78,30 @@ def check_frame(
         sensordata=arrays["sensordata"],
         received=received,
     )
+
+
+def _check_shapes(
+    seq: int, arrays: dict[str, np.ndarray | None], *, sizes: dict[str, int], measured: frozenset[str]
+) -> Rejection | None:
+    """Every measured channel (and sensordata when sent) at its model length, the others empty; a
+    measured channel of a model with no such values (nu = 0) becomes an empty array in `arrays`."""
+    for name in CHANNELS:
+        array = arrays[name]
+        size = 0 if array is None else array.size
+        if name in measured or (name == "sensordata" and size):
+            if size != sizes[name]:
+                return Rejection(
+                    seq,
+                    RejectReason.BAD_SHAPE,
+                    f"frame {seq}: {name} must have {sizes[name]} values, got {size}",
+                )
+            if array is None:  # a measured channel of a model with no such values (nu = 0)
+                arrays[name] = _EMPTY
+        elif size:
+            return Rejection(
+                seq,
+                RejectReason.BAD_SHAPE,
+                f"frame {seq}: {name} must be empty, since the session does not measure it "
+                f"(measured: {', '.join(sorted(measured))}), got {size} values",
+            )
+    return None

@@ -12,20 +12,15 @@ from jitdyn.server.runtime.frames import Rejection
 from jitdyn.server.runtime.session import SessionCounts, TickOutcome
 from jitdyn.storage.records import SessionSummaryInfo, TickRecord
 from jitdyn.v1 import common_pb2, dynamics_pb2
+from jitdyn.vocabulary import Output, Scenario, Source, to_proto
 
 __all__ = ["rejected_message", "rejection_record", "result_message", "summary_info", "tick_record"]
-
-_SOURCES = {
-    "MEASURED": dynamics_pb2.SOURCE_MEASURED,
-    "PREDICTED": dynamics_pb2.SOURCE_PREDICTED,
-    "CORRECTED": dynamics_pb2.SOURCE_CORRECTED,
-}
 
 
 def result_message(
     outcome: TickOutcome,
     *,
-    outputs: frozenset[str],
+    outputs: frozenset[Output],
     frame_delay: float,
     receive_to_send_us: int,
     durable_seq: int | None,
@@ -35,7 +30,7 @@ def result_message(
     result = dynamics_pb2.Result(
         seq=outcome.seq,
         t=outcome.t,
-        source=_SOURCES[outcome.source],
+        source=dynamics_pb2.Source.ValueType(to_proto(outcome.source)),
         # Lists, not arrays: protobuf reads a list 2-3x faster than a numpy array (1.3 against
         # 3.4 us a field), and a Result has up to eleven vector fields.
         qpos=outcome.qpos.tolist(),
@@ -61,18 +56,18 @@ def result_message(
     if estimate is not None:
         if estimate.covariance is not None:
             result.covariance_diagonal[:] = np.diagonal(estimate.covariance).tolist()
-            if "FILTER_STATE" in outputs:
+            if Output.FILTER_STATE in outputs:
                 result.covariance[:] = estimate.covariance.ravel().tolist()
-        if "FILTER_STATE" in outputs:
+        if Output.FILTER_STATE in outputs:
             result.filter_state[:] = np.asarray(estimate.state).tolist()
-        if estimate.nis is not None and outcome.source != "PREDICTED":
+        if estimate.nis is not None and outcome.source != Source.PREDICTED:
             result.nis = estimate.nis
         result.reinitialised = estimate.reinitialised
         result.adapted = estimate.adapted
         result.absorbed = estimate.absorbed
         if estimate.scenario:
-            result.scenario = common_pb2.Scenario.Value(f"SCENARIO_{estimate.scenario}")
-        if estimate.forecast_weights is not None and outcome.source == "PREDICTED":
+            result.scenario = common_pb2.Scenario.ValueType(to_proto(Scenario(estimate.scenario)))
+        if estimate.forecast_weights is not None and outcome.source == Source.PREDICTED:
             result.forecast_weights[:] = estimate.forecast_weights
     if durable_seq is not None:
         result.durable_seq = durable_seq
@@ -82,7 +77,7 @@ def result_message(
 def rejected_message(rejection: Rejection) -> dynamics_pb2.Rejected:
     return dynamics_pb2.Rejected(
         seq=rejection.seq,
-        reason=dynamics_pb2.RejectReason.Value(f"REJECT_REASON_{rejection.reason}"),
+        reason=dynamics_pb2.RejectReason.ValueType(to_proto(rejection.reason)),
         message=rejection.message,
     )
 
@@ -119,7 +114,7 @@ def tick_record(
         sensordata=dyn.sensordata,
         covariance_diagonal=np.diagonal(covariance).copy() if covariance is not None else None,
         filter_state=estimate.state if estimate is not None else None,
-        nis=estimate.nis if estimate is not None and outcome.source != "PREDICTED" else None,
+        nis=estimate.nis if estimate is not None and outcome.source != Source.PREDICTED else None,
         reinitialised=bool(estimate.reinitialised) if estimate is not None else False,
         compute_us=outcome.compute_us,
         receive_to_send_us=receive_to_send_us,

@@ -96,6 +96,85 @@ def _child(config: ServerConfig, index: int, ready: Any, parent: int) -> None:
         raise
 
 
+class _Children:
+    """The serving processes of one `jitdyn serve --processes N`: started, awaited, restarted."""
+
+    def __init__(self, config: ServerConfig, *, metrics_dir: str) -> None:
+        self._config = config
+        self._metrics_dir = metrics_dir
+        self._context = mp.get_context("spawn")
+        self._ready = self._context.Queue()
+        self._children: dict[int, BaseProcess] = {}
+        self.stopping = False
+
+    def on_signal(self, signum: int, _frame: object) -> None:
+        self.stopping = True
+
+    def start(self, index: int) -> None:
+        child = self._context.Process(
+            target=_child,
+            args=(self._config, index, self._ready, os.getpid()),
+            name=f"jitdyn-serve-{index}",
+            daemon=False,
+        )
+        child.start()
+        self._children[index] = child
+
+    def start_all(self, processes: int) -> None:
+        """Start `processes` children and wait until each serves (or a signal stops the wait);
+        InvalidArgument when one fails, exits or takes longer than _READY_TIMEOUT."""
+        for index in range(processes):
+            self.start(index)
+        waiting = set(range(processes))
+        deadline = time.monotonic() + _READY_TIMEOUT
+        while waiting and not self.stopping:
+            try:
+                kind, detail = self._ready.get(timeout=0.2)
+            except queue.Empty:
+                pass
+            else:
+                if kind == "failed":
+                    raise InvalidArgument(str(detail))
+                waiting.discard(detail)
+            if time.monotonic() > deadline:
+                raise InvalidArgument(
+                    f"{len(waiting)} server process(es) did not start within {_READY_TIMEOUT:g} s"
+                )
+            dead = [i for i in waiting if not self._children[i].is_alive()]
+            if dead:
+                raise InvalidArgument(
+                    f"server process {dead[0]} exited while starting (see its messages above)"
+                )
+
+    def supervise(self) -> None:
+        """Until a signal: a child that dies has its sessions recovered and is started again."""
+        while not self.stopping:
+            time.sleep(0.2)
+            for index, child in list(self._children.items()):
+                if not child.is_alive() and not self.stopping:
+                    _log.warning(
+                        "server process %d exited (code %s); recovering its sessions and restarting it",
+                        index,
+                        child.exitcode,
+                    )
+                    with contextlib.suppress(Exception):
+                        prepare_data(self._config, recover_only=True)
+                    if child.pid is not None:
+                        prometheus_multiprocess.mark_process_dead(child.pid, self._metrics_dir)  # type: ignore[no-untyped-call]
+                    self.start(index)
+
+    def stop(self) -> None:
+        """SIGTERM to every child (each shuts down gracefully), SIGKILL to those still alive after
+        the shutdown grace."""
+        for child in self._children.values():
+            if child.is_alive():
+                child.terminate()
+        for child in self._children.values():
+            child.join(timeout=self._config.shutdown_grace + 30)
+            if child.is_alive():
+                child.kill()
+
+
 def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[str], None] = print) -> None:
     """Serve `config` from `processes` processes until SIGINT or SIGTERM."""
     if processes < 1:
@@ -111,51 +190,11 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
         child_config = dataclasses.replace(
             config, address=f"{host}:{port}", data_root=data_root, startup_tasks=False, reuse_port=True
         )
-        context = mp.get_context("spawn")
-        ready = context.Queue()
-        children: dict[int, BaseProcess] = {}
-
-        def start(index: int) -> None:
-            child = context.Process(
-                target=_child,
-                args=(child_config, index, ready, os.getpid()),
-                name=f"jitdyn-serve-{index}",
-                daemon=False,
-            )
-            child.start()
-            children[index] = child
-
-        stop = False
-
-        def on_signal(signum: int, _frame: object) -> None:
-            nonlocal stop
-            stop = True
-
-        previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        children = _Children(child_config, metrics_dir=metrics_dir)
+        previous = {s: signal.signal(s, children.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
-            for index in range(processes):
-                start(index)
-            waiting = set(range(processes))
-            deadline = time.monotonic() + _READY_TIMEOUT
-            while waiting and not stop:
-                try:
-                    kind, detail = ready.get(timeout=0.2)
-                except queue.Empty:
-                    pass
-                else:
-                    if kind == "failed":
-                        raise InvalidArgument(str(detail))
-                    waiting.discard(detail)
-                if time.monotonic() > deadline:
-                    raise InvalidArgument(
-                        f"{len(waiting)} server process(es) did not start within {_READY_TIMEOUT:g} s"
-                    )
-                dead = [i for i in waiting if not children[i].is_alive()]
-                if dead:
-                    raise InvalidArgument(
-                        f"server process {dead[0]} exited while starting (see its messages above)"
-                    )
-            if stop:
+            children.start_all(processes)
+            if children.stopping:
                 return
             announce(
                 f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'}, {processes} processes)"
@@ -163,29 +202,10 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
             announce(f"data in {data_root} (index: {index_url})")
             if config.metrics_address:
                 announce(f"metrics on http://{config.metrics_address}/metrics")
-            while not stop:
-                time.sleep(0.2)
-                for index, child in list(children.items()):
-                    if not child.is_alive() and not stop:
-                        _log.warning(
-                            "server process %d exited (code %s); recovering its sessions and restarting it",
-                            index,
-                            child.exitcode,
-                        )
-                        with contextlib.suppress(Exception):
-                            prepare_data(child_config, recover_only=True)
-                        if child.pid is not None:
-                            prometheus_multiprocess.mark_process_dead(child.pid, metrics_dir)  # type: ignore[no-untyped-call]
-                        start(index)
+            children.supervise()
             announce("jitdyn shutting down: open sessions are being stored")
         finally:
-            for child in children.values():
-                if child.is_alive():
-                    child.terminate()  # SIGTERM: each child shuts down gracefully
-            for child in children.values():
-                child.join(timeout=config.shutdown_grace + 30)
-                if child.is_alive():
-                    child.kill()
+            children.stop()
             for s, handler in previous.items():
                 signal.signal(s, handler)
             shutil.rmtree(metrics_dir, ignore_errors=True)

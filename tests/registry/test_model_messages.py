@@ -49,12 +49,18 @@ def test_metadata_defaults_become_dicts_of_enum_names() -> None:
             [scenario_defaults(0)],
             "metadata.defaults[0].scenario must be set (PASSIVE, CONTROLLED or EXTERNAL)",
         ),
-        ([scenario_defaults(9)], "metadata.defaults[0].scenario has no value 9"),
+        (
+            [scenario_defaults(9)],
+            "metadata.defaults[0].scenario must be one of SCENARIO_PASSIVE, SCENARIO_CONTROLLED, SCENARIO_EXTERNAL, SCENARIO_DRIVEN, got the undefined value 9",
+        ),
         (
             [scenario_defaults(1), scenario_defaults(2), scenario_defaults(1)],
             "metadata.defaults has more than one entry for scenario PASSIVE",
         ),
-        ([scenario_defaults(1, preset=7)], "metadata.defaults[0].estimator.preset has no value 7"),
+        (
+            [scenario_defaults(1, preset=7)],
+            "metadata.defaults[0].estimator.preset must be one of PRESET_JITDYN, PRESET_THESIS, got the undefined value 7",
+        ),
         ([scenario_defaults(1, p0=-1.0)], "metadata.defaults.PASSIVE.p0 must be > 0, got -1"),
     ],
 )

@@ -101,9 +101,11 @@ def test_starting_up_is_not_taken_for_load(monkeypatch: pytest.MonkeyPatch) -> N
 def test_the_gil_changes_hands_as_often_as_the_tightest_open_grace_needs() -> None:
     import sys
 
-    from jitdyn.server.runtime.admission import SWITCH_DEFAULT, SWITCH_SHARE
+    from jitdyn.server.runtime.switch_interval import SWITCH_DEFAULT, SWITCH_SHARE, SwitchInterval
 
-    first, second = Admission(count_process_cpu=False), Admission(count_process_cpu=False)
+    switch = SwitchInterval()  # the process's, shared by every admission of it
+    first = Admission(count_process_cpu=False, switch=switch)
+    second = Admission(count_process_cpu=False, switch=switch)
     slow = first.admit(cost_per_tick=1e-3, dt=0.05, what="pendulum_3 at 20 Hz", grace=0.025)
     assert sys.getswitchinterval() == pytest.approx(SWITCH_DEFAULT)  # 5 ms of a 25 ms grace
     fast = second.admit(cost_per_tick=1e-3, dt=5e-3, what="biped at 200 Hz", grace=2.5e-3)
@@ -113,3 +115,15 @@ def test_the_gil_changes_hands_as_often_as_the_tightest_open_grace_needs() -> No
     fast.release()
     fast.release()  # twice is safe
     assert sys.getswitchinterval() == pytest.approx(SWITCH_DEFAULT)
+
+
+def test_an_admission_without_a_switch_leaves_the_gil_alone() -> None:
+    import sys
+
+    from jitdyn.server.runtime.switch_interval import SWITCH_DEFAULT
+
+    ticket = Admission(count_process_cpu=False).admit(
+        cost_per_tick=1e-3, dt=5e-3, what="biped at 200 Hz", grace=2.5e-3
+    )
+    assert sys.getswitchinterval() == pytest.approx(SWITCH_DEFAULT)
+    ticket.release()

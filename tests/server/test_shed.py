@@ -12,7 +12,8 @@ from jitdyn.server.estimation.estimator import resolve_config
 from jitdyn.server.estimation.factory import make_estimator
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.frames import FrameIn
-from jitdyn.server.runtime.session import SessionRuntime
+from jitdyn.server.runtime.session import Place, SessionRuntime
+from jitdyn.vocabulary import Scenario, Source
 
 DT = 0.05
 
@@ -44,7 +45,7 @@ def _runtime(model: mujoco.MjModel, pool: WorkerPool) -> SessionRuntime:
     """A PASSIVE session's runtime with the JITDYN preset's filter, a history of 50 ticks."""
     config = resolve_config(
         model=model,
-        scenario="PASSIVE",
+        scenario=Scenario.PASSIVE,
         dt=DT,
         requested={},
         model_defaults={},
@@ -56,7 +57,7 @@ def _runtime(model: mujoco.MjModel, pool: WorkerPool) -> SessionRuntime:
         estimator=make_estimator(model, config, pool=pool),
         dynamics=Dynamics(model, outputs=frozenset({"INVERSE_DYNAMICS"})),
         dt=DT,
-        scenario="PASSIVE",
+        scenario=Scenario.PASSIVE,
         history=50,
     )
 
@@ -69,35 +70,35 @@ def test_a_shed_tick_answers_from_the_frame_or_the_last_answer_and_the_session_r
         for k in range(4):
             assert not runtime.advance(frames[k]).late_compute
         predicted = runtime.advance(None)  # tick 4, the estimator's own prediction
-        assert predicted.source == "PREDICTED" and not predicted.late_compute
+        assert predicted.source == Source.PREDICTED and not predicted.late_compute
 
         # Tick 5 shed without a frame: tick 4's answer repeated, nothing computed.
         repeated = runtime.shed(None)
-        assert (repeated.seq, repeated.source, repeated.late_compute) == (5, "PREDICTED", True)
+        assert (repeated.seq, repeated.source, repeated.late_compute) == (5, Source.PREDICTED, True)
         np.testing.assert_array_equal(repeated.qpos, predicted.qpos)
         assert repeated.t == 5 * DT
         # The shed tick stays in the history: a late frame may still repair it.
-        assert runtime.classify(4) == "late" and runtime.classify(5) == "late"
+        assert runtime.classify(4) == Place.LATE and runtime.classify(5) == Place.LATE
         # The estimator is behind until then: tick 6 without a frame is shed too, even through `advance`.
         assert runtime.advance(None).late_compute
 
         # Tick 5's frame, late: the timewarp replays ticks 5 and 6 properly, and the estimator is
         # where it would be had nothing been shed.
         corrected = runtime.apply_late(frames[5])
-        assert (corrected.source, corrected.late_ticks) == ("CORRECTED", 2)
+        assert (corrected.source, corrected.late_ticks) == (Source.CORRECTED, 2)
         ahead = runtime.advance(None)  # tick 7
-        assert ahead.source == "PREDICTED" and not ahead.late_compute
+        assert ahead.source == Source.PREDICTED and not ahead.late_compute
         assert np.max(np.abs(ahead.qpos - frames[7].qpos)) < 0.05
 
         # Shed with a frame: MEASURED from the frame, the estimator re-initialised from it.
         measured = runtime.shed(frames[8])
-        assert (measured.source, measured.late_compute) == ("MEASURED", True)
+        assert (measured.source, measured.late_compute) == (Source.MEASURED, True)
         assert measured.estimate is not None and measured.estimate.reinitialised
         np.testing.assert_array_equal(measured.qpos, frames[8].qpos)
         # From there the estimator runs again, on time, and predicts near the truth.
         assert not runtime.advance(frames[9]).late_compute
         ahead = runtime.advance(None)
-        assert ahead.source == "PREDICTED" and not ahead.late_compute
+        assert ahead.source == Source.PREDICTED and not ahead.late_compute
         assert np.max(np.abs(ahead.qpos - frames[10].qpos)) < 0.05
 
         counts = runtime.counts
@@ -110,7 +111,7 @@ def test_shedding_before_the_first_frame_answers_the_rest_pose() -> None:
     with WorkerPool(1) as pool:
         runtime = _runtime(model, pool)
         first = runtime.shed(None)
-        assert (first.seq, first.source, first.late_compute) == (0, "PREDICTED", True)
+        assert (first.seq, first.source, first.late_compute) == (0, Source.PREDICTED, True)
         np.testing.assert_array_equal(first.qpos, model.qpos0)
 
 
@@ -125,11 +126,11 @@ def test_after_skipped_ticks_late_frames_reach_back_only_to_the_first_tick_after
         runtime = _runtime(model, pool)
         for k in range(4):
             runtime.advance(frames[k] if k != 2 else None)
-        assert runtime.oldest_late_tick == 0 and runtime.classify(2) == "late"
+        assert runtime.oldest_late_tick == 0 and runtime.classify(2) == Place.LATE
         runtime.skip(3)  # ticks 4, 5 and 6: never answered
         assert runtime.next_tick == 7 and runtime.counts.skipped == 3
         assert runtime.oldest_late_tick == 7
-        assert runtime.classify(2) == "too_old" and runtime.classify(5) == "too_old"
+        assert runtime.classify(2) == Place.TOO_OLD and runtime.classify(5) == Place.TOO_OLD
         runtime.advance(None)  # tick 7, shed: the estimator is behind until a frame comes
         runtime.advance(frames[8])
-        assert runtime.oldest_late_tick == 7 and runtime.classify(7) == "late"
+        assert runtime.oldest_late_tick == 7 and runtime.classify(7) == Place.LATE

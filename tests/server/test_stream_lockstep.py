@@ -193,7 +193,7 @@ def test_second_open_is_invalid_argument(server: Any) -> None:
         (
             SessionOptions(model_name="pendulum_1", dt=0.06),
             InvalidArgument,
-            "open.dt must be a whole multiple of the model's timestep 0.025 s, got 0.06",
+            "open.dt must be a whole multiple (>= 1) of the model's timestep 0.025 s, got 0.06",
         ),
         (
             SessionOptions(

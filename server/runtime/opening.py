@@ -1,0 +1,360 @@
+"""Opening a session: the model and the estimator resolved, the reasons for the choices written, the
+subject anonymised, the stored header begun, a REALTIME session priced and admitted.
+
+    opener = SessionOpener(services, limits=StreamLimits())
+    opened = opener.open_session(request)        # blocking: run it off the event loop
+    ...
+    opened.discard()                               # an open its client left before it was used
+
+Errors are the project's (jitdyn.errors): InvalidArgument for a bad request, NotFound for a model
+that does not exist, ResourceExhausted for a session the server cannot carry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+import mujoco
+
+from jitdyn.errors import ResourceExhausted
+from jitdyn.estimator_settings import SETTINGS
+from jitdyn.registry import ModelInfo
+from jitdyn.server.estimation.dynamics import Dynamics
+from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, default_scenario, resolve_config
+from jitdyn.server.estimation.factory import make_estimator, measure_cycle
+from jitdyn.server.runtime.admission import Ticket
+from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits, snapshot_bytes, tick_cost
+from jitdyn.server.runtime.plan import OpenRequest, SessionPlan, plan_session
+from jitdyn.server.runtime.services import Services
+from jitdyn.server.runtime.session import SessionRuntime
+from jitdyn.storage.recorder import SessionRecorder
+from jitdyn.storage.records import SessionHeader
+from jitdyn.vocabulary import Clock, JointType, Scenario
+
+__all__ = ["OpenedSession", "SessionOpener", "TickPrice"]
+
+
+@dataclass(frozen=True, slots=True)
+class TickPrice:
+    """What one REALTIME tick of a model and its settings costs in this process."""
+
+    cost: float  # s: the physics and linear algebra, priced (the --max-tick-share check)
+    cycle: float | None  # s: one predict + update, measured once the price alone admits it
+    nsigma: int
+    state_dimension: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class OpenedSession:
+    """A session ready to run: what the stream needs, and what `opened` tells the client."""
+
+    plan: SessionPlan  # its scenario resolved
+    scenario: Scenario
+    info: ModelInfo
+    runtime: SessionRuntime
+    recorder: SessionRecorder
+    ticket: Ticket | None  # REALTIME: this session's share of the process's tick budget
+    sizes: dict[str, int]  # each frame field's length for this model (transport/frame_check.py)
+    settings: dict[str, object]  # the estimator settings in force, preset included
+    state_dimension: int
+    pseudonym: str
+    scenario_reason: str  # why this scenario
+    noise_reason: str  # why this noise model
+
+    @property
+    def session_id(self) -> str:
+        return self.recorder.header.session_id
+
+    def discard(self) -> None:
+        """Undo the open (its share of the budget, its log and index row). Blocking."""
+        if self.ticket is not None:
+            self.ticket.release()
+        self.recorder.discard()
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Resolved:
+    """An open between its checks and its start: the model, the plan and the estimator."""
+
+    tenant: str
+    info: ModelInfo
+    model: mujoco.MjModel
+    plan: SessionPlan
+    scenario: Scenario
+    scenario_reason: str
+    config: EstimatorConfig
+    estimator: Estimator
+    ticket: Ticket | None
+
+
+class SessionOpener:
+    """Opens the sessions of one server. `on_admission(refused)` is told of every REALTIME
+    admission decision (the transport counts them for its metrics)."""
+
+    def __init__(
+        self,
+        services: Services,
+        *,
+        limits: StreamLimits = DEFAULT_STREAM_LIMITS,
+        on_admission: Callable[[bool], None] | None = None,
+    ) -> None:
+        self._services = services
+        self._limits = limits
+        self._on_admission = on_admission
+        # What a tick of (model, settings) costs here, measured at its first REALTIME open and
+        # reused: every open of a hundred sessions of one model would otherwise time its own
+        # throwaway filter while the others' ticks wait.
+        self._prices: dict[tuple[str, EstimatorConfig], TickPrice] = {}
+        self._prices_lock = threading.Lock()
+
+    @property
+    def limits(self) -> StreamLimits:
+        return self._limits
+
+    def open_session(self, request: OpenRequest) -> OpenedSession:
+        """Open `request`'s session. Blocking (the model, the estimator, the log's first write)."""
+        info, model = self._model(request)
+        plan = plan_session(request, timestep=info.timestep)
+        limit = self._services.limits.max_state_dimension
+        if model.nv > limit:
+            raise ResourceExhausted(
+                f"model {info.name!r} has nv = {model.nv}; this server allows at most {limit} "
+                "(--max-state-dimension)"
+            )
+        scenario, scenario_reason = _scenario(plan, model)
+        plan = dataclasses.replace(plan, scenario=scenario)
+        config = resolve_config(
+            model=model,
+            scenario=scenario,
+            dt=plan.dt,
+            requested=plan.estimator_request,
+            model_defaults=info.defaults.get(scenario, {}),
+            preset=plan.preset,
+            measured=plan.measured,
+        )
+        # REALTIME: admitted (or refused) before anything is built for the session, from a price
+        # measured once per model and settings, so that a burst of opens past capacity costs the
+        # sessions already running next to nothing.
+        ticket = self._admit(info, model, config, plan) if plan.clock == Clock.REALTIME else None
+        try:
+            estimator = make_estimator(model, config, pool=self._services.pool)
+            self._limits.check_history(
+                history=plan.history,
+                snapshot_bytes=snapshot_bytes(estimator.snapshot()),
+                state_dimension=estimator.state_dimension,
+            )
+            resolved = _Resolved(
+                tenant=request.tenant,
+                info=info,
+                model=model,
+                plan=plan,
+                scenario=scenario,
+                scenario_reason=scenario_reason,
+                config=config,
+                estimator=estimator,
+                ticket=ticket,
+            )
+            return self._start(resolved)
+        except BaseException:
+            if ticket is not None:
+                ticket.release()
+            raise
+
+    def _model(self, request: OpenRequest) -> tuple[ModelInfo, mujoco.MjModel]:
+        """The model `request` names (registered first when sent inline) and its compiled copy."""
+        registry, tenant, choice = self._services.registry, request.tenant, request.model
+        if choice.inline is not None:
+            inline = choice.inline
+            info, _ = registry.register(
+                name=inline.name,
+                mjcf=inline.mjcf,
+                assets=dict(inline.assets),
+                metadata=inline.metadata,
+                tenant=tenant,
+            )
+        elif choice.model_id:
+            info = registry.get(tenant=tenant, model_id=choice.model_id)
+        else:
+            info = registry.get(tenant=tenant, name=choice.name, version=choice.version)
+        return info, registry.load(info.id, tenant=tenant)
+
+    def tick_price(
+        self, info: ModelInfo, model: mujoco.MjModel, config: EstimatorConfig, *, cycle: bool
+    ) -> TickPrice:
+        """What a tick of `config` costs on this model, priced at its first REALTIME open in this
+        process (on a throwaway estimator) and reused; `cycle`: also time one predict + update,
+        once (a session that the price alone refuses never costs the others that)."""
+        key = (info.id, config)
+        pool = self._services.pool
+        with self._prices_lock:
+            known = self._prices.get(key)
+            if known is None:
+                probe = make_estimator(model, config, pool=pool)
+                nsigma = int(getattr(probe, "nsigma", 1))
+                known = self._prices[key] = TickPrice(
+                    cost=tick_cost(
+                        model,
+                        nsigma=nsigma,
+                        steps_per_tick=config.steps_per_tick,
+                        state_dimension=probe.state_dimension,
+                    ),
+                    cycle=None,
+                    nsigma=nsigma,
+                    state_dimension=probe.state_dimension,
+                )
+            if cycle and known.cycle is None:
+                measured = measure_cycle(model, config, pool=pool)
+                known = self._prices[key] = dataclasses.replace(known, cycle=measured)
+            return known
+
+    def _admit(
+        self, info: ModelInfo, model: mujoco.MjModel, config: EstimatorConfig, plan: SessionPlan
+    ) -> Ticket:
+        """A REALTIME session's ticket: its price checked against dt, then its measured cycle
+        against what the process and the machine have left."""
+        price = self.tick_price(info, model, config, cycle=False)
+        self._limits.check_tick_cost(
+            price.cost,
+            dt=plan.dt,
+            state_dimension=price.state_dimension,
+            nsigma=price.nsigma,
+            steps=plan.steps_per_tick,
+        )
+        admission = self._services.admission
+        refused = False
+        try:
+            cycle = self.tick_price(info, model, config, cycle=True).cycle
+            if cycle is None:  # pragma: no cover - measured just above
+                raise RuntimeError("the filter cycle was not measured")
+            return admission.admit(
+                cost_per_tick=cycle + admission.overhead,
+                filter_seconds=cycle,
+                grace=plan.grace,
+                dt=plan.dt,
+                what=f"{info.name} ({str(plan.scenario).lower()}) at {1 / plan.dt:g} Hz",
+            )
+        except ResourceExhausted:
+            refused = True
+            raise
+        finally:
+            if self._on_admission is not None:
+                self._on_admission(refused)
+
+    def _start(self, resolved: _Resolved) -> OpenedSession:
+        """Begin the stored session (its header, its log) and build its runtime."""
+        services, plan, model = self._services, resolved.plan, resolved.model
+        settings: dict[str, object] = {
+            k: v for k, v in dataclasses.asdict(resolved.config).items() if k in SETTINGS
+        }
+        settings["preset"] = plan.preset
+        attributes = services.anonymiser.check_attributes(plan.subject_attributes)
+        pseudonym = services.anonymiser.pseudonym(plan.subject_id, tenant=resolved.tenant)
+        header = _header(resolved, settings=settings, pseudonym=pseudonym, attributes=attributes)
+        recorder = SessionRecorder(
+            data_root=services.data_root, index=services.index, header=header, committer=services.committer
+        )
+        try:
+            runtime = SessionRuntime(
+                model=model,
+                estimator=resolved.estimator,
+                dynamics=Dynamics(model, outputs=plan.outputs),
+                dt=plan.dt,
+                scenario=resolved.scenario,
+                history=plan.history,
+                max_history_bytes=self._limits.max_history_bytes,
+            )
+            return OpenedSession(
+                plan=plan,
+                scenario=resolved.scenario,
+                info=resolved.info,
+                runtime=runtime,
+                recorder=recorder,
+                ticket=resolved.ticket,
+                sizes=_sizes(model),
+                settings=settings,
+                state_dimension=resolved.estimator.state_dimension,
+                pseudonym=pseudonym,
+                scenario_reason=resolved.scenario_reason,
+                noise_reason=_noise_reason(resolved),
+            )
+        except BaseException:
+            recorder.discard()
+            raise
+
+
+def _scenario(plan: SessionPlan, model: mujoco.MjModel) -> tuple[Scenario, str]:
+    """The session's scenario and why: the client's, or the one the model calls for."""
+    if plan.scenario is not None:
+        return plan.scenario, f"open.scenario asked for SCENARIO_{plan.scenario.name}"
+    chosen, reason = default_scenario(model)
+    return Scenario(chosen), f"open.scenario unset: {reason}"
+
+
+def _noise_reason(resolved: _Resolved) -> str:
+    """Why the session's noise model is what it is: asked for, the model's default, or the preset's."""
+    noise_model = str(resolved.config.noise_model)
+    if "noise_model" in resolved.plan.estimator_request:
+        return f"open.estimator.noise_model asked for NOISE_MODEL_{noise_model}"
+    if "noise_model" in resolved.info.defaults.get(resolved.scenario, {}):
+        return f"the model's defaults for SCENARIO_{resolved.scenario.name} set NOISE_MODEL_{noise_model}"
+    return f"PRESET_{resolved.plan.preset.name}'s default for SCENARIO_{resolved.scenario.name}"
+
+
+def _header(
+    resolved: _Resolved, *, settings: dict[str, object], pseudonym: str, attributes: dict[str, str]
+) -> SessionHeader:
+    """The stored session's header: which model, which settings, whose (pseudonymous) motion."""
+    info, model, plan = resolved.info, resolved.model, resolved.plan
+    return SessionHeader(
+        session_id=str(uuid.uuid4()),
+        tenant=resolved.tenant,
+        model_id=info.id,
+        model_name=info.name,
+        model_version=info.version,
+        joint_names=tuple(j.name for j in info.joints),
+        dof_names=_dof_names(model, info),
+        nq=model.nq,
+        nv=model.nv,
+        nu=model.nu,
+        nsensordata=model.nsensordata,
+        timestep=info.timestep,
+        dt=plan.dt,
+        scenario=resolved.scenario,
+        clock=plan.clock,
+        estimator=settings,
+        subject_pseudonym=pseudonym,
+        subject_attributes=attributes,
+        started_at=datetime.now(UTC),
+        joint_types=tuple(j.type for j in info.joints),
+        actuator_names=tuple(a.name for a in info.actuators),
+    )
+
+
+def _sizes(model: mujoco.MjModel) -> dict[str, int]:
+    """Each frame field's length for `model`."""
+    return {
+        "qpos": model.nq,
+        "qvel": model.nv,
+        "qacc": model.nv,
+        "ctrl": model.nu,
+        "sensordata": model.nsensordata,
+    }
+
+
+_DOFS = {JointType.FREE: 6, JointType.BALL: 3}
+
+
+def _dof_names(model: mujoco.MjModel, info: ModelInfo) -> tuple[str, ...]:
+    """One name per degree of freedom: the joint's name, suffixed for multi-dof joints."""
+    names: list[str] = []
+    for joint in info.joints:
+        ndof = _DOFS.get(JointType(joint.type), 1)
+        names.extend([joint.name] if ndof == 1 else [f"{joint.name}_{i}" for i in range(ndof)])
+    if len(names) != model.nv:
+        names = [f"dof{i}" for i in range(model.nv)]
+    return tuple(names)
