@@ -24,9 +24,10 @@ import mujoco
 from jitdyn.errors import ResourceExhausted
 from jitdyn.estimator_settings import SETTINGS
 from jitdyn.registry import ModelInfo
+from jitdyn.server.estimation.config import EstimatorConfig, default_scenario, resolve_config
 from jitdyn.server.estimation.dynamics import Dynamics
-from jitdyn.server.estimation.estimator import Estimator, EstimatorConfig, default_scenario, resolve_config
 from jitdyn.server.estimation.factory import make_estimator, measure_cycle
+from jitdyn.server.estimation.interface import Estimator
 from jitdyn.server.runtime.admission import Ticket
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits, snapshot_bytes, tick_cost
 from jitdyn.server.runtime.plan import OpenRequest, SessionPlan, plan_session

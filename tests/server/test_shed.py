@@ -7,8 +7,8 @@ import mujoco
 import numpy as np
 
 from jitdyn.registry import builtin_model_path
+from jitdyn.server.estimation.config import resolve_config
 from jitdyn.server.estimation.dynamics import Dynamics
-from jitdyn.server.estimation.estimator import resolve_config
 from jitdyn.server.estimation.factory import make_estimator
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.frames import FrameIn
