@@ -52,16 +52,27 @@ def _reserved_port(address: str) -> Iterator[int]:
     host, _, port = address.rpartition(":")
     host = host.strip("[]")
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    busy = FailedPrecondition(
+        f"cannot listen on {address}: the address is in use (another jitdyn serve?) or not an "
+        "address of this machine; choose another with --address HOST:PORT (port 0 picks a free one)"
+    )
+    if int(port):
+        # SO_REUSEPORT would let this server join a port another one (of the same user) already
+        # serves, and take half of its new sessions into another data folder: a bind without it
+        # fails while anyone listens there, so the port is ours alone before our children share it.
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # TIME_WAIT is no owner
+            try:
+                probe.bind((host, int(port)))
+            except OSError:
+                raise busy from None
     sock = socket.socket(family, socket.SOCK_STREAM)
     try:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
         try:
             sock.bind((host, int(port)))
         except OSError:
-            raise FailedPrecondition(
-                f"cannot listen on {address}: the address is in use (another jitdyn serve?) or not an "
-                "address of this machine; choose another with --address HOST:PORT (port 0 picks a free one)"
-            ) from None
+            raise busy from None
         yield sock.getsockname()[1]
     finally:
         sock.close()

@@ -113,6 +113,37 @@ def _serving_children(server: Serve, expected: int) -> list[int]:
     raise AssertionError(f"expected {expected} serving processes, found {serving}")
 
 
+def test_a_second_server_on_a_served_port_refuses_to_start(serve: Serve, tmp_path: Path) -> None:
+    """SO_REUSEPORT is shared by a server's own processes only: a second `jitdyn serve` on the
+    address says so in one line, exits 1 and creates nothing, whatever its process count."""
+    for processes in ("2", "1"):
+        data = tmp_path / f"second-{processes}"
+        second = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "jitdyn.cli",
+                "serve",
+                "--address",
+                serve.address,
+                "--data",
+                str(data),
+                "--processes",
+                processes,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env=dict(os.environ, JITDYN_SECRET=secrets.token_hex(32)),
+        )
+        assert second.returncode == 1, second.stdout + second.stderr
+        lines = second.stderr.strip().splitlines()
+        assert len(lines) == 1 and f"cannot listen on {serve.address}: the address is in use" in lines[0], (
+            lines
+        )
+        assert not data.exists(), f"a refused server created {data}"
+
+
 def test_a_model_registered_through_one_process_opens_through_all(serve: Serve) -> None:
     assert len(_serving_children(serve, 2)) == 2
     with Client(serve.address) as client:
