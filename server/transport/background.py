@@ -13,18 +13,17 @@ import asyncio
 import dataclasses
 import threading
 from concurrent.futures import Future
-from types import TracebackType
-from typing import Self
 
 import grpc
 
+from jitdyn.lifecycle import Closeable
 from jitdyn.server.runtime.services import Services
 from jitdyn.server.transport.app import ServerConfig, create_server, shutdown
 
 __all__ = ["BackgroundServer"]
 
 
-class BackgroundServer:
+class BackgroundServer(Closeable):
     """Starts at construction; `address` is where it listens (port 0 picks a free one)."""
 
     def __init__(self, config: ServerConfig, *, start_timeout: float = 120.0) -> None:
@@ -69,11 +68,3 @@ class BackgroundServer:
             )
             asyncio.run_coroutine_threadsafe(stop, self._loop).result(timeout=120)
         self._stop_loop()
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
