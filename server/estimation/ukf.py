@@ -46,7 +46,8 @@ from filterpy.kalman import unscented_transform
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.estimation.adaptive import NoiseAdapter, NoiseSnapshot
 from jitdyn.server.estimation.batched import BatchedUKF, tangent_unscented_transform
-from jitdyn.server.estimation.config import EstimatorConfig, check_against_model
+from jitdyn.server.estimation.config import Engine, EstimatorConfig, check_against_model
+from jitdyn.server.estimation.fast import FastUKF
 from jitdyn.server.estimation.forecast import CombinedForecast, CombinerSnapshot, ForecastCombiner
 from jitdyn.server.estimation.guard import Guard, GuardState
 from jitdyn.server.estimation.interface import (
@@ -240,6 +241,10 @@ class UnscentedFilter:
                 propagate=self._propagate_sigmas,
                 vector=True,
                 **kwargs,
+            )
+        if self._config.engine == Engine.FAST:
+            return FastUKF(
+                propagate=self._propagate_sigmas, vector=not self._manifold, z_index=self._z_index, **kwargs
             )
         return BatchedUKF(propagate=self._propagate_sigmas, vector=not self._manifold, **kwargs)
 
