@@ -66,8 +66,15 @@ def algebra(k: int, repeats: int) -> tuple[float, float]:
     filters = []
     for s in range(k):
         kf = FastUKF(
-            propagate=lambda sigmas, nstep: sigmas * 1.0, vector=True, z_index=slice(0, m),
-            dim_x=n, dim_z=m, dt=0.05, hx=None, fx=None, points=points,
+            propagate=lambda sigmas, nstep: sigmas * 1.0,
+            vector=True,
+            z_index=slice(0, m),
+            dim_x=n,
+            dim_z=m,
+            dt=0.05,
+            hx=None,
+            fx=None,
+            points=points,
         )
         kf.x, kf.P, kf.Q, kf.R = x0[s].copy(), P0[s].copy(), Q, R
         filters.append(kf)
@@ -105,12 +112,16 @@ def algebra(k: int, repeats: int) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--sessions", type=int, nargs="+", default=[1, 4, 16, 64])
     parser.add_argument("--rounds", type=int, default=7)
     args = parser.parse_args(argv)
     model = process_model(mujoco.MjModel.from_xml_path(str(MODEL)), scenario="PASSIVE")
-    print(f"# load average {os.getloadavg()[0]:.2f}; CPU us per session and tick, medians of {args.rounds} rounds")
+    print(
+        f"# load average {os.getloadavg()[0]:.2f}; CPU us per session and tick, medians of {args.rounds} rounds"
+    )
     print("| sessions K | rollout: K calls | one call | ratio | algebra: K filters | stacked | ratio |")
     print("|---|---|---|---|---|---|---|")
     with WorkerPool(1) as pool:
@@ -123,7 +134,10 @@ def main(argv: list[str] | None = None) -> int:
                 a.append(algebra(k, repeats))
             rs, rb = (statistics.median(t[i] for t in r) * 1e6 for i in (0, 1))
             sa, sb = (statistics.median(t[i] for t in a) * 1e6 for i in (0, 1))
-            print(f"| {k} | {rs:.0f} | {rb:.0f} | {rb / rs:.2f} | {sa:.0f} | {sb:.0f} | {sb / sa:.2f} |", flush=True)
+            print(
+                f"| {k} | {rs:.0f} | {rb:.0f} | {rb / rs:.2f} | {sa:.0f} | {sb:.0f} | {sb / sa:.2f} |",
+                flush=True,
+            )
     return 0
 
 

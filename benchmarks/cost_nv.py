@@ -66,7 +66,14 @@ ROWS = (
     Row("myolegs_osl DRIVEN (default)", "myolegs_osl", Scenario.DRIVEN, 100.0),
     Row("myolegs_osl DRIVEN, 2 workers", "myolegs_osl", Scenario.DRIVEN, 100.0, workers=2),
     Row("myolegs_osl DRIVEN, 5 ms step", "myolegs_osl", Scenario.DRIVEN, 100.0, coarsen=5),
-    Row("myolegs_osl DRIVEN, 5 ms step, 2 workers", "myolegs_osl", Scenario.DRIVEN, 100.0, coarsen=5, workers=2),
+    Row(
+        "myolegs_osl DRIVEN, 5 ms step, 2 workers",
+        "myolegs_osl",
+        Scenario.DRIVEN,
+        100.0,
+        coarsen=5,
+        workers=2,
+    ),
     Row("myolegs_osl EXTERNAL", "myolegs_osl", Scenario.EXTERNAL, 100.0),
 )
 
@@ -144,15 +151,24 @@ def measure(row: Row, rounds: int) -> dict[str, float]:
         error = float(np.max(np.abs(ukf._kf.x[: model.nq] - frames[k - 1].qpos)))
     result = {key: statistics.median(values) for key, values in out.items()}
     result.update(
-        nq=model.nq, nv=model.nv, nu=model.nu, n=ukf.state_dimension, nsigma=ukf.nsigma,
-        steps=config.steps_per_tick, dt=dt, finite=finite, qpos_error=error,
+        nq=model.nq,
+        nv=model.nv,
+        nu=model.nu,
+        n=ukf.state_dimension,
+        nsigma=ukf.nsigma,
+        steps=config.steps_per_tick,
+        dt=dt,
+        finite=finite,
+        qpos_error=error,
         sigma=str(config.sigma_points),
     )
     return result
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--rows", nargs="+", help="substrings of row names")
     parser.add_argument("--rounds", type=int, default=7)
     args = parser.parse_args(argv)

@@ -562,6 +562,7 @@ class RunReport:
     def over_floor(self) -> float:
         """Server CPU per tick / (bare grpc.aio tick + the tick's physics)."""
         return self.cpu_per_tick_us / (self.floor_grpc_us + self.physics_us)
+
     shed: float = 0.0  # share of ticks answered late_compute
     late_frames: float = 0.0  # share of frames that came after their tick was answered
     rejected: int = 0
@@ -589,14 +590,18 @@ class RunReport:
                 f"opened    0 refused {self.refused:3d} | nothing ran (ukf {self.ukf_cycle_us:5.0f} us) | {verdict}"
             )
         return (
-            f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
-            f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "
-            f"measured {100 * self.measured:6.2f} % shed {100 * self.shed:5.2f} % late frames "
-            f"{100 * self.late_frames:5.2f} % rejected {self.rejected} | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
-            f"max {self.late_max_ms:8.2f} ms (server {self.server_late_p99_ms:5.2f}) | cpu/tick {self.cpu_per_tick_us:6.0f} us "
-            f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}; "
-            f"load generator {self.client_cpu_per_tick_us:4.0f} us) | {verdict}"
-        ) + self._floor() + self._rejections()
+            (
+                f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
+                f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "
+                f"measured {100 * self.measured:6.2f} % shed {100 * self.shed:5.2f} % late frames "
+                f"{100 * self.late_frames:5.2f} % rejected {self.rejected} | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
+                f"max {self.late_max_ms:8.2f} ms (server {self.server_late_p99_ms:5.2f}) | cpu/tick {self.cpu_per_tick_us:6.0f} us "
+                f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}; "
+                f"load generator {self.client_cpu_per_tick_us:4.0f} us) | {verdict}"
+            )
+            + self._floor()
+            + self._rejections()
+        )
 
     def _floor(self) -> str:
         if math.isnan(self.floor_grpc_us):
@@ -672,8 +677,13 @@ def tick_physics_us(model: str, scenario: str, rate: float, states: dict[str, np
     controlled = scenario == Scenario.CONTROLLED
     measured = {"qpos", "qvel", "ctrl"} if controlled else {"qpos", "qvel"}
     config = resolve_config(
-        model=mj, scenario=scenario, dt=1.0 / rate, requested={}, model_defaults={},
-        preset=Preset.JITDYN, measured=measured,
+        model=mj,
+        scenario=scenario,
+        dt=1.0 / rate,
+        requested={},
+        model_defaults={},
+        preset=Preset.JITDYN,
+        measured=measured,
     )
     with WorkerPool(1) as pool:
         estimator = make_estimator(mj, config, pool=pool)

@@ -40,8 +40,8 @@ from jitdyn.vocabulary import (
 __all__ = [
     "CHANNELS",
     "LARGE_STATE",
-    "Engine",
     "SETTING_FIELDS",
+    "Engine",
     "EstimatorConfig",
     "check_against_model",
     "default_scenario",
@@ -65,7 +65,6 @@ DRIVEN_FORCE_VAR: Final = 10.0
 DRIVEN_Q_VAR: Final = 1e-4
 DRIVEN_ALPHA: Final = 0.3
 DRIVEN_R: Final = 1e-2
-
 
 
 class Engine(enum.Enum):

@@ -33,6 +33,9 @@ class FastUKF(BatchedUKF):
     """filterpy's UKF with predict and update as array operations (module docstring). z_index
     picks the measured entries of x (a slice, or an index array)."""
 
+    x: np.ndarray
+    P: np.ndarray
+
     def __init__(
         self,
         *,
@@ -77,7 +80,9 @@ class FastUKF(BatchedUKF):
         self.x, self.P = x, P
         self._drawn = (x, P)
 
-    def update(self, z: np.ndarray, R: object = None, UT: Any = None, hx: object = None, **hx_args: object) -> None:
+    def update(
+        self, z: np.ndarray, R: object = None, UT: Any = None, hx: object = None, **hx_args: object
+    ) -> None:
         """The unscented update with measurement z (dim_z entries of x, on the manifold if any)."""
         sigmas_f = self.sigmas_f
         sigmas_h = np.ascontiguousarray(sigmas_f[:, self._z_index])  # as filterpy builds it: same sums
