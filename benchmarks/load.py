@@ -627,8 +627,9 @@ class RunReport:
 def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
     """Median predict + update of the default estimator for `model`, one worker, this process."""
     from jitdyn.experiments.objects import load_source
-    from jitdyn.server.estimation.estimator import Measurement, resolve_config
+    from jitdyn.server.estimation.config import resolve_config
     from jitdyn.server.estimation.factory import make_estimator
+    from jitdyn.server.estimation.interface import Measurement
     from jitdyn.server.estimation.pool import WorkerPool
 
     mj = load_source(model).compile()
@@ -668,8 +669,9 @@ def tick_physics_us(model: str, scenario: str, rate: float, states: dict[str, np
     """CPU per tick of the physics alone: the rollout of the default estimator's sigma points
     (drawn from its posterior along the trajectory) over one tick, on a pool of one worker, us."""
     from jitdyn.experiments.objects import load_source
-    from jitdyn.server.estimation.estimator import Measurement, resolve_config
+    from jitdyn.server.estimation.config import resolve_config
     from jitdyn.server.estimation.factory import make_estimator
+    from jitdyn.server.estimation.interface import Measurement
     from jitdyn.server.estimation.pool import WorkerPool
     from jitdyn.server.estimation.ukf import UnscentedFilter
 
