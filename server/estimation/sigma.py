@@ -9,7 +9,7 @@
 `MerweScaled` reproduces filterpy's MerweScaledSigmaPoints bit for bit (tests/server/test_ukf.py),
 and `Simplex` with alpha = 1 its SimplexSigmaPoints.
 
-    points = make_sigma_points("MERWE", n=6, alpha=1.0, beta=2.0, kappa=0.0)
+    points = make_sigma_points(SigmaScheme.MERWE, n=6, alpha=1.0, beta=2.0, kappa=0.0)
     sigmas = points.sigma_points(x, P)                       # (13, 6)
 """
 
@@ -23,6 +23,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf
 
 from jitdyn.errors import InvalidArgument
+from jitdyn.vocabulary import SigmaScheme
 
 __all__ = [
     "SCHEMES",
@@ -38,7 +39,8 @@ __all__ = [
     "sigma_count",
 ]
 
-SCHEMES: Final = ("MERWE", "SIMPLEX", "UNIFORM")
+# The schemes this module builds; SIMPLEX_LINEAR_FORCE is SIMPLEX over part of the state.
+SCHEMES: Final = (SigmaScheme.MERWE, SigmaScheme.SIMPLEX, SigmaScheme.UNIFORM)
 
 # x (nx,), dx (m, n) tangent steps -> (m, nx). Plain vector states use `_vector_add`.
 Add = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -253,16 +255,16 @@ def _simplex_vertices(n: int) -> np.ndarray:
     return istar
 
 
-def sigma_count(scheme: str, n: int) -> int:
+def sigma_count(scheme: SigmaScheme | str, n: int) -> int:
     """How many points `scheme` uses for a state of tangent dimension n."""
-    counts = {"MERWE": 2 * n + 1, "SIMPLEX": n + 1, "UNIFORM": 2 * n}
+    counts = {SigmaScheme.MERWE: 2 * n + 1, SigmaScheme.SIMPLEX: n + 1, SigmaScheme.UNIFORM: 2 * n}
     if scheme not in counts:
-        raise InvalidArgument(f"sigma_points must be one of {list(SCHEMES)}, got {scheme!r}")
+        raise InvalidArgument(f"sigma_points must be one of {[str(s) for s in SCHEMES]}, got {scheme!r}")
     return counts[scheme]
 
 
 def make_sigma_points(
-    scheme: str,
+    scheme: SigmaScheme | str,
     *,
     n: int,
     alpha: float,
@@ -276,10 +278,10 @@ def make_sigma_points(
         raise InvalidArgument(f"n must be >= 1, got {n}")
     if not (math.isfinite(alpha) and 0.0 < alpha <= 1.0):
         raise InvalidArgument(f"alpha must be in (0, 1], got {alpha}")
-    if scheme == "MERWE":
+    if scheme == SigmaScheme.MERWE:
         return MerweScaled(n, alpha=alpha, beta=beta, kappa=kappa, sqrt=sqrt, add=add)
-    if scheme == "SIMPLEX":
+    if scheme == SigmaScheme.SIMPLEX:
         return Simplex(n, alpha=alpha, sqrt=sqrt, add=add)
-    if scheme == "UNIFORM":
+    if scheme == SigmaScheme.UNIFORM:
         return UniformSpherical(n, alpha=alpha, sqrt=sqrt, add=add)
-    raise InvalidArgument(f"sigma_points must be one of {list(SCHEMES)}, got {scheme!r}")
+    raise InvalidArgument(f"sigma_points must be one of {[str(s) for s in SCHEMES]}, got {scheme!r}")
