@@ -171,12 +171,9 @@ class MerweScaled:
         return sigmas
 
 
-class Simplex:
-    """Simplex sigma points (Moireau and Chapelle): n + 1 points, the fewest that match a mean and
-    a covariance. x + alpha * sqrt(n) U.T s_i over the vertices s_i of a regular simplex;
-    Wm = 1 / (n + 1) and Wc = Wm / alpha^2, which restores the covariance the alpha shrank.
-    With alpha = 1 the points are filterpy's SimplexSigmaPoints'.
-    """
+class _EqualWeights:
+    """Points of equal weight: Wm = 1 / count and Wc = Wm / alpha^2, which restores the covariance
+    the alpha shrank. Subclasses give `num_sigmas` and prepare what their points need."""
 
     def __init__(
         self,
@@ -190,12 +187,29 @@ class Simplex:
         self.alpha = alpha
         self.sqrt = sqrt if sqrt is not None else RobustCholesky()
         self.add = add if add is not None else _vector_add
-        self.Wm = np.full(n + 1, 1.0 / (n + 1))
+        self.Wm = np.full(self.num_sigmas(), 1.0 / self.num_sigmas())
         self.Wc = self.Wm / alpha**2
-        self._unit: np.ndarray = alpha * np.sqrt(n) * _simplex_vertices(n)  # (n, n + 1)
+        self._prepare()
+
+    def num_sigmas(self) -> int:
+        raise NotImplementedError
+
+    def _prepare(self) -> None:
+        raise NotImplementedError
+
+
+class Simplex(_EqualWeights):
+    """Simplex sigma points (Moireau and Chapelle): n + 1 points, the fewest that match a mean and
+    a covariance. x + alpha * sqrt(n) U.T s_i over the vertices s_i of a regular simplex;
+    Wm = 1 / (n + 1) and Wc = Wm / alpha^2, which restores the covariance the alpha shrank.
+    With alpha = 1 the points are filterpy's SimplexSigmaPoints'.
+    """
 
     def num_sigmas(self) -> int:
         return self.n + 1
+
+    def _prepare(self) -> None:
+        self._unit: np.ndarray = self.alpha * np.sqrt(self.n) * _simplex_vertices(self.n)  # (n, n + 1)
 
     def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
         """x (nx,), P (n, n) -> (n + 1, nx)."""
@@ -211,29 +225,16 @@ class Simplex:
         return self.add(x, (U.T @ self._unit).T)
 
 
-class UniformSpherical:
+class UniformSpherical(_EqualWeights):
     """The symmetric set of 2n points x +- alpha * sqrt(n) U[k] with uniform weights: Wm = 1 / (2n),
     Wc = Wm / alpha^2. No centre point, so no weight can be negative whatever n is.
     """
 
-    def __init__(
-        self,
-        n: int,
-        *,
-        alpha: float,
-        sqrt: Callable[[np.ndarray], np.ndarray] | None = None,
-        add: Add | None = None,
-    ) -> None:
-        self.n = n
-        self.alpha = alpha
-        self.sqrt = sqrt if sqrt is not None else RobustCholesky()
-        self.add = add if add is not None else _vector_add
-        self.Wm = np.full(2 * n, 0.5 / n)
-        self.Wc = self.Wm / alpha**2
-        self._scale = n * alpha**2
-
     def num_sigmas(self) -> int:
         return 2 * self.n
+
+    def _prepare(self) -> None:
+        self._scale = self.n * self.alpha**2
 
     def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
         """x (nx,), P (n, n) -> (2n, nx), ordered x + U[k], x - U[k]."""
