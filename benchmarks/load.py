@@ -45,6 +45,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -624,13 +625,10 @@ class RunReport:
         return text + f"\n      rejected frames: {reasons}; for example: {self.reject_example[:160]}"
 
 
-def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
-    """Median predict + update of the default estimator for `model`, one worker, this process."""
+def default_config(model: str, scenario: str, rate: float) -> tuple[Any, Any]:
+    """The compiled model and the default JITDYN estimator config of a session at `rate` Hz."""
     from jitdyn.experiments.objects import load_source
     from jitdyn.server.estimation.config import resolve_config
-    from jitdyn.server.estimation.factory import make_estimator
-    from jitdyn.server.estimation.interface import Measurement
-    from jitdyn.server.estimation.pool import WorkerPool
 
     mj = load_source(model).compile()
     measured = {"qpos", "qvel", "ctrl"} if scenario == Scenario.CONTROLLED else {"qpos", "qvel"}
@@ -643,6 +641,16 @@ def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.nd
         preset=Preset.JITDYN,
         measured=measured,
     )
+    return mj, config
+
+
+def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
+    """Median predict + update of the default estimator for `model`, one worker, this process."""
+    from jitdyn.server.estimation.factory import make_estimator
+    from jitdyn.server.estimation.interface import Measurement
+    from jitdyn.server.estimation.pool import WorkerPool
+
+    mj, config = default_config(model, scenario, rate)
     with WorkerPool(1) as pool:
         estimator = make_estimator(mj, config, pool=pool)
 
@@ -668,25 +676,13 @@ def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.nd
 def tick_physics_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
     """CPU per tick of the physics alone: the rollout of the default estimator's sigma points
     (drawn from its posterior along the trajectory) over one tick, on a pool of one worker, us."""
-    from jitdyn.experiments.objects import load_source
-    from jitdyn.server.estimation.config import resolve_config
     from jitdyn.server.estimation.factory import make_estimator
     from jitdyn.server.estimation.interface import Measurement
     from jitdyn.server.estimation.pool import WorkerPool
     from jitdyn.server.estimation.ukf import UnscentedFilter
 
-    mj = load_source(model).compile()
+    mj, config = default_config(model, scenario, rate)
     controlled = scenario == Scenario.CONTROLLED
-    measured = {"qpos", "qvel", "ctrl"} if controlled else {"qpos", "qvel"}
-    config = resolve_config(
-        model=mj,
-        scenario=scenario,
-        dt=1.0 / rate,
-        requested={},
-        model_defaults={},
-        preset=Preset.JITDYN,
-        measured=measured,
-    )
     with WorkerPool(1) as pool:
         estimator = make_estimator(mj, config, pool=pool)
         ukf = getattr(estimator, "_first", estimator)  # a SwitchingFilter's filter, before a switch
