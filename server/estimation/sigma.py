@@ -258,7 +258,11 @@ def _simplex_vertices(n: int) -> np.ndarray:
 
 def sigma_count(scheme: SigmaScheme | str, n: int) -> int:
     """How many points `scheme` uses for a state of tangent dimension n."""
-    counts = {SigmaScheme.MERWE: 2 * n + 1, SigmaScheme.SIMPLEX: n + 1, SigmaScheme.UNIFORM: 2 * n}
+    counts: dict[str, int] = {
+        SigmaScheme.MERWE: 2 * n + 1,
+        SigmaScheme.SIMPLEX: n + 1,
+        SigmaScheme.UNIFORM: 2 * n,
+    }
     if scheme not in counts:
         raise InvalidArgument(f"sigma_points must be one of {[str(s) for s in SCHEMES]}, got {scheme!r}")
     return counts[scheme]
