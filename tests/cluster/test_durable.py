@@ -25,6 +25,16 @@ LEASE, RESUME = "1s", "1s"
 FAST = [f"--lease-ttl={LEASE}", f"--resume-timeout={RESUME}"]
 
 
+def pair(start_replica: Callable[..., Replica], tmp_path: Path, names: tuple[str, str], hosts: tuple[str, str]) -> tuple[Replica, Replica]:
+    """Two replicas for a resume. They share one data folder only because model content is not
+    in the shared tier yet (an inline model registered by one does not load on the other); their
+    session logs are the shared tier's either way."""
+    folder = tmp_path / "shared-folder"
+    return tuple(  # type: ignore[return-value]
+        start_replica(name, host, data=folder, extra=FAST) for name, host in zip(names, hosts, strict=True)
+    )
+
+
 def stored_seqs(replica: Replica, location: str) -> list[int]:
     table = pq.read_table(replica.data / location, columns=["kind", "seq"])
     return sorted(s for k, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True) if k == "result")
@@ -63,10 +73,9 @@ def test_killed_replica_with_its_folder_gone_loses_no_acknowledged_frame(
 
 
 def test_a_resume_on_another_replica_continues_the_same_session(
-    start_replica: Callable[..., Replica], index_url: str
+    start_replica: Callable[..., Replica], index_url: str, tmp_path: Path
 ) -> None:
-    first = start_replica("first", "127.0.0.13", extra=FAST)
-    second = start_replica("second", "127.0.0.14", extra=FAST)
+    first, second = pair(start_replica, tmp_path, ("first", "second"), ("127.0.0.13", "127.0.0.14"))
     mjcf = new_model()
     session = RawSession(first.address, open_message(mjcf))
     acknowledged = max((r.durable_seq for r in (session.send(k) for k in range(40)) if r.HasField("durable_seq")), default=-1)
@@ -98,10 +107,9 @@ def test_a_resume_on_another_replica_continues_the_same_session(
 
 
 def test_the_replica_a_session_was_taken_from_cannot_write_to_it(
-    start_replica: Callable[..., Replica], index_url: str
+    start_replica: Callable[..., Replica], index_url: str, tmp_path: Path
 ) -> None:
-    old = start_replica("old", "127.0.0.15", extra=FAST)
-    new = start_replica("new", "127.0.0.16", extra=FAST)
+    old, new = pair(start_replica, tmp_path, ("old", "new"), ("127.0.0.15", "127.0.0.16"))
     mjcf = new_model()
     session = RawSession(old.address, open_message(mjcf))
     for k in range(20):
