@@ -48,7 +48,7 @@ from jitdyn.storage.parquet import (
     write_parquet_stream,
 )
 from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, TickRecord, stored_word
-from jitdyn.storage.shared import Lease, SharedLogStream, SharedTier, TakenOver
+from jitdyn.storage.shared import Fenced, Lease, SharedLogStream, SharedTier, TakenOver
 from jitdyn.storage.summary import Summariser
 from jitdyn.vocabulary import SessionStatus
 
@@ -393,6 +393,8 @@ class SessionRecorder:
                 return
             self._state = _State.CLOSED
         self._stop_committing()
+        if isinstance(self._failure, Fenced):
+            return  # another stream holds the session now: nothing is this one's to let go of
         if self._failure is not None:
             raise self._failure
         try:

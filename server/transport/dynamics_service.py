@@ -447,13 +447,16 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             context.set_code(error.code)
             context.set_details(str(error))
         finally:
-            if not stream.closed:
-                # The client went away or the server is stopping: what arrived is stored (with a
-                # shared tier, kept for a resume).
-                await asyncio.shield(self._finish_quietly(stream, status))
-            self._streams.pop(stream, None)
-            if not self._streams:
-                self._all_moved.set()
+            try:
+                if not stream.closed:
+                    # The client went away or the server is stopping: what arrived is stored (with
+                    # a shared tier, kept for a resume).
+                    await asyncio.shield(self._finish_quietly(stream, status))
+            finally:
+                # Also when a second cancel interrupts the wait above (the storing goes on).
+                self._streams.pop(stream, None)
+                if not self._streams:
+                    self._all_moved.set()
 
     async def drain(self, *, grace: float) -> int:
         """Refuse new sessions, tell every open one to move (`moving`, with what is durable), and

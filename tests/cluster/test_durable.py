@@ -6,7 +6,9 @@ and the replica it was taken from can write nothing more to it (fencing by epoch
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -132,3 +134,40 @@ def test_the_replica_a_session_was_taken_from_cannot_write_to_it(
     row = session_row(index_url, resumed.opened.session_id)
     assert row is not None
     assert stored_seqs(new, str(row["location"])) == list(range(start + 10))
+
+
+def test_sigterm_drains_a_replica_its_sessions_move_and_it_exits(
+    start_replica: Callable[..., Replica], index_url: str, tmp_path: Path
+) -> None:
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    leaving, staying = pair(start_replica, tmp_path, ("leaving", "staying"), ("127.0.0.17", "127.0.0.18"))
+    mjcf = new_model()
+    session = RawSession(leaving.address, open_message(mjcf))
+    for k in range(30):
+        session.send(k)
+    signalled = time.monotonic()
+    os.killpg(leaving.process.pid, signal.SIGTERM)
+    notice = session.next()
+    assert notice.WhichOneof("payload") == "moving", notice
+    told = time.monotonic() - signalled
+    with grpc.insecure_channel(leaving.address) as channel:
+        health = health_pb2_grpc.HealthStub(channel).Check(
+            health_pb2.HealthCheckRequest(service="jitdyn.v1.DynamicsService"), timeout=5
+        )
+    assert health.status == health_pb2.HealthCheckResponse.NOT_SERVING
+    resumed = RawSession(staying.address, resume_message(mjcf, session.opened))
+    session.drop()
+    assert resumed.opened.resume_from_seq == notice.moving.durable_seq + 1
+    leaving.process.wait(timeout=15)
+    exited = time.monotonic() - signalled
+    for k in range(resumed.opened.resume_from_seq, 50):
+        resumed.send(k)
+    resumed.close()
+    row = session_row(index_url, resumed.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    print(
+        f"moving {1e3 * told:.0f} ms after SIGTERM (durable_seq {notice.moving.durable_seq}); the replica "
+        f"exited {exited:.1f} s after it; stored ticks 0..49 on the other"
+    )
+    assert stored_seqs(staying, str(row["location"])) == list(range(50))
