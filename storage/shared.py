@@ -196,7 +196,9 @@ class SharedTier:
         with self.engine.begin() as conn:
             candidate = conn.execute(
                 sa.select(c.session_id, c.tenant)
-                .where(c.expires_at < stale)
+                # Never this process's own: a session it still serves whose renewals the database
+                # missed (an outage) is not an orphan; another replica may take it, fencing it.
+                .where(c.expires_at < stale, c.owner != self.owner)
                 .order_by(c.expires_at)
                 .limit(1)
                 .with_for_update(skip_locked=True)

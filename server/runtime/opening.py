@@ -36,6 +36,7 @@ from jitdyn.server.runtime.plan import OpenRequest, SessionPlan, plan_session
 from jitdyn.server.runtime.resume import check_resume_token, resume_token
 from jitdyn.server.runtime.services import Services
 from jitdyn.server.runtime.session import SessionRuntime
+from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.parquet import header_from_json
 from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.shared import TakenOver
@@ -130,6 +131,13 @@ class SessionOpener:
     def open_session(self, request: OpenRequest) -> OpenedSession:
         """Open `request`'s session, or continue the one it resumes. Blocking (the model, the
         estimator, the log's first write)."""
+        try:
+            return self._open_or_resume(request)
+        except STORAGE_ERRORS as error:
+            # The registry or the index (the shared tier's database) did not answer.
+            raise storage_failure("the session could not be opened", error) from None
+
+    def _open_or_resume(self, request: OpenRequest) -> OpenedSession:
         if request.resume is None:
             return self._open(request, None)
         taken = self._take_over(request)

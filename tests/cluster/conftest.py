@@ -90,7 +90,8 @@ def start_replica(index_url: str, tmp_path: Path) -> Iterator[Callable[..., Repl
 
         def start(name: str, host: str, **options: object) -> Replica:
             options.setdefault("data", tmp_path / name)
-            replica = Replica.start(name, host=host, index_url=index_url, **options)  # type: ignore[arg-type]
+            options.setdefault("index_url", index_url)
+            replica = Replica.start(name, host=host, **options)  # type: ignore[arg-type]
             return stack.enter_context(replica)
 
         yield start
