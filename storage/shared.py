@@ -110,25 +110,27 @@ class SharedTier:
         if not windows:
             return set()
         leases = session_leases.c
-        kept: set[str] = set()
+        values = sa.values(
+            sa.column("sid", sa.String),
+            sa.column("ep", sa.BigInteger),
+            sa.column("top", sa.BigInteger),
+            name="window",
+        ).data([(w.lease.session_id, w.lease.epoch, w.top_seq) for w in windows])
         with self.engine.begin() as conn:
-            expires = self._expiry()
-            for window in windows:
-                # The row lock this takes orders the commit against a take-over: whichever comes
-                # second sees the other's epoch.
-                updated = conn.execute(
+            # One statement for every session: the row locks it takes order the commit against a
+            # take-over (whichever comes second sees the other's epoch); PostgreSQL's greatest()
+            # ignores NULL.
+            kept = set(
+                conn.execute(
                     sa.update(session_leases)
-                    .where(leases.session_id == window.lease.session_id, leases.epoch == window.lease.epoch)
+                    .where(leases.session_id == values.c.sid, leases.epoch == values.c.ep)
                     .values(
-                        expires_at=expires,
-                        # PostgreSQL's greatest() ignores NULL.
-                        durable_seq=sa.func.greatest(leases.durable_seq, window.top_seq)
-                        if window.top_seq is not None
-                        else leases.durable_seq,
+                        expires_at=self._expiry(),
+                        durable_seq=sa.func.greatest(leases.durable_seq, values.c.top),
                     )
-                ).rowcount
-                if updated == 1:
-                    kept.add(window.lease.session_id)
+                    .returning(leases.session_id)
+                ).scalars()
+            )
             rows = [
                 {"session_id": w.lease.session_id, "epoch": w.lease.epoch, "data": w.data}
                 for w in windows
