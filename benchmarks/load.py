@@ -11,6 +11,11 @@ reports:
                 client's session clock; loopback transit included), ms; early answers count as 0
     cpu/tick    server CPU (user + system of every server process) / ticks answered, us
     ukf cycle   the same model's predict + update, measured in this run on one worker, us
+    floor       what a tick cannot cost less than, measured after the run, in the same process:
+                a bare grpc.aio tick (an echo servicer, same sessions, rate, frame and result
+                sizes as the run's) + the tick's physics (the rollout of the model's sigma points
+                alone, on a pool of one worker as each default server process has); printed as
+                cpu/tick / floor
 
     python -m benchmarks.load --model pendulum_3 --rate 20 --sessions 100 --seconds 20
     python -m benchmarks.load --sweep                 # the four targets of RESULTS.md, largest N each
@@ -40,6 +45,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -91,7 +97,9 @@ def trajectory(model: str, scenario: str, rate: float, ticks: int) -> dict[str, 
     if model not in kinds:
         raise SystemExit(f"--model must be one of {sorted(kinds)}, got {model!r}")
     cls, args = kinds[model]
-    obj = cls(*args, Scenario(scenario), dt=dt)
+    # DRIVEN is how the filter models the unknown force: the body moves as in EXTERNAL.
+    motion = Scenario.EXTERNAL if scenario == Scenario.DRIVEN else Scenario(scenario)
+    obj = cls(*args, motion, dt=dt)
     states = [obj.reset(seed=0)]
     for _ in range(ticks - 1):
         # CONTROLLED: the object's controller, fed the truth (a client's own controller would be).
@@ -151,6 +159,8 @@ class WorkerResult:
     # When each frame reached the server's loop after its tick time (Result.frame_delay), ms:
     # past the grace, its tick was answered PREDICTED.
     frame_delay_ms: list[float] = field(default_factory=list)
+    frame_bytes: int = 0  # a serialised frame request, as sent
+    result_bytes: int = 0  # a serialised result response, as received (the largest seen)
 
 
 def _frames(spec: WorkerSpec, measured: Sequence[str]) -> list[bytes]:
@@ -216,6 +226,7 @@ async def _session(
             response = dynamics_pb2.StreamSessionResponse.FromString(raw)
             kind = response.WhichOneof("payload")
             if kind == "result":
+                result.result_bytes = max(result.result_bytes, len(raw))
                 seq = response.result.seq
                 r = response.result
                 if r.frame_received:
@@ -283,7 +294,7 @@ async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResul
     import grpc
 
     frames = _frames(spec, measured)
-    result = WorkerResult()
+    result = WorkerResult(frame_bytes=max(len(f) for f in frames))
     cpu_started = time.process_time()
     # One connection per session, as every device has its own: the kernel spreads connections, not
     # streams, over the server's processes (SO_REUSEPORT). gRPC shares one connection between
@@ -420,16 +431,10 @@ def _serve_root(pid: int) -> int:
 # The floor: what grpc.aio alone costs per tick, measured in the same run.
 
 
-def _floor_server(queue: mp.Queue, seconds: float, dt: float) -> None:  # type: ignore[type-arg]
+def _floor_server(queue: mp.Queue, seconds: float, dt: float, response_bytes: int) -> None:  # type: ignore[type-arg]
     import grpc
 
-    from jitdyn.v1 import dynamics_pb2
-
-    response = dynamics_pb2.StreamSessionResponse(
-        result=dynamics_pb2.Result(
-            seq=1, qpos=[0.1] * 3, qvel=[0.1] * 3, qacc=[0.1] * 3, qfrc_inverse=[1.0] * 3
-        )
-    ).SerializeToString()
+    response = b"x" * response_bytes  # the run's result size; nobody parses it
 
     transit: list[float] = []  # s from the client's write to this read (one monotonic clock)
 
@@ -465,10 +470,10 @@ def _floor_server(queue: mp.Queue, seconds: float, dt: float) -> None:  # type: 
     asyncio.run(main())
 
 
-async def _floor_clients(port: int, sessions: int, seconds: float, dt: float) -> None:
+async def _floor_clients(port: int, sessions: int, seconds: float, dt: float, frame_bytes: int) -> None:
     import grpc
 
-    padding = b"x" * 192
+    padding = b"x" * max(0, frame_bytes - 8)  # the run's frame size, its send time first
     alarm = Alarm.of(asyncio.get_running_loop())
     options = [("grpc.use_local_subchannel_pool", 1)]  # a connection each, as the sessions have
 
@@ -501,15 +506,18 @@ class Floor:
         return sessions * rate * (self.server_us + self.client_us) / 1e6
 
 
-def transport_floor(sessions: int, rate: float, seconds: float = 5.0) -> Floor:
-    """Server and client CPU per tick of a bare grpc.aio stream, `sessions` streams at `rate` Hz."""
+def transport_floor(
+    sessions: int, rate: float, seconds: float = 5.0, *, frame_bytes: int = 200, result_bytes: int = 120
+) -> Floor:
+    """Server and client CPU per tick of a bare grpc.aio stream, `sessions` streams at `rate` Hz,
+    frames and results of these sizes (bytes, serialised)."""
     context = mp.get_context("spawn")
     queue = context.Queue()
-    server = context.Process(target=_floor_server, args=(queue, seconds, 1.0 / rate))
+    server = context.Process(target=_floor_server, args=(queue, seconds, 1.0 / rate, result_bytes))
     server.start()
     port = queue.get()
     client_cpu = time.process_time()
-    asyncio.run(_floor_clients(port, sessions, seconds, 1.0 / rate))
+    asyncio.run(_floor_clients(port, sessions, seconds, 1.0 / rate, frame_bytes))
     client_cpu = time.process_time() - client_cpu
     cpu, transit = queue.get()
     server.join()
@@ -546,6 +554,16 @@ class RunReport:
     cpu_per_tick_us: float
     ukf_cycle_us: float
     client_cpu_per_tick_us: float
+    floor_grpc_us: float = math.nan  # bare grpc.aio server CPU per tick, same sizes, after the run
+    physics_us: float = math.nan  # the rollout of the tick's sigma points alone, CPU
+    frame_bytes: int = 0
+    result_bytes: int = 0
+
+    @property
+    def over_floor(self) -> float:
+        """Server CPU per tick / (bare grpc.aio tick + the tick's physics)."""
+        return self.cpu_per_tick_us / (self.floor_grpc_us + self.physics_us)
+
     shed: float = 0.0  # share of ticks answered late_compute
     late_frames: float = 0.0  # share of frames that came after their tick was answered
     rejected: int = 0
@@ -573,14 +591,27 @@ class RunReport:
                 f"opened    0 refused {self.refused:3d} | nothing ran (ukf {self.ukf_cycle_us:5.0f} us) | {verdict}"
             )
         return (
-            f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
-            f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "
-            f"measured {100 * self.measured:6.2f} % shed {100 * self.shed:5.2f} % late frames "
-            f"{100 * self.late_frames:5.2f} % rejected {self.rejected} | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
-            f"max {self.late_max_ms:8.2f} ms (server {self.server_late_p99_ms:5.2f}) | cpu/tick {self.cpu_per_tick_us:6.0f} us "
-            f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}; "
-            f"load generator {self.client_cpu_per_tick_us:4.0f} us) | {verdict}"
-        ) + self._rejections()
+            (
+                f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
+                f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "
+                f"measured {100 * self.measured:6.2f} % shed {100 * self.shed:5.2f} % late frames "
+                f"{100 * self.late_frames:5.2f} % rejected {self.rejected} | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
+                f"max {self.late_max_ms:8.2f} ms (server {self.server_late_p99_ms:5.2f}) | cpu/tick {self.cpu_per_tick_us:6.0f} us "
+                f"(ukf {self.ukf_cycle_us:5.0f} us, +{self.cpu_per_tick_us - self.ukf_cycle_us:5.0f}; "
+                f"load generator {self.client_cpu_per_tick_us:4.0f} us) | {verdict}"
+            )
+            + self._floor()
+            + self._rejections()
+        )
+
+    def _floor(self) -> str:
+        if math.isnan(self.floor_grpc_us):
+            return ""
+        return (
+            f"\n      floor: bare grpc.aio {self.floor_grpc_us:.0f} us ({self.frame_bytes} B frames, "
+            f"{self.result_bytes} B results) + physics {self.physics_us:.0f} us = "
+            f"{self.floor_grpc_us + self.physics_us:.0f} us; cpu/tick / floor = {self.over_floor:.2f}"
+        )
 
     def _rejections(self) -> str:
         text = (
@@ -594,12 +625,10 @@ class RunReport:
         return text + f"\n      rejected frames: {reasons}; for example: {self.reject_example[:160]}"
 
 
-def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
-    """Median predict + update of the default estimator for `model`, one worker, this process."""
+def default_config(model: str, scenario: str, rate: float) -> tuple[Any, Any]:
+    """The compiled model and the default JITDYN estimator config of a session at `rate` Hz."""
     from jitdyn.experiments.objects import load_source
-    from jitdyn.server.estimation.estimator import Measurement, resolve_config
-    from jitdyn.server.estimation.factory import make_estimator
-    from jitdyn.server.estimation.pool import WorkerPool
+    from jitdyn.server.estimation.config import resolve_config
 
     mj = load_source(model).compile()
     measured = {"qpos", "qvel", "ctrl"} if scenario == Scenario.CONTROLLED else {"qpos", "qvel"}
@@ -612,6 +641,16 @@ def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.nd
         preset=Preset.JITDYN,
         measured=measured,
     )
+    return mj, config
+
+
+def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
+    """Median predict + update of the default estimator for `model`, one worker, this process."""
+    from jitdyn.server.estimation.factory import make_estimator
+    from jitdyn.server.estimation.interface import Measurement
+    from jitdyn.server.estimation.pool import WorkerPool
+
+    mj, config = default_config(model, scenario, rate)
     with WorkerPool(1) as pool:
         estimator = make_estimator(mj, config, pool=pool)
 
@@ -634,6 +673,43 @@ def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.nd
     return statistics.median(samples) * 1e6
 
 
+def tick_physics_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
+    """CPU per tick of the physics alone: the rollout of the default estimator's sigma points
+    (drawn from its posterior along the trajectory) over one tick, on a pool of one worker, us."""
+    from jitdyn.server.estimation.factory import make_estimator
+    from jitdyn.server.estimation.interface import Measurement
+    from jitdyn.server.estimation.pool import WorkerPool
+    from jitdyn.server.estimation.ukf import UnscentedFilter
+
+    mj, config = default_config(model, scenario, rate)
+    controlled = scenario == Scenario.CONTROLLED
+    with WorkerPool(1) as pool:
+        estimator = make_estimator(mj, config, pool=pool)
+        ukf = getattr(estimator, "_first", estimator)  # a SwitchingFilter's filter, before a switch
+        if not isinstance(ukf, UnscentedFilter):
+            raise SystemExit(f"the default estimator of {model} {scenario} is not a UKF")
+        samples = []
+        n = min(len(states["qpos"]), 200)
+        for k in range(n):
+            frame = Measurement(
+                qpos=states["qpos"][k], qvel=states["qvel"][k], ctrl=states["ctrl"][k] if controlled else None
+            )
+            if k == 0:
+                ukf.initialise(frame)
+                continue
+            kf = ukf._kf
+            sigmas = ukf._points.sigma_points(kf.x, kf.P)
+            if controlled:
+                ukf._ctrl = np.array(states["ctrl"][k])
+            started = time.process_time()  # the pool's threads included
+            for _ in range(5):
+                ukf._propagate_sigmas(sigmas, nstep=None)
+            samples.append((time.process_time() - started) / 5)
+            ukf.advance(ctrl=frame.ctrl)
+            ukf.update(frame)
+    return statistics.median(samples) * 1e6
+
+
 def run(
     *,
     model: str,
@@ -647,6 +723,7 @@ def run(
     states: dict[str, np.ndarray] | None = None,
     ukf_us: float | None = None,
     estimator: str | None = None,
+    floor: bool = True,
 ) -> RunReport:
     from jitdyn.client import Client, SessionOptions
 
@@ -751,6 +828,15 @@ def run(
         merged.errors.extend(r["errors"])
         merged.cpu_seconds += r["cpu_seconds"]
     expected = sessions * ticks
+    floor_grpc = physics = math.nan
+    frame_bytes = max((r["frame_bytes"] for r in results), default=0)
+    result_bytes = max((r["result_bytes"] for r in results), default=0)
+    if floor and result_bytes:
+        measured_floor = transport_floor(
+            min(sessions, 50), rate, frame_bytes=frame_bytes, result_bytes=result_bytes
+        )
+        floor_grpc = measured_floor.server_us
+        physics = tick_physics_us(model, scenario, rate, states)
     late = np.array(merged.lateness_ms or [math.inf])
 
     def percentile(values: list[float], q: float) -> float:
@@ -782,6 +868,10 @@ def run(
         frame_delay_p99_ms=percentile(merged.frame_delay_ms, 99),
         ukf_cycle_us=ukf_us,
         client_cpu_per_tick_us=merged.cpu_seconds / max(1, merged.answered) * 1e6,
+        floor_grpc_us=floor_grpc,
+        physics_us=physics,
+        frame_bytes=frame_bytes,
+        result_bytes=result_bytes,
     )
 
 
@@ -850,7 +940,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--scenario",
         type=Scenario,
         default=Scenario.PASSIVE,
-        choices=(Scenario.PASSIVE, Scenario.CONTROLLED, Scenario.EXTERNAL),
+        choices=(Scenario.PASSIVE, Scenario.CONTROLLED, Scenario.EXTERNAL, Scenario.DRIVEN),
     )
     parser.add_argument("--rate", type=float, default=20.0, help="frames per second (Hz)")
     parser.add_argument("--sessions", type=int, default=10)

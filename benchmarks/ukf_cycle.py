@@ -38,8 +38,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from jitdyn.server.estimation.estimator import EstimatorConfig, Measurement, resolve_config
+from jitdyn.server.estimation.config import EstimatorConfig, resolve_config
 from jitdyn.server.estimation.factory import make_estimator
+from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.pool import Backend, WorkerPool
 from jitdyn.server.estimation.propagate import process_model
 from jitdyn.vocabulary import Preset, Scenario, SigmaScheme

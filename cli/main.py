@@ -277,8 +277,8 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
 
 
 def _models(args: argparse.Namespace, settings: Settings) -> int:
-    from jitdyn.client.sdk import Client
-    from jitdyn.client.sdk import ModelRef as Registered
+    from jitdyn.client import Client
+    from jitdyn.client import ModelRef as Registered
 
     def show(model: Registered) -> None:
         print(

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jitdyn.client.sdk import Client, FrameData, SessionOptions, SyncSample, TickResult
+from jitdyn.client import Client, FrameData, SessionOptions, SyncSample, TickResult
 from jitdyn.experiments import thesis
 from jitdyn.experiments.analysis import RunMetrics, gap_profile, summarise
 from jitdyn.experiments.metrics import gap_errors

@@ -19,7 +19,7 @@ from typing import TextIO
 import mujoco
 import numpy as np
 
-from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, Summary, SyncSample, TickResult
+from jitdyn.client import Client, FrameData, Rejection, SessionOptions, Summary, SyncSample, TickResult
 from jitdyn.experiments.netem import DelayedSender, NetworkProfile
 from jitdyn.experiments.progress import progress_bar
 from jitdyn.registry import builtin_model_path

@@ -145,7 +145,7 @@ def run_experiments(
     seed: int,
     servers: object | None,
 ) -> list[Section]:
-    from jitdyn.client.sdk import Client
+    from jitdyn.client import Client
 
     sections: list[Section] = []
     with Client(address, timeout=120) as client:

@@ -19,7 +19,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from jitdyn.client.sdk import Client, FrameData, Rejection, SessionOptions, TickResult
+from jitdyn.client import Client, FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.experiments.netem import PERFECT, NetworkProfile, Schedule, gap_schedule, lockstep_schedule
 from jitdyn.experiments.objects import ResearchObject, TrueState, UnstableSimulation
 from jitdyn.experiments.progress import progress_bar

@@ -115,25 +115,16 @@ class ModelShape:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class ModelInfo:
-    """A registered model. `id` is its content id (registry.content_id), `version` counts from 1
-    within `name` and `tenant`; `nsensor` is the number of sensor values (nsensordata); `created_at`
-    is in UTC."""
+class ModelInfo(ModelShape):
+    """A registered model: its shape, and `id` its content id (registry.content_id), `version`
+    counting from 1 within `name` and `tenant`; `nsensor` is the number of sensor values
+    (nsensordata); `created_at` is in UTC."""
 
     id: str
     name: str
     version: int
     tenant: str
     builtin: bool
-    nq: int
-    nv: int
-    nu: int
-    na: int
-    nsensor: int
-    nbody: int
-    timestep: float
-    joints: tuple[JointInfo, ...]
-    actuators: tuple[ActuatorInfo, ...]
     description: str
     tags: tuple[str, ...]
     defaults: Mapping[str, Mapping[str, Any]]

@@ -36,6 +36,7 @@ RUFF_PATHS = [
     "tests",
     "benchmarks",
     "scripts",
+    "deploy",
 ]
 
 

@@ -8,6 +8,7 @@ where it pays. The key-value metadata "jitdyn" holds the JSON of `file_metadata`
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import os
@@ -88,61 +89,32 @@ def file_metadata(header: SessionHeader) -> dict[str, Any]:
 
 
 def header_to_json(header: SessionHeader) -> str:
-    """The whole header as JSON, kept in the log so that recovery can rebuild the Parquet file."""
-    return json.dumps(
-        {
-            "session_id": header.session_id,
-            "tenant": header.tenant,
-            "model_id": header.model_id,
-            "model_name": header.model_name,
-            "model_version": header.model_version,
-            "joint_names": list(header.joint_names),
-            "joint_types": list(header.joint_types),
-            "dof_names": list(header.dof_names),
-            "actuator_names": list(header.actuator_names),
-            "nq": header.nq,
-            "nv": header.nv,
-            "nu": header.nu,
-            "nsensordata": header.nsensordata,
-            "timestep": header.timestep,
-            "dt": header.dt,
-            "scenario": header.scenario,
-            "clock": header.clock,
-            "estimator": header.estimator,
-            "subject_pseudonym": header.subject_pseudonym,
-            "subject_attributes": header.subject_attributes,
-            "started_at": header.started_at.astimezone(_dt.UTC).isoformat(),
-        }
-    )
+    """The whole header as JSON, kept in the log so that recovery can rebuild the Parquet file:
+    every field of SessionHeader, tuples as lists and the start as ISO 8601."""
+
+    def plain(value: object) -> object:
+        if isinstance(value, _dt.datetime):
+            return value.astimezone(_dt.UTC).isoformat()
+        return list(value) if isinstance(value, tuple) else value
+
+    return json.dumps({f.name: plain(getattr(header, f.name)) for f in dataclasses.fields(SessionHeader)})
 
 
 def header_from_json(text: str) -> SessionHeader:
-    """The inverse of `header_to_json`."""
+    """The inverse of `header_to_json`; a field with a default may be missing (older logs)."""
     try:
         d = json.loads(text)
-        return SessionHeader(
-            session_id=d["session_id"],
-            tenant=d["tenant"],
-            model_id=d["model_id"],
-            model_name=d["model_name"],
-            model_version=d["model_version"],
-            joint_names=tuple(d["joint_names"]),
-            joint_types=tuple(d["joint_types"]),
-            dof_names=tuple(d["dof_names"]),
-            actuator_names=tuple(d["actuator_names"]),
-            nq=d["nq"],
-            nv=d["nv"],
-            nu=d["nu"],
-            nsensordata=d["nsensordata"],
-            timestep=d["timestep"],
-            dt=d["dt"],
-            scenario=d["scenario"],
-            clock=d["clock"],
-            estimator=d["estimator"],
-            subject_pseudonym=d["subject_pseudonym"],
-            subject_attributes=d["subject_attributes"],
-            started_at=_dt.datetime.fromisoformat(d["started_at"]),
-        )
+        values: dict[str, Any] = {}
+        for f in dataclasses.fields(SessionHeader):
+            if f.name not in d and f.default is not dataclasses.MISSING:
+                continue
+            value = d[f.name]
+            if f.name == "started_at":
+                value = _dt.datetime.fromisoformat(value)
+            elif str(f.type).startswith("tuple"):
+                value = tuple(value)
+            values[f.name] = value
+        return SessionHeader(**values)
     except (ValueError, KeyError, TypeError) as exc:
         raise InvalidArgument(f"the session header in the log is not readable: {exc!r}") from exc
 

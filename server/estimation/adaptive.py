@@ -41,6 +41,7 @@ timewarp.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
@@ -181,6 +182,21 @@ class NoiseAdapter:
         self._log_inflation = 0.0
         self._log_gap_inflation = 0.0
         self._reported_inflation = 1.0
+        self._changed()
+
+    def _changed(self) -> None:
+        """R, s or lambda changed: what is derived from them is computed again when next asked
+        for. A tick asked for s three times and for Q and R once each, every time anew (5 % of a
+        myoElbow DRIVEN tick, py-spy)."""
+        self._derived: dict[str, np.ndarray] = {}
+
+    def _cached(self, name: str, compute: Callable[[], np.ndarray]) -> np.ndarray:
+        value = self._derived.get(name)
+        if value is None:
+            value = np.asarray(compute())
+            value.flags.writeable = False  # handed out to the filter, shared until the next change
+            self._derived[name] = value
+        return value
 
     @property
     def window_full(self) -> bool:
@@ -189,8 +205,8 @@ class NoiseAdapter:
 
     @property
     def R(self) -> np.ndarray:
-        """(m, m) the measurement noise in force."""
-        return np.diag(self._r)
+        """(m, m) the measurement noise in force (read-only)."""
+        return self._cached("R", lambda: np.diag(self._r))
 
     @property
     def r_diagonal(self) -> np.ndarray:
@@ -198,7 +214,10 @@ class NoiseAdapter:
 
     @property
     def scale(self) -> np.ndarray:
-        """(n,) s, the factor on each component of Q0's diagonal."""
+        """(n,) s, the factor on each component of Q0's diagonal (read-only)."""
+        return self._cached("scale", self._scale)
+
+    def _scale(self) -> np.ndarray:
         b = self._bounds
         s = np.where(self._q_free, self._q_est / self._q0_diag, 1.0)
         return np.asarray(np.clip(s, b.q_scale_min, b.q_scale_max))
@@ -220,8 +239,8 @@ class NoiseAdapter:
 
     @property
     def Q(self) -> np.ndarray:
-        """(n, n) the process noise in force for one tick: lambda S^1/2 Q0 S^1/2."""
-        return self.q_for(self._q0)
+        """(n, n) the process noise in force for one tick: lambda S^1/2 Q0 S^1/2 (read-only)."""
+        return self._cached("Q", lambda: self.q_for(self._q0))
 
     def q_for(self, q0: np.ndarray) -> np.ndarray:
         """Another horizon's configured Q (n, n), rescaled as this tick's is."""
@@ -261,6 +280,7 @@ class NoiseAdapter:
         absorb = False
         if nis is not None and np.isfinite(nis):
             absorb = self._learn_nis(nis, m=innovation.size, noise_share=noise_share)
+        self._changed()
         return Verdict(adapted=self._moved(), absorb=absorb)
 
     def _learn_r(self, y: np.ndarray, *, consecutive: bool) -> None:
@@ -330,6 +350,7 @@ class NoiseAdapter:
         next verdict comes from the updates after it."""
         b = self._bounds
         self._q_est = np.minimum(self._q_est * b.absorb_factor, self._q0_diag * b.q_scale_max)
+        self._changed()
         self._nis[:] = 0.0
         self._nis_count = 0
 
@@ -364,6 +385,7 @@ class NoiseAdapter:
         self._log_inflation = snap.log_inflation
         self._log_gap_inflation = snap.log_gap_inflation
         self._reported_inflation = snap.reported_inflation
+        self._changed()
 
 
 def _column_medians(a: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ checks through it and adds what needs the model (dt against the timestep, n + ka
 
 from __future__ import annotations
 
+import enum
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ __all__ = [
     "CHANNELS",
     "LARGE_STATE",
     "SETTING_FIELDS",
+    "Engine",
     "EstimatorConfig",
     "check_against_model",
     "default_scenario",
@@ -63,6 +65,15 @@ DRIVEN_FORCE_VAR: Final = 10.0
 DRIVEN_Q_VAR: Final = 1e-4
 DRIVEN_ALPHA: Final = 0.3
 DRIVEN_R: Final = 1e-2
+
+
+class Engine(enum.Enum):
+    """What computes a UKF's algebra. Not a session setting (nothing a client asks for or sees):
+    the preset chooses it, and both give the same numbers (tests/server/test_fast.py)."""
+
+    FILTERPY = "FILTERPY"  # filterpy's UnscentedKalmanFilter: the THESIS preset's, as the thesis ran
+    FAST = "FAST"  # estimation/fast.py: array operations over the sigma set, the JITDYN preset's
+
 
 # Settings a request or a model's metadata may set: every row of the table but the preset, which
 # chooses the others.
@@ -101,6 +112,8 @@ class EstimatorConfig:
     forecast: Forecast = Forecast.FILTER
     # What a NIS far out does: nothing, PASSIVE becomes DRIVEN, or a restart from the frame.
     wrong_model: WrongModel = WrongModel.KEEP
+    # Not a setting: the implementation of the filter's algebra (resolve_config: the preset's).
+    engine: Engine = Engine.FILTERPY
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise through the back door, once, here
@@ -113,6 +126,8 @@ class EstimatorConfig:
             raise InvalidArgument(f"steps_per_tick must be an integer >= 1, got {steps!r}")
         set_(self, "steps_per_tick", int(steps))
         set_(self, "measured", _channels(self.measured))
+        if not isinstance(self.engine, Engine):
+            raise InvalidArgument(f"engine must be an Engine, got {self.engine!r}")
 
 
 def _seconds(dt: object) -> float:
@@ -310,6 +325,7 @@ def resolve_config(
         dt=dt,
         steps_per_tick=steps_per_tick(model, dt),
         measured=frozenset(measured),
+        engine=Engine.FILTERPY if parse(Preset, preset, argument="preset") == Preset.THESIS else Engine.FAST,
     )
     check_for_scenario(config.scenario, {"wrong_model": config.wrong_model}, argument="settings")
     check_against_model(model, config)

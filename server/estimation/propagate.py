@@ -24,6 +24,7 @@ import numpy as np
 
 from jitdyn.errors import InvalidArgument
 from jitdyn.server.estimation.pool import MIN_CHUNK_SECONDS, Backend, WorkerPool
+from jitdyn.vocabulary import Scenario
 
 __all__ = ["Inputs", "Propagated", "Propagator", "process_model", "step_seconds"]
 
@@ -43,7 +44,7 @@ class Inputs(enum.Enum):
     # sigma point's own estimated force (and its rate), as qfrc_applied
 
 
-def process_model(model: mujoco.MjModel, *, scenario: str) -> mujoco.MjModel:
+def process_model(model: mujoco.MjModel, *, scenario: Scenario | str) -> mujoco.MjModel:
     """A private copy of `model` set up as the filter's process model.
 
     - Warm start off: the constraint solver then starts from the unconstrained acceleration every
@@ -69,7 +70,7 @@ def process_model(model: mujoco.MjModel, *, scenario: str) -> mujoco.MjModel:
         | mujoco.mjtDisableBit.mjDSBL_AUTORESET
         | mujoco.mjtDisableBit.mjDSBL_SENSOR
     )
-    if scenario in ("EXTERNAL", "DRIVEN"):
+    if scenario in (Scenario.EXTERNAL, Scenario.DRIVEN):
         flags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
         private.tendon_num[_inert_tendons(private)] = 0
     if not _can_collide(private):

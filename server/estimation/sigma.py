@@ -9,7 +9,7 @@
 `MerweScaled` reproduces filterpy's MerweScaledSigmaPoints bit for bit (tests/server/test_ukf.py),
 and `Simplex` with alpha = 1 its SimplexSigmaPoints.
 
-    points = make_sigma_points("MERWE", n=6, alpha=1.0, beta=2.0, kappa=0.0)
+    points = make_sigma_points(SigmaScheme.MERWE, n=6, alpha=1.0, beta=2.0, kappa=0.0)
     sigmas = points.sigma_points(x, P)                       # (13, 6)
 """
 
@@ -23,6 +23,7 @@ import numpy as np
 from scipy.linalg.lapack import dpotrf
 
 from jitdyn.errors import InvalidArgument
+from jitdyn.vocabulary import SigmaScheme
 
 __all__ = [
     "SCHEMES",
@@ -38,7 +39,8 @@ __all__ = [
     "sigma_count",
 ]
 
-SCHEMES: Final = ("MERWE", "SIMPLEX", "UNIFORM")
+# The schemes this module builds; SIMPLEX_LINEAR_FORCE is SIMPLEX over part of the state.
+SCHEMES: Final = (SigmaScheme.MERWE, SigmaScheme.SIMPLEX, SigmaScheme.UNIFORM)
 
 # x (nx,), dx (m, n) tangent steps -> (m, nx). Plain vector states use `_vector_add`.
 Add = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -169,12 +171,9 @@ class MerweScaled:
         return sigmas
 
 
-class Simplex:
-    """Simplex sigma points (Moireau and Chapelle): n + 1 points, the fewest that match a mean and
-    a covariance. x + alpha * sqrt(n) U.T s_i over the vertices s_i of a regular simplex;
-    Wm = 1 / (n + 1) and Wc = Wm / alpha^2, which restores the covariance the alpha shrank.
-    With alpha = 1 the points are filterpy's SimplexSigmaPoints'.
-    """
+class _EqualWeights:
+    """Points of equal weight: Wm = 1 / count and Wc = Wm / alpha^2, which restores the covariance
+    the alpha shrank. Subclasses give `num_sigmas` and prepare what their points need."""
 
     def __init__(
         self,
@@ -188,12 +187,29 @@ class Simplex:
         self.alpha = alpha
         self.sqrt = sqrt if sqrt is not None else RobustCholesky()
         self.add = add if add is not None else _vector_add
-        self.Wm = np.full(n + 1, 1.0 / (n + 1))
+        self.Wm = np.full(self.num_sigmas(), 1.0 / self.num_sigmas())
         self.Wc = self.Wm / alpha**2
-        self._unit: np.ndarray = alpha * np.sqrt(n) * _simplex_vertices(n)  # (n, n + 1)
+        self._prepare()
+
+    def num_sigmas(self) -> int:
+        raise NotImplementedError
+
+    def _prepare(self) -> None:
+        raise NotImplementedError
+
+
+class Simplex(_EqualWeights):
+    """Simplex sigma points (Moireau and Chapelle): n + 1 points, the fewest that match a mean and
+    a covariance. x + alpha * sqrt(n) U.T s_i over the vertices s_i of a regular simplex;
+    Wm = 1 / (n + 1) and Wc = Wm / alpha^2, which restores the covariance the alpha shrank.
+    With alpha = 1 the points are filterpy's SimplexSigmaPoints'.
+    """
 
     def num_sigmas(self) -> int:
         return self.n + 1
+
+    def _prepare(self) -> None:
+        self._unit: np.ndarray = self.alpha * np.sqrt(self.n) * _simplex_vertices(self.n)  # (n, n + 1)
 
     def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
         """x (nx,), P (n, n) -> (n + 1, nx)."""
@@ -209,29 +225,16 @@ class Simplex:
         return self.add(x, (U.T @ self._unit).T)
 
 
-class UniformSpherical:
+class UniformSpherical(_EqualWeights):
     """The symmetric set of 2n points x +- alpha * sqrt(n) U[k] with uniform weights: Wm = 1 / (2n),
     Wc = Wm / alpha^2. No centre point, so no weight can be negative whatever n is.
     """
 
-    def __init__(
-        self,
-        n: int,
-        *,
-        alpha: float,
-        sqrt: Callable[[np.ndarray], np.ndarray] | None = None,
-        add: Add | None = None,
-    ) -> None:
-        self.n = n
-        self.alpha = alpha
-        self.sqrt = sqrt if sqrt is not None else RobustCholesky()
-        self.add = add if add is not None else _vector_add
-        self.Wm = np.full(2 * n, 0.5 / n)
-        self.Wc = self.Wm / alpha**2
-        self._scale = n * alpha**2
-
     def num_sigmas(self) -> int:
         return 2 * self.n
+
+    def _prepare(self) -> None:
+        self._scale = self.n * self.alpha**2
 
     def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
         """x (nx,), P (n, n) -> (2n, nx), ordered x + U[k], x - U[k]."""
@@ -253,16 +256,16 @@ def _simplex_vertices(n: int) -> np.ndarray:
     return istar
 
 
-def sigma_count(scheme: str, n: int) -> int:
+def sigma_count(scheme: SigmaScheme | str, n: int) -> int:
     """How many points `scheme` uses for a state of tangent dimension n."""
-    counts = {"MERWE": 2 * n + 1, "SIMPLEX": n + 1, "UNIFORM": 2 * n}
+    counts = {SigmaScheme.MERWE: 2 * n + 1, SigmaScheme.SIMPLEX: n + 1, SigmaScheme.UNIFORM: 2 * n}
     if scheme not in counts:
-        raise InvalidArgument(f"sigma_points must be one of {list(SCHEMES)}, got {scheme!r}")
+        raise InvalidArgument(f"sigma_points must be one of {[str(s) for s in SCHEMES]}, got {scheme!r}")
     return counts[scheme]
 
 
 def make_sigma_points(
-    scheme: str,
+    scheme: SigmaScheme | str,
     *,
     n: int,
     alpha: float,
@@ -276,10 +279,10 @@ def make_sigma_points(
         raise InvalidArgument(f"n must be >= 1, got {n}")
     if not (math.isfinite(alpha) and 0.0 < alpha <= 1.0):
         raise InvalidArgument(f"alpha must be in (0, 1], got {alpha}")
-    if scheme == "MERWE":
+    if scheme == SigmaScheme.MERWE:
         return MerweScaled(n, alpha=alpha, beta=beta, kappa=kappa, sqrt=sqrt, add=add)
-    if scheme == "SIMPLEX":
+    if scheme == SigmaScheme.SIMPLEX:
         return Simplex(n, alpha=alpha, sqrt=sqrt, add=add)
-    if scheme == "UNIFORM":
+    if scheme == SigmaScheme.UNIFORM:
         return UniformSpherical(n, alpha=alpha, sqrt=sqrt, add=add)
-    raise InvalidArgument(f"sigma_points must be one of {list(SCHEMES)}, got {scheme!r}")
+    raise InvalidArgument(f"sigma_points must be one of {[str(s) for s in SCHEMES]}, got {scheme!r}")

@@ -46,7 +46,8 @@ from filterpy.kalman import unscented_transform
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.estimation.adaptive import NoiseAdapter, NoiseSnapshot
 from jitdyn.server.estimation.batched import BatchedUKF, tangent_unscented_transform
-from jitdyn.server.estimation.config import EstimatorConfig, check_against_model
+from jitdyn.server.estimation.config import Engine, EstimatorConfig, check_against_model
+from jitdyn.server.estimation.fast import FastUKF
 from jitdyn.server.estimation.forecast import CombinedForecast, CombinerSnapshot, ForecastCombiner
 from jitdyn.server.estimation.guard import Guard, GuardState
 from jitdyn.server.estimation.interface import (
@@ -241,6 +242,10 @@ class UnscentedFilter:
                 vector=True,
                 **kwargs,
             )
+        if self._config.engine == Engine.FAST:
+            return FastUKF(
+                propagate=self._propagate_sigmas, vector=not self._manifold, z_index=self._z_index, **kwargs
+            )
         return BatchedUKF(propagate=self._propagate_sigmas, vector=not self._manifold, **kwargs)
 
     def _noise_adapter(self) -> NoiseAdapter | None:
@@ -352,10 +357,8 @@ class UnscentedFilter:
         self._act = self._clip_act(self._propagated_act)
         self._ticks_since_update += 1
         reinitialised = False
-        if self._finite():
-            self._kf.P = _symmetric(self._kf.P)
-            self._repair_if_indefinite()
-        if self._guard.diverged(finite=self._finite(), largest_variance=self._largest_variance()):
+        finite = self._tidy_covariance()
+        if self._guard.diverged(finite=finite, largest_variance=self._largest_variance()):
             # No new measurement to start from: the last one is the best that is known.
             if self._last is None:
                 raise RuntimeError("unreachable: an initialised filter has a last measurement")
@@ -381,12 +384,12 @@ class UnscentedFilter:
         widened = prior is not None and self._guard.far_out(nis)
         if prior is not None and widened:
             nis = self._correct_widened(z, prior)
-        self._tidy_covariance()
+        finite = self._tidy_covariance()
         self._guard.count(nis)
-        adapted, absorbed = self._adapt(nis)
-        reinitialised = self._guard.restart_due(
-            finite=self._finite(), largest_variance=self._largest_variance()
-        )
+        adapted, absorbed = self._adapt(nis, finite=finite)
+        # Still finite after _adapt: it adds P0's finite diagonal block, and a sum that overflows
+        # is a variance past the guard's limit, a restart either way.
+        reinitialised = self._guard.restart_due(finite=finite, largest_variance=self._largest_variance())
         if reinitialised:
             self._restart(m)
         else:
@@ -426,16 +429,20 @@ class UnscentedFilter:
             self._kf.sigmas_f = self._points.sigma_points(x, P)  # what filterpy's update uses
         return self._correct(z)
 
-    def _tidy_covariance(self) -> None:
-        """P symmetrised, and repaired when indefinite, while the filter is finite."""
-        if self._finite():
+    def _tidy_covariance(self) -> bool:
+        """P symmetrised, and repaired when indefinite, while the filter is finite; whether it is
+        (the tidying keeps a finite P finite: one check serves the whole step)."""
+        finite = self._finite()
+        if finite:
             self._kf.P = _symmetric(self._kf.P)
             self._repair_if_indefinite()
+        return finite
 
-    def _adapt(self, nis: float | None) -> tuple[bool, bool]:
-        """The adaptive noise learns from this update: whether it adapted, and whether its NIS window
-        asked for an absorption (which widens P on [q, qd] while the guard allows)."""
-        if self._adapter is None or not self._finite() or nis is None:
+    def _adapt(self, nis: float | None, *, finite: bool) -> tuple[bool, bool]:
+        """The adaptive noise learns from this update (finite: x and P are): whether it adapted, and
+        whether its NIS window asked for an absorption (which widens P on [q, qd] while the guard
+        allows)."""
+        if self._adapter is None or not finite or nis is None:
             return False, False
         kf = self._kf
         verdict = self._adapter.observe(

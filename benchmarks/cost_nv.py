@@ -1,0 +1,198 @@
+"""How a tick's cost grows with the model, and what would make the largest real time.
+
+For each model at its rate, with its default estimator (JITDYN preset): the CPU of one cycle
+(predict + update) against its floor, the rollout of the same sigma points over one tick alone
+(timed just before and after, on the same pool), and the wall time of a cycle against the tick.
+Variants for a model that does not fit: fewer physics steps per tick (the sigma points' physics on
+a coarser timestep), and more workers.
+
+    python -m benchmarks.cost_nv                 # every row, ~2 minutes
+    python -m benchmarks.cost_nv --rows myolegs  # substrings of the row names
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from jitdyn.server.estimation.config import resolve_config
+from jitdyn.server.estimation.interface import Measurement
+from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.estimation.ukf import UnscentedFilter
+from jitdyn.vocabulary import Scenario
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+
+
+def load(name: str) -> mujoco.MjModel:
+    if name == "myolegs_osl":  # MyoSuite's legs with the Open Source Leg prosthesis
+        import myo_sim
+
+        path = Path(myo_sim.__file__).parent / "models/legacy/osl/myolegs_osl.xml"
+        return mujoco.MjModel.from_xml_path(str(path))
+    if name.startswith("myo"):
+        import myo_sim
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return myo_sim.load_model(name)
+    return mujoco.MjModel.from_xml_path(str(MODELS / f"{name}.xml"))
+
+
+@dataclass(frozen=True)
+class Row:
+    name: str
+    model: str
+    scenario: Scenario
+    rate: float
+    coarsen: int = 1  # the process model's timestep times this (fewer steps per tick)
+    workers: int = 1
+
+
+ROWS = (
+    Row("pendulum_3 PASSIVE", "pendulum_3", Scenario.PASSIVE, 20.0),
+    Row("biped CONTROLLED", "biped", Scenario.CONTROLLED, 200.0),
+    Row("myoElbow DRIVEN (default)", "myoelbow", Scenario.DRIVEN, 500.0),
+    Row("myoHand EXTERNAL", "myohand", Scenario.EXTERNAL, 500.0),
+    Row("myolegs_osl DRIVEN (default)", "myolegs_osl", Scenario.DRIVEN, 100.0),
+    Row("myolegs_osl DRIVEN, 2 workers", "myolegs_osl", Scenario.DRIVEN, 100.0, workers=2),
+    Row("myolegs_osl DRIVEN, 5 ms step", "myolegs_osl", Scenario.DRIVEN, 100.0, coarsen=5),
+    Row(
+        "myolegs_osl DRIVEN, 5 ms step, 2 workers",
+        "myolegs_osl",
+        Scenario.DRIVEN,
+        100.0,
+        coarsen=5,
+        workers=2,
+    ),
+    Row("myolegs_osl EXTERNAL", "myolegs_osl", Scenario.EXTERNAL, 100.0),
+)
+
+
+def truth(model: mujoco.MjModel, scenario: Scenario, nstep: int, ticks: int) -> list[Measurement]:
+    """The model under slow out-of-phase excitations of its actuators (sines for the biped)."""
+    d = mujoco.MjData(model)
+    mujoco.mj_forward(model, d)
+    frames = []
+    for k in range(ticks):
+        if scenario == Scenario.PASSIVE:
+            d.ctrl[:] = 0.0
+        elif model.nu and not model.na:
+            d.ctrl[:] = 2.0 * np.sin(0.02 * k + np.pi * np.arange(model.nu))
+        else:
+            d.ctrl[:] = 0.5 + 0.5 * np.sin(0.01 * k * nstep + 0.7 * np.arange(model.nu))
+        mujoco.mj_step(model, d, nstep)
+        frames.append(Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy(), ctrl=d.ctrl.copy()))
+    return frames
+
+
+def physics(ukf: UnscentedFilter) -> None:
+    """The rollout of this tick's sigma points (as the filter would step them), alone."""
+    kf, nq, nv = ukf._kf, ukf._nq, ukf._nv
+    if ukf._linear_force:
+        chi = ukf._points.sigma_points(kf.x[: nq + nv], kf.P[: 2 * nv, : 2 * nv])
+        ukf._propagate_linear_force(chi, np.repeat(kf.x[None, nq + nv :], chi.shape[0], 0), nstep=None)
+    else:
+        ukf._propagate_sigmas(ukf._points.sigma_points(kf.x, kf.P), nstep=None)
+
+
+def measure(row: Row, rounds: int) -> dict[str, float]:
+    model = load(row.model)
+    dt = 1.0 / row.rate
+    truth_nstep = round(dt / model.opt.timestep)
+    frames = truth(model, row.scenario, truth_nstep, ticks=400)
+    filter_model = model
+    if row.coarsen > 1:
+        filter_model = load(row.model)
+        filter_model.opt.timestep *= row.coarsen
+    controlled = row.scenario == Scenario.CONTROLLED
+    measured = {"qpos", "qvel", "ctrl"} if controlled else {"qpos", "qvel"}
+    config = resolve_config(
+        model=filter_model, scenario=row.scenario, dt=dt, requested={}, model_defaults={}, measured=measured
+    )
+    out: dict[str, list[float]] = {"cycle_cpu": [], "cycle_wall": [], "physics_cpu": [], "ratio": []}
+    with WorkerPool(row.workers) as pool:
+        ukf = UnscentedFilter(filter_model, config, pool=pool)
+        ukf.initialise(frames[0])
+        k = 1
+        for _ in range(rounds):
+            count = max(3, min(50, int(0.05 / dt)))
+            if k + count >= len(frames):
+                ukf.initialise(frames[0])
+                k = 1
+            c0 = time.process_time()
+            for _ in range(3):
+                physics(ukf)
+            before = (time.process_time() - c0) / 3
+            c0, w0 = time.process_time(), time.perf_counter()
+            for j in range(k, k + count):
+                ukf.advance(ctrl=frames[j].ctrl if controlled else None)
+                ukf.update(frames[j])
+            cpu, wall = (time.process_time() - c0) / count, (time.perf_counter() - w0) / count
+            k += count
+            c0 = time.process_time()
+            for _ in range(3):
+                physics(ukf)
+            after = (time.process_time() - c0) / 3
+            out["cycle_cpu"].append(cpu)
+            out["cycle_wall"].append(wall)
+            out["physics_cpu"].append(0.5 * (before + after))
+            out["ratio"].append(cpu / (0.5 * (before + after)))
+        finite = bool(np.isfinite(ukf._kf.x).all())
+        error = float(np.max(np.abs(ukf._kf.x[: model.nq] - frames[k - 1].qpos)))
+    result = {key: statistics.median(values) for key, values in out.items()}
+    result.update(
+        nq=model.nq,
+        nv=model.nv,
+        nu=model.nu,
+        n=ukf.state_dimension,
+        nsigma=ukf.nsigma,
+        steps=config.steps_per_tick,
+        dt=dt,
+        finite=finite,
+        qpos_error=error,
+        sigma=str(config.sigma_points),
+    )
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--rows", nargs="+", help="substrings of row names")
+    parser.add_argument("--rounds", type=int, default=7)
+    args = parser.parse_args(argv)
+    rows = [r for r in ROWS if not args.rows or any(s in r.name for s in args.rows)]
+    print(
+        f"# {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; python {sys.version.split()[0]}, "
+        f"mujoco {mujoco.__version__}; medians of {args.rounds} rounds, ratios paired"
+    )
+    print(
+        "| model, scenario | nq / nv / nu | state n | points x steps | physics (us CPU) | cycle (us CPU) "
+        "| cycle / physics | cycle wall / dt | posterior |qpos error| |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for row in rows:
+        r = measure(row, args.rounds)
+        print(
+            f"| {row.name} | {r['nq']} / {r['nv']} / {r['nu']} | {r['n']} | {r['sigma'].lower()} "
+            f"{r['nsigma']} x {r['steps']} | {r['physics_cpu'] * 1e6:.0f} | {r['cycle_cpu'] * 1e6:.0f} "
+            f"| {r['ratio']:.2f} | {r['cycle_wall'] / r['dt']:.2f} "
+            f"| {r['qpos_error']:.1e}{'' if r['finite'] else ' (NaN)'} |",
+            flush=True,
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
