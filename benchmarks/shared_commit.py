@@ -69,7 +69,11 @@ def postgres(sessions: int, windows: int) -> list[float]:
 
 def s3(sessions: int, windows: int, endpoint: str) -> list[float]:
     fs = pafs.S3FileSystem(
-        access_key="x", secret_key="x", endpoint_override=endpoint, scheme="http", region="us-east-1",
+        access_key="x",
+        secret_key="x",
+        endpoint_override=endpoint,
+        scheme="http",
+        region="us-east-1",
         allow_bucket_creation=True,
     )
     bucket = f"bench-{uuid.uuid4().hex[:8]}"
@@ -99,7 +103,9 @@ def main() -> None:
         time.sleep(3)
         for n in args.sessions:
             print(f"{n:3d} sessions, one window: PostgreSQL {percentiles(postgres(n, args.windows))}")
-            print(f"{n:3d} sessions, one window: S3 (moto)  {percentiles(s3(n, args.windows, f'127.0.0.1:{port}'))}")
+            print(
+                f"{n:3d} sessions, one window: S3 (moto)  {percentiles(s3(n, args.windows, f'127.0.0.1:{port}'))}"
+            )
     finally:
         moto.terminate()
         moto.wait()

@@ -101,10 +101,14 @@ class _Session:
     retry_at: float = 0.0  # the shared tier did not answer: not due before then (monotonic s)
 
     def due(self, now: float, window: float) -> bool:
-        return bool(self.pending) and now >= self.retry_at and (
-            self.flush
-            or len(self.pending) >= self.commit_every
-            or now >= self.first_pending_at + max(self.commit_interval, window)
+        return (
+            bool(self.pending)
+            and now >= self.retry_at
+            and (
+                self.flush
+                or len(self.pending) >= self.commit_every
+                or now >= self.first_pending_at + max(self.commit_interval, window)
+            )
         )
 
     def next_due(self, window: float) -> float:
@@ -327,7 +331,7 @@ class GroupCommitter(Closeable):
         windows = []
         for s, records, data in written:
             seqs = [r.seq for r in records if r.kind == "result"]
-            assert s.lease is not None  # noqa: S101 - filtered by the caller
+            assert s.lease is not None
             windows.append(Window(s.lease, max(seqs) if seqs else None, data))
         try:
             fenced = self._shared.commit(windows)
@@ -348,14 +352,14 @@ class GroupCommitter(Closeable):
                         s.retry_at = now + _SHARED_RETRY
             return []
         if self._outage_since is not None:
-            _log.warning(
-                "the shared tier answers again after %.1f s", time.monotonic() - self._outage_since
-            )
+            _log.warning("the shared tier answers again after %.1f s", time.monotonic() - self._outage_since)
             self._outage_since = None
         durable = []
         for s, records, _ in written:
             if s.name in fenced:
-                self._fail(s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends"))
+                self._fail(
+                    s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
+                )
             else:
                 durable.append((s, records))
         return durable
@@ -374,7 +378,9 @@ class GroupCommitter(Closeable):
             return
         for s, _ in held:
             if s.name in fenced:
-                self._fail(s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends"))
+                self._fail(
+                    s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
+                )
 
     def _write(
         self, taken: list[tuple[_Session, list[TickRecord]]]

@@ -18,8 +18,8 @@ import datetime as _dt
 import hashlib
 import json
 import uuid
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Final
 
 import sqlalchemy as sa
@@ -221,7 +221,9 @@ class SessionIndex:
         another server), NotFound when the index has no such session.
         """
         with self._engine.begin() as conn:
-            finish_session(conn, session_id, status=status, summary=summary, location=location, ended_at=ended_at)
+            finish_session(
+                conn, session_id, status=status, summary=summary, location=location, ended_at=ended_at
+            )
 
     def discard(self, session_id: str) -> None:
         """Remove the row of a session that was never served (its open failed or was abandoned

@@ -314,7 +314,7 @@ class SessionRecorder:
         self._stop_committing()
         if self._shared is not None:
             return self._close_shared(self._shared, summary, status)
-        assert self._writer is not None  # noqa: S101 - made in __init__ without a shared tier
+        assert self._writer is not None
         try:
             if self._failure is not None:
                 # The log holds what was durable; the session stays OPEN, and the next start
@@ -351,7 +351,7 @@ class SessionRecorder:
         self, shared: SharedTier, summary: SessionSummaryInfo | None, status: SessionStatus
     ) -> str:
         lease = self._lease
-        assert lease is not None  # noqa: S101 - made with the shared tier
+        assert lease is not None
         try:
             if self._failure is not None:
                 # What was committed stays in the shared tier; a resume or a live replica ends it.
@@ -418,7 +418,7 @@ class SessionRecorder:
             else:
                 self._shared.discard(self._lease)
             return
-        assert self._writer is not None  # noqa: S101 - made in __init__ without a shared tier
+        assert self._writer is not None
         try:
             self._index.discard(self._header.session_id)
         finally:

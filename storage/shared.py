@@ -24,6 +24,7 @@ import pyarrow as pa
 import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, NotFound
+from jitdyn.lifecycle import Closeable
 from jitdyn.storage.columns import LOG_SCHEMA
 from jitdyn.storage.index import finish_session
 from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
@@ -256,7 +257,7 @@ class SharedTier:
             )
 
 
-class SharedLogStream:
+class SharedLogStream(Closeable):
     """A session's shared log read page by page, as `storage.log.LogStream` reads a local one:
     `batches()` once; `torn` is always False (a window is committed whole or not at all)."""
 
@@ -286,10 +287,4 @@ class SharedLogStream:
                     yield batch
 
     def close(self) -> None:
-        pass
-
-    def __enter__(self) -> SharedLogStream:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        """Nothing is held between pages."""

@@ -39,8 +39,8 @@ from jitdyn.server.runtime.session import SessionRuntime
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.parquet import header_from_json
 from jitdyn.storage.recorder import SessionRecorder
-from jitdyn.storage.shared import TakenOver
 from jitdyn.storage.records import SessionHeader
+from jitdyn.storage.shared import TakenOver
 from jitdyn.vocabulary import Clock, JointType, Scenario
 
 __all__ = ["OpenedSession", "SessionOpener", "TickPrice"]
@@ -155,7 +155,7 @@ class SessionOpener:
         the session over, even from a live holder: a client presenting the token says its stream
         is gone, and the holder, fenced by the new epoch, can write nothing more to it."""
         resume, shared = request.resume, self._services.shared
-        assert resume is not None  # noqa: S101 - the caller checked
+        assert resume is not None
         if shared is None:
             raise FailedPrecondition(
                 "open.resume: this server cannot resume sessions: it shares no index with other "

@@ -27,8 +27,8 @@ from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
-from jitdyn.server.runtime.orphans import finish_orphans
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
+from jitdyn.server.runtime.orphans import finish_orphans
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
@@ -38,10 +38,10 @@ from jitdyn.server.transport.registry_service import ModelRegistryServicer
 from jitdyn.server.transport.session_service import SessionServicer
 from jitdyn.settings import Settings, default_workers
 from jitdyn.storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
+from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.layout import prepare_data_root
-from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.recorder import recover_unfinished
 from jitdyn.storage.shared import SharedTier, new_owner_id
 from jitdyn.v1 import (

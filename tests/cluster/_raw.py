@@ -77,7 +77,9 @@ class RawSession:
         self.channel.close()
 
 
-def resume_message(mjcf: str, opened: dynamics_pb2.SessionOpened, token: str | None = None) -> dynamics_pb2.OpenSession:
+def resume_message(
+    mjcf: str, opened: dynamics_pb2.SessionOpened, token: str | None = None
+) -> dynamics_pb2.OpenSession:
     message = open_message(mjcf, clock=common_pb2.CLOCK_LOCKSTEP)
     message.resume.session_id = opened.session_id
     message.resume.token = opened.resume_token if token is None else token
@@ -89,9 +91,14 @@ def session_row(index_url: str, session_id: str) -> dict[str, object] | None:
     engine = sa.create_engine(index_url)
     try:
         with engine.connect() as conn:
-            row = conn.execute(
-                sa.text("SELECT status, location, ticks FROM sessions WHERE session_id = :id"), {"id": session_id}
-            ).mappings().one_or_none()
+            row = (
+                conn.execute(
+                    sa.text("SELECT status, location, ticks FROM sessions WHERE session_id = :id"),
+                    {"id": session_id},
+                )
+                .mappings()
+                .one_or_none()
+            )
             return None if row is None else dict(row)
     finally:
         engine.dispose()

@@ -27,7 +27,9 @@ LEASE, RESUME = "1s", "1s"
 FAST = [f"--lease-ttl={LEASE}", f"--resume-timeout={RESUME}"]
 
 
-def pair(start_replica: Callable[..., Replica], tmp_path: Path, names: tuple[str, str], hosts: tuple[str, str]) -> tuple[Replica, Replica]:
+def pair(
+    start_replica: Callable[..., Replica], tmp_path: Path, names: tuple[str, str], hosts: tuple[str, str]
+) -> tuple[Replica, Replica]:
     """Two replicas for a resume. They share one data folder only because model content is not
     in the shared tier yet (an inline model registered by one does not load on the other); their
     session logs are the shared tier's either way."""
@@ -39,7 +41,9 @@ def pair(start_replica: Callable[..., Replica], tmp_path: Path, names: tuple[str
 
 def stored_seqs(replica: Replica, location: str) -> list[int]:
     table = pq.read_table(replica.data / location, columns=["kind", "seq"])
-    return sorted(s for k, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True) if k == "result")
+    return sorted(
+        s for k, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True) if k == "result"
+    )
 
 
 def test_killed_replica_with_its_folder_gone_loses_no_acknowledged_frame(
@@ -80,7 +84,9 @@ def test_a_resume_on_another_replica_continues_the_same_session(
     first, second = pair(start_replica, tmp_path, ("first", "second"), ("127.0.0.13", "127.0.0.14"))
     mjcf = new_model()
     session = RawSession(first.address, open_message(mjcf))
-    acknowledged = max((r.durable_seq for r in (session.send(k) for k in range(40)) if r.HasField("durable_seq")), default=-1)
+    acknowledged = max(
+        (r.durable_seq for r in (session.send(k) for k in range(40)) if r.HasField("durable_seq")), default=-1
+    )
     first.kill()
 
     with pytest.raises(grpc.RpcError) as wrong:
@@ -104,7 +110,9 @@ def test_a_resume_on_another_replica_continues_the_same_session(
     row = session_row(index_url, opened.session_id)
     assert row is not None and row["status"] == "COMPLETE"
     seqs = stored_seqs(second, str(row["location"]))
-    print(f"resumed in {1e3 * took:.0f} ms from tick {opened.resume_from_seq}: stored ticks 0..{seqs[-1]}, one session")
+    print(
+        f"resumed in {1e3 * took:.0f} ms from tick {opened.resume_from_seq}: stored ticks 0..{seqs[-1]}, one session"
+    )
     assert seqs == list(range(80))
 
 

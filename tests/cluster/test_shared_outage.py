@@ -24,7 +24,9 @@ def test_a_cut_to_postgresql_delays_durability_not_answers(
 ) -> None:
     port = free_port()
     forward = TcpForward(listen=("127.0.0.1", port), target=("127.0.0.1", 5432))
-    replica = start_replica("cut", "127.0.0.19", index_url=index_url.replace("127.0.0.1:5432", f"127.0.0.1:{port}"))
+    replica = start_replica(
+        "cut", "127.0.0.19", index_url=index_url.replace("127.0.0.1:5432", f"127.0.0.1:{port}")
+    )
     session = RawSession(replica.address, open_message(new_model()))
     k = 0
     for k in range(20):
@@ -72,5 +74,9 @@ def test_a_cut_to_postgresql_delays_durability_not_answers(
     assert refused is not None and refused.code() == grpc.StatusCode.UNAVAILABLE
     assert row is not None and row["status"] == "COMPLETE"
     table = pq.read_table(replica.data / str(row["location"]), columns=["kind", "seq"])
-    seqs = sorted(s for kind, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True) if kind == "result")
+    seqs = sorted(
+        s
+        for kind, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True)
+        if kind == "result"
+    )
     assert seqs == list(range(k))

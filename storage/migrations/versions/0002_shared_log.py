@@ -30,7 +30,9 @@ def upgrade() -> None:
     )
     op.create_table(
         "session_log",
-        sa.Column("pk", sa.BigInteger().with_variant(sa.Integer, "sqlite"), primary_key=True, autoincrement=True),
+        sa.Column(
+            "pk", sa.BigInteger().with_variant(sa.Integer, "sqlite"), primary_key=True, autoincrement=True
+        ),
         sa.Column("session_id", sa.String(36), nullable=False),
         sa.Column("epoch", sa.BigInteger, nullable=False),
         sa.Column("data", sa.LargeBinary, nullable=False),
