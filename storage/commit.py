@@ -8,6 +8,12 @@ once), each session's rows are appended to its own log as one zero-copy slice in
 `syncfs` makes them all durable (one `fsync` when a single log has new rows). Each session keeps
 its own log, so recovery, compaction and the per-log flock are unchanged.
 
+With a shared tier (replicas sharing a PostgreSQL index, storage/shared.py), a session's rows go
+instead to the shared log: one transaction per window for every such session of the process, which
+also renews their leases and refuses the rows of a session another replica took over (fencing).
+While the database cannot be reached, the rows wait and are committed when it answers again
+(durable_seq does not move meanwhile; answers go on), up to SHARED_OUTAGE_LIMIT.
+
     committer = GroupCommitter()                    # one per process (Services owns it)
     recorder = SessionRecorder(..., committer=committer)
     ...
@@ -32,10 +38,18 @@ import pyarrow as pa
 from jitdyn.errors import InvalidArgument, JitdynError, Unavailable
 from jitdyn.lifecycle import Closeable
 from jitdyn.storage.columns import check_lengths, records_to_batch
-from jitdyn.storage.failures import storage_failure
+from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.records import TickRecord
+from jitdyn.storage.shared import Fenced, Lease, SharedTier, Window
 
-__all__ = ["COMMIT_SHARE", "MAX_WINDOW", "CommitStats", "GroupCommitter", "default_committer"]
+__all__ = [
+    "COMMIT_SHARE",
+    "MAX_WINDOW",
+    "SHARED_OUTAGE_LIMIT",
+    "CommitStats",
+    "GroupCommitter",
+    "default_committer",
+]
 
 # A commit costs about the same whatever it carries, so the window widens until commits cost at most
 # COMMIT_SHARE of a core, and never past MAX_WINDOW, which bounds how far durable_seq trails the
@@ -43,6 +57,10 @@ __all__ = ["COMMIT_SHARE", "MAX_WINDOW", "CommitStats", "GroupCommitter", "defau
 COMMIT_SHARE: Final = 0.01
 MAX_WINDOW: Final = 0.1  # s
 _COST_EWMA: Final = 0.2
+# While the shared tier does not answer, a commit is retried this often (s), and the sessions
+# waiting on it fail (UNAVAILABLE) once it has not answered for SHARED_OUTAGE_LIMIT (s).
+_SHARED_RETRY: Final = 0.5
+SHARED_OUTAGE_LIMIT: Final = 120.0
 
 _log = logging.getLogger(__name__)
 
@@ -67,7 +85,7 @@ class _Session:
     """One registered log: where its rows go and what the recorder wants to know."""
 
     name: str
-    fd: int
+    fd: int  # -1: a session of the shared tier
     lengths: dict[str, int]
     commit_every: int
     commit_interval: float
@@ -79,16 +97,22 @@ class _Session:
     in_flight: bool = False  # taken by the thread, not yet durable
     failed: bool = False
     bytes_written: int = 0
+    lease: Lease | None = None  # its log is the shared tier's, under this lease
+    retry_at: float = 0.0  # the shared tier did not answer: not due before then (monotonic s)
 
     def due(self, now: float, window: float) -> bool:
-        return bool(self.pending) and (
-            self.flush
-            or len(self.pending) >= self.commit_every
-            or now >= self.first_pending_at + max(self.commit_interval, window)
+        return (
+            bool(self.pending)
+            and now >= self.retry_at
+            and (
+                self.flush
+                or len(self.pending) >= self.commit_every
+                or now >= self.first_pending_at + max(self.commit_interval, window)
+            )
         )
 
     def next_due(self, window: float) -> float:
-        return self.first_pending_at + max(self.commit_interval, window)
+        return max(self.retry_at, self.first_pending_at + max(self.commit_interval, window))
 
 
 @dataclass(frozen=True)
@@ -106,7 +130,10 @@ class CommitStats:
 class GroupCommitter(Closeable):
     """The commit thread of a process. Thread-safe; `close` is safe to call twice."""
 
-    def __init__(self, *, name: str = "jitdyn-commit") -> None:
+    def __init__(self, *, name: str = "jitdyn-commit", shared: SharedTier | None = None) -> None:
+        self._shared = shared
+        self._renewed_at = time.monotonic()
+        self._outage_since: float | None = None
         self._cond = threading.Condition()
         self._sessions: dict[int, _Session] = {}
         self._next_key = 0
@@ -133,8 +160,12 @@ class GroupCommitter(Closeable):
         commit_interval: float,
         on_durable: Callable[[int, int | None], None],
         on_failure: Callable[[JitdynError], None],
+        lease: Lease | None = None,
     ) -> int:
-        """Add a log open for appending on `fd`; returns the key `append`, `flush` and `unregister` take."""
+        """Add a log open for appending on `fd`, or (`lease`, fd -1) a session of the shared tier;
+        returns the key `append`, `flush` and `unregister` take."""
+        if lease is not None and self._shared is None:
+            raise InvalidArgument("a session of the shared tier needs a committer made with shared=")
         with self._cond:
             if self._stopping:
                 raise Unavailable("the commit thread is stopped; the server is shutting down")
@@ -148,6 +179,7 @@ class GroupCommitter(Closeable):
                 commit_interval=commit_interval,
                 on_durable=on_durable,
                 on_failure=on_failure,
+                lease=lease,
             )
             return key
 
@@ -225,6 +257,11 @@ class GroupCommitter(Closeable):
                 if self._stopping and not any(s.pending for s in self._sessions.values() if not s.failed):
                     return None
                 waiting = [s.next_due(window) for s in self._sessions.values() if s.pending and not s.failed]
+                if self._shared is not None and any(s.lease for s in self._sessions.values()):
+                    renew_at = self._renewed_at + self._shared.lease_ttl / 3
+                    if now >= renew_at:
+                        return []  # the leases are renewed by the thread, outside the lock
+                    waiting.append(renew_at)
                 self._wake_at = min(waiting) if waiting else math.inf
                 self._cond.wait(None if not waiting else max(0.0, self._wake_at - now))
                 self._wake_at = -math.inf  # awake: it rescans every log before it waits again
@@ -234,6 +271,7 @@ class GroupCommitter(Closeable):
                     id(s) not in chosen
                     and s.pending
                     and not s.failed
+                    and now >= s.retry_at
                     and now >= s.first_pending_at + max(s.commit_interval, window) / 2
                 ):
                     due.append(s)
@@ -252,17 +290,21 @@ class GroupCommitter(Closeable):
                 return
             cpu_started = time.thread_time()
             written = self._write(taken)
+            local = [(s, r) for s, r, _ in written if s.lease is None]
             durable: list[tuple[_Session, list[TickRecord]]] = []
-            if written:
+            if local:
                 try:
-                    _sync_all([s.fd for s, _ in written])
+                    _sync_all([s.fd for s, _ in local])
                 except OSError as exc:
-                    for s, _ in written:
+                    for s, _ in local:
                         self._fail(
                             s, storage_failure(f"session {s.name}: its log cannot be made durable", exc)
                         )
                 else:
-                    durable = written
+                    durable = local
+            durable.extend(self._commit_shared([(s, r, d) for s, r, d in written if s.lease is not None]))
+            if self._shared is not None and time.monotonic() - self._renewed_at >= self._shared.lease_ttl / 3:
+                self._renew_leases()
             with self._cond:
                 self._commits += 1 if durable else 0
                 self._syncs += 1 if durable else 0
@@ -279,10 +321,72 @@ class GroupCommitter(Closeable):
                 self._window = min(MAX_WINDOW, self._commit_cost / COMMIT_SHARE)
                 self._cond.notify_all()
 
+    def _commit_shared(
+        self, written: list[tuple[_Session, list[TickRecord], bytes]]
+    ) -> list[tuple[_Session, list[TickRecord]]]:
+        """One transaction for every shared-tier session's rows of this window: the durable ones.
+        Rows the database did not take wait in their sessions' queues, first, for the next try."""
+        if not written or self._shared is None:
+            return []
+        windows = []
+        for s, records, data in written:
+            seqs = [r.seq for r in records if r.kind == "result"]
+            assert s.lease is not None
+            windows.append(Window(s.lease, max(seqs) if seqs else None, data))
+        try:
+            fenced = self._shared.commit(windows)
+        except STORAGE_ERRORS as exc:
+            now = time.monotonic()
+            if self._outage_since is None:
+                self._outage_since = now
+                _log.warning("the shared tier does not answer; %d sessions' rows wait: %s", len(written), exc)
+            if now - self._outage_since > SHARED_OUTAGE_LIMIT:
+                for s, _, _ in written:
+                    self._fail(s, storage_failure(f"session {s.name}: the shared tier is unreachable", exc))
+                return []
+            with self._cond:
+                for s, records, _ in written:
+                    if not s.failed:
+                        s.pending = records + s.pending
+                        s.first_pending_at = now
+                        s.retry_at = now + _SHARED_RETRY
+            return []
+        if self._outage_since is not None:
+            _log.warning("the shared tier answers again after %.1f s", time.monotonic() - self._outage_since)
+            self._outage_since = None
+        durable = []
+        for s, records, _ in written:
+            if s.name in fenced:
+                self._fail(
+                    s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
+                )
+            else:
+                durable.append((s, records))
+        return durable
+
+    def _renew_leases(self) -> None:
+        """Extend the leases of every shared-tier session, those that committed nothing lately too."""
+        if self._shared is None:
+            return
+        with self._cond:
+            held = [(s, s.lease) for s in self._sessions.values() if s.lease is not None and not s.failed]
+        self._renewed_at = time.monotonic()
+        try:
+            fenced = self._shared.renew([lease for _, lease in held if lease is not None])
+        except STORAGE_ERRORS as exc:
+            _log.warning("the shared tier does not answer; leases not renewed: %s", exc)
+            return
+        for s, _ in held:
+            if s.name in fenced:
+                self._fail(
+                    s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
+                )
+
     def _write(
         self, taken: list[tuple[_Session, list[TickRecord]]]
-    ) -> list[tuple[_Session, list[TickRecord]]]:
-        """Append each session's records to its log; the sessions whose rows are written."""
+    ) -> list[tuple[_Session, list[TickRecord], bytes]]:
+        """Append each session's records to its log (a local one: written, not yet synced; a
+        shared one: serialised for `_commit_shared`); the sessions whose rows are, and those rows."""
         good: list[tuple[_Session, list[TickRecord]]] = []
         for s, records in taken:
             try:
@@ -314,11 +418,17 @@ class GroupCommitter(Closeable):
 
     def _write_one(
         self, s: _Session, records: list[TickRecord], batch: pa.RecordBatch | None
-    ) -> tuple[_Session, list[TickRecord]] | None:
+    ) -> tuple[_Session, list[TickRecord], bytes] | None:
         if batch is None:
             try:
                 batch = records_to_batch(records)
             except (TypeError, ValueError, pa.ArrowException, InvalidArgument) as exc:
+                self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
+                return None
+        if s.lease is not None:
+            try:
+                return s, records, batch.serialize().to_pybytes()
+            except pa.ArrowException as exc:
                 self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
                 return None
         try:
@@ -330,7 +440,7 @@ class GroupCommitter(Closeable):
             self._fail(s, storage_failure(f"session {s.name}: its log cannot be written", exc))
             return None
         s.bytes_written += data.size
-        return s, records
+        return s, records, b""
 
     def _fail(self, s: _Session, failure: JitdynError) -> None:
         _log.error("%s", failure)

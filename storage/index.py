@@ -18,6 +18,7 @@ import datetime as _dt
 import hashlib
 import json
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -28,7 +29,7 @@ from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummary
 from jitdyn.storage.schema import sessions
 from jitdyn.vocabulary import Clock, Scenario, SessionStatus
 
-__all__ = ["MAX_PAGE_SIZE", "SessionIndex", "SessionRow"]
+__all__ = ["MAX_PAGE_SIZE", "SessionIndex", "SessionRow", "finish_session"]
 
 MAX_PAGE_SIZE: Final = 1000
 _TOKEN_VERSION: Final = 1
@@ -163,8 +164,15 @@ class SessionIndex:
     def engine(self) -> sa.Engine:
         return self._engine
 
-    def create(self, header: SessionHeader, *, log_path: str) -> None:
-        """Add an OPEN session whose frames go to `log_path` (relative to the data root)."""
+    def create(
+        self,
+        header: SessionHeader,
+        *,
+        log_path: str,
+        also: Callable[[sa.Connection], object] | None = None,
+    ) -> None:
+        """Add an OPEN session whose frames go to `log_path` (relative to the data root; "" for a
+        log in the shared tier); `also` runs in the same transaction (the shared tier's lease)."""
         values = {
             "session_id": header.session_id,
             "tenant": header.tenant,
@@ -184,6 +192,8 @@ class SessionIndex:
         try:
             with self._engine.begin() as conn:
                 conn.execute(sa.insert(sessions).values(**values))
+                if also is not None:
+                    also(conn)
         except sa.exc.IntegrityError as exc:
             raise FailedPrecondition(f"session {header.session_id} is already in the index") from exc
 
@@ -210,28 +220,10 @@ class SessionIndex:
         Raises FailedPrecondition when the session is not OPEN (already ended, or recovered by
         another server), NotFound when the index has no such session.
         """
-        status = stored_word(SessionStatus, status, argument="status", among=FINAL_STATUSES)
-        end = _dt.datetime.now(_dt.UTC) if ended_at is None else _aware("ended_at", ended_at)
         with self._engine.begin() as conn:
-            result = conn.execute(
-                sa.update(sessions)
-                .where(sessions.c.session_id == session_id, sessions.c.status == SessionStatus.OPEN.value)
-                .values(
-                    status=status.value,
-                    ended_at=end,
-                    location=location,
-                    log_path="",
-                    **_summary_values(summary),
-                )
+            finish_session(
+                conn, session_id, status=status, summary=summary, location=location, ended_at=ended_at
             )
-            if result.rowcount == 1:
-                return
-            current = conn.execute(
-                sa.select(sessions.c.status).where(sessions.c.session_id == session_id)
-            ).scalar_one_or_none()
-        if current is None:
-            raise NotFound(f"session {session_id} is not in the index")
-        raise FailedPrecondition(f"session {session_id} is {current}, not OPEN; it was ended already")
 
     def discard(self, session_id: str) -> None:
         """Remove the row of a session that was never served (its open failed or was abandoned
@@ -350,3 +342,36 @@ class SessionIndex:
         )
         with self._engine.connect() as conn:
             return [_row(m) for m in conn.execute(query).mappings()]
+
+
+def finish_session(
+    conn: sa.Connection,
+    session_id: str,
+    *,
+    status: SessionStatus | str,
+    summary: SessionSummaryInfo,
+    location: str,
+    ended_at: _dt.datetime | None = None,
+) -> None:
+    """`SessionIndex.finish` inside the caller's transaction (the shared tier ends a lease in it too)."""
+    status = stored_word(SessionStatus, status, argument="status", among=FINAL_STATUSES)
+    end = _dt.datetime.now(_dt.UTC) if ended_at is None else _aware("ended_at", ended_at)
+    result = conn.execute(
+        sa.update(sessions)
+        .where(sessions.c.session_id == session_id, sessions.c.status == SessionStatus.OPEN.value)
+        .values(
+            status=status.value,
+            ended_at=end,
+            location=location,
+            log_path="",
+            **_summary_values(summary),
+        )
+    )
+    if result.rowcount == 1:
+        return
+    current = conn.execute(
+        sa.select(sessions.c.status).where(sessions.c.session_id == session_id)
+    ).scalar_one_or_none()
+    if current is None:
+        raise NotFound(f"session {session_id} is not in the index")
+    raise FailedPrecondition(f"session {session_id} is {current}, not OPEN; it was ended already")

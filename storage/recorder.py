@@ -13,6 +13,11 @@ widens the window, up to commit.MAX_WINDOW, while its commits carry too few reco
 their fixed cost). `close` compacts the
 log to Parquet, marks the session ended in the index in one transaction, then deletes the log. On
 start, `recover_unfinished` does the same for every session whose server died.
+
+With a shared tier (`shared=`, replicas sharing a PostgreSQL index), the log is the shared tier's
+(storage/shared.py) instead of a local file: `durable_seq` then means off this host, a session can
+be continued on another replica (`resumed=`), and one whose stream ended without a close is
+`park`ed for a resume rather than ended; `finish_orphan` ends one nobody resumed.
 """
 
 from __future__ import annotations
@@ -43,10 +48,11 @@ from jitdyn.storage.parquet import (
     write_parquet_stream,
 )
 from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, TickRecord, stored_word
+from jitdyn.storage.shared import Fenced, Lease, SharedLogStream, SharedTier, TakenOver
 from jitdyn.storage.summary import Summariser
 from jitdyn.vocabulary import SessionStatus
 
-__all__ = ["SessionRecorder", "recover_unfinished"]
+__all__ = ["SessionRecorder", "finish_orphan", "recover_unfinished"]
 
 _log = logging.getLogger(__name__)
 
@@ -57,7 +63,11 @@ class _State(enum.Enum):
 
 
 def _compact(
-    *, data_root: Path, header: SessionHeader, log: LogStream, summariser: Summariser | None = None
+    *,
+    data_root: Path,
+    header: SessionHeader,
+    log: LogStream | SharedLogStream,
+    summariser: Summariser | None = None,
 ) -> str:
     """Write the log's rows, read batch by batch in bounded memory, as the session's Parquet file
     (adding each to `summariser`); its location relative to the data root."""
@@ -102,7 +112,11 @@ class SessionRecorder:
         commit_every: int = 64,
         commit_interval: float = 0.010,
         committer: GroupCommitter | None = None,
+        shared: SharedTier | None = None,
+        resumed: TakenOver | None = None,
     ) -> None:
+        if resumed is not None and shared is None:
+            raise InvalidArgument("a resumed session needs the shared tier (shared=)")
         if commit_every < 1:
             raise InvalidArgument(f"commit_every must be >= 1, got {commit_every}")
         if not commit_interval > 0:
@@ -121,10 +135,17 @@ class SessionRecorder:
         self._state = _State.OPEN
         self._location = ""
         self._close_error: BaseException | None = None
+        self._shared = shared
+        self._resumed = resumed is not None
+        self._lease: Lease | None = None
+        self._writer: LogWriter | None = None
+        self._registered = False
+        if shared is not None:
+            self._open_shared(shared, resumed, commit_every=commit_every, commit_interval=commit_interval)
+            return
 
         self._log_location = log_location(header.session_id)
         self._log_path = data_root / self._log_location
-        self._registered = False
         try:
             make_dirs(data_root, str(Path(self._log_location).parent))
             # The log (with the header) is durable before the index names it, so an OPEN row always
@@ -158,9 +179,52 @@ class SessionRecorder:
             raise
         self._registered = True
 
+    def _open_shared(
+        self, shared: SharedTier, resumed: TakenOver | None, *, commit_every: int, commit_interval: float
+    ) -> None:
+        header = self._header
+        if resumed is not None:
+            self._lease = resumed.lease
+            self._durable_seq = resumed.durable_seq
+        else:
+            leases: list[Lease] = []
+            try:
+                self._index.create(
+                    header,
+                    log_path="",
+                    also=lambda conn: leases.append(
+                        shared.create(header, header_json=header_to_json(header), conn=conn)
+                    ),
+                )
+            except STORAGE_ERRORS as error:
+                raise storage_failure(f"session {header.session_id} could not be opened", error) from None
+            self._lease = leases[0]
+        try:
+            self._key = self._committer.register(
+                name=header.session_id,
+                fd=-1,
+                lengths=expected_lengths(header),
+                commit_every=commit_every,
+                commit_interval=commit_interval,
+                on_durable=self._on_durable,
+                on_failure=self._on_failure,
+                lease=self._lease,
+            )
+        except BaseException:
+            self._state = _State.CLOSED
+            if resumed is None:
+                shared.discard(self._lease)
+            raise
+        self._registered = True
+
     @property
     def header(self) -> SessionHeader:
         return self._header
+
+    @property
+    def resumable(self) -> bool:
+        """Whether another stream may continue this session (its log is in the shared tier)."""
+        return self._shared is not None
 
     @property
     def durable_seq(self) -> int | None:
@@ -174,8 +238,8 @@ class SessionRecorder:
 
     @property
     def log_bytes(self) -> int:
-        """Bytes of the log on disk so far."""
-        return self._writer.size()
+        """Bytes of the local log on disk so far (0: the log is the shared tier's)."""
+        return self._writer.size() if self._writer is not None else 0
 
     def append(self, record: TickRecord) -> None:
         """Queue a record for the next group commit. Never waits for the disk.
@@ -248,6 +312,9 @@ class SessionRecorder:
                 return self._location
             self._state = _State.CLOSED
         self._stop_committing()
+        if self._shared is not None:
+            return self._close_shared(self._shared, summary, status)
+        assert self._writer is not None
         try:
             if self._failure is not None:
                 # The log holds what was durable; the session stays OPEN, and the next start
@@ -280,6 +347,62 @@ class SessionRecorder:
             # recovering server away from it.
             self._writer.release()
 
+    def _close_shared(
+        self, shared: SharedTier, summary: SessionSummaryInfo | None, status: SessionStatus
+    ) -> str:
+        lease = self._lease
+        assert lease is not None
+        try:
+            if self._failure is not None:
+                # What was committed stays in the shared tier; a resume or a live replica ends it.
+                raise self._failure
+            try:
+                # A resumed session's counts on this stream are only its latest part: its summary
+                # is computed from all of its rows.
+                summary = None if self._resumed else summary
+                summariser = Summariser(dof_names=self._header.dof_names)
+                with shared.stream(self._header.session_id) as log:
+                    location = _compact(
+                        data_root=self._data_root,
+                        header=self._header,
+                        log=log,
+                        summariser=summariser if summary is None else None,
+                    )
+                summary = summariser.result() if summary is None else summary
+                shared.finish(lease, status=status, summary=summary, location=location)
+            except STORAGE_ERRORS as error:
+                raise storage_failure(
+                    f"session {self._header.session_id} could not be stored", error
+                ) from None
+            self._location = location
+            return location
+        except BaseException as exc:
+            self._close_error = exc
+            raise
+
+    def park(self) -> None:
+        """The stream ended without a close (its client's connection broke, or this server is
+        stopping): commit what is queued and let go of the session, which any replica may resume;
+        nobody resuming it within the resume timeout leaves it to be stored as ABANDONED. Blocking.
+        Without a shared tier, the session is closed as ABANDONED."""
+        if self._shared is None or self._lease is None:
+            self.close(status=SessionStatus.ABANDONED)
+            return
+        with self._cond:
+            if self._state is _State.CLOSED:
+                return
+            self._state = _State.CLOSED
+        self._stop_committing()
+        if isinstance(self._failure, Fenced):
+            return  # another stream holds the session now: nothing is this one's to let go of
+        if self._failure is not None:
+            raise self._failure
+        try:
+            self._shared.park(self._lease, ended_as=SessionStatus.ABANDONED)
+        except STORAGE_ERRORS as error:
+            # Its lease runs out by itself: a live replica ends it as RECOVERED.
+            raise storage_failure(f"session {self._header.session_id} could not be parked", error) from None
+
     def discard(self) -> None:
         """Undo a session that was never served (its open failed, or its client left before
         `opened`): no log, no index row remain. Safe after close, and twice."""
@@ -288,6 +411,14 @@ class SessionRecorder:
                 return
             self._state = _State.CLOSED
         self._stop_committing()
+        if self._shared is not None and self._lease is not None:
+            if self._resumed:
+                # Not this stream's to undo: the session lives on for another resume.
+                self._shared.park(self._lease, ended_as=SessionStatus.RECOVERED)
+            else:
+                self._shared.discard(self._lease)
+            return
+        assert self._writer is not None
         try:
             self._index.discard(self._header.session_id)
         finally:
@@ -350,8 +481,10 @@ def recover_unfinished(*, data_root: Path, index: SessionIndex) -> list[str]:
     """
     recovered: list[str] = []
     for row in index.unfinished():
+        if not row.log_path:
+            continue  # its log is the shared tier's: a live replica ends it (finish_orphan)
         path = data_root / row.log_path
-        if not row.log_path or not path.is_file():
+        if not path.is_file():
             _log.warning(
                 "session %s is OPEN but its log %s is not under %s", row.session_id, row.log_path, data_root
             )
@@ -362,3 +495,15 @@ def recover_unfinished(*, data_root: Path, index: SessionIndex) -> list[str]:
         except (FailedPrecondition, FileNotFoundError):
             _log.info("session %s was ended by another server meanwhile", row.session_id)
     return recovered
+
+
+def finish_orphan(*, data_root: Path, shared: SharedTier, taken: TakenOver) -> str:
+    """End a session of the shared tier that nobody resumed (taken over by `SharedTier.claim_orphan`):
+    its shared log compacted to Parquet under `data_root`, the index row ended as the lease says
+    (RECOVERED: its server died; ABANDONED: its stream ended without a close). Blocking."""
+    header = header_from_json(taken.header_json)
+    summariser = Summariser(dof_names=header.dof_names)
+    with shared.stream(header.session_id) as log:
+        location = _compact(data_root=data_root, header=header, log=log, summariser=summariser)
+    shared.finish(taken.lease, status=taken.ended_as, summary=summariser.result(), location=location)
+    return location

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sqlalchemy as sa
 
-__all__ = ["metadata", "models", "sessions"]
+__all__ = ["metadata", "models", "session_leases", "session_log", "sessions"]
 
 metadata = sa.MetaData(
     naming_convention={
@@ -86,4 +86,34 @@ sessions = sa.Table(
     sa.Index("ix_sessions_tenant_started", "tenant", "started_at"),
     sa.Index("ix_sessions_tenant_pseudonym", "tenant", "subject_pseudonym"),
     sa.Index("ix_sessions_status", "status"),
+)
+
+# Replicas sharing a PostgreSQL index (storage/shared.py): who owns an open session, under which
+# epoch (a write under an older epoch is refused: fencing), until when; and its log, one row per
+# commit window (an Arrow IPC record batch), until the session is compacted to Parquet.
+session_leases = sa.Table(
+    "session_leases",
+    metadata,
+    sa.Column("session_id", sa.String(36), primary_key=True),
+    sa.Column("tenant", sa.String(64), nullable=False, server_default=""),
+    # A random id per server process ("" while no stream holds the session); never a host name.
+    sa.Column("owner", sa.String(64), nullable=False, server_default=""),
+    sa.Column("epoch", sa.BigInteger, nullable=False),
+    sa.Column("expires_at", sa.DateTime(timezone=True), nullable=False),
+    # The highest result seq committed here with everything before it; NULL before any.
+    sa.Column("durable_seq", sa.BigInteger, nullable=True),
+    sa.Column("header_json", sa.Text, nullable=False),
+    # What a session nobody resumes is stored as: RECOVERED (its server died) or ABANDONED.
+    sa.Column("ended_as", sa.String(16), nullable=False, server_default="RECOVERED"),
+    sa.Index("ix_session_leases_expires_at", "expires_at"),
+)
+
+session_log = sa.Table(
+    "session_log",
+    metadata,
+    sa.Column("pk", sa.BigInteger().with_variant(sa.Integer, "sqlite"), primary_key=True, autoincrement=True),
+    sa.Column("session_id", sa.String(36), nullable=False),
+    sa.Column("epoch", sa.BigInteger, nullable=False),
+    sa.Column("data", sa.LargeBinary, nullable=False),
+    sa.Index("ix_session_log_session_id_pk", "session_id", "pk"),
 )

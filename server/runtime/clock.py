@@ -33,9 +33,10 @@ class MonotonicClock:
     def now(self) -> float:
         return time.monotonic() - self._start
 
-    def restart(self) -> None:
-        """Make now server time 0 (the session's clock starts as `opened` leaves)."""
-        self._start = time.monotonic()
+    def restart(self, *, elapsed: float = 0.0) -> None:
+        """Make now server time `elapsed` (the session's clock starts as `opened` leaves; a resumed
+        session's, at the time it has run since it first opened)."""
+        self._start = time.monotonic() - elapsed
 
     def to_monotonic(self, server_time: float) -> float:
         return self._start + server_time

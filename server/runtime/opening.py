@@ -7,7 +7,9 @@ subject anonymised, the stored header begun, a REALTIME session priced and admit
     opened.discard()                               # an open its client left before it was used
 
 Errors are the project's (jitdyn.errors): InvalidArgument for a bad request, NotFound for a model
-that does not exist, ResourceExhausted for a session the server cannot carry.
+that does not exist, ResourceExhausted for a session the server cannot carry; for a resume
+(`request.resume`), PermissionDenied for a wrong token, NotFound for a session that is not open,
+FailedPrecondition where the server shares no index with other replicas.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from datetime import UTC, datetime
 
 import mujoco
 
-from jitdyn.errors import ResourceExhausted
+from jitdyn.errors import FailedPrecondition, InvalidArgument, ResourceExhausted
 from jitdyn.estimator_settings import SETTINGS
 from jitdyn.registry import ModelInfo
 from jitdyn.server.estimation.config import EstimatorConfig, default_scenario, resolve_config
@@ -31,10 +33,14 @@ from jitdyn.server.estimation.interface import Estimator
 from jitdyn.server.runtime.admission import Ticket
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits, snapshot_bytes, tick_cost
 from jitdyn.server.runtime.plan import OpenRequest, SessionPlan, plan_session
+from jitdyn.server.runtime.resume import check_resume_token, resume_token
 from jitdyn.server.runtime.services import Services
 from jitdyn.server.runtime.session import SessionRuntime
+from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
+from jitdyn.storage.parquet import header_from_json
 from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.records import SessionHeader
+from jitdyn.storage.shared import TakenOver
 from jitdyn.vocabulary import Clock, JointType, Scenario
 
 __all__ = ["OpenedSession", "SessionOpener", "TickPrice"]
@@ -66,6 +72,10 @@ class OpenedSession:
     pseudonym: str
     scenario_reason: str  # why this scenario
     noise_reason: str  # why this noise model
+    resume_token: str = ""  # "" without a shared tier
+    resume_from_seq: int | None = None  # a resumed session: the first tick this stream answers
+    resume_reason: str = ""  # a resumed session: how its estimator continues
+    elapsed: float = 0.0  # s since the session first opened (a resumed session's clock goes on)
 
     @property
     def session_id(self) -> str:
@@ -91,6 +101,7 @@ class _Resolved:
     config: EstimatorConfig
     estimator: Estimator
     ticket: Ticket | None
+    taken: TakenOver | None  # a resumed session, held under a new epoch
 
 
 class SessionOpener:
@@ -118,7 +129,42 @@ class SessionOpener:
         return self._limits
 
     def open_session(self, request: OpenRequest) -> OpenedSession:
-        """Open `request`'s session. Blocking (the model, the estimator, the log's first write)."""
+        """Open `request`'s session, or continue the one it resumes. Blocking (the model, the
+        estimator, the log's first write)."""
+        try:
+            return self._open_or_resume(request)
+        except STORAGE_ERRORS as error:
+            # The registry or the index (the shared tier's database) did not answer.
+            raise storage_failure("the session could not be opened", error) from None
+
+    def _open_or_resume(self, request: OpenRequest) -> OpenedSession:
+        if request.resume is None:
+            return self._open(request, None)
+        taken = self._take_over(request)
+        try:
+            return self._open(request, taken)
+        except BaseException:
+            shared = self._services.shared
+            if shared is not None:
+                # Left for another resume (or, nobody resuming it, for a live replica to store).
+                shared.park(taken.lease, ended_as=taken.ended_as)
+            raise
+
+    def _take_over(self, request: OpenRequest) -> TakenOver:
+        """The session `request` resumes, held by this server from now on. A resume always takes
+        the session over, even from a live holder: a client presenting the token says its stream
+        is gone, and the holder, fenced by the new epoch, can write nothing more to it."""
+        resume, shared = request.resume, self._services.shared
+        assert resume is not None
+        if shared is None:
+            raise FailedPrecondition(
+                "open.resume: this server cannot resume sessions: it shares no index with other "
+                "replicas (serve with --index postgresql+psycopg://...)"
+            )
+        check_resume_token(self._services.resume_secret, resume.session_id, resume.token)
+        return shared.take_over(resume.session_id, tenant=request.tenant)
+
+    def _open(self, request: OpenRequest, taken: TakenOver | None) -> OpenedSession:
         info, model = self._model(request)
         plan = plan_session(request, timestep=info.timestep)
         limit = self._services.limits.max_state_dimension
@@ -159,6 +205,7 @@ class SessionOpener:
                 config=config,
                 estimator=estimator,
                 ticket=ticket,
+                taken=taken,
             )
             return self._start(resolved)
         except BaseException:
@@ -255,9 +302,25 @@ class SessionOpener:
         settings["preset"] = plan.preset
         attributes = services.anonymiser.check_attributes(plan.subject_attributes)
         pseudonym = services.anonymiser.pseudonym(plan.subject_id, tenant=resolved.tenant)
-        header = _header(resolved, settings=settings, pseudonym=pseudonym, attributes=attributes)
+        taken = resolved.taken
+        if taken is None:
+            header = _header(resolved, settings=settings, pseudonym=pseudonym, attributes=attributes)
+            first_tick = 0
+        else:
+            header = header_from_json(taken.header_json)
+            if header.model_id != resolved.info.id:
+                raise InvalidArgument(
+                    f"open.resume: session {header.session_id} runs model {header.model_id}, the open "
+                    f"names {resolved.info.id}; resume with the open the session was opened with"
+                )
+            first_tick = 0 if taken.durable_seq is None else taken.durable_seq + 1
         recorder = SessionRecorder(
-            data_root=services.data_root, index=services.index, header=header, committer=services.committer
+            data_root=services.data_root,
+            index=services.index,
+            header=header,
+            committer=services.committer,
+            shared=services.shared,
+            resumed=taken,
         )
         try:
             runtime = SessionRuntime(
@@ -268,6 +331,7 @@ class SessionOpener:
                 scenario=resolved.scenario,
                 history=plan.history,
                 max_history_bytes=self._limits.max_history_bytes,
+                first_tick=first_tick,
             )
             return OpenedSession(
                 plan=plan,
@@ -282,6 +346,15 @@ class SessionOpener:
                 pseudonym=pseudonym,
                 scenario_reason=resolved.scenario_reason,
                 noise_reason=_noise_reason(resolved),
+                resume_token=resume_token(services.resume_secret, header.session_id)
+                if services.shared is not None
+                else "",
+                resume_from_seq=None if taken is None else first_tick,
+                resume_reason=""
+                if taken is None
+                else f"the estimator restarts from the next frame (tick {first_tick} on); "
+                f"ticks up to {first_tick - 1} are stored",
+                elapsed=0.0 if taken is None else (datetime.now(UTC) - header.started_at).total_seconds(),
             )
         except BaseException:
             recorder.discard()

@@ -17,7 +17,7 @@ from jitdyn.estimator_settings import SettingValue, check_settings, steps_per_ti
 from jitdyn.registry import ModelMetadata
 from jitdyn.vocabulary import Channel, Clock, Horizon, Output, Preset, Scenario, parse
 
-__all__ = ["InlineModel", "ModelChoice", "OpenRequest", "SessionPlan", "plan_session"]
+__all__ = ["InlineModel", "ModelChoice", "OpenRequest", "Resume", "SessionPlan", "plan_session"]
 
 _MAX_DT = 10.0  # s
 _DEFAULT_HISTORY = 50  # ticks
@@ -64,6 +64,15 @@ class OpenRequest:
     estimator: Mapping[str, SettingValue] = field(default_factory=dict)  # the settings the client set
     subject_id: str = ""
     subject_attributes: Mapping[str, str] = field(default_factory=dict)
+    resume: Resume | None = None  # continue this session instead of opening a new one
+
+
+@dataclass(frozen=True, slots=True)
+class Resume:
+    """A session to continue, and the token its `opened` carried."""
+
+    session_id: str
+    token: str
 
 
 @dataclass(frozen=True, kw_only=True)

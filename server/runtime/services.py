@@ -1,5 +1,5 @@
 """What the servicers share: the registry, the index, the anonymiser, the worker pool, the group
-committer of the session logs, the limits.
+committer of the session logs, the limits, the shared tier of replicas (when there is one).
 
 Built once by server/transport/app.py; `admit` and `release` count open sessions against the limits.
 """
@@ -19,6 +19,7 @@ from jitdyn.settings import Settings
 from jitdyn.storage.anonymise import Anonymiser
 from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.shared import SharedTier
 
 __all__ = ["DEFAULT_SESSION_LIMITS", "Services", "SessionLimits"]
 
@@ -52,6 +53,11 @@ class Services:
     # One commit thread and one flush to disk per window for every session of this process.
     committer: GroupCommitter = field(default_factory=GroupCommitter)
     admission: Admission = field(default_factory=Admission)
+    # Replicas sharing a PostgreSQL index: leases and logs in the shared tier, sessions resumable
+    # with a token made from `resume_secret`. None: one machine (SQLite, local logs).
+    shared: SharedTier | None = None
+    resume_secret: bytes = b""
+    resume_timeout: float = _DEFAULTS.resume_timeout
     _open: Counter[str] = field(default_factory=Counter)
     _lock: threading.Lock = field(default_factory=threading.Lock)
 

@@ -119,6 +119,7 @@ class SessionRuntime:
         scenario: Scenario,
         history: int,
         max_history_bytes: int | None = None,
+        first_tick: int = 0,
     ) -> None:
         self._model = model
         self._estimator = estimator
@@ -134,7 +135,10 @@ class SessionRuntime:
         self._sized_for = -1  # the state dimension the retained count was last sized at
         self._ticks: OrderedDict[int, _Tick] = OrderedDict()
         self._initialised = False
-        self._next = 0
+        # A resumed session continues at `first_tick`, its estimator restarted from the next
+        # frame, and the first estimate says so (`reinitialised`).
+        self._next = first_tick
+        self._restarted = first_tick > 0
         self.counts = SessionCounts()
         self._zero_ctrl = np.zeros(model.nu)
         self._qpos0 = model.qpos0.copy()
@@ -358,6 +362,9 @@ class SessionRuntime:
         if not self._initialised:
             self._estimator.initialise(measurement)
             self._initialised = True
+            if self._restarted:
+                self._restarted = False
+                return dataclasses.replace(self._estimator.extrapolate(0.0), reinitialised=True)
             return self._estimator.extrapolate(0.0)
         self._estimator.advance(ctrl=tick.ctrl if self._controlled else None)
         return self._estimator.update(measurement)

@@ -28,6 +28,7 @@ from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
+from jitdyn.server.runtime.orphans import finish_orphans
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
@@ -37,10 +38,12 @@ from jitdyn.server.transport.registry_service import ModelRegistryServicer
 from jitdyn.server.transport.session_service import SessionServicer
 from jitdyn.settings import Settings, default_workers
 from jitdyn.storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
+from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.layout import prepare_data_root
 from jitdyn.storage.recorder import recover_unfinished
+from jitdyn.storage.shared import SharedTier, new_owner_id
 from jitdyn.v1 import (
     dynamics_pb2,
     dynamics_pb2_grpc,
@@ -106,6 +109,10 @@ class ServerConfig:
     shares_process: bool = False
     # Per session: history memory, clock offset, idle time, tick cost (server/runtime/limits.py).
     stream_limits: StreamLimits = DEFAULT_STREAM_LIMITS
+    # Replicas sharing a PostgreSQL index: leases, resumption, draining (jitdyn.settings).
+    lease_ttl: float = _DEFAULTS.lease_ttl
+    resume_timeout: float = _DEFAULTS.resume_timeout
+    drain_grace: float = _DEFAULTS.drain_grace
 
     @classmethod
     def from_settings(cls, settings: Settings, **overrides: object) -> ServerConfig:
@@ -121,6 +128,9 @@ class ServerConfig:
             "api_keys": settings.api_keys,
             "insecure": settings.insecure,
             "metrics_address": settings.metrics_address,
+            "lease_ttl": settings.lease_ttl,
+            "resume_timeout": settings.resume_timeout,
+            "drain_grace": settings.drain_grace,
             "session_limits": SessionLimits(
                 max_sessions=settings.max_sessions,
                 max_sessions_per_tenant=settings.max_sessions_per_tenant,
@@ -254,7 +264,18 @@ async def _services(
     registry = ModelRegistry(engine=engine, data_root=data_root, limits=config.registry_limits)
     if config.startup_tasks:
         await asyncio.to_thread(registry.register_builtins)
+    # A PostgreSQL index is shared by replicas on other hosts: the session logs go to it, so that
+    # what is acknowledged survives this host (docs/decisions/0120-durable-off-the-host.md).
+    shared = (
+        SharedTier(engine, owner=new_owner_id(), lease_ttl=config.lease_ttl)
+        if engine.dialect.name == "postgresql"
+        else None
+    )
     services = Services(
+        shared=shared,
+        resume_secret=secret,
+        resume_timeout=config.resume_timeout,
+        committer=GroupCommitter(shared=shared),
         registry=registry,
         index=index,
         anonymiser=Anonymiser(secret, allowed_attributes=config.allowed_attributes),
@@ -272,9 +293,9 @@ async def _services(
     model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(
         ModelRegistryServicer(registry), server
     )
-    dynamics_pb2_grpc.add_DynamicsServiceServicer_to_server(
-        DynamicsServicer(services, limits=config.stream_limits), server
-    )
+    dynamics_servicer = DynamicsServicer(services, limits=config.stream_limits)
+    server.dynamics = dynamics_servicer  # type: ignore[attr-defined]
+    dynamics_pb2_grpc.add_DynamicsServiceServicer_to_server(dynamics_servicer, server)
     session_pb2_grpc.add_SessionServiceServicer_to_server(SessionServicer(index), server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
@@ -324,7 +345,20 @@ async def serve(
         loop.add_signal_handler(signum, stop.set)
     waiter = asyncio.create_task(server.wait_for_termination())
     stopper = asyncio.create_task(stop.wait())
+    orphans = (
+        asyncio.create_task(finish_orphans(services, data_root=services.data_root))
+        if services.shared is not None
+        else None
+    )
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
+    if orphans is not None:
+        orphans.cancel()
+        await asyncio.gather(orphans, return_exceptions=True)
+    if services.shared is not None:
+        announce(f"jitdyn draining: open sessions are told to move (grace {config.drain_grace:g} s)")
+        await server.health.enter_graceful_shutdown()  # type: ignore[attr-defined]
+        left = await server.dynamics.drain(grace=config.drain_grace)  # type: ignore[attr-defined]
+        announce(f"jitdyn drained: {left} session(s) had not moved")
     announce("jitdyn shutting down: open sessions are being stored")
     await shutdown(server, services, grace=config.shutdown_grace)
     stopper.cancel()

@@ -3,6 +3,9 @@
 The servicer reads the stream, hands frames to the session runtime (server/runtime/session.py) off the event
 loop, writes one response per request in order (LOCKSTEP) or one result per tick at its deadline
 (REALTIME), and records every answer through the session recorder before it is sent.
+
+With a shared tier, a stream that ends without a close parks its session for a resume instead of
+ending it, and `drain` (SIGTERM) tells every open session to move to another replica (`moving`).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from typing import Any, TypeVar
 
 import grpc
 
-from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError
+from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
 from jitdyn.mujoco_log import counting
 from jitdyn.server.runtime.alarm import Alarm
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
@@ -98,6 +101,8 @@ class _Stream:
         self.lock = asyncio.Lock()
         self.pending: dict[int, FrameIn] = {}
         self.closed = False
+        # Responses come from the request loop, the REALTIME clock and a drain's `moving`: one at a time.
+        self.write_lock = asyncio.Lock()
 
     # Everything below runs in a worker thread, under `lock`.
 
@@ -329,7 +334,7 @@ class _RealtimeClock:
     def __init__(self, stream: _Stream, context: _Context) -> None:
         self._stream = stream
         self._context = context
-        self._write_lock = asyncio.Lock()
+        self._write_lock = stream.write_lock
         self._wakeup = Alarm.of(asyncio.get_running_loop()).wakeup()
 
     async def write(self, response: Response) -> None:
@@ -374,6 +379,9 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         self._services = services
         self._limits = limits
         self._opener = SessionOpener(services, limits=limits, on_admission=self._count_admission)
+        self._streams: dict[_Stream, _Context] = {}
+        self._draining = False
+        self._all_moved = asyncio.Event()
 
     def _count_admission(self, refused: bool) -> None:
         if refused:
@@ -398,6 +406,11 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             await abort(
                 context, FailedPrecondition(f"the first message of a session must be `open`, got `{kind}`")
             )
+        if self._draining:
+            await abort(
+                context,
+                Unavailable("this replica is draining (it is being stopped); open the session on another"),
+            )
         try:
             request = open_request(first.open, tenant=tenant_of(context))
             stream, opened = await self._open(request)
@@ -418,7 +431,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             # opening (the log's fsync, the index row) took milliseconds, tens under load, which the
             # client's clock knows nothing of; counted in, every frame looked late until a clock
             # probe completed.
-            stream.clock.restart()
+            stream.clock.restart(elapsed=stream.opened.elapsed)
+            self._streams[stream] = context
             await context.write(Response(opened=opened))
             if stream.plan.clock == Clock.REALTIME:
                 await self._realtime(stream, request_iterator, context)
@@ -433,9 +447,50 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             context.set_code(error.code)
             context.set_details(str(error))
         finally:
-            if not stream.closed:
-                # The client went away or the server is stopping: what arrived is stored.
-                await asyncio.shield(self._finish_quietly(stream, status))
+            try:
+                if not stream.closed:
+                    # The client went away or the server is stopping: what arrived is stored (with
+                    # a shared tier, kept for a resume).
+                    await asyncio.shield(self._finish_quietly(stream, status))
+            finally:
+                # Also when a second cancel interrupts the wait above (the storing goes on).
+                self._streams.pop(stream, None)
+                if not self._streams:
+                    self._all_moved.set()
+
+    async def drain(self, *, grace: float) -> int:
+        """Refuse new sessions, tell every open one to move (`moving`, with what is durable), and
+        wait up to `grace` seconds for their clients to leave; the sessions still open then."""
+        self._draining = True
+        streams = list(self._streams.items())
+        for stream, context in streams:
+            await self._tell_to_move(stream, context)
+        if self._streams:
+            self._all_moved.clear()
+            try:
+                async with asyncio.timeout(grace):
+                    while self._streams:
+                        await self._all_moved.wait()
+                        self._all_moved.clear()
+            except TimeoutError:
+                pass
+        return len(self._streams)
+
+    async def _tell_to_move(self, stream: _Stream, context: _Context) -> None:
+        recorder = stream.recorder
+        try:
+            await asyncio.to_thread(recorder.flush, 5.0)
+        except JitdynError as error:
+            _log.warning("session %s: not flushed before moving: %s", recorder.header.session_id, error)
+        durable = recorder.durable_seq
+        moving = dynamics_pb2.Moving(reason="the replica is draining (it is being stopped)")
+        if durable is not None:
+            moving.durable_seq = durable
+        try:
+            async with stream.write_lock:
+                await context.write(Response(moving=moving))
+        except Exception:  # noqa: BLE001 (a stream that has just ended: nothing to tell)
+            _log.debug("session %s: `moving` not sent", recorder.header.session_id, exc_info=True)
 
     async def _open(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
         services, tenant = self._services, request.tenant
@@ -490,13 +545,19 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             kind = request.WhichOneof("payload")
             if kind == "frame":
                 for response in await asyncio.to_thread(stream.on_frame, request.frame, arrived):
-                    await context.write(response)
+                    async with stream.write_lock:
+                        await context.write(response)
             elif kind == "skip":
-                await context.write(await asyncio.to_thread(stream.on_skip, request.skip.seq, arrived))
+                response = await asyncio.to_thread(stream.on_skip, request.skip.seq, arrived)
+                async with stream.write_lock:
+                    await context.write(response)
             elif kind == "sync":
-                await context.write(self._pong(stream, request.sync, arrived))
+                async with stream.write_lock:
+                    await context.write(self._pong(stream, request.sync, arrived))
             elif kind == "close":
-                await context.write(await self._close(stream))
+                response = await self._close(stream)
+                async with stream.write_lock:
+                    await context.write(response)
                 return
             else:
                 raise InvalidArgument(_unexpected(kind))
@@ -617,7 +678,11 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         stream.runtime.release()
         stream.pending.clear()
         try:
-            location = await asyncio.to_thread(stream.recorder.close, summary, status=status)
+            if status == SessionStatus.ABANDONED and stream.recorder.resumable:
+                await asyncio.to_thread(stream.recorder.park)
+                location = ""
+            else:
+                location = await asyncio.to_thread(stream.recorder.close, summary, status=status)
         except STORAGE_ERRORS as error:
             raise storage_failure(
                 f"session {stream.recorder.header.session_id} could not be stored", error

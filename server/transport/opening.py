@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from jitdyn.errors import InvalidArgument
 from jitdyn.server.runtime.opening import OpenedSession
-from jitdyn.server.runtime.plan import InlineModel, ModelChoice, OpenRequest
+from jitdyn.server.runtime.plan import InlineModel, ModelChoice, OpenRequest, Resume
 from jitdyn.server.transport.model_messages import (
     metadata_from_message,
     model_message,
@@ -44,7 +44,16 @@ def open_request(message: dynamics_pb2.OpenSession, *, tenant: str) -> OpenReque
         estimator=settings_from_message(message.estimator, argument="open.estimator"),
         subject_id=message.subject.id,
         subject_attributes=dict(message.subject.attributes),
+        resume=_resume(message),
     )
+
+
+def _resume(message: dynamics_pb2.OpenSession) -> Resume | None:
+    if not message.HasField("resume"):
+        return None
+    if not message.resume.session_id or not message.resume.token:
+        raise InvalidArgument("open.resume needs session_id and token (those of the session's `opened`)")
+    return Resume(session_id=message.resume.session_id, token=message.resume.token)
 
 
 def _model_choice(message: dynamics_pb2.OpenSession) -> ModelChoice:
@@ -86,4 +95,7 @@ def opened_message(opened: OpenedSession) -> dynamics_pb2.SessionOpened:
         scenario=common_pb2.Scenario.ValueType(to_proto(opened.scenario)),
         scenario_reason=opened.scenario_reason,
         noise_reason=opened.noise_reason,
+        resume_token=opened.resume_token,
+        resume_from_seq=opened.resume_from_seq,
+        resume_reason=opened.resume_reason,
     )

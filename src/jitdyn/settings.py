@@ -291,6 +291,34 @@ class Settings:
     max_state_dimension: int = setting(
         200, parse=positive_int, commands=("serve",), metavar="N", help="largest nv of a session's model"
     )
+    lease_ttl: float = setting(
+        10.0,
+        parse=checked(parse_duration, lambda value: value > 0, "a duration > 0, like 10s"),
+        commands=("serve",),
+        metavar="DURATION",
+        default_text="10s",
+        help="with a PostgreSQL index: how long a replica's hold on its open sessions lasts unless "
+        "renewed (it renews every third of it); a replica silent that long is taken for dead",
+    )
+    resume_timeout: float = setting(
+        30.0,
+        parse=checked(parse_duration, lambda value: value >= 0, "a duration >= 0, like 30s"),
+        commands=("serve",),
+        metavar="DURATION",
+        default_text="30s",
+        help="with a PostgreSQL index: a session whose replica died or whose stream ended without a "
+        "close, and that nobody resumes within this time after its hold ran out, is stored by a live "
+        "replica (RECOVERED or ABANDONED)",
+    )
+    drain_grace: float = setting(
+        30.0,
+        parse=checked(parse_duration, lambda value: value >= 0, "a duration >= 0, like 30s"),
+        commands=("serve",),
+        metavar="DURATION",
+        default_text="30s",
+        help="on SIGTERM: how long the server waits for its open sessions to move to other replicas "
+        "(they are told to) before it stops",
+    )
 
 
 def _setting(f: dataclasses.Field[Any]) -> Setting:

@@ -89,7 +89,9 @@ def start_replica(index_url: str, tmp_path: Path) -> Iterator[Callable[..., Repl
     with ExitStack() as stack:
 
         def start(name: str, host: str, **options: object) -> Replica:
-            replica = Replica.start(name, host=host, data=tmp_path / name, index_url=index_url, **options)  # type: ignore[arg-type]
+            options.setdefault("data", tmp_path / name)
+            options.setdefault("index_url", index_url)
+            replica = Replica.start(name, host=host, **options)  # type: ignore[arg-type]
             return stack.enter_context(replica)
 
         yield start

@@ -1,0 +1,290 @@
+"""The shared tier of replicas that share a PostgreSQL index: each open session's lease (owner,
+epoch, expiry) and its log, one row per commit window, so that an acknowledged frame survives the
+loss of the replica that answered it (why PostgreSQL and not the object store:
+docs/decisions/0120-durable-off-the-host.md).
+
+    tier = SharedTier(engine, owner=new_owner_id(), lease_ttl=10.0)
+    lease = tier.create(header)                 # epoch 1, owned by this process
+    fenced = tier.commit([Window(lease, top_seq, data)])   # one transaction for every session
+    taken = tier.take_over(session_id, tenant)  # a resume on another replica: epoch + 1
+
+Every write names the epoch it holds; one made under an older epoch changes nothing and is
+reported fenced, so a replica cut off and back cannot write to a session another has taken over.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import uuid
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Final
+
+import pyarrow as pa
+import sqlalchemy as sa
+
+from jitdyn.errors import FailedPrecondition, NotFound
+from jitdyn.lifecycle import Closeable
+from jitdyn.storage.columns import LOG_SCHEMA
+from jitdyn.storage.index import finish_session
+from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
+from jitdyn.storage.schema import session_leases, session_log, sessions
+from jitdyn.vocabulary import SessionStatus
+
+__all__ = ["Fenced", "Lease", "SharedLogStream", "SharedTier", "TakenOver", "Window", "new_owner_id"]
+
+# The log rows of one session read per query while compacting (bounded memory).
+_READ_PAGE: Final = 256
+
+
+class Fenced(FailedPrecondition):
+    """A write under an epoch that is no longer the session's: another replica took it over."""
+
+
+def new_owner_id() -> str:
+    """A random id for this server process's leases: never a host name (nothing stored names a host)."""
+    return uuid.uuid4().hex
+
+
+@dataclass(frozen=True, slots=True)
+class Lease:
+    """A session held under `epoch` by this process."""
+
+    session_id: str
+    epoch: int
+
+
+@dataclass(frozen=True, slots=True)
+class TakenOver:
+    """A session taken over: its new lease, the header it was opened with, and how far it is stored."""
+
+    lease: Lease
+    header_json: str
+    durable_seq: int | None
+    ended_as: SessionStatus
+
+
+@dataclass(frozen=True, slots=True)
+class Window:
+    """One session's rows of a commit window: an encapsulated Arrow IPC record batch (LOG_SCHEMA),
+    and the highest result seq among them (None: only rejections)."""
+
+    lease: Lease
+    top_seq: int | None
+    data: bytes
+
+
+def _now() -> _dt.datetime:
+    return _dt.datetime.now(_dt.UTC)
+
+
+class SharedTier:
+    """Leases and logs in the index database. Thread-safe (a connection per call)."""
+
+    def __init__(self, engine: sa.Engine, *, owner: str, lease_ttl: float) -> None:
+        self.engine = engine
+        self.owner = owner
+        self.lease_ttl = lease_ttl
+
+    def _expiry(self) -> _dt.datetime:
+        return _now() + _dt.timedelta(seconds=self.lease_ttl)
+
+    def create(self, header: SessionHeader, *, header_json: str, conn: sa.Connection) -> Lease:
+        """The lease of a new session, epoch 1, in the caller's transaction (the index row's)."""
+        conn.execute(
+            sa.insert(session_leases).values(
+                session_id=header.session_id,
+                tenant=header.tenant,
+                owner=self.owner,
+                epoch=1,
+                expires_at=self._expiry(),
+                durable_seq=None,
+                header_json=header_json,
+                ended_as=SessionStatus.RECOVERED.value,
+            )
+        )
+        return Lease(header.session_id, 1)
+
+    def commit(self, windows: Sequence[Window]) -> set[str]:
+        """Append every session's window to its log and renew its lease, in one transaction; the
+        sessions whose epoch is no longer theirs are left out and returned (fenced)."""
+        if not windows:
+            return set()
+        leases = session_leases.c
+        values = sa.values(
+            sa.column("sid", sa.String),
+            sa.column("ep", sa.BigInteger),
+            sa.column("top", sa.BigInteger),
+            name="window",
+        ).data([(w.lease.session_id, w.lease.epoch, w.top_seq) for w in windows])
+        with self.engine.begin() as conn:
+            # One statement for every session: the row locks it takes order the commit against a
+            # take-over (whichever comes second sees the other's epoch); PostgreSQL's greatest()
+            # ignores NULL.
+            kept = set(
+                conn.execute(
+                    sa.update(session_leases)
+                    .where(leases.session_id == values.c.sid, leases.epoch == values.c.ep)
+                    .values(
+                        expires_at=self._expiry(),
+                        durable_seq=sa.func.greatest(leases.durable_seq, values.c.top),
+                    )
+                    .returning(leases.session_id)
+                ).scalars()
+            )
+            rows = [
+                {"session_id": w.lease.session_id, "epoch": w.lease.epoch, "data": w.data}
+                for w in windows
+                if w.lease.session_id in kept
+            ]
+            if rows:
+                conn.execute(sa.insert(session_log), rows)
+        return {w.lease.session_id for w in windows} - kept
+
+    def renew(self, leases: Sequence[Lease]) -> set[str]:
+        """Extend the leases this process holds; the session ids no longer held (fenced)."""
+        if not leases:
+            return set()
+        c = session_leases.c
+        held: set[str] = set()
+        with self.engine.begin() as conn:
+            expires = self._expiry()
+            for lease in leases:
+                if conn.execute(
+                    sa.update(session_leases)
+                    .where(c.session_id == lease.session_id, c.epoch == lease.epoch)
+                    .values(expires_at=expires)
+                ).rowcount:
+                    held.add(lease.session_id)
+        return {lease.session_id for lease in leases} - held
+
+    def park(self, lease: Lease, *, ended_as: SessionStatus) -> None:
+        """Let go of a session whose stream ended without a close: anyone may resume it now, and
+        nobody doing so within the resume timeout leaves it to be stored as `ended_as`."""
+        c = session_leases.c
+        with self.engine.begin() as conn:
+            updated = conn.execute(
+                sa.update(session_leases)
+                .where(c.session_id == lease.session_id, c.epoch == lease.epoch)
+                .values(owner="", expires_at=_now(), ended_as=ended_as.value)
+            ).rowcount
+        if updated != 1:
+            raise Fenced(f"session {lease.session_id} was taken over by another stream")
+
+    def take_over(self, session_id: str, *, tenant: str) -> TakenOver:
+        """Hold an OPEN session under a new epoch, whoever held it (its old holder's writes are
+        fenced from now on). NotFound for a session that is not open here."""
+        c = session_leases.c
+        with self.engine.begin() as conn:
+            row = conn.execute(
+                sa.update(session_leases)
+                .where(c.session_id == session_id, c.tenant == tenant)
+                .values(epoch=c.epoch + 1, owner=self.owner, expires_at=self._expiry())
+                .returning(c.epoch, c.header_json, c.durable_seq, c.ended_as)
+            ).one_or_none()
+        if row is None:
+            raise NotFound(f"session {session_id!r} is not open: it is unknown, or it has ended")
+        return TakenOver(
+            lease=Lease(session_id, int(row.epoch)),
+            header_json=row.header_json,
+            durable_seq=None if row.durable_seq is None else int(row.durable_seq),
+            ended_as=SessionStatus(row.ended_as),
+        )
+
+    def claim_orphan(self, *, resume_timeout: float) -> TakenOver | None:
+        """Take over one session whose lease ran out more than `resume_timeout` ago (its server
+        died, or its stream ended, and nobody resumed it); None when there is none."""
+        c = session_leases.c
+        stale = _now() - _dt.timedelta(seconds=resume_timeout)
+        with self.engine.begin() as conn:
+            candidate = conn.execute(
+                sa.select(c.session_id, c.tenant)
+                # Never this process's own: a session it still serves whose renewals the database
+                # missed (an outage) is not an orphan; another replica may take it, fencing it.
+                .where(c.expires_at < stale, c.owner != self.owner)
+                .order_by(c.expires_at)
+                .limit(1)
+                .with_for_update(skip_locked=True)
+            ).one_or_none()
+            if candidate is None:
+                return None
+            row = conn.execute(
+                sa.update(session_leases)
+                .where(c.session_id == candidate.session_id)
+                .values(epoch=c.epoch + 1, owner=self.owner, expires_at=self._expiry())
+                .returning(c.epoch, c.header_json, c.durable_seq, c.ended_as)
+            ).one()
+        return TakenOver(
+            lease=Lease(candidate.session_id, int(row.epoch)),
+            header_json=row.header_json,
+            durable_seq=None if row.durable_seq is None else int(row.durable_seq),
+            ended_as=SessionStatus(row.ended_as),
+        )
+
+    def stream(self, session_id: str) -> SharedLogStream:
+        """The session's log, batch by batch (use as a context manager)."""
+        return SharedLogStream(self.engine, session_id)
+
+    def finish(
+        self,
+        lease: Lease,
+        *,
+        status: SessionStatus,
+        summary: SessionSummaryInfo,
+        location: str,
+    ) -> None:
+        """End the session in one transaction: the lease (fenced), the index row, the log rows."""
+        c = session_leases.c
+        with self.engine.begin() as conn:
+            gone = conn.execute(
+                sa.delete(session_leases).where(c.session_id == lease.session_id, c.epoch == lease.epoch)
+            ).rowcount
+            if gone != 1:
+                raise Fenced(f"session {lease.session_id} was taken over by another stream")
+            finish_session(conn, lease.session_id, status=status, summary=summary, location=location)
+            conn.execute(sa.delete(session_log).where(session_log.c.session_id == lease.session_id))
+
+    def discard(self, lease: Lease) -> None:
+        """Remove a session that was never served: its lease, its log rows, its index row."""
+        with self.engine.begin() as conn:
+            conn.execute(sa.delete(session_leases).where(session_leases.c.session_id == lease.session_id))
+            conn.execute(sa.delete(session_log).where(session_log.c.session_id == lease.session_id))
+            conn.execute(
+                sa.delete(sessions).where(
+                    sessions.c.session_id == lease.session_id,
+                    sessions.c.status == SessionStatus.OPEN.value,
+                )
+            )
+
+
+class SharedLogStream(Closeable):
+    """A session's shared log read page by page, as `storage.log.LogStream` reads a local one:
+    `batches()` once; `torn` is always False (a window is committed whole or not at all)."""
+
+    torn = False
+
+    def __init__(self, engine: sa.Engine, session_id: str) -> None:
+        self._engine = engine
+        self._session_id = session_id
+
+    def batches(self) -> Iterator[pa.RecordBatch]:
+        last = -1
+        c = session_log.c
+        while True:
+            with self._engine.connect() as conn:
+                page = conn.execute(
+                    sa.select(c.pk, c.data)
+                    .where(c.session_id == self._session_id, c.pk > last)
+                    .order_by(c.pk)
+                    .limit(_READ_PAGE)
+                ).all()
+            if not page:
+                return
+            for row in page:
+                last = row.pk
+                batch = pa.ipc.read_record_batch(pa.py_buffer(row.data), LOG_SCHEMA)
+                if batch.num_rows:
+                    yield batch
+
+    def close(self) -> None:
+        """Nothing is held between pages."""
