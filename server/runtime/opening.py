@@ -307,13 +307,7 @@ class SessionOpener:
             header = _header(resolved, settings=settings, pseudonym=pseudonym, attributes=attributes)
             first_tick = 0
         else:
-            header = header_from_json(taken.header_json)
-            if header.model_id != resolved.info.id:
-                raise InvalidArgument(
-                    f"open.resume: session {header.session_id} runs model {header.model_id}, the open "
-                    f"names {resolved.info.id}; resume with the open the session was opened with"
-                )
-            first_tick = 0 if taken.durable_seq is None else taken.durable_seq + 1
+            header, first_tick = _resumed_header(resolved, taken)
         recorder = SessionRecorder(
             data_root=services.data_root,
             index=services.index,
@@ -359,6 +353,17 @@ class SessionOpener:
         except BaseException:
             recorder.discard()
             raise
+
+
+def _resumed_header(resolved: _Resolved, taken: TakenOver) -> tuple[SessionHeader, int]:
+    """The stored header of a session taken over for a resume, and its first tick to come."""
+    header = header_from_json(taken.header_json)
+    if header.model_id != resolved.info.id:
+        raise InvalidArgument(
+            f"open.resume: session {header.session_id} runs model {header.model_id}, the open "
+            f"names {resolved.info.id}; resume with the open the session was opened with"
+        )
+    return header, 0 if taken.durable_seq is None else taken.durable_seq + 1
 
 
 def _scenario(plan: SessionPlan, model: mujoco.MjModel) -> tuple[Scenario, str]:

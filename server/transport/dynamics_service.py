@@ -401,25 +401,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             first = None
         if first is None:
             return
-        kind = first.WhichOneof("payload")
-        if kind != "open":
-            await abort(
-                context, FailedPrecondition(f"the first message of a session must be `open`, got `{kind}`")
-            )
-        if self._draining:
-            await abort(
-                context,
-                Unavailable("this replica is draining (it is being stopped); open the session on another"),
-            )
-        try:
-            request = open_request(first.open, tenant=tenant_of(context))
-            stream, opened = await self._open(request)
-        except JitdynError as error:
-            await abort(context, error)
-        except Exception:  # noqa: BLE001 (a bug: logged with its traceback, as translate_errors does)
-            # The client learns nothing of the server's insides.
-            _log.exception("internal error while opening a session")
-            await context.abort(grpc.StatusCode.INTERNAL, "internal server error; see the server log")
+        stream, opened = await self._accept(first, context)
         # A stream that ends without `close` was left by its client (cancelled, vanished, or just
         # stopped sending) or cut by a stopping server: stored as ABANDONED. Everything from here on
         # is inside the try, so that a cancel arriving while `opened` is written still stores the
@@ -457,6 +439,32 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 self._streams.pop(stream, None)
                 if not self._streams:
                     self._all_moved.set()
+
+    async def _accept(
+        self, first: dynamics_pb2.StreamSessionRequest, context: _Context
+    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        """Open the session the stream's first message asks for, or end the stream with the status
+        that says why not."""
+        kind = first.WhichOneof("payload")
+        if kind != "open":
+            await abort(
+                context, FailedPrecondition(f"the first message of a session must be `open`, got `{kind}`")
+            )
+        if self._draining:
+            await abort(
+                context,
+                Unavailable("this replica is draining (it is being stopped); open the session on another"),
+            )
+        try:
+            request = open_request(first.open, tenant=tenant_of(context))
+            return await self._open(request)
+        except JitdynError as error:
+            await abort(context, error)
+        except Exception:  # noqa: BLE001 (a bug: logged with its traceback, as translate_errors does)
+            # The client learns nothing of the server's insides.
+            _log.exception("internal error while opening a session")
+            await context.abort(grpc.StatusCode.INTERNAL, "internal server error; see the server log")
+        raise AssertionError("unreachable: abort raises")  # pragma: no cover
 
     async def drain(self, *, grace: float) -> int:
         """Refuse new sessions, tell every open one to move (`moving`, with what is durable), and
