@@ -483,13 +483,12 @@ class ResumePolicy:
 @dataclass(frozen=True)
 class Resumption:
     """One resume the SDK made: from which tick the new stream went on, why the stream broke, the
-    server's `resume_reason`, the REALTIME ticks missed, and how long it took (seconds)."""
+    server's `resume_reason`, how many opens it took and how long (seconds)."""
 
     session_id: str
     from_seq: int
     cause: str
     reason: str
-    missed: int
     attempts: int
     took: float
 
