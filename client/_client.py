@@ -31,8 +31,8 @@ from jitdyn.client._models import (
     FrameData,
     ModelRef,
     Rejection,
-    Resumption,
     ResumePolicy,
+    Resumption,
     SessionOptions,
     Summary,
     SyncSample,
@@ -201,12 +201,7 @@ class Session:
         return item[1]
 
     def _resumable(self, code: grpc.StatusCode) -> bool:
-        return (
-            self._policy.enabled
-            and bool(self._token)
-            and not self._cancelled
-            and code in RESUMABLE_CODES
-        )
+        return self._policy.enabled and bool(self._token) and not self._cancelled and code in RESUMABLE_CODES
 
     def _raw(self, timeout: float | None) -> _Item:
         """The current stream's next item, with none of the resume logic."""

@@ -45,18 +45,25 @@ def cluster(
 
 def owner(replicas: list[Replica]) -> Replica:
     """The replica with the one open session."""
-    holding = [r for r in replicas if r.process.poll() is None and r.metrics().get("jitdyn_open_sessions", 0) > 0]
+    holding = [
+        r for r in replicas if r.process.poll() is None and r.metrics().get("jitdyn_open_sessions", 0) > 0
+    ]
     assert len(holding) == 1, [(r.name, r.metrics().get("jitdyn_open_sessions")) for r in replicas]
     return holding[0]
 
 
 def stored_seqs(folder: Path, location: str) -> list[int]:
     table = pq.read_table(folder / location, columns=["kind", "seq"])
-    return sorted(s for k, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True) if k == "result")
+    return sorted(
+        s for k, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True) if k == "result"
+    )
 
 
 def test_a_killed_replica_s_session_resumes_on_another_without_an_error(
-    start_replica: Callable[..., Replica], start_balancer: Callable[..., Balancer], index_url: str, tmp_path: Path
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    index_url: str,
+    tmp_path: Path,
 ) -> None:
     replicas, balancer = cluster(start_replica, start_balancer, tmp_path)
     with Client(balancer.address, timeout=30) as client:
@@ -70,8 +77,10 @@ def test_a_killed_replica_s_session_resumes_on_another_without_an_error(
     assert seqs == list(range(80)), "every frame answered once, in order"
     assert len(session.resumptions) == 1 and summary.resumes == 1 and summary.missed == 0
     resumption = session.resumptions[0]
-    print(f"resumed after kill -9 in {1e3 * resumption.took:.0f} ms ({resumption.attempts} attempts, "
-          f"cause {resumption.cause!r}) from tick {resumption.from_seq}: {resumption.reason}")
+    print(
+        f"resumed after kill -9 in {1e3 * resumption.took:.0f} ms ({resumption.attempts} attempts, "
+        f"cause {resumption.cause!r}) from tick {resumption.from_seq}: {resumption.reason}"
+    )
     assert resumption.session_id == session.opened.session_id
     row = session_row(index_url, session.opened.session_id)
     assert row is not None and row["status"] == "COMPLETE"
@@ -79,7 +88,10 @@ def test_a_killed_replica_s_session_resumes_on_another_without_an_error(
 
 
 def test_a_draining_replica_moves_its_session_without_an_error(
-    start_replica: Callable[..., Replica], start_balancer: Callable[..., Balancer], index_url: str, tmp_path: Path
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    index_url: str,
+    tmp_path: Path,
 ) -> None:
     replicas, balancer = cluster(start_replica, start_balancer, tmp_path)
     with Client(balancer.address, timeout=30) as client:
@@ -87,7 +99,11 @@ def test_a_draining_replica_moves_its_session_without_an_error(
         seqs = [session.send_frame(frame(k)).seq for k in range(30)]
         leaving = owner(replicas)
         os.killpg(leaving.process.pid, signal.SIGTERM)
-        wait_for(lambda: balancer.server_states().get(leaving.name) != "UP", timeout=10, what="haproxy kept the draining replica UP")
+        wait_for(
+            lambda: balancer.server_states().get(leaving.name) != "UP",
+            timeout=10,
+            what="haproxy kept the draining replica UP",
+        )
         seqs += [session.send_frame(frame(k)).seq for k in range(30, 60)]
         summary = session.close()
     leaving.process.wait(timeout=20)
