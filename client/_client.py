@@ -16,12 +16,14 @@ told otherwise.
 
 from __future__ import annotations
 
+import collections
+import dataclasses
 import queue
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from types import TracebackType
-from typing import Self, TypeVar
+from typing import Any, Self, TypeVar
 
 import grpc
 
@@ -29,6 +31,8 @@ from jitdyn.client._models import (
     FrameData,
     ModelRef,
     Rejection,
+    ResumePolicy,
+    Resumption,
     SessionOptions,
     Summary,
     SyncSample,
@@ -38,8 +42,22 @@ from jitdyn.client._models import (
     session_answer,
     sync_request,
 )
-from jitdyn.client._transport import CHANNEL_OPTIONS, END, End, auth_metadata, status_error
-from jitdyn.errors import FailedPrecondition, NoAnswer, error_for_status
+from jitdyn.client._transport import (
+    END,
+    RESUMABLE_CODES,
+    End,
+    auth_metadata,
+    channel_options,
+    status_error,
+)
+from jitdyn.errors import (
+    FailedPrecondition,
+    NoAnswer,
+    ResumeBufferFull,
+    SessionLost,
+    Unavailable,
+    error_for_status,
+)
 from jitdyn.lifecycle import Closeable
 from jitdyn.v1 import (
     dynamics_pb2,
@@ -64,6 +82,14 @@ class Session:
     without waiting, and `results()` or `poll()` give answers as they arrive, among them the
     `SyncSample`s of the clock probes the session sends by itself (at open, then every
     `sync_interval` seconds with the frames).
+
+    Resumption (`ResumePolicy`): a session whose server gave it a resume token keeps every frame no
+    result's `durable_seq` covers yet. When its stream breaks (UNAVAILABLE; CANCELLED, which is what
+    a balancer's RST_STREAM(CANCEL) of a dead replica's stream arrives as; or the server's `moving`
+    notice) it opens again through the same target with the token, re-sends the frames from the
+    new stream's `resume_from_seq`, and goes on: the caller sees no error, and answers it already
+    had are not handed out twice. `resumptions` lists every resume; `missed` counts the ticks no
+    answer came for across them. All of it runs in the caller's thread, as it reads answers.
     """
 
     def __init__(
@@ -76,12 +102,18 @@ class Session:
         checksum: bool,
         sync_interval: float = 0.5,
         on_end: Callable[[], None] | None = None,
+        resume: ResumePolicy | None = None,
     ) -> None:
-        self._on_end = on_end  # called once the stream has ended: the client closes its connection
+        self._on_end = on_end  # called once the session has ended: the client closes its connection
+        self._stub = stub
+        self._metadata = tuple(metadata)
+        self._policy = resume if resume is not None else ResumePolicy()
+        # Every stream's answers, tagged with the stream's generation: a resumed session ignores
+        # what an earlier stream left behind.
+        self._responses: queue.Queue[tuple[int, _Item]] = queue.Queue()
+        self._generation = 0
         self._requests: queue.Queue[dynamics_pb2.StreamSessionRequest | End] = queue.Queue()
-        self._responses: queue.Queue[
-            tuple[float, dynamics_pb2.StreamSessionResponse] | grpc.RpcError | End
-        ] = queue.Queue()
+        self._call: grpc.Call | None = None
         self._timeout = timeout
         self._checksum = checksum
         self._clock_start = time.monotonic()
@@ -91,14 +123,25 @@ class Session:
         self._sync_interval = sync_interval
         self._last_sync_sent = -float("inf")
         self._closed = False
+        self._cancelled = False
+        self._finished = False
         self.summary: Summary | None = None
-        open_request = dynamics_pb2.StreamSessionRequest(open=options.to_message())
-        self._requests.put(open_request)
-        self._call = stub.StreamSession(self._request_iterator(), metadata=tuple(metadata))
-        self._reader = threading.Thread(target=self._read, name="jitdyn-session-reader", daemon=True)
-        self._reader.start()
+        # Frames and skips sent that no `durable_seq` covers yet, oldest first: what a resume re-sends.
+        self._unacknowledged: collections.deque[tuple[int, dynamics_pb2.StreamSessionRequest]] = (
+            collections.deque()
+        )
+        self._durable = -1
+        self._delivered = -1  # the highest tick answered to the caller (not counting CORRECTED)
+        self._after_resume = False  # the next fresh answer tells how many ticks the resume missed
+        self.resumptions: list[Resumption] = []
+        self.missed = 0
+        self._open_message = options.to_message()
+        self._token = ""
+        self._reader: threading.Thread | None = None
+        self._start_stream(dynamics_pb2.StreamSessionRequest(open=self._open_message))
         first = self._get(self._timeout)
         if first is None:
+            self._finish()
             raise FailedPrecondition("the session stream has ended")
         opened = opened_from_response(first[1])
         # The session clock starts when `opened` arrived (the reader's time of it, not the time
@@ -106,32 +149,50 @@ class Session:
         # transit until `sync` exchanges measure the offset.
         self._clock_start = first[0]
         self.opened = opened
+        self._token = opened.resume_token
         if self._realtime:
             self.sync()
 
     # Plumbing.
 
-    def _request_iterator(self) -> Iterator[dynamics_pb2.StreamSessionRequest]:
-        while True:
-            item = self._requests.get()
-            if item is END:
-                return
-            yield item
+    def _start_stream(self, open_request: dynamics_pb2.StreamSessionRequest) -> None:
+        """A new stream that begins with `open_request`, and a reader thread of its own."""
+        self._generation += 1
+        requests: queue.Queue[dynamics_pb2.StreamSessionRequest | End] = queue.Queue()
+        requests.put(open_request)
+        self._requests = requests
+        self._call = self._stub.StreamSession(_iterate(requests), metadata=self._metadata)
+        self._reader = threading.Thread(
+            target=self._read, args=(self._call, self._generation), name="jitdyn-session-reader", daemon=True
+        )
+        self._reader.start()
 
-    def _read(self) -> None:
+    def _end_stream(self) -> None:
+        """Let go of the current stream (it broke, or its server said `moving`)."""
+        self._requests.put(END)
+        if self._call is not None:
+            self._call.cancel()
+
+    def _read(self, call: Iterator[dynamics_pb2.StreamSessionResponse], generation: int) -> None:
         try:
-            for response in self._call:
+            for response in call:
                 received_at = time.monotonic()
                 if response.HasField("sync"):
                     # t4 of this exchange, reported by the next probe however late the caller reads it.
                     self._last_probe = (response.sync.id, received_at - self._clock_start)
-                self._responses.put((received_at, response))
+                self._responses.put((generation, (received_at, response)))
         except grpc.RpcError as error:
-            self._responses.put(error)
+            self._responses.put((generation, error))
         finally:
-            self._responses.put(END)
-            if self._on_end is not None:
-                self._on_end()
+            self._responses.put((generation, END))
+
+    def _finish(self) -> None:
+        """The session is over (closed, cancelled, or failed for good): its connection may go."""
+        if self._finished:
+            return
+        self._finished = True
+        if self._on_end is not None:
+            self._on_end()
 
     def _next_response(self, timeout: float | None) -> dynamics_pb2.StreamSessionResponse:
         item = self._get(timeout)
@@ -139,18 +200,133 @@ class Session:
             raise FailedPrecondition("the session stream has ended")
         return item[1]
 
+    def _resumable(self, code: grpc.StatusCode) -> bool:
+        return self._policy.enabled and bool(self._token) and not self._cancelled and code in RESUMABLE_CODES
+
+    def _raw(self, timeout: float | None) -> _Item:
+        """The current stream's next item, with none of the resume logic."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                generation, item = self._responses.get(timeout=remaining)
+            except queue.Empty:
+                raise NoAnswer(f"no answer from the server within {timeout} s") from None
+            if generation == self._generation:
+                return item
+
     def _get(self, timeout: float | None) -> tuple[float, dynamics_pb2.StreamSessionResponse] | None:
-        try:
-            item = self._responses.get(timeout=timeout)
-        except queue.Empty:
-            raise NoAnswer(f"no answer from the server within {timeout} s") from None
-        if item is END:
-            self._responses.put(END)
-            return None
-        if isinstance(item, grpc.RpcError):
-            self._responses.put(END)
-            raise status_error(item)
-        return item
+        while True:
+            item = self._raw(timeout)
+            if item is END:
+                self._responses.put((self._generation, END))
+                return None
+            if isinstance(item, grpc.RpcError):
+                if self._resumable(item.code()):
+                    self._resume(f"{item.code().name}: {item.details()}")
+                    continue
+                self._responses.put((self._generation, END))
+                self._finish()
+                raise status_error(item)
+            response = item[1]
+            kind = response.WhichOneof("payload")
+            if kind == "moving":
+                if response.moving.HasField("durable_seq"):
+                    self._acknowledge(response.moving.durable_seq)
+                if self._policy.enabled and self._token and not self._cancelled:
+                    self._resume(f"moving: {response.moving.reason}")
+                    continue
+                self._responses.put((self._generation, END))
+                self._finish()
+                raise Unavailable(
+                    f"session {self.opened.session_id}: the server is moving it elsewhere "
+                    f"({response.moving.reason}) and resumption is off"
+                )
+            if kind == "result" and not self._fresh(response.result):
+                continue
+            return item
+
+    def _fresh(self, result: dynamics_pb2.Result) -> bool:
+        """Bookkeeping of a result; False for the answer to a re-sent frame the caller already had."""
+        if result.HasField("durable_seq"):
+            self._acknowledge(result.durable_seq)
+        if result.source == dynamics_pb2.SOURCE_CORRECTED:
+            return True
+        if result.seq <= self._delivered:
+            return False
+        if self._after_resume:
+            self._after_resume = False
+            self.missed += result.seq - self._delivered - 1
+        self._delivered = result.seq
+        return True
+
+    def _acknowledge(self, durable_seq: int) -> None:
+        """Frames up to `durable_seq` are stored off the server's host: no resume needs them again."""
+        self._durable = max(self._durable, durable_seq)
+        while self._unacknowledged and self._unacknowledged[0][0] <= self._durable:
+            self._unacknowledged.popleft()
+
+    def _resume(self, cause: str) -> None:
+        """Open the session again through the same target, re-send what is not durable, go on."""
+        session_id = self.opened.session_id
+        started = time.monotonic()
+        self._end_stream()
+        last = cause
+        for attempt in range(self._policy.attempts):
+            time.sleep(self._policy.backoff(attempt))
+            message = dynamics_pb2.OpenSession()
+            message.CopyFrom(self._open_message)
+            message.resume.session_id = session_id
+            message.resume.token = self._token
+            self._start_stream(dynamics_pb2.StreamSessionRequest(open=message))
+            try:
+                item = self._raw(self._policy.open_timeout)
+            except NoAnswer:
+                last = f"no `opened` within {self._policy.open_timeout} s"
+                self._end_stream()
+                continue
+            if isinstance(item, grpc.RpcError):
+                code = item.code()
+                last = f"{code.name}: {item.details()}"
+                self._end_stream()
+                # The old owner may still hold the lease for a moment (FAILED_PRECONDITION).
+                if code in RESUMABLE_CODES or code == grpc.StatusCode.FAILED_PRECONDITION:
+                    continue
+                break
+            if item is END or item[1].WhichOneof("payload") != "opened":
+                last = "the stream ended before `opened`"
+                self._end_stream()
+                continue
+            opened = item[1].opened
+            from_seq = opened.resume_from_seq if opened.HasField("resume_from_seq") else 0
+            self._acknowledge(from_seq - 1)
+            for _, request in self._unacknowledged:
+                self._requests.put(request)
+            if self._closed:
+                self._requests.put(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
+                self._requests.put(END)
+            self._after_resume = True
+            self.resumptions.append(
+                Resumption(
+                    session_id=session_id,
+                    from_seq=from_seq,
+                    cause=cause,
+                    reason=opened.resume_reason,
+                    attempts=attempt + 1,
+                    took=time.monotonic() - started,
+                )
+            )
+            if self._realtime and not self._closed:
+                self.sync()
+            return
+        self._responses.put((self._generation, END))
+        self._finish()
+        raise SessionLost(
+            f"session {session_id} could not be resumed after its stream broke ({cause}); "
+            f"{self._policy.attempts} attempts, the last: {last}",
+            session_id=session_id,
+            attempts=self._policy.attempts,
+        )
 
     def _convert(
         self, item: tuple[float, dynamics_pb2.StreamSessionResponse]
@@ -158,18 +334,32 @@ class Session:
         received_at, response = item
         answer = session_answer(response, received_at=received_at, clock_start=self._clock_start)
         if isinstance(answer, Summary):
+            answer = dataclasses.replace(answer, resumes=len(self.resumptions), missed=self.missed)
             self.summary = answer
         return answer
 
-    def _send(self, request: dynamics_pb2.StreamSessionRequest) -> None:
+    def _send(self, request: dynamics_pb2.StreamSessionRequest, seq: int | None = None) -> None:
         if self._closed:
             raise FailedPrecondition("the session is closed")
+        if seq is not None and self._policy.enabled and self._token:
+            if len(self._unacknowledged) >= self._policy.max_unacknowledged:
+                raise ResumeBufferFull(
+                    f"session {self.opened.session_id}: {len(self._unacknowledged)} frames are not "
+                    f"yet durable (the newest durable_seq is {self._durable}), the most the client "
+                    f"keeps for a resume (max_unacknowledged); frame {seq} was not sent"
+                )
+            self._unacknowledged.append((seq, request))
         self._requests.put(request)
 
     @property
     def clock_start(self) -> float:
         """The time.monotonic() value that is 0 on the session clock."""
         return self._clock_start
+
+    @property
+    def unacknowledged(self) -> int:
+        """Frames sent that no result's durable_seq covers yet (kept for a resume)."""
+        return len(self._unacknowledged)
 
     def now(self) -> float:
         """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at
@@ -185,7 +375,7 @@ class Session:
 
     def skip(self, seq: int) -> TickResult | Rejection:
         """Tell the server tick `seq` had no frame; returns the PREDICTED result (LOCKSTEP)."""
-        self._send(dynamics_pb2.StreamSessionRequest(skip=dynamics_pb2.Skip(seq=seq)))
+        self._send(dynamics_pb2.StreamSessionRequest(skip=dynamics_pb2.Skip(seq=seq)), seq)
         return self._answer()
 
     def _answer(self) -> TickResult | Rejection:
@@ -204,7 +394,9 @@ class Session:
         `sync_interval` seconds, so the server keeps client time on its clock."""
         if self._realtime and self.now() - self._last_sync_sent >= self._sync_interval:
             self.sync()
-        self._send(dynamics_pb2.StreamSessionRequest(frame=frame.to_message(checksum=self._checksum)))
+        self._send(
+            dynamics_pb2.StreamSessionRequest(frame=frame.to_message(checksum=self._checksum)), frame.seq
+        )
 
     def results(self, *, timeout: float | None = None) -> Iterator[TickResult | Rejection | SyncSample]:
         """Answers as they arrive, until the session is closed or `timeout` passes with none."""
@@ -225,14 +417,10 @@ class Session:
         answers: list[TickResult | Rejection | SyncSample] = []
         while True:
             try:
-                item = self._responses.get_nowait()
-            except queue.Empty:
+                item = self._get(0)
+            except NoAnswer:
                 return answers
-            if item is END or isinstance(item, grpc.RpcError):
-                self._responses.put(item)
-                if isinstance(item, grpc.RpcError):
-                    self._responses.get_nowait()
-                    raise status_error(item)
+            if item is None:
                 return answers
             answer = self._convert(item)
             if not isinstance(answer, Summary):
@@ -258,16 +446,23 @@ class Session:
         while self.summary is None:
             item = self._get(self._timeout)
             if item is None:
+                self._finish()
                 raise FailedPrecondition("the session stream ended without a summary")
             self._convert(item)
-        self._reader.join(timeout=5)
+        if self._reader is not None:
+            self._reader.join(timeout=5)
+        self._finish()
         return self.summary
 
     def cancel(self) -> None:
-        """Drop the stream without closing (the server stores the session as ABANDONED)."""
+        """Drop the stream without closing (the server stores the session as ABANDONED, or as
+        RECOVERED when it was resumable and nobody resumes it)."""
         self._closed = True
-        self._call.cancel()
+        self._cancelled = True
+        if self._call is not None:
+            self._call.cancel()
         self._requests.put(END)
+        self._finish()
 
     def __enter__(self) -> Self:
         return self
@@ -279,6 +474,19 @@ class Session:
             self.close()
         elif not self._closed:
             self.cancel()
+
+
+def _iterate(
+    requests: queue.Queue[dynamics_pb2.StreamSessionRequest | End],
+) -> Iterator[dynamics_pb2.StreamSessionRequest]:
+    while True:
+        item = requests.get()
+        if item is END:
+            return
+        yield item
+
+
+_Item = tuple[float, dynamics_pb2.StreamSessionResponse] | grpc.RpcError | End
 
 
 class Client(Closeable):
@@ -293,8 +501,16 @@ class Client(Closeable):
         root_certificates: bytes | None = None,
         checksum: bool = True,
         connection_per_session: bool = True,
+        channel_options: Sequence[tuple[str, Any]] = (),
+        resume: ResumePolicy | bool = True,
     ) -> None:
+        """`channel_options` are gRPC channel arguments added to the SDK's own (e.g.
+        `[("grpc.lb_policy_name", "round_robin")]` with `address="ipv4:10.0.0.1:50051,10.0.0.2:50051"`).
+        `resume`: how sessions resume by themselves when their stream breaks (`ResumePolicy`);
+        False turns it off."""
         self._address = address
+        self._channel_options = tuple(channel_options)
+        self._resume = resume if isinstance(resume, ResumePolicy) else ResumePolicy(enabled=resume)
         self._root_certificates = root_certificates
         self._channel = self._new_channel(shared=True)
         # Each session on its own connection (its own HTTP/2 connection, not a stream of the
@@ -397,7 +613,8 @@ class Client(Closeable):
     def _new_channel(self, *, shared: bool) -> grpc.Channel:
         # gRPC shares one connection between channels of the same target and arguments unless a
         # channel asks for its own subchannel pool.
-        options = CHANNEL_OPTIONS if shared else (*CHANNEL_OPTIONS, ("grpc.use_local_subchannel_pool", 1))
+        base = channel_options(self._channel_options)
+        options = base if shared else (*base, ("grpc.use_local_subchannel_pool", 1))
         if self._root_certificates is not None:
             return grpc.secure_channel(
                 self._address, grpc.ssl_channel_credentials(self._root_certificates), options=options
@@ -428,6 +645,7 @@ class Client(Closeable):
                 metadata=self._metadata,
                 checksum=self._checksum,
                 on_end=ended,
+                resume=self._resume,
             )
         except grpc.RpcError as error:
             raise status_error(error) from None

@@ -38,6 +38,8 @@ __all__ = [
     "ModelRef",
     "Opened",
     "Rejection",
+    "ResumePolicy",
+    "Resumption",
     "SessionOptions",
     "Summary",
     "SyncSample",
@@ -382,6 +384,9 @@ class Opened:
     scenario: Scenario  # the scenario in force
     scenario_reason: str = ""  # why: asked for, or the server's choice for the model
     noise_reason: str = ""  # why the noise model in estimator["noise_model"]
+    resume_token: str = ""  # lets the SDK resume the session elsewhere; empty: not resumable
+    resume_from_seq: int | None = None  # a resumed session: the first tick this stream expects
+    resume_reason: str = ""  # a resumed session: how its estimator continues
 
     @classmethod
     def from_message(cls, message: dynamics_pb2.SessionOpened) -> Opened:
@@ -404,6 +409,9 @@ class Opened:
             scenario=scenario,
             scenario_reason=message.scenario_reason,
             noise_reason=message.noise_reason,
+            resume_token=message.resume_token,
+            resume_from_seq=message.resume_from_seq if message.HasField("resume_from_seq") else None,
+            resume_reason=message.resume_reason,
         )
 
 
@@ -426,6 +434,11 @@ class Summary:
     mean_compute_us: float
     max_compute_us: float
     duration: float
+    # Client-side: how often the SDK resumed the session on another stream (a replica lost or
+    # draining), and the ticks it saw no answer for across those resumes (REALTIME ticks that passed
+    # while the stream was down; LOCKSTEP frames are re-sent, so it misses none).
+    resumes: int = 0
+    missed: int = 0
 
     @classmethod
     def from_message(cls, message: dynamics_pb2.SessionSummary) -> Summary:
@@ -442,6 +455,42 @@ class Summary:
             max_compute_us=message.max_compute_us,
             duration=message.duration,
         )
+
+
+@dataclass(frozen=True)
+class ResumePolicy:
+    """How a session resumes by itself when its stream breaks (UNAVAILABLE, a stream reset by a
+    balancer whose replica died, or the server's `moving` notice): it opens again through the same
+    target with the session's resume token, re-sends the frames not yet durable, and goes on.
+
+    `attempts` resumes are tried, `initial_backoff` seconds apart at first, doubling up to
+    `max_backoff`; then SessionLost. The SDK keeps at most `max_unacknowledged` frames that no
+    result's `durable_seq` covers yet (ResumeBufferFull beyond). `enabled=False`: a broken stream
+    raises as it always did."""
+
+    enabled: bool = True
+    attempts: int = 8
+    initial_backoff: float = 0.1
+    max_backoff: float = 2.0
+    max_unacknowledged: int = 10_000
+    open_timeout: float = 10.0  # seconds to wait for each resume's `opened`
+
+    def backoff(self, attempt: int) -> float:
+        """The wait before resume attempt `attempt` (0-based): none before the first."""
+        return 0.0 if attempt == 0 else min(self.max_backoff, self.initial_backoff * 2 ** (attempt - 1))
+
+
+@dataclass(frozen=True)
+class Resumption:
+    """One resume the SDK made: from which tick the new stream went on, why the stream broke, the
+    server's `resume_reason`, how many opens it took and how long (seconds)."""
+
+    session_id: str
+    from_seq: int
+    cause: str
+    reason: str
+    attempts: int
+    took: float
 
 
 @dataclass(frozen=True)

@@ -4,8 +4,9 @@ authorization metadata, the status-to-exception mapping and the end marker of a 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from enum import Enum, auto
-from typing import Final
+from typing import Any, Final
 
 import grpc
 
@@ -16,9 +17,11 @@ __all__ = [
     "END",
     "IDEMPOTENT_METHODS",
     "MAX_MESSAGE_BYTES",
+    "RESUMABLE_CODES",
     "RETRY_POLICY",
     "End",
     "auth_metadata",
+    "channel_options",
     "status_error",
 ]
 
@@ -59,6 +62,21 @@ CHANNEL_OPTIONS: Final = (
     ("grpc.enable_retries", 1),
     ("grpc.service_config", _SERVICE_CONFIG),
 )
+
+
+# The statuses a broken session stream ends with that a resume can mend. UNAVAILABLE: the server
+# went away, or is shutting down, or the connection dropped ("Stream removed"). CANCELLED: a
+# balancer (HAProxy) resets the stream of a replica that died with RST_STREAM(CANCEL), error code 8,
+# which gRPC maps to CANCELLED; a session the caller cancelled itself is never resumed.
+RESUMABLE_CODES: Final = frozenset({grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.CANCELLED})
+
+
+def channel_options(extra: Sequence[tuple[str, Any]] = ()) -> tuple[tuple[str, Any], ...]:
+    """CHANNEL_OPTIONS with the caller's options added; the caller's win where both set one (e.g.
+    ("grpc.lb_policy_name", "round_robin") for a target such as "ipv4:10.0.0.1:50051,10.0.0.2:50051"
+    or a headless service's DNS name)."""
+    names = {name for name, _ in extra}
+    return (*(option for option in CHANNEL_OPTIONS if option[0] not in names), *extra)
 
 
 class End(Enum):

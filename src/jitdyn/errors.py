@@ -24,6 +24,8 @@ __all__ = [
     "NotFound",
     "PermissionDenied",
     "ResourceExhausted",
+    "ResumeBufferFull",
+    "SessionLost",
     "Unauthenticated",
     "Unavailable",
     "error_for_status",
@@ -62,6 +64,22 @@ class PermissionDenied(JitdynError):
 
 class Unavailable(JitdynError):
     code = grpc.StatusCode.UNAVAILABLE
+
+
+class SessionLost(Unavailable):
+    """The SDK could not resume a session whose stream broke (every attempt failed, or the server
+    refused the resume); `session_id` names it, `attempts` says how many resumes were tried."""
+
+    def __init__(self, message: str, *, session_id: str = "", attempts: int = 0) -> None:
+        super().__init__(message)
+        self.session_id = session_id
+        self.attempts = attempts
+
+
+class ResumeBufferFull(ResourceExhausted):
+    """More frames are unacknowledged (not yet durable off the server's host) than the SDK keeps
+    for resuming; the frame was not sent. Wait for answers (their `durable_seq`) and send again, or
+    raise the client's `max_unacknowledged`."""
 
 
 class NoAnswer(JitdynError, TimeoutError):

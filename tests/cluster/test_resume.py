@@ -1,0 +1,146 @@
+"""The SDK resumes a session by itself (issue 19, must-have 5, client side): a LOCKSTEP session
+through HAProxy whose replica is killed with -9 goes on on another replica with no error to the
+caller, and the stored session is one session holding every frame; a replica drained by SIGTERM
+moves its session the same way; the buffer of frames kept for a resume is bounded."""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from _cluster import Balancer, Replica, wait_for
+from _raw import DT, new_model, session_row
+
+from jitdyn.client import Client, FrameData, ResumePolicy, SessionOptions
+from jitdyn.errors import ResumeBufferFull
+
+pytestmark = pytest.mark.postgres
+
+FAST = ["--lease-ttl=1s", "--resume-timeout=5s"]
+HOSTS = ("127.0.0.21", "127.0.0.22", "127.0.0.23")
+
+
+def frame(k: int) -> FrameData:
+    return FrameData(seq=k, t=k * DT, qpos=[0.3 * np.cos(0.2 * k), 0.1 * np.sin(0.3 * k)], qvel=[0.0, 0.0])
+
+
+def options(mjcf: str) -> SessionOptions:
+    return SessionOptions(inline_mjcf=mjcf, inline_name="pendulum_2_inline", dt=DT)
+
+
+def cluster(
+    start_replica: Callable[..., Replica], start_balancer: Callable[..., Balancer], tmp_path: Path
+) -> tuple[list[Replica], Balancer]:
+    """Three replicas behind HAProxy. They share a data folder only because model content is not in
+    the shared tier yet (an inline model registered by one does not load on another)."""
+    folder = tmp_path / "shared-folder"
+    replicas = [start_replica(f"r{n}", host, data=folder, extra=FAST) for n, host in enumerate(HOSTS)]
+    return replicas, start_balancer(replicas)
+
+
+def owner(replicas: list[Replica]) -> Replica:
+    """The replica with the one open session."""
+    holding = [
+        r for r in replicas if r.process.poll() is None and r.metrics().get("jitdyn_open_sessions", 0) > 0
+    ]
+    assert len(holding) == 1, [(r.name, r.metrics().get("jitdyn_open_sessions")) for r in replicas]
+    return holding[0]
+
+
+def stored_seqs(folder: Path, location: str) -> list[int]:
+    table = pq.read_table(folder / location, columns=["kind", "seq"])
+    return sorted(
+        s for k, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True) if k == "result"
+    )
+
+
+def test_a_killed_replica_s_session_resumes_on_another_without_an_error(
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    index_url: str,
+    tmp_path: Path,
+) -> None:
+    replicas, balancer = cluster(start_replica, start_balancer, tmp_path)
+    with Client(balancer.address, timeout=30) as client:
+        session = client.open_session(options(new_model()))
+        assert session.opened.resume_token
+        seqs = [session.send_frame(frame(k)).seq for k in range(40)]
+        doomed = owner(replicas)
+        doomed.kill()
+        seqs += [session.send_frame(frame(k)).seq for k in range(40, 80)]
+        summary = session.close()
+    assert seqs == list(range(80)), "every frame answered once, in order"
+    assert len(session.resumptions) == 1 and summary.resumes == 1 and summary.missed == 0
+    resumption = session.resumptions[0]
+    print(
+        f"resumed after kill -9 in {1e3 * resumption.took:.0f} ms ({resumption.attempts} attempts, "
+        f"cause {resumption.cause!r}) from tick {resumption.from_seq}: {resumption.reason}"
+    )
+    assert resumption.session_id == session.opened.session_id
+    row = session_row(index_url, session.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    assert stored_seqs(tmp_path / "shared-folder", str(row["location"])) == list(range(80))
+
+
+def test_a_draining_replica_moves_its_session_without_an_error(
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    index_url: str,
+    tmp_path: Path,
+) -> None:
+    replicas, balancer = cluster(start_replica, start_balancer, tmp_path)
+    with Client(balancer.address, timeout=30) as client:
+        session = client.open_session(options(new_model()))
+        seqs = [session.send_frame(frame(k)).seq for k in range(30)]
+        leaving = owner(replicas)
+        os.killpg(leaving.process.pid, signal.SIGTERM)
+        wait_for(
+            lambda: balancer.server_states().get(leaving.name) != "UP",
+            timeout=10,
+            what="haproxy kept the draining replica UP",
+        )
+        seqs += [session.send_frame(frame(k)).seq for k in range(30, 60)]
+        summary = session.close()
+    leaving.process.wait(timeout=20)
+    assert seqs == list(range(60))
+    assert summary.resumes == 1 and session.resumptions[0].cause.startswith("moving")
+    print(f"moved in {1e3 * session.resumptions[0].took:.0f} ms from tick {session.resumptions[0].from_seq}")
+    row = session_row(index_url, session.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    assert stored_seqs(tmp_path / "shared-folder", str(row["location"])) == list(range(60))
+
+
+def test_round_robin_over_several_addresses_and_a_bounded_resume_buffer(
+    start_replica: Callable[..., Replica], tmp_path: Path
+) -> None:
+    folder = tmp_path / "shared-folder"
+    replicas = [start_replica(f"r{n}", host, data=folder, extra=FAST) for n, host in enumerate(HOSTS[:2])]
+    target = "ipv4:" + ",".join(r.address for r in replicas)
+    policy = ResumePolicy(max_unacknowledged=5)
+    with Client(target, channel_options=[("grpc.lb_policy_name", "round_robin")], resume=policy) as client:
+        session = client.open_session(options(new_model()))
+        for k in range(5):
+            session.send(frame(k))  # pipelined: no answer read, so none acknowledged yet
+        with pytest.raises(ResumeBufferFull, match="max_unacknowledged"):
+            session.send(frame(5))
+        answered = []
+        for answer in session.results(timeout=10):
+            answered.append(answer.seq)
+            if len(answered) == 5:
+                break
+        assert answered == list(range(5))
+        session.cancel()
+    with Client(target, channel_options=[("grpc.lb_policy_name", "round_robin")], resume=False) as client:
+        session = client.open_session(options(new_model()))
+        session.send_frame(frame(0))
+        owner(replicas).kill()
+        with pytest.raises(Exception) as broken:
+            for k in range(1, 40):
+                session.send_frame(frame(k))
+        print(f"with resume off: {type(broken.value).__name__}: {broken.value}")
+        assert type(broken.value).__name__ in ("Unavailable", "JitdynError")
