@@ -417,7 +417,9 @@ class OpenSession(_message.Message):
     def resume(self) -> Global___Resume:
         """Set to continue an existing session (see StreamSession): the other fields must be those of
         the session's first `open`. A session that is closed, or unknown to the shared index, is
-        NOT_FOUND; one whose owner still holds it is FAILED_PRECONDITION until its lease ends.
+        NOT_FOUND; a server without a shared index answers FAILED_PRECONDITION. A resume takes the
+        session over even from a live owner (a client that holds the token says its stream is gone):
+        the owner's epoch ends, and its further writes are refused (fencing).
         """
 
     def __init__(
