@@ -371,9 +371,8 @@ def test_an_unreachable_index_is_unavailable_without_a_path(
         raise sa.exc.OperationalError("SELECT", {}, OSError(f"could not connect: {tmp_path}"))
 
     monkeypatch.setattr("jitdyn.registry.registry.fetch_blob", lost)
-    with ModelRegistry(engine=engine, data_root=tmp_path / "b") as other:
-        with pytest.raises(Unavailable) as error:
-            other.load(info.id)
+    with ModelRegistry(engine=engine, data_root=tmp_path / "b") as other, pytest.raises(Unavailable) as error:
+        other.load(info.id)
     assert "shared index" in str(error.value) and "OperationalError" in str(error.value)
     assert str(tmp_path) not in str(error.value)
 
