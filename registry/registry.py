@@ -7,7 +7,8 @@
         model = registry.load(info.id)
 
 The index row of a model lives in the SQL table `models` (storage.schema); its MJCF and assets in a
-zip under <data root>/models/ (registry.store). A tenant sees its own models and the built-in ones,
+zip in the index's `model_blobs` table, cached under <data root>/models/ (registry.store), so that
+every server sharing the index opens every model. A tenant sees its own models and the built-in ones,
 which belong to the default tenant "" and whose names nobody else may register under.
 """
 
@@ -30,7 +31,7 @@ from typing import Any
 import mujoco
 import sqlalchemy as sa
 
-from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
+from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound, Unavailable
 from jitdyn.lifecycle import Closeable
 from jitdyn.registry.builtins import builtin_models
 from jitdyn.registry.compile import ModelCompiler, check_request
@@ -48,7 +49,7 @@ from jitdyn.registry.info import (
     stored_defaults,
 )
 from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
-from jitdyn.registry.store import read_blob, write_blob
+from jitdyn.registry.store import fetch_blob, publish_blob, read_blob, write_blob
 from jitdyn.storage.schema import models
 
 __all__ = ["DEFAULT_PAGE_SIZE", "MAX_PAGE_SIZE", "ModelRegistry"]
@@ -240,7 +241,7 @@ class ModelRegistry(Closeable):
                 self._check_quota(connection, tenant, mjcf, assets)
         model = self._compiler.compile(mjcf, assets)
         shape = describe_model(model)
-        blob = write_blob(self._data_root, model_id, mjcf, assets)
+        blob = write_blob(self._data_root, model_id, mjcf, assets, engine=self._engine)
         size = len(mjcf.encode("utf-8")) + sum(len(data) for data in assets.values())
         with self._cache_lock:
             self._cache.put(model_id, model)
@@ -478,10 +479,15 @@ class ModelRegistry(Closeable):
         self._check_open()
         tenant = _check_tenant(tenant)
         check_content_id(model_id)
-        with self._engine.connect() as connection:
-            row = connection.execute(
-                sa.select(models.c.blob_path).where(models.c.id == model_id, self._visible(tenant)).limit(1)
-            ).first()
+        try:
+            with self._engine.connect() as connection:
+                row = connection.execute(
+                    sa.select(models.c.blob_path)
+                    .where(models.c.id == model_id, self._visible(tenant))
+                    .limit(1)
+                ).first()
+        except sa.exc.SQLAlchemyError as error:
+            raise _index_unreachable(model_id, error) from None
         if row is None:
             raise NotFound(f"no model has id {model_id!r}")
         with self._cache_lock:
@@ -492,19 +498,7 @@ class ModelRegistry(Closeable):
                 with self._cache_lock:
                     model = self._cache.get(model_id)
                 if model is None:
-                    try:
-                        mjcf, assets = read_blob(self._data_root, row.blob_path)
-                    except FileNotFoundError:
-                        # The index is shared (PostgreSQL) but this server's data folder lacks the
-                        # blob: a deployment fault to name, never a server path to leak.
-                        _log.error(
-                            "model %s: %s is missing under %s", model_id, row.blob_path, self._data_root
-                        )
-                        raise FailedPrecondition(
-                            f"model {model_id} is registered in the index but its MJCF and assets are "
-                            "not in this server's data folder (servers sharing an index must share the "
-                            "data folder too)"
-                        ) from None
+                    mjcf, assets = self._content(model_id, row.blob_path)
                     stored = content_id(mjcf, assets)
                     if stored != model_id:
                         raise RuntimeError(
@@ -514,6 +508,52 @@ class ModelRegistry(Closeable):
                     with self._cache_lock:
                         self._cache.put(model_id, model)
         return copy.copy(model)
+
+    def _content(self, model_id: str, relative: str) -> tuple[str, dict[str, bytes]]:
+        """The MJCF and assets of `model_id`: from this server's data folder, else fetched from the
+        index into it (a model registered through another server sharing the index)."""
+        try:
+            content = read_blob(self._data_root, relative)
+        except FileNotFoundError:
+            pass
+        else:
+            self._backfill(model_id, relative)
+            return content
+        try:
+            fetched = fetch_blob(self._engine, self._data_root, model_id)
+        except sa.exc.SQLAlchemyError as error:
+            raise _index_unreachable(model_id, error) from None
+        if fetched is None:
+            # Registered before the index held model content, through a server whose data folder
+            # this one does not share: a deployment fault to name, never a server path to leak.
+            _log.error(
+                "model %s: %s is missing under %s and from the index", model_id, relative, self._data_root
+            )
+            raise FailedPrecondition(
+                f"model {model_id} is registered in the index but its MJCF and assets are neither in "
+                "the index nor in this server's data folder; register it again through the server "
+                "that holds them"
+            )
+        return read_blob(self._data_root, fetched)
+
+    def _backfill(self, model_id: str, relative: str) -> None:
+        """Put a locally stored model's content into the index when it is not there yet: models
+        registered before the index held content (migration 0002) reach the other servers once
+        a server holding them loads them. Best effort: the local copy serves this server anyway."""
+        try:
+            publish_blob(self._engine, model_id, (self._data_root / relative).read_bytes())
+        except (OSError, sa.exc.SQLAlchemyError) as error:
+            _log.warning("model %s: could not copy its content into the index: %s", model_id, error)
+
+
+def _index_unreachable(model_id: str, error: BaseException) -> Unavailable:
+    """The client's reason when the index that holds a model's content cannot be read; the server
+    log keeps the database's own message, which may name hosts and files."""
+    _log.error("model %s: reading the index failed: %s: %s", model_id, type(error).__name__, error)
+    return Unavailable(
+        f"model {model_id} cannot be loaded: the shared index that holds models and their MJCF and "
+        f"assets cannot be reached ({type(error).__name__}); try again later"
+    )
 
 
 def _fingerprint(tenant: str, name: str, tag: str) -> str:

@@ -1,6 +1,9 @@
-"""Where registered models live on disk: one zip per content id, <data root>/models/<hex id>.zip,
-holding "model.xml" and "assets/<name>" for each asset. Written atomically (temporary file, fsync,
-rename); read into memory and never extracted, so no stored asset name ever becomes a server path.
+"""Where registered models live: one zip per content id, holding "model.xml" and "assets/<name>"
+for each asset. The shared copy is a row of the index's `model_blobs` table, which every replica
+sharing the index reads; each server caches it in its own data folder at
+<data root>/models/<hex id>.zip (docs/decisions/0100-model-content-in-the-index.md). The local file
+is written atomically (temporary file, fsync, rename); both are read into memory and never
+extracted, so no stored asset name ever becomes a server path.
 """
 
 from __future__ import annotations
@@ -12,7 +15,11 @@ import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 
-__all__ = ["blob_path", "read_blob", "write_blob"]
+import sqlalchemy as sa
+
+from jitdyn.storage.schema import model_blobs
+
+__all__ = ["blob_path", "fetch_blob", "publish_blob", "read_blob", "write_blob"]
 
 _MJCF = "model.xml"
 _ASSETS = "assets/"
@@ -32,21 +39,26 @@ def _entry(name: str) -> zipfile.ZipInfo:
     return info
 
 
-def write_blob(data_root: Path, model_id: str, mjcf: str, assets: Mapping[str, bytes]) -> str:
-    """Store the model's MJCF and assets unless already stored; return the zip's relative path."""
-    relative = blob_path(model_id)
+def _zip(mjcf: str, assets: Mapping[str, bytes]) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr(_entry(_MJCF), mjcf.encode("utf-8"))
+        for name in sorted(assets):
+            archive.writestr(_entry(_ASSETS + name), bytes(assets[name]))
+    return buffer.getvalue()
+
+
+def _write_local(data_root: Path, relative: str, data: bytes) -> None:
+    """Write the zip `data` at `relative` under the data root, atomically, unless already there."""
     final = data_root / relative
     if final.exists():
-        return relative  # content-addressed: the same id is the same content
+        return  # content-addressed: the same id is the same content
     final.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     temporary = final.with_name(f".{final.name}.{uuid.uuid4().hex}.tmp")
     try:
         # Readable by the server's user only, whatever the umask (DESIGN: Security and limits).
         with os.fdopen(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "wb") as file:
-            with zipfile.ZipFile(file, "w") as archive:
-                archive.writestr(_entry(_MJCF), mjcf.encode("utf-8"))
-                for name in sorted(assets):
-                    archive.writestr(_entry(_ASSETS + name), bytes(assets[name]))
+            file.write(data)
             file.flush()
             os.fsync(file.fileno())
         os.replace(temporary, final)
@@ -57,6 +69,50 @@ def write_blob(data_root: Path, model_id: str, mjcf: str, assets: Mapping[str, b
         os.fsync(directory)  # the rename itself survives a crash
     finally:
         os.close(directory)
+
+
+def publish_blob(engine: sa.Engine, model_id: str, data: bytes) -> None:
+    """Store the zip `data` of `model_id` in the index unless it is there already."""
+    with engine.connect() as connection:
+        present = connection.execute(sa.select(model_blobs.c.id).where(model_blobs.c.id == model_id)).first()
+    if present is not None:
+        return
+    try:
+        with engine.begin() as connection:
+            connection.execute(sa.insert(model_blobs).values(id=model_id, zip=data))
+    except sa.exc.IntegrityError:
+        pass  # another replica stored the same content first: the same id is the same bytes
+
+
+def fetch_blob(engine: sa.Engine, data_root: Path, model_id: str) -> str | None:
+    """Copy the zip of `model_id` from the index into the local cache; its relative path, or None
+    when the index does not hold it."""
+    with engine.connect() as connection:
+        data = connection.execute(
+            sa.select(model_blobs.c.zip).where(model_blobs.c.id == model_id)
+        ).scalar_one_or_none()
+    if data is None:
+        return None
+    relative = blob_path(model_id)
+    _write_local(data_root, relative, bytes(data))
+    return relative
+
+
+def write_blob(
+    data_root: Path,
+    model_id: str,
+    mjcf: str,
+    assets: Mapping[str, bytes],
+    *,
+    engine: sa.Engine | None = None,
+) -> str:
+    """Store the model's MJCF and assets in the local cache and, given `engine`, in the index, each
+    unless already stored; return the zip's path relative to the data root."""
+    relative = blob_path(model_id)
+    data = _zip(mjcf, assets)
+    if engine is not None:
+        publish_blob(engine, model_id, data)
+    _write_local(data_root, relative, data)
     return relative
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sqlalchemy as sa
 
-__all__ = ["metadata", "models", "session_leases", "session_log", "sessions"]
+__all__ = ["metadata", "model_blobs", "models", "session_leases", "session_log", "sessions"]
 
 metadata = sa.MetaData(
     naming_convention={
@@ -45,6 +45,16 @@ models = sa.Table(
     sa.Column("created_at", sa.DateTime(timezone=True), nullable=False),
     sa.UniqueConstraint("tenant", "id"),
     sa.UniqueConstraint("tenant", "name", "version"),
+)
+
+# The MJCF and assets of each registered model (the zip of registry.store), by content id: the
+# shared copy every replica fetches and caches in its own data folder. Not per tenant: a content id
+# is a hash of the content, so two tenants' identical models share one row.
+model_blobs = sa.Table(
+    "model_blobs",
+    metadata,
+    sa.Column("id", sa.String(80), primary_key=True),
+    sa.Column("zip", sa.LargeBinary, nullable=False),
 )
 
 sessions = sa.Table(

@@ -27,9 +27,9 @@ PENDULUM = (resources.files("jitdyn.models") / "pendulum_2.xml").read_text()
 
 
 def options() -> SessionOptions:
-    """A LOCKSTEP session of the 2-link pendulum, inline, in MJCF of its own: a model stored by one
-    replica does not open on another yet (each keeps model content in its own folder, built-in
-    models too), so each session brings content no replica has seen (a comment, same physics)."""
+    """A LOCKSTEP session of the 2-link pendulum, inline, in MJCF of its own (a comment, same
+    physics): each session brings content no replica has compiled yet, as a new client's would.
+    Models registered through one replica open on the others too (test_registry.py)."""
     return SessionOptions(
         inline_mjcf=f"<!-- {uuid.uuid4()} -->\n{PENDULUM}",
         inline_name="pendulum_2_inline",

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 import sqlalchemy as sa
 
-from jitdyn.errors import InvalidArgument, NotFound
+from jitdyn.errors import InvalidArgument, NotFound, Unavailable
 from jitdyn.registry import BUILTIN_NAMES, ModelMetadata, ModelRegistry, content_id
-from jitdyn.storage.schema import models
+from jitdyn.storage.schema import model_blobs, models
 from jitdyn.vocabulary import JointType, Preset
 
 OBJ = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
@@ -341,6 +341,40 @@ def test_load_recompiles_from_the_stored_zip(engine: sa.Engine, data_root: Path)
         info, _ = registry.register(name="arm", mjcf=arm(), assets=ASSETS)
     with ModelRegistry(engine=engine, data_root=data_root) as fresh:
         assert fresh.load(info.id).nv == 2
+
+
+def test_a_server_with_another_data_folder_loads_the_content_from_the_index(
+    engine: sa.Engine, tmp_path: Path
+) -> None:
+    """Replicas share the index, not a data folder: the zip is a row of model_blobs, fetched into
+    the loading server's folder (its cache), identical to the registering server's."""
+    first, second = tmp_path / "a", tmp_path / "b"
+    with ModelRegistry(engine=engine, data_root=first) as registry:
+        info, _ = registry.register(name="arm", mjcf=arm(), assets=ASSETS)
+        again, _ = registry.register(name="arm", mjcf=arm(), assets=ASSETS)
+    assert again.id == info.id
+    with engine.connect() as connection:
+        assert connection.execute(sa.select(sa.func.count()).select_from(model_blobs)).scalar_one() == 1
+    with ModelRegistry(engine=engine, data_root=second) as other:
+        assert other.load(info.id).nv == 2
+    relative = f"models/{info.id.removeprefix('sha256:')}.zip"
+    assert (second / relative).read_bytes() == (first / relative).read_bytes()
+
+
+def test_an_unreachable_index_is_unavailable_without_a_path(
+    engine: sa.Engine, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with ModelRegistry(engine=engine, data_root=tmp_path / "a") as registry:
+        info, _ = registry.register(name="arm", mjcf=arm(), assets=ASSETS)
+
+    def lost(*_: object) -> None:
+        raise sa.exc.OperationalError("SELECT", {}, OSError(f"could not connect: {tmp_path}"))
+
+    monkeypatch.setattr("jitdyn.registry.registry.fetch_blob", lost)
+    with ModelRegistry(engine=engine, data_root=tmp_path / "b") as other, pytest.raises(Unavailable) as error:
+        other.load(info.id)
+    assert "shared index" in str(error.value) and "OperationalError" in str(error.value)
+    assert str(tmp_path) not in str(error.value)
 
 
 def test_concurrent_registrations_of_one_name_get_distinct_versions(registry: ModelRegistry) -> None:
