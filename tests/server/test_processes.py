@@ -134,7 +134,6 @@ def test_a_second_server_on_a_served_port_refuses_to_start(serve: Serve, tmp_pat
             capture_output=True,
             text=True,
             timeout=60,
-            check=False,
             env=dict(os.environ, JITDYN_SECRET=secrets.token_hex(32)),
         )
         assert second.returncode == 1, second.stdout + second.stderr
