@@ -101,8 +101,17 @@ class _Stream:
         self.lock = asyncio.Lock()
         self.pending: dict[int, FrameIn] = {}
         self.closed = False
-        # Responses come from the request loop, the REALTIME clock and a drain's `moving`: one at a time.
-        self.write_lock = asyncio.Lock()
+        # Responses come from the request loop, the REALTIME clock and a drain's `moving`.
+        self._write_lock = asyncio.Lock()
+
+    async def write(self, context: _Context, *responses: Response) -> None:
+        """Send `responses` in order, as one batch: the request loop and the REALTIME clock each
+        compute their answers in tick order, and a batch split across two holds of the lock would
+        let the other writer's newer tick overtake the rest of it (the first answer to tick 58
+        after tick 59's). The lock is FIFO, and batches queue in the order they were computed."""
+        async with self._write_lock:
+            for response in responses:
+                await context.write(response)
 
     # Everything below runs in a worker thread, under `lock`.
 
@@ -334,12 +343,10 @@ class _RealtimeClock:
     def __init__(self, stream: _Stream, context: _Context) -> None:
         self._stream = stream
         self._context = context
-        self._write_lock = stream.write_lock
         self._wakeup = Alarm.of(asyncio.get_running_loop()).wakeup()
 
-    async def write(self, response: Response) -> None:
-        async with self._write_lock:
-            await self._context.write(response)
+    async def write(self, *responses: Response) -> None:
+        await self._stream.write(self._context, *responses)
 
     def due(self) -> float:
         """When to wake: a tick whose frame is here waits only for its own time; one without, for
@@ -367,8 +374,7 @@ class _RealtimeClock:
                 responses = stream.on_deadline(stream.deadline(seq))
             else:
                 continue  # a clock probe moved the deadline later
-            for response in responses:
-                await self.write(response)
+            await self.write(*responses)
 
 
 class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
@@ -495,8 +501,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         if durable is not None:
             moving.durable_seq = durable
         try:
-            async with stream.write_lock:
-                await context.write(Response(moving=moving))
+            await stream.write(context, Response(moving=moving))
         except Exception:  # noqa: BLE001 (a stream that has just ended: nothing to tell)
             _log.debug("session %s: `moving` not sent", recorder.header.session_id, exc_info=True)
 
@@ -552,20 +557,15 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             arrived = stream.clock.now()
             kind = request.WhichOneof("payload")
             if kind == "frame":
-                for response in await asyncio.to_thread(stream.on_frame, request.frame, arrived):
-                    async with stream.write_lock:
-                        await context.write(response)
+                await stream.write(context, *await asyncio.to_thread(stream.on_frame, request.frame, arrived))
             elif kind == "skip":
-                response = await asyncio.to_thread(stream.on_skip, request.skip.seq, arrived)
-                async with stream.write_lock:
-                    await context.write(response)
+                await stream.write(
+                    context, await asyncio.to_thread(stream.on_skip, request.skip.seq, arrived)
+                )
             elif kind == "sync":
-                async with stream.write_lock:
-                    await context.write(self._pong(stream, request.sync, arrived))
+                await stream.write(context, self._pong(stream, request.sync, arrived))
             elif kind == "close":
-                response = await self._close(stream)
-                async with stream.write_lock:
-                    await context.write(response)
+                await stream.write(context, await self._close(stream))
                 return
             else:
                 raise InvalidArgument(_unexpected(kind))
@@ -589,16 +589,14 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 arrived = stream.clock.now()
                 kind = request.WhichOneof("payload")
                 if kind == "frame":
-                    for response in stream.on_frame(request.frame, arrived):
-                        await clock.write(response)
+                    await clock.write(*stream.on_frame(request.frame, arrived))
                 elif kind == "skip":
                     await clock.write(stream.on_skip(request.skip.seq, arrived))
                 elif kind == "sync":
                     await clock.write(self._pong(stream, request.sync, arrived))  # may move the deadline
                 elif kind == "close":
                     tick_task.cancel()
-                    for response in stream.drain():
-                        await clock.write(response)
+                    await clock.write(*stream.drain())
                     await clock.write(await self._close(stream))
                     return
                 else:
