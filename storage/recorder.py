@@ -134,6 +134,7 @@ class SessionRecorder:
         self._durable_seq: int | None = None
         self._state = _State.OPEN
         self._location = ""
+        self._stored_summary: SessionSummaryInfo | None = None
         self._close_error: BaseException | None = None
         self._shared = shared
         self._resumed = resumed is not None
@@ -225,6 +226,12 @@ class SessionRecorder:
     def resumable(self) -> bool:
         """Whether another stream may continue this session (its log is in the shared tier)."""
         return self._shared is not None
+
+    @property
+    def stored_summary(self) -> SessionSummaryInfo | None:
+        """The summary the index holds, once `close` stored the session: for a resumed session,
+        computed from all of its rows (the stream's own counts are only its latest part)."""
+        return self._stored_summary
 
     @property
     def durable_seq(self) -> int | None:
@@ -337,7 +344,7 @@ class SessionRecorder:
                 raise storage_failure(
                     f"session {self._header.session_id} could not be stored", error
                 ) from None
-            self._location = location
+            self._location, self._stored_summary = location, summary
             return location
         except BaseException as exc:
             self._close_error = exc
@@ -374,7 +381,7 @@ class SessionRecorder:
                 raise storage_failure(
                     f"session {self._header.session_id} could not be stored", error
                 ) from None
-            self._location = location
+            self._location, self._stored_summary = location, summary
             return location
         except BaseException as exc:
             self._close_error = exc

@@ -689,6 +689,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 location = ""
             else:
                 location = await asyncio.to_thread(stream.recorder.close, summary, status=status)
+                summary = stream.recorder.stored_summary or summary
         except STORAGE_ERRORS as error:
             raise storage_failure(
                 f"session {stream.recorder.header.session_id} could not be stored", error
