@@ -344,15 +344,23 @@ class SessionOpener:
                 if services.shared is not None
                 else "",
                 resume_from_seq=None if taken is None else first_tick,
-                resume_reason=""
-                if taken is None
-                else f"the estimator restarts from the next frame (tick {first_tick} on); "
-                f"ticks up to {first_tick - 1} are stored",
+                resume_reason="" if taken is None else _resume_reason(first_tick, plan.clock),
                 elapsed=0.0 if taken is None else (datetime.now(UTC) - header.started_at).total_seconds(),
             )
         except BaseException:
             recorder.discard()
             raise
+
+
+def _resume_reason(first_tick: int, clock: Clock) -> str:
+    """What a resumed session's client is told in `resume_reason`."""
+    stored = f"ticks 0-{first_tick - 1} are stored" if first_tick > 0 else "no tick of it was stored yet"
+    replay = (
+        "; the ticks that passed while it moved are answered late from the frames re-sent for them"
+        if clock == Clock.REALTIME
+        else ""
+    )
+    return f"{stored}; the estimator restarts from the frame of tick {first_tick}{replay}"
 
 
 def _resumed_header(resolved: _Resolved, taken: TakenOver) -> tuple[SessionHeader, int]:

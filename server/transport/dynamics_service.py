@@ -64,6 +64,9 @@ SHED_AFTER = 0.003
 # REALTIME: a frame is answered as it arrives once its tick's time has come, give or take this
 # much error of the clock offset (seconds).
 _EARLY_TOLERANCE = 0.002
+# REALTIME resume: how long the ticks that passed while the session moved wait for the frames the
+# client re-sends (the SDK sends them right after `opened`) before they are skipped (seconds).
+RESUME_REPLAY_WAIT = 0.5
 
 
 _R = TypeVar("_R")
@@ -101,6 +104,11 @@ class _Stream:
         self.lock = asyncio.Lock()
         self.pending: dict[int, FrameIn] = {}
         self.closed = False
+        # REALTIME resume: the ticks before `replay_below`, which passed while the session moved,
+        # are answered from the re-sent frames as they come (not skipped, not shed) until
+        # `replay_until` on the server clock.
+        self.replay_below = 0
+        self.replay_until = -math.inf
         # Responses come from the request loop, the REALTIME clock and a drain's `moving`.
         self._write_lock = asyncio.Lock()
 
@@ -268,6 +276,23 @@ class _Stream:
         outcome = self.runtime.advance(None)
         return Response(result=self.record_result(outcome, arrived=arrived))
 
+    def start_replay(self) -> None:
+        """REALTIME resume, as the session's clock restarts: the ticks from the first this stream
+        answers up to the present passed while the session moved; the client re-sends their frames
+        at once, and they are answered in order as they come, with the estimator, so the record and
+        the filter stay continuous. At most `history` of them; older ones are skipped."""
+        first = self.runtime.next_tick
+        present = max(first, math.ceil((self.clock.now() - self.plan.grace) / self.plan.dt))
+        oldest = max(first, present - self.runtime.history)
+        if oldest > first:
+            self.runtime.skip(oldest - first)
+        self.replay_below = present
+        self.replay_until = self.clock.now() + RESUME_REPLAY_WAIT
+
+    def replaying(self) -> bool:
+        """REALTIME resume: ticks that passed while the session moved still wait for their frames."""
+        return self.runtime.next_tick < self.replay_below and self.clock.now() < self.replay_until
+
     def deadline(self, seq: int) -> float:
         """REALTIME: tick `seq`'s deadline on the server clock: its time plus the grace."""
         return self.sync.to_server(seq * self.plan.dt) + self.plan.grace
@@ -275,7 +300,7 @@ class _Stream:
     def answer(self, frame: FrameIn | None, *, due: float, now: float) -> Response:
         """REALTIME: answer the next tick; without the estimator (shed) when the loop reached it
         more than SHED_AFTER after its deadline."""
-        shed = now - self.deadline(self.runtime.next_tick) > SHED_AFTER
+        shed = now - self.deadline(self.runtime.next_tick) > SHED_AFTER and not self.replaying()
         if shed:
             outcome = self.runtime.shed(frame)
         else:
@@ -290,6 +315,8 @@ class _Stream:
         """REALTIME: when the loop reaches a session more than a tick late, skip (answer not at all)
         every tick whose deadline is already SHED_AFTER behind but the newest, so that the next
         answer is about the present and an overloaded process sheds work instead of queueing it."""
+        if self.replaying():
+            return
         seq = self.runtime.next_tick
         behind = self.clock.now() - self.sync.offset - self.plan.grace - SHED_AFTER
         # The newest tick whose deadline is more than SHED_AFTER gone: it is answered (shed); the
@@ -353,7 +380,12 @@ class _RealtimeClock:
         its deadline (monotonic seconds)."""
         stream = self._stream
         seq = stream.runtime.next_tick
-        at = stream.sync.to_server(seq * stream.plan.dt) if seq in stream.pending else stream.deadline(seq)
+        if seq in stream.pending:
+            at = stream.sync.to_server(seq * stream.plan.dt)
+        elif stream.replaying():
+            at = stream.replay_until  # a resume's passed tick waits for its re-sent frame
+        else:
+            at = stream.deadline(seq)
         return stream.clock.to_monotonic(at)
 
     def moved(self) -> None:
@@ -370,6 +402,8 @@ class _RealtimeClock:
             seq = stream.runtime.next_tick
             if seq in stream.pending:
                 responses = stream.answer_ready()
+            elif stream.replaying():
+                continue
             elif stream.clock.now() >= stream.deadline(seq):
                 responses = stream.on_deadline(stream.deadline(seq))
             else:
@@ -420,6 +454,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             # client's clock knows nothing of; counted in, every frame looked late until a clock
             # probe completed.
             stream.clock.restart(elapsed=stream.opened.elapsed)
+            if stream.plan.clock == Clock.REALTIME and stream.opened.resume_from_seq is not None:
+                stream.start_replay()
             self._streams[stream] = context
             await context.write(Response(opened=opened))
             if stream.plan.clock == Clock.REALTIME:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -16,7 +17,7 @@ import pytest
 from _cluster import Balancer, Replica, wait_for
 from _raw import DT, new_model, session_row
 
-from jitdyn.client import Client, FrameData, ResumePolicy, SessionOptions
+from jitdyn.client import Client, FrameData, ResumePolicy, SessionOptions, TickResult
 from jitdyn.errors import ResumeBufferFull
 
 pytestmark = pytest.mark.postgres
@@ -144,3 +145,53 @@ def test_round_robin_over_several_addresses_and_a_bounded_resume_buffer(
                 session.send_frame(frame(k))
         print(f"with resume off: {type(broken.value).__name__}: {broken.value}")
         assert type(broken.value).__name__ in ("Unavailable", "JitdynError")
+
+
+def test_a_realtime_session_resumes_and_its_record_keeps_every_frame(
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    index_url: str,
+    tmp_path: Path,
+) -> None:
+    """REALTIME: the ticks that pass while the session moves are answered late from the frames the
+    SDK re-sends (the server replays them in order with the estimator), not skipped: no tick goes
+    unanswered, and the stored session holds every frame the client sent, as a measured result."""
+    replicas, balancer = cluster(start_replica, start_balancer, tmp_path)
+    ticks = 80
+    with Client(balancer.address, timeout=30) as client:
+        session = client.open_session(
+            SessionOptions(inline_mjcf=new_model(), inline_name="pendulum_2_inline", dt=DT, clock="REALTIME")
+        )
+        answered: dict[int, float] = {}
+        for k in range(ticks):
+            time.sleep(max(0.0, k * DT - session.now()))
+            session.send(frame(k))
+            if k == 30:
+                owner(replicas).kill()
+            for answer in session.poll():
+                if isinstance(answer, TickResult) and answer.source != "CORRECTED":
+                    answered.setdefault(answer.seq, answer.received_at - session.clock_start)
+        for answer in session.results(timeout=10):
+            if isinstance(answer, TickResult) and answer.source != "CORRECTED":
+                answered.setdefault(answer.seq, answer.received_at - session.clock_start)
+                if answer.seq == ticks - 1:
+                    break
+        summary = session.close()
+    late = [k for k, at in answered.items() if at > k * DT + session.opened.grace]
+    print(f"resumed {summary.resumes}x; ticks missed {summary.missed}; answered late: {sorted(late)}")
+    assert summary.resumes == 1 and summary.missed == 0
+    assert sorted(answered) == list(range(ticks)), "every tick answered once"
+    row = session_row(index_url, session.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    table = pq.read_table(tmp_path / "shared-folder" / str(row["location"]))
+    measured = sorted(
+        seq
+        for kind, seq, got in zip(
+            table["kind"].to_pylist(),
+            table["seq"].to_pylist(),
+            table["frame_received"].to_pylist(),
+            strict=True,
+        )
+        if kind == "result" and got
+    )
+    assert measured == list(range(ticks)), "every frame sent is in the record, answered"
