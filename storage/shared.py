@@ -120,14 +120,17 @@ class SharedTier:
         with self.engine.begin() as conn:
             # One statement for every session: the row locks it takes order the commit against a
             # take-over (whichever comes second sees the other's epoch); PostgreSQL's greatest()
-            # ignores NULL.
+            # ignores NULL. `top` is cast: in a window of only rejections (top NULL in every row)
+            # PostgreSQL types the VALUES column as text, and greatest(bigint, text) fails.
             kept = set(
                 conn.execute(
                     sa.update(session_leases)
                     .where(leases.session_id == values.c.sid, leases.epoch == values.c.ep)
                     .values(
                         expires_at=self._expiry(),
-                        durable_seq=sa.func.greatest(leases.durable_seq, values.c.top),
+                        durable_seq=sa.func.greatest(
+                            leases.durable_seq, sa.cast(values.c.top, sa.BigInteger)
+                        ),
                     )
                     .returning(leases.session_id)
                 ).scalars()
