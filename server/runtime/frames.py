@@ -37,3 +37,6 @@ class Rejection:
     seq: int
     reason: RejectReason
     message: str
+    # A frame that passed its checks but came too late to be used: stored with the rejection, so
+    # that no measurement a client sent is lost.
+    frame: FrameIn | None = None

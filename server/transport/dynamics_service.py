@@ -65,8 +65,9 @@ SHED_AFTER = 0.003
 # much error of the clock offset (seconds).
 _EARLY_TOLERANCE = 0.002
 # REALTIME resume: how long the ticks that passed while the session moved wait for the frames the
-# client re-sends (the SDK sends them right after `opened`) before they are skipped (seconds).
-RESUME_REPLAY_WAIT = 0.5
+# client re-sends (the SDK sends them right after `opened`; a loaded replica may take a while to
+# read them) before they are skipped (seconds).
+RESUME_REPLAY_WAIT = 1.0
 
 
 _R = TypeVar("_R")
@@ -161,8 +162,10 @@ class _Stream:
         )
         return Response(rejected=rejected_message(rejection))
 
-    def reject(self, seq: int, reason: RejectReason, message: str) -> list[Response]:
-        return [self.record_rejection(Rejection(seq, reason, message))]
+    def reject(
+        self, seq: int, reason: RejectReason, message: str, *, frame: FrameIn | None = None
+    ) -> list[Response]:
+        return [self.record_rejection(Rejection(seq, reason, message, frame))]
 
     def horizon(self) -> float:
         if self.plan.horizon == Horizon.HALF_ROUND_TRIP:
@@ -192,10 +195,10 @@ class _Stream:
         if place == Place.DUPLICATE:
             return self.reject(seq, RejectReason.DUPLICATE, f"frame {seq}: tick {seq} already has a frame")
         if place == Place.TOO_OLD:
-            return self.reject(seq, RejectReason.TOO_OLD, self._too_old(seq))
+            return self.reject(seq, RejectReason.TOO_OLD, self._too_old(seq), frame=checked)
         unaffordable = self._unaffordable_replay(seq)
         if unaffordable is not None:
-            return self.reject(seq, RejectReason.TOO_OLD, unaffordable)
+            return self.reject(seq, RejectReason.TOO_OLD, unaffordable, frame=checked)
         outcome = self.runtime.apply_late(checked)
         return [Response(result=self.record_result(outcome, arrived=arrived))]
 
@@ -216,8 +219,8 @@ class _Stream:
                 f"(the clock is at tick {self.runtime.next_tick}), got {seq}",
             )
         self.pending[seq] = frame
-        self.catch_up()
-        return self.answer_ready()
+        skipped = self.catch_up()
+        return skipped + self.answer_ready()
 
     def _unaffordable_replay(self, seq: int) -> str | None:
         """REALTIME: why a late frame's timewarp is not applied, or None when it fits.
@@ -311,21 +314,33 @@ class _Stream:
         self._m_lateness.observe(max(0.0, self.clock.now() - self.deadline(outcome.seq)))
         return response
 
-    def catch_up(self) -> None:
+    def catch_up(self) -> list[Response]:
         """REALTIME: when the loop reaches a session more than a tick late, skip (answer not at all)
         every tick whose deadline is already SHED_AFTER behind but the newest, so that the next
-        answer is about the present and an overloaded process sheds work instead of queueing it."""
+        answer is about the present and an overloaded process sheds work instead of queueing it.
+        A frame that was waiting for a skipped tick is rejected TOO_OLD, its values stored."""
         if self.replaying():
-            return
+            return []
         seq = self.runtime.next_tick
         behind = self.clock.now() - self.sync.offset - self.plan.grace - SHED_AFTER
         # The newest tick whose deadline is more than SHED_AFTER gone: it is answered (shed); the
         # ones before it, a tick or more behind it, are not.
         newest = math.ceil(behind / self.plan.dt) - 1
-        if newest - seq >= 1:
-            for k in range(seq, newest):
-                self.pending.pop(k, None)
-            self.runtime.skip(newest - seq)
+        if newest - seq < 1:
+            return []
+        waiting = [frame for k in range(seq, newest) if (frame := self.pending.pop(k, None)) is not None]
+        self.runtime.skip(newest - seq)
+        return [
+            response
+            for frame in waiting
+            for response in self.reject(
+                frame.seq,
+                RejectReason.TOO_OLD,
+                f"frame {frame.seq}: the server was behind and skipped ticks {seq}-{newest - 1}; "
+                "the frame is stored, not used",
+                frame=frame,
+            )
+        ]
 
     @_counting_warnings
     def answer_ready(self) -> list[Response]:
@@ -398,17 +413,17 @@ class _RealtimeClock:
             await self._wakeup.until(self.due())
             if stream.closed:
                 return
-            stream.catch_up()
+            skipped = stream.catch_up()
             seq = stream.runtime.next_tick
             if seq in stream.pending:
                 responses = stream.answer_ready()
             elif stream.replaying():
-                continue
+                responses = []
             elif stream.clock.now() >= stream.deadline(seq):
                 responses = stream.on_deadline(stream.deadline(seq))
             else:
-                continue  # a clock probe moved the deadline later
-            await self.write(*responses)
+                responses = []  # a clock probe moved the deadline later
+            await self.write(*skipped, *responses)
 
 
 class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):

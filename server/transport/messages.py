@@ -124,7 +124,9 @@ def tick_record(
 
 
 def rejection_record(rejection: Rejection, *, server_time: float, t: float) -> TickRecord:
-    """The stored row of a rejected frame (its values are not kept: they were not used)."""
+    """The stored row of a rejected frame or skip: the values of a frame that came too late to be
+    used are kept (`frame_*`); those of a frame that failed its checks are not."""
+    frame = rejection.frame
     return TickRecord(
         kind="rejected",
         # The column is int64; a hostile seq is kept whole in the message.
@@ -133,12 +135,12 @@ def rejection_record(rejection: Rejection, *, server_time: float, t: float) -> T
         t=t,
         server_time=server_time,
         frame_received=True,
-        frame_t=None,
-        frame_qpos=None,
-        frame_qvel=None,
-        frame_qacc=None,
-        frame_ctrl=None,
-        frame_sensordata=None,
+        frame_t=frame.t if frame is not None else None,
+        frame_qpos=frame.qpos if frame is not None else None,
+        frame_qvel=frame.qvel if frame is not None else None,
+        frame_qacc=frame.qacc if frame is not None else None,
+        frame_ctrl=frame.ctrl if frame is not None else None,
+        frame_sensordata=frame.sensordata if frame is not None else None,
         late_ticks=0,
         frame_delay=None,
         qpos=None,
