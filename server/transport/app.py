@@ -27,6 +27,7 @@ from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
+from jitdyn.server.runtime.heap import freeze_startup_heap, watch_collections
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.orphans import finish_orphans
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
@@ -331,6 +332,14 @@ async def serve(
         serve_metrics(config.metrics_address)
     server, port, services = await create_server(config)
     await server.start()
+    # After its startup the process's heap is frozen: a full collection of it stops the loop
+    # for longer than a tick (server/runtime/heap.py).
+    freeze_startup_heap()
+    watch_collections(
+        lambda generation, seconds: (
+            metrics().gc_pause.labels(metrics().process, str(generation)).observe(seconds)
+        )
+    )
     services.admission.start_window()
     host = config.address.rsplit(":", 1)[0]
     announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")

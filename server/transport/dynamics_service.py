@@ -329,6 +329,14 @@ class _Stream:
         if newest - seq < 1:
             return []
         waiting = [frame for k in range(seq, newest) if (frame := self.pending.pop(k, None)) is not None]
+        _log.warning(
+            "session %s: the loop reached tick %d %.0f ms after its deadline; ticks %d-%d skipped",
+            self.recorder.header.session_id,
+            seq,
+            1e3 * (self.clock.now() - self.deadline(seq)),
+            seq,
+            newest - 1,
+        )
         self.runtime.skip(newest - seq)
         return [
             response
@@ -516,6 +524,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             request = open_request(first.open, tenant=tenant_of(context))
             return await self._open(request)
         except JitdynError as error:
+            # Logged too: a balancer may not pass the status on (HAProxy 2.6 resets the stream
+            # instead, docs/decisions/0121-refusals-through-haproxy.md), and the operator should know.
+            resume = " (a resume)" if first.open.HasField("resume") else ""
+            _log.info("an open%s was refused: %s: %s", resume, error.code.name, error)
             await abort(context, error)
         except Exception:  # noqa: BLE001 (a bug: logged with its traceback, as translate_errors does)
             # The client learns nothing of the server's insides.

@@ -69,6 +69,12 @@ class Metrics:
             ["process"],
             buckets=_LAG_BUCKETS,
         )
+        self.gc_pause = Histogram(
+            "jitdyn_gc_pause_seconds",
+            "Garbage collections of the process (the event loop stops for each), by generation.",
+            ["process", "generation"],
+            buckets=_LATENESS_BUCKETS,
+        )
         self.load = Gauge(
             "jitdyn_process_load_cores",
             "The process's load as admission sees it (cores).",

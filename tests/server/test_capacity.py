@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from jitdyn.client import AsyncClient, FrameData, SessionOptions, TickResult
+from jitdyn.client import AsyncClient, FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.errors import ResourceExhausted
 
 DT = 0.05
@@ -92,8 +92,8 @@ async def _session(address: str, index: int) -> tuple[str, list[float], int]:
                 async for answer in session.results(timeout=5):
                     if isinstance(answer, TickResult):
                         first.setdefault(answer.seq, answer)
-                        if answer.seq == TICKS - 1:
-                            return
+                    if isinstance(answer, (TickResult, Rejection)) and answer.seq >= TICKS - 1:
+                        return  # the last tick answered, or its frame rejected (a skipped tick)
 
             await asyncio.gather(produce(), consume())
         grace = session.opened.grace
@@ -155,7 +155,8 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
             message,
         ), message
     for _, lateness, measured in ran:
-        assert max(lateness) < DT, max(lateness)  # nothing late by a tick
+        # Nothing late by a tick; inf: a tick the server skipped (its frame answered TOO_OLD).
+        assert max(lateness) < DT, [(k, round(x, 3)) for k, x in enumerate(lateness) if x >= DT]
         assert measured >= 0.95 * TICKS
     # Every admitted session's ticks and every refusal, on the endpoint, by process.
     measured_total = sum(
@@ -173,3 +174,4 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
     assert processes_seen <= {str(i) for i in range(processes)} and processes_seen
     assert re.search(r"^jitdyn_tick_lateness_seconds_bucket\{.*le=\"0.005\".*\} \S+$", scraped, re.MULTILINE)
     assert re.search(r"^jitdyn_durable_lag_ticks_count\{.*\} \S+$", scraped, re.MULTILINE)
+    assert re.search(r'^jitdyn_gc_pause_seconds_count\{.*generation="0".*\} \S+$', scraped, re.MULTILINE)
