@@ -11,8 +11,8 @@ pendulum_3 PASSIVE, one thread each sending its frames on the session clock.
               ticks missed (REALTIME ticks whose time passed with no answer).
     rolling   --sessions sessions at --rate Hz; each replica in turn gets SIGTERM (it drains: its
               sessions are told to move), is waited for and started again. Prints sessions lost,
-              acknowledged frames lost (a frame some answer's durable_seq covered, not in the
-              stored session), ticks missed.
+              acknowledged frames lost (a frame some answer's durable_seq covered whose values
+              are not in the stored session), ticks never answered and answered late.
 
     python -m benchmarks.failover                          # both: 20 kills, then 30 sessions rolling
     python -m benchmarks.failover --part kills --kills 5
@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import sys
 import tempfile
 import threading
@@ -46,7 +47,7 @@ from _cluster import Balancer, Replica, postgres_database, wait_for
 
 HOSTS = ("127.0.0.31", "127.0.0.32", "127.0.0.33")
 # A replica silent for a second is taken for dead; a session nobody resumes in 10 s is stored.
-FAST = ["--lease-ttl=1s", "--resume-timeout=10s"]
+FAST = ["--lease-ttl=1s", "--resume-timeout=10s", "--verbose"]
 
 
 @dataclass
@@ -58,6 +59,7 @@ class Run:
     stop: threading.Event = field(default_factory=threading.Event)
     answers: list[tuple[float, int]] = field(default_factory=list)  # (monotonic arrival, seq), fresh only
     acknowledged: int = -1
+    send_lag: list[float] = field(default_factory=list)  # how late this client sent each frame (s)
     sent: int = 0
     error: BaseException | None = None
     thread: threading.Thread | None = None
@@ -68,6 +70,7 @@ class Run:
         try:
             while not self.stop.is_set():
                 time.sleep(max(0.0, k * self.dt - session.now()))
+                self.send_lag.append(session.now() - k * self.dt)
                 q = 0.3 * np.sin(2 * np.pi * 0.5 * k * self.dt)
                 session.send(FrameData(seq=k, t=k * self.dt, qpos=[q, -0.5 * q, 0.2 * q], qvel=[0.0] * 3))
                 self.sent = k + 1
@@ -81,8 +84,16 @@ class Run:
             if isinstance(answer, TickResult):
                 if answer.source != "CORRECTED":
                     self.answers.append((answer.received_at, answer.seq))
+
                 if answer.durable_seq is not None:
                     self.acknowledged = max(self.acknowledged, answer.durable_seq)
+
+    def after(self, killed_at: float, start: int) -> list[tuple[float, int]]:
+        """Answers to frames sent after `killed_at` (monotonic), from answers[start:]: the session
+        answers again (an answer the killed replica sent just before its end may still arrive
+        after it, and is not one of them)."""
+        sent_after = killed_at - self.session.clock_start
+        return [(at, seq) for at, seq in self.answers[start:] if seq * self.dt > sent_after]
 
     def late(self, since: float = -float("inf"), until: float = float("inf")) -> int:
         """Answers that arrived after their tick's deadline (its time plus the grace), between
@@ -153,17 +164,13 @@ def kills(replicas: list[Replica], balancer: Balancer, index_url: str, *, count:
             killed_at = time.monotonic()
             holder.kill()
             wait_for(
-                lambda k=killed_at, b=before: (
-                    run.error is not None or any(at > k for at, _ in run.answers[b:])
-                ),
+                lambda k=killed_at, b=before: run.error is not None or bool(run.after(k, b)),
                 timeout=20,
                 what="no answer after the kill",
             )
             if run.error is not None:
                 raise run.error
-            # The first answer that arrived after the kill, from the new replica.
-            after = [(at, seq) for at, seq in run.answers[before:] if at > killed_at]
-            first_at, first_seq = after[0]
+            first_at, first_seq = run.after(killed_at, before)[0]
             last_seq = max((seq for at, seq in run.answers if at <= killed_at), default=-1)
             took.append(first_at - killed_at)
             missed_per_kill.append(max(0, first_seq - last_seq - 1))
@@ -215,6 +222,17 @@ def rolling(
                 lost += 1
                 print(f"  lost {run.session.opened.session_id}: {error}")
     late = sum(run.late() for run in runs)
+    took = [r.took for run in runs for r in run.session.resumptions]
+    attempts = [r.attempts for run in runs for r in run.session.resumptions]
+    if took:
+        print(
+            f"  resumes took p50 {1e3 * _pct(took, 50):.0f} ms, p99 {1e3 * _pct(took, 99):.0f} ms, "
+            f"max {1e3 * max(took):.0f} ms; attempts max {max(attempts)}"
+        )
+    lag = [x for run in runs for x in run.send_lag]
+    print(
+        f"  the clients sent their frames late by p50 {1e3 * _pct(lag, 50):.1f} ms, p99 {1e3 * _pct(lag, 99):.1f} ms"
+    )
     answered = sum(len(run.answers) for run in runs)
     frames_lost = _acknowledged_lost(runs, replicas, index_url)
     print(
@@ -239,17 +257,23 @@ def _acknowledged_lost(runs: Sequence[Run], replicas: Sequence[Replica], index_u
                 if not files:
                     lost += run.acknowledged + 1
                     continue
+                # A frame is kept when its values are in the record: the tick's result, or the
+                # rejection of a frame that came too late to be used (TOO_OLD keeps them).
                 table = pq.read_table(
-                    files[0], columns=["kind", "seq", "source", "frame_received", "reject_reason"]
+                    files[0], columns=["kind", "seq", "frame_received", "frame_qpos", "source", "server_time"]
                 )
-                rows = list(zip(*(table[c].to_pylist() for c in table.column_names), strict=True))
-                stored = {s for kind, s, _, got, _ in rows if kind == "result" and got}
-                missing = [seq for seq in range(run.acknowledged + 1) if seq not in stored]
+                columns = (table[c].to_pylist() for c in table.column_names)
+                kept = {
+                    seq
+                    for kind, seq, got, qpos, _, _ in zip(*columns, strict=True)
+                    if (kind == "result" and got) or (kind == "rejected" and qpos is not None)
+                }
+                missing = [seq for seq in range(run.acknowledged + 1) if seq not in kept]
                 if missing:
-                    print(
-                        f"  {run.session.opened.session_id}: acknowledged but not stored as received: {missing}"
-                    )
-                    print("   ", [r for r in rows if r[1] in missing])
+                    print(f"  {run.session.opened.session_id}: acknowledged, not in the record: {missing}")
+                    near = {k for m in missing for k in range(m - 2, m + 3)}
+                    rows = zip(*(table[c].to_pylist() for c in table.column_names), strict=True)
+                    print("   ", [(k, s, g, src, round(t, 3)) for k, s, g, q, src, t in rows if s in near])
                 lost += len(missing)
     finally:
         engine.dispose()
@@ -274,19 +298,26 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--kills", type=int, default=20, help="kill -9 this many times (default 20)")
     parser.add_argument("--sessions", type=int, default=30, help="sessions under the rolling restart")
     parser.add_argument("--rate", type=float, default=20.0, help="frames per second of every session")
+    parser.add_argument(
+        "--workdir", type=Path, help="keep the replicas' folders and logs here (default: a temporary folder)"
+    )
     args = parser.parse_args(argv)
-    with (
-        tempfile.TemporaryDirectory(prefix="jitdyn-failover-") as tmp,
-        cluster(Path(tmp)) as (
-            replicas,
-            balancer,
-            index_url,
-        ),
-    ):
-        if args.part in ("kills", "both"):
-            kills(replicas, balancer, index_url, count=args.kills, rate=args.rate)
-        if args.part in ("rolling", "both"):
-            rolling(replicas, balancer, index_url, sessions=args.sessions, rate=args.rate)
+    logging.basicConfig(level=logging.WARNING, format="  %(name)s: %(message)s")
+    logging.getLogger("jitdyn.client").setLevel(logging.INFO)  # every failed resume attempt, and why
+    with contextlib.ExitStack() as stack:
+        workdir = args.workdir or Path(
+            stack.enter_context(tempfile.TemporaryDirectory(prefix="jitdyn-failover-"))
+        )
+        replicas, balancer, index_url = stack.enter_context(cluster(workdir))
+        try:
+            if args.part in ("kills", "both"):
+                kills(replicas, balancer, index_url, count=args.kills, rate=args.rate)
+            if args.part in ("rolling", "both"):
+                rolling(replicas, balancer, index_url, sessions=args.sessions, rate=args.rate)
+        except BaseException:
+            for log in [*(r.log for r in replicas), balancer.log]:
+                print(f"--- the end of {log.name}:", *log.read_text().splitlines()[-15:], sep="\n")
+            raise
 
 
 if __name__ == "__main__":

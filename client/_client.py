@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import logging
 import queue
 import threading
 import time
@@ -48,10 +49,12 @@ from jitdyn.client._transport import (
     End,
     auth_metadata,
     channel_options,
+    explain_open_error,
     status_error,
 )
 from jitdyn.errors import (
     FailedPrecondition,
+    JitdynError,
     NoAnswer,
     ResumeBufferFull,
     SessionLost,
@@ -70,6 +73,9 @@ from jitdyn.v1 import (
 from jitdyn.vocabulary import Clock
 
 __all__ = ["Client", "Session"]
+
+_log = logging.getLogger("jitdyn.client")
+
 
 _Request = TypeVar("_Request")
 _Response = TypeVar("_Response")
@@ -103,8 +109,10 @@ class Session:
         sync_interval: float = 0.5,
         on_end: Callable[[], None] | None = None,
         resume: ResumePolicy | None = None,
+        reconnect: Callable[[], dynamics_pb2_grpc.DynamicsServiceStub] | None = None,
     ) -> None:
         self._on_end = on_end  # called once the session has ended: the client closes its connection
+        self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
         self._stub = stub
         self._metadata = tuple(metadata)
         self._policy = resume if resume is not None else ResumePolicy()
@@ -139,7 +147,10 @@ class Session:
         self._token = ""
         self._reader: threading.Thread | None = None
         self._start_stream(dynamics_pb2.StreamSessionRequest(open=self._open_message))
-        first = self._get(self._timeout)
+        try:
+            first = self._get(self._timeout)
+        except JitdynError as error:
+            raise explain_open_error(error) from None
         if first is None:
             self._finish()
             raise FailedPrecondition("the session stream has ended")
@@ -274,6 +285,8 @@ class Session:
         last = cause
         for attempt in range(self._policy.attempts):
             time.sleep(self._policy.backoff(attempt))
+            if self._reconnect is not None:
+                self._stub = self._reconnect()
             message = dynamics_pb2.OpenSession()
             message.CopyFrom(self._open_message)
             message.resume.session_id = session_id
@@ -283,11 +296,13 @@ class Session:
                 item = self._raw(self._policy.open_timeout)
             except NoAnswer:
                 last = f"no `opened` within {self._policy.open_timeout} s"
+                _log.info("session %s: resume attempt %d: %s", session_id, attempt + 1, last)
                 self._end_stream()
                 continue
             if isinstance(item, grpc.RpcError):
                 code = item.code()
                 last = f"{code.name}: {item.details()}"
+                _log.info("session %s: resume attempt %d: %s", session_id, attempt + 1, last)
                 self._end_stream()
                 # The old owner may still hold the lease for a moment (FAILED_PRECONDITION).
                 if code in RESUMABLE_CODES or code == grpc.StatusCode.FAILED_PRECONDITION:
@@ -295,6 +310,7 @@ class Session:
                 break
             if item is END or item[1].WhichOneof("payload") != "opened":
                 last = "the stream ended before `opened`"
+                _log.info("session %s: resume attempt %d: %s", session_id, attempt + 1, last)
                 self._end_stream()
                 continue
             opened = item[1].opened
@@ -623,19 +639,29 @@ class Client(Closeable):
 
     def open_session(self, options: SessionOptions) -> Session:
         """Open a session; raises the server's error (InvalidArgument, NotFound, ...) if it refuses."""
-        stub, ended = self._dynamics, None
+        stub, ended, reconnect = self._dynamics, None, None
         if self._connection_per_session:
-            channel = self._new_channel(shared=False)
+            current = [self._new_channel(shared=False)]
             with self._lock:
-                self._session_channels.add(channel)
-            stub = dynamics_pb2_grpc.DynamicsServiceStub(channel)
+                self._session_channels.add(current[0])
+            stub = dynamics_pb2_grpc.DynamicsServiceStub(current[0])
 
             def ended() -> None:
                 with self._lock:
-                    if channel not in self._session_channels:
+                    if current[0] not in self._session_channels:
                         return
-                    self._session_channels.discard(channel)
-                channel.close()
+                    self._session_channels.discard(current[0])
+                current[0].close()
+
+            def reconnect() -> dynamics_pb2_grpc.DynamicsServiceStub:
+                # A resume on a new connection: a balancer keeps a connection's streams on the
+                # backend it first chose (HAProxy's connection reuse), which is the replica that
+                # died or is draining.
+                ended()
+                current[0] = self._new_channel(shared=False)
+                with self._lock:
+                    self._session_channels.add(current[0])
+                return dynamics_pb2_grpc.DynamicsServiceStub(current[0])
 
         try:
             return Session(
@@ -646,6 +672,7 @@ class Client(Closeable):
                 checksum=self._checksum,
                 on_end=ended,
                 resume=self._resume,
+                reconnect=reconnect,
             )
         except grpc.RpcError as error:
             raise status_error(error) from None

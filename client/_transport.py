@@ -93,6 +93,23 @@ def status_error(error: grpc.RpcError) -> JitdynError:
     return error_for_status(error.code(), error.details() or "")
 
 
+# Why an open can end in a bare stream reset: HAProxy before 3.2 turns a server's refusal of a
+# stream the client still writes to into RST_STREAM(CANCEL), which drops the status
+# (haproxy/haproxy#1219; docs/decisions/0121-refusals-through-a-balancer.md).
+_RESET_AT_OPEN = (
+    "the stream was reset before the server's answer to `open` arrived; through a balancer this "
+    "is often a refusal whose reason the balancer dropped (HAProxy before 3.2 does): the server's "
+    "log says why (`jitdyn serve -v` logs every refused open), or open the session on a replica directly"
+)
+
+
+def explain_open_error(error: JitdynError) -> JitdynError:
+    """`error` as an open raises it: a bare stream reset says what it likely hides."""
+    if error.code == grpc.StatusCode.CANCELLED and "RST_STREAM" in str(error):
+        return error_for_status(grpc.StatusCode.CANCELLED, f"{error}: {_RESET_AT_OPEN}")
+    return error
+
+
 def auth_metadata(api_key: str | None) -> tuple[tuple[str, str], ...]:
     """The call metadata that carries `api_key`; none without one."""
     return (("authorization", f"Bearer {api_key}"),) if api_key else ()

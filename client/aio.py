@@ -36,8 +36,15 @@ from jitdyn.client._models import (
     session_answer,
     sync_request,
 )
-from jitdyn.client._transport import CHANNEL_OPTIONS, END, End, auth_metadata, status_error
-from jitdyn.errors import FailedPrecondition, NoAnswer, error_for_status
+from jitdyn.client._transport import (
+    CHANNEL_OPTIONS,
+    END,
+    End,
+    auth_metadata,
+    explain_open_error,
+    status_error,
+)
+from jitdyn.errors import FailedPrecondition, JitdynError, NoAnswer, error_for_status
 from jitdyn.v1 import (
     dynamics_pb2,
     dynamics_pb2_grpc,
@@ -104,7 +111,10 @@ class AsyncSession:
     async def _open(self) -> None:
         try:
             await self._write_now(self._open_request)
-            first = await self._get(self._timeout)
+            try:
+                first = await self._get(self._timeout)
+            except JitdynError as error:
+                raise explain_open_error(error) from None
             if first is None:
                 raise FailedPrecondition("the session stream has ended")
             opened = opened_from_response(first[1])

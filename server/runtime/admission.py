@@ -19,6 +19,7 @@ cannot carry it (Linux: /proc/stat; elsewhere the process budget alone).
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
@@ -29,6 +30,8 @@ from jitdyn.errors import InvalidArgument, ResourceExhausted
 from jitdyn.server.runtime.switch_interval import SwitchInterval
 
 __all__ = ["DEFAULT_TICK_BUDGET", "TRANSPORT_COST", "Admission", "Ticket"]
+
+_log = logging.getLogger(__name__)
 
 DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
 # Server CPU per tick outside the estimator (receiving the frame, checking it, the result message,
@@ -187,9 +190,13 @@ class Admission:
         what: str,
         filter_seconds: float | None = None,
         grace: float | None = None,
+        resumed: bool = False,
     ) -> Ticket:
         """A ticket for a session costing `cost_per_tick` seconds every `dt`, or ResourceExhausted
         saying why (the measured load, the session's estimated cost, the setting that raises it).
+        resumed: a session the fleet admitted before, moving here (its replica died or drains): it
+        is admitted whatever the load, since refusing it would lose it; its cost counts from now,
+        so that new sessions are refused until the load falls.
         filter_seconds: the part of the cost that is the session's own filter, measured (the rest is
         the guessed transport); an idle process admits the session if that part fits.
         grace: the session's grace, for the process's switch interval while it is open."""
@@ -207,32 +214,47 @@ class Admission:
             # whatever the guess of the transport's cost: its ticks then measure what they cost
             # (with the starting guess alone, no 500 Hz session, at 2 ms a tick, could ever open).
             first = not self._by_id and current < self.budget / 2 and filter_seconds / dt <= self.budget
-            if current + ticket.load > self.budget and not first:
-                self.refused += 1
-                raise ResourceExhausted(
-                    f"this server process is at {100 * current:.0f} % of a core and its tick budget is "
-                    f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}); a session of {what} is "
-                    f"estimated at {1e6 * cost_per_tick:.0f} us per tick, {100 * ticket.load:.1f} % more. "
-                    "Try again later, on another server, or at a lower rate"
-                )
-            if self.machine_free is not None and not first:
-                # What the machine left idle in the last window, less what was admitted since.
-                since = self._cpu_mark[0]
-                recent = sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
-                free = self.machine_free - recent
-                if ticket.load > free - MACHINE_HEADROOM:
-                    self.refused += 1
-                    raise ResourceExhausted(
-                        f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
-                        f"programs, this server's other processes or its clients use the rest); a session "
-                        f"of {what} is estimated at {1e6 * cost_per_tick:.0f} us per tick, "
-                        f"{ticket.load:.2f} of a core, and {MACHINE_HEADROOM:g} of a core is kept free. "
-                        "Try again later, on another server, or at a lower rate"
+            if resumed:
+                if current + ticket.load > self.budget:
+                    _log.warning(
+                        "a resumed session of %s is admitted over the tick budget (%.0f %% of a core "
+                        "with it, budget %.0f %%): it was admitted before and moved here",
+                        what,
+                        100 * (current + ticket.load),
+                        100 * self.budget,
                     )
+            elif not first:
+                self._check_room(ticket, current=current, what=what)
             self._by_id[id(ticket)] = ticket
         if grace is not None and self.switch is not None:
             self.switch.add(grace)
         return ticket
+
+    def _check_room(self, ticket: Ticket, *, current: float, what: str) -> None:
+        """ResourceExhausted, saying why, when `ticket` does not fit the process's budget or the
+        machine's idle CPU. Under the lock."""
+        if current + ticket.load > self.budget:
+            self.refused += 1
+            raise ResourceExhausted(
+                f"this server process is at {100 * current:.0f} % of a core and its tick budget is "
+                f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}); a session of {what} is "
+                f"estimated at {1e6 * ticket.cost_per_tick:.0f} us per tick, {100 * ticket.load:.1f} % more. "
+                "Try again later, on another server, or at a lower rate"
+            )
+        if self.machine_free is not None:
+            # What the machine left idle in the last window, less what was admitted since.
+            since = self._cpu_mark[0]
+            recent = sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
+            free = self.machine_free - recent
+            if ticket.load > free - MACHINE_HEADROOM:
+                self.refused += 1
+                raise ResourceExhausted(
+                    f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
+                    f"programs, this server's other processes or its clients use the rest); a session "
+                    f"of {what} is estimated at {1e6 * ticket.cost_per_tick:.0f} us per tick, "
+                    f"{ticket.load:.2f} of a core, and {MACHINE_HEADROOM:g} of a core is kept free. "
+                    "Try again later, on another server, or at a lower rate"
+                )
 
     def _release(self, ticket: Ticket) -> None:
         with self._lock:

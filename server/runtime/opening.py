@@ -187,7 +187,11 @@ class SessionOpener:
         # REALTIME: admitted (or refused) before anything is built for the session, from a price
         # measured once per model and settings, so that a burst of opens past capacity costs the
         # sessions already running next to nothing.
-        ticket = self._admit(info, model, config, plan) if plan.clock == Clock.REALTIME else None
+        ticket = (
+            self._admit(info, model, config, plan, resumed=taken is not None)
+            if plan.clock == Clock.REALTIME
+            else None
+        )
         try:
             estimator = make_estimator(model, config, pool=self._services.pool)
             self._limits.check_history(
@@ -261,10 +265,17 @@ class SessionOpener:
             return known
 
     def _admit(
-        self, info: ModelInfo, model: mujoco.MjModel, config: EstimatorConfig, plan: SessionPlan
+        self,
+        info: ModelInfo,
+        model: mujoco.MjModel,
+        config: EstimatorConfig,
+        plan: SessionPlan,
+        *,
+        resumed: bool,
     ) -> Ticket:
         """A REALTIME session's ticket: its price checked against dt, then its measured cycle
-        against what the process and the machine have left."""
+        against what the process and the machine have left (a resumed session is admitted
+        whatever the load: Admission.admit)."""
         price = self.tick_price(info, model, config, cycle=False)
         self._limits.check_tick_cost(
             price.cost,
@@ -285,6 +296,7 @@ class SessionOpener:
                 grace=plan.grace,
                 dt=plan.dt,
                 what=f"{info.name} ({str(plan.scenario).lower()}) at {1 / plan.dt:g} Hz",
+                resumed=resumed,
             )
         except ResourceExhausted:
             refused = True

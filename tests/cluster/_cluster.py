@@ -95,6 +95,7 @@ class Replica:
     data: Path
     process: subprocess.Popen[bytes]
     log: Path
+    log_start: int = 0  # where this run's lines begin in `log`
 
     @classmethod
     def start(
@@ -127,11 +128,13 @@ class Replica:
             f"--metrics-address={host}:{metrics_port}",
             *extra,
         ]
-        with log.open("wb") as out:
+        # Appended to: a replica restarted under its name keeps its earlier runs' lines above.
+        start = log.stat().st_size if log.exists() else 0
+        with log.open("ab") as out:
             process = subprocess.Popen(
                 command, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True
             )
-        replica = cls(name, host, port, metrics_port, data, process, log)
+        replica = cls(name, host, port, metrics_port, data, process, log, start)
         try:
             wait_for(replica._listening, timeout=timeout, what=f"replica {name} did not listen")
         except TimeoutError:
@@ -142,7 +145,7 @@ class Replica:
     def _listening(self) -> bool:
         if self.process.poll() is not None:
             raise RuntimeError(f"replica {self.name} exited:\n{self.log.read_text()}")
-        match = _LISTENING.search(self.log.read_text())
+        match = _LISTENING.search(self.log.read_text()[self.log_start :])
         if match:
             self.port = int(match.group(2))
         return match is not None

@@ -157,3 +157,32 @@ def test_a_killed_replica_is_down_within_a_second_and_new_sessions_go_to_the_liv
     )
     assert down_after < 1.0
     assert {replica_of(s.opened.session_id, [live, doomed]) for s in after} == {live.name}
+
+
+def test_a_refused_open_through_haproxy_says_what_the_reset_hides_and_the_replica_logs_why(
+    start_replica: Callable[..., Replica], start_balancer: Callable[..., Balancer]
+) -> None:
+    """HAProxy 2.6 (Debian 12) resets a stream the server refused while the client still writes
+    (RST_STREAM(CANCEL) after the status, haproxy/haproxy#1219): the client loses the status. The
+    SDK then says what the reset likely hides, and the replica's log has the reason. A balancer
+    that passes the status on (HAProxy 3.2, nginx) gives the status itself."""
+    from jitdyn.errors import JitdynError, NotFound
+
+    replica = start_replica("refuses", "127.0.0.26", extra=["--verbose"])
+    balancer = start_balancer([replica])
+    with Client(replica.address, timeout=30) as client, pytest.raises(NotFound, match="no_such_model"):
+        client.open_session(SessionOptions(model_name="no_such_model", dt=0.05))
+    with Client(balancer.address, timeout=30) as client, pytest.raises(JitdynError) as through:
+        client.open_session(SessionOptions(model_name="no_such_model", dt=0.05))
+    print(f"through HAProxy: {type(through.value).__name__}: {through.value}")
+    if not isinstance(through.value, NotFound):
+        assert through.value.code == grpc.StatusCode.CANCELLED
+        assert "a refusal whose reason the balancer dropped" in str(through.value)
+    wait_for(
+        lambda: (
+            replica.log.read_text().count("an open was refused: NOT_FOUND: no model is named 'no_such_model'")
+            == 2
+        ),
+        timeout=5,
+        what="the replica did not log both refusals",
+    )

@@ -43,6 +43,25 @@ def test_sessions_are_admitted_until_their_estimates_fill_the_budget() -> None:
     assert len(tickets) == 10  # 10 x 2.5 ms / 50 ms = 0.5 of a core
 
 
+def test_a_resumed_session_is_admitted_over_the_budget_and_counts_against_new_ones(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A session moving here from a lost or draining replica was admitted by the fleet: refusing it
+    would lose it. It is taken whatever the load, logged, and new sessions are refused after it."""
+    admission = Admission(budget=0.5, count_process_cpu=False)
+    full = [admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz") for _ in range(10)]
+    with pytest.raises(ResourceExhausted):
+        admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+    moved = admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz", resumed=True)
+    assert admission.sessions == 11
+    assert "a resumed session of pendulum_3 at 20 Hz is admitted over the tick budget" in caplog.text
+    full[0].release()
+    with pytest.raises(ResourceExhausted):  # the moved session holds the freed place
+        admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+    moved.release()
+    admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+
+
 def test_a_machine_that_others_keep_busy_refuses_the_sessions_it_cannot_carry() -> None:
     import os
     import subprocess
