@@ -315,6 +315,7 @@ class SessionOpener:
             committer=services.committer,
             shared=services.shared,
             resumed=taken,
+            root=services.root,
         )
         try:
             runtime = SessionRuntime(
