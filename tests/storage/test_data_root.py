@@ -20,8 +20,10 @@ from _cluster import MotoS3, Unavailable, free_port
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.errors import Unavailable as UnavailableError
+from jitdyn.storage.export import export_session
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.publish import publish_pending
+from jitdyn.storage.query import run_query
 from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.records import SessionHeader
 from jitdyn.storage.root import normalise_root_uri, open_data_root, open_location, resolve_data_root
@@ -262,3 +264,55 @@ def test_a_session_published_at_close_leaves_no_local_copy(
     assert list((data_root / "frames").rglob("*.parquet")) == []
     filesystem, path = open_location(location, data=data_root, environ=env)
     assert pq.read_table(path, filesystem=filesystem).num_rows == len(records)
+
+
+@pytest.fixture(params=["s3", "file"])
+def root_and_env(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[str, dict[str, str]]:
+    """A data root, on moto's S3 or in a shared folder, and the environment that reaches it."""
+    if request.param == "file":
+        (tmp_path / "shared").mkdir()
+        return str(tmp_path / "shared"), {}
+    moto = request.getfixturevalue("moto")
+    return f"s3://{BUCKET}/{request.node.name}", s3_env(moto.endpoint_url)
+
+
+def test_query_and_export_read_the_data_root_from_an_empty_folder(
+    root_and_env: tuple[str, dict[str, str]],
+    data_root: Path,
+    index: SessionIndex,
+    make_header: Callable[..., SessionHeader],
+    make_records: Any,
+    tmp_path: Path,
+) -> None:
+    uri, env = root_and_env
+    root = open_data_root(uri, environ=env)
+    stored: dict[str, int] = {}
+    for n, model in enumerate(("pendulum_3", "arm")):
+        header = make_header(model_name=model)
+        records = make_records(10 + n, seed=n)
+        with SessionRecorder(data_root=data_root, index=index, header=header, root=root) as recorder:
+            for record in records:
+                recorder.append(record)
+            assert recorder.close().startswith(root.uri + "/frames/")
+        stored[header.session_id] = len(records)
+    elsewhere = tmp_path / "another-machine"
+    elsewhere.mkdir()
+
+    table = run_query(
+        "SELECT session_id, model, date, count(*) AS n FROM frames JOIN sessions USING (session_id) "
+        "GROUP BY ALL ORDER BY model",
+        data_root=elsewhere,
+        engine=index.engine,
+        environ=env,
+    )
+
+    assert [(r["model"], str(r["date"]), r["n"]) for r in table.to_pylist()] == [
+        ("arm", "2026-11-21", stored[table["session_id"][0].as_py()]),
+        ("pendulum_3", "2026-11-21", stored[table["session_id"][1].as_py()]),
+    ]
+    session_id = next(iter(stored))
+    out = export_session(
+        session_id, data_root=elsewhere, engine=index.engine, fmt="csv", out=elsewhere, environ=env
+    )
+    assert out == elsewhere / f"{session_id}.csv"
+    assert len(out.read_text().splitlines()) == 1 + stored[session_id]
