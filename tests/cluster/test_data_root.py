@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 from collections.abc import Callable
@@ -17,7 +18,7 @@ from pathlib import Path
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 import pytest
-from _cluster import MotoS3, Replica, tool, wait_for
+from _cluster import REPO, MotoS3, Replica, tool, wait_for
 from _raw import PENDULUM, RawSession, open_message, session_row
 
 pytestmark = pytest.mark.postgres
@@ -123,6 +124,13 @@ def test_two_replicas_publish_to_one_bucket_that_a_third_machine_reads(
     print(f"DuckDB over {root} on moto_server, from a third machine: {rows}")
     assert [(r["session_id"], r["model"], r["ticks"], r["last"]) for r in rows] == [
         (session_id, "pendulum_2", ticks, ticks - 1) for session_id, ticks in stored.items()
+    ]
+    readme = (REPO / "README.md").read_text(encoding="utf-8")
+    example = re.search(r'jitdyn sessions --index \S+ query \\\n\s*"(SELECT[^"]+)"', readme)
+    assert example, "the README's section on the data root shows a query on S3"
+    answer = sessions_cli(index, "query", example.group(1), "--format=json", cwd=machine, env=cli_env)
+    assert [json.loads(line) for line in answer.splitlines()] == [
+        {"model": "pendulum_2", "sessions": 2, "answers": sum(stored.values())}
     ]
     assert sorted(machine.iterdir()) == sorted(machine.glob("*.csv"))  # nothing else was made there
 
