@@ -316,3 +316,32 @@ def test_query_and_export_read_the_data_root_from_an_empty_folder(
     )
     assert out == elsewhere / f"{session_id}.csv"
     assert len(out.read_text().splitlines()) == 1 + stored[session_id]
+
+
+def test_readers_name_an_unreachable_root_in_one_line(
+    moto: MotoS3,
+    data_root: Path,
+    index: SessionIndex,
+    make_header: Callable[..., SessionHeader],
+    make_records: Any,
+    tmp_path: Path,
+) -> None:
+    root = open_data_root(f"s3://{BUCKET}/readers", environ=s3_env(moto.endpoint_url))
+    header = make_header()
+    with SessionRecorder(data_root=data_root, index=index, header=header, root=root) as recorder:
+        for record in make_records(5):
+            recorder.append(record)
+        recorder.close()
+    down = s3_env(f"http://127.0.0.1:{free_port()}")
+
+    with pytest.raises(UnavailableError) as exported:
+        export_session(
+            header.session_id, data_root=tmp_path, engine=index.engine, fmt="csv", out=tmp_path, environ=down
+        )
+    with pytest.raises(UnavailableError) as queried:
+        run_query("SELECT count(*) FROM frames", data_root=tmp_path, engine=index.engine, environ=down)
+
+    assert str(exported.value).startswith(f"the Parquet file of session {header.session_id} cannot be read: ")
+    assert str(queried.value).startswith(f"the data root holding {BUCKET}/readers/frames cannot be read: ")
+    for error in (exported.value, queried.value):
+        assert "\n" not in str(error) and "connect" in str(error).lower()
