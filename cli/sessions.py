@@ -1,6 +1,9 @@
 """`jitdyn sessions list | show | query | export`: the stored sessions, from the data folder and
 the SQL index, without a server. Counts are shown by storage.summary.format_counts, as the demo
 shows them, so that the two agree.
+
+A session on a data root is read where the index says (its URI), so that any machine with the
+index (`--index`) and the root's settings (AWS_* for S3) sees every replica's sessions.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from jitdyn.errors import FailedPrecondition
 from jitdyn.settings import Settings
 from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.index import SessionIndex, SessionRow
+from jitdyn.storage.root import is_uri
 from jitdyn.storage.summary import format_counts
 
 __all__ = ["format_table", "run_sessions_command"]
@@ -38,6 +42,13 @@ def _engine(settings: Settings) -> sa.Engine:
             "folder, or --index of its SQL index"
         )
     return open_index(settings.index_url or default_index_url(data_root))
+
+
+def _where(location: str, data_root: Path) -> str:
+    """A data root's URI as the index holds it; a path in the data folder made absolute."""
+    if not location or is_uri(location):
+        return location
+    return str((data_root / location).resolve())
 
 
 def _line(row: SessionRow) -> str:
@@ -132,7 +143,7 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
             "subject_attributes": row.subject_attributes,
             "ended_at": row.ended_at.isoformat() if row.ended_at else None,
             "summary": {k: getattr(row.summary, k) for k in row.summary.__dataclass_fields__},
-            "location": str((data_root / row.location).resolve()) if row.location else "",
+            "location": _where(row.location, data_root),
         }
         print(json.dumps(details, indent=2, default=str))
     elif args.sessions_command == "query":

@@ -245,7 +245,9 @@ def _report(
             "message's transit and handling, not a clock error; the server places frames by it)"
         )
     location = summary.location
-    if local_data is not None and location:
+    if "://" in location:  # on the server's data root
+        lines.append(f"stored: {location}")
+    elif local_data is not None and location:
         lines.append(f"stored: {local_data / location}")
     else:
         lines.append(f"stored: {location} (in the data folder of the server at {address})")

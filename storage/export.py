@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Final, Literal
 
@@ -22,13 +23,15 @@ import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
+import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 import sqlalchemy as sa
 
-from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
+from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound, Unavailable
 from jitdyn.storage.columns import ARRAY_FIELDS, LOG_SCHEMA, SCALAR_FIELDS
-from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.parquet import read_metadata
+from jitdyn.storage.root import is_uri, open_location
 from jitdyn.vocabulary import Source, to_proto
 
 __all__ = ["FORMATS", "SOURCE_LEGEND", "element_names", "export_session"]
@@ -156,6 +159,23 @@ def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> Non
     _atomic_write(out, write)
 
 
+def _read_stored(
+    row: SessionRow, *, data_root: Path, environ: Mapping[str, str]
+) -> tuple[dict[str, Any], pa.Table]:
+    """The session's Parquet metadata and rows, from where its location says."""
+    filesystem, path = open_location(row.location, data=data_root, environ=environ)
+    try:
+        if filesystem.get_file_info(path).type != pafs.FileType.File:
+            where = row.location if is_uri(row.location) else path
+            raise NotFound(f"the Parquet file of session {row.session_id} is missing: {where}")
+        metadata = read_metadata(path, filesystem=filesystem)
+        table = pq.read_table(path, columns=list(LOG_SCHEMA.names), filesystem=filesystem)
+    except OSError as error:
+        reason = " ".join(str(error).split())
+        raise Unavailable(f"the Parquet file of session {row.session_id} cannot be read: {reason}") from None
+    return metadata, table
+
+
 def _target(out: Path, session_id: str, fmt: str) -> Path:
     if out.is_dir():
         return out / f"{session_id}.{fmt}"
@@ -172,12 +192,17 @@ def export_session(
     tenant: str = "",
     fmt: Literal["csv", "sto"],
     out: Path,
+    environ: Mapping[str, str] | None = None,
 ) -> Path:
     """Write the session's rows as `fmt` to `out` (a file, or a folder to put `<id>.<fmt>` in),
     atomically; returns the path written.
 
+    The Parquet file is read where the index says: a URI on a data root (S3 settings from
+    `environ`, default os.environ), or a path relative to `data_root`.
+
     Raises NotFound for an unknown session (or another tenant's), FailedPrecondition for a session
-    still open (nothing compacted yet), InvalidArgument for an unknown format.
+    still open (nothing compacted yet), InvalidArgument for an unknown format, Unavailable when the
+    data root does not answer.
     """
     if fmt not in FORMATS:
         raise InvalidArgument(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
@@ -186,11 +211,9 @@ def export_session(
         raise FailedPrecondition(
             f"session {session_id} is {row.status} and has no Parquet file yet; export it once it has ended"
         )
-    path = data_root / row.location
-    if not path.is_file():
-        raise NotFound(f"the Parquet file of session {session_id} is missing: {path}")
-    metadata = read_metadata(path)
-    table = pq.read_table(path, columns=list(LOG_SCHEMA.names))
+    metadata, table = _read_stored(
+        row, data_root=data_root, environ=os.environ if environ is None else environ
+    )
     target = _target(out, session_id, fmt)
     if fmt == "csv":
         _csv(table, metadata, target)

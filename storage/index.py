@@ -38,7 +38,9 @@ _TOKEN_VERSION: Final = 1
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SessionRow:
     """One session as the index holds it. `summary` is all zeros while the session is open;
-    `location` (the Parquet file relative to the data root) is "" until it is compacted."""
+    `location` is "" until it is compacted, then its Parquet file: a URI on the data root
+    (storage/root.py) once published there, else a path relative to the data folder of the server
+    that stored it."""
 
     session_id: str
     tenant: str
@@ -331,6 +333,27 @@ class SessionIndex:
         )
         with self._engine.connect() as conn:
             return [_row(m) for m in conn.execute(query).mappings()]
+
+    def stored_location(self, session_id: str) -> tuple[SessionStatus, str] | None:
+        """The status and location of a session, whatever its tenant (the server's own publishing
+        of finished sessions is the reader); None when the index has no such session."""
+        with self._engine.connect() as conn:
+            row = conn.execute(
+                sa.select(sessions.c.status, sessions.c.location).where(sessions.c.session_id == session_id)
+            ).one_or_none()
+        return None if row is None else (SessionStatus(row.status), str(row.location))
+
+    def move_location(self, session_id: str, *, old: str, new: str) -> bool:
+        """Point an ended session at `new` if it still points at `old` (its Parquet was published to
+        the data root); whether it did."""
+        with self._engine.begin() as conn:
+            result = conn.execute(
+                sa.update(sessions)
+                .where(sessions.c.session_id == session_id, sessions.c.location == old)
+                .where(sessions.c.status != SessionStatus.OPEN.value)
+                .values(location=new)
+            )
+        return bool(result.rowcount == 1)
 
     def unfinished(self) -> builtins.list[SessionRow]:
         """Every OPEN session of every tenant: the server's own recovery at start is the one reader

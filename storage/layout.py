@@ -1,7 +1,10 @@
-"""Where a session's bytes live under the data root, and how files are made durable there.
+"""Where a session's bytes live under a server's data folder, and how files are made durable there.
 
-<data root>/logs/<session id>.arrows                                 while the session runs
-<data root>/frames/model=<name>/date=<YYYY-MM-DD>/<session id>.parquet once it has ended
+<data folder>/logs/<session id>.arrows                                 while the session runs
+<data folder>/frames/model=<name>/date=<YYYY-MM-DD>/<session id>.parquet once it has ended
+
+With a data root (storage/root.py), the Parquet file is published there under the same relative
+path, and leaves the data folder.
 """
 
 from __future__ import annotations

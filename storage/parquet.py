@@ -194,9 +194,10 @@ def write_parquet_stream(
     fsync_dir(path.parent)
 
 
-def read_metadata(path: Path) -> dict[str, Any]:
-    """The "jitdyn" metadata of a session's Parquet file."""
-    raw = (pq.read_schema(path).metadata or {}).get(METADATA_KEY.encode())
+def read_metadata(path: Path | str, *, filesystem: Any = None) -> dict[str, Any]:
+    """The "jitdyn" metadata of a session's Parquet file (on `filesystem`, a pyarrow.fs one, when
+    given: a data root's)."""
+    raw = (pq.read_schema(path, filesystem=filesystem).metadata or {}).get(METADATA_KEY.encode())
     if raw is None:
         raise InvalidArgument(
             f"{path} has no {METADATA_KEY!r} key-value metadata; it is not a jitdyn session file"

@@ -9,23 +9,31 @@ as `sessions`.
 `frames` has the columns of storage.columns.FRAME_SCHEMA plus the Hive partitions `model`
 (VARCHAR) and `date` (DATE). The connection can read exactly the tenant's files and nothing else:
 no other file, no extension download, no Python variable, no configuration change.
+
+Files on a data root (the index holds their URIs: s3://..., file://...) are read through a pyarrow
+dataset registered in DuckDB, with pyarrow's S3 client (DuckDB's httpfs extension would be
+downloaded at run time, which the connection forbids); files in the data folder by DuckDB itself.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
-from pathlib import Path
-from typing import Final
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path, PurePosixPath
+from typing import Any, Final
 
 import duckdb
 import pyarrow as pa
+import pyarrow.dataset as pads
+import pyarrow.fs as pafs
 import sqlalchemy as sa
 
-from jitdyn.errors import InvalidArgument
+from jitdyn.errors import InvalidArgument, Unavailable
 from jitdyn.storage.columns import FRAME_SCHEMA
 from jitdyn.storage.index import SessionIndex, SessionRow
+from jitdyn.storage.root import is_uri, open_location
 
 __all__ = ["SESSIONS_SCHEMA", "run_query", "sessions_table"]
 
@@ -118,7 +126,43 @@ def _frame_files(rows: Sequence[SessionRow], data_root: Path) -> list[str]:
     return files
 
 
-def _connect(*, sessions: pa.Table, files: list[str]) -> duckdb.DuckDBPyConnection:
+def _root_datasets(rows: Sequence[SessionRow], *, data_root: Path, environ: Mapping[str, str]) -> Any:
+    """One pyarrow dataset of every file the rows name (on data roots or in the data folder), Hive
+    partitions parsed below each root's `frames` folder; None when there is none."""
+    groups: dict[tuple[str, str], tuple[Any, list[str]]] = {}
+    for row in rows:
+        if row.location:
+            filesystem, path = open_location(row.location, data=data_root, environ=environ)
+            base = str(PurePosixPath(path).parents[2])  # <root>/frames, above model=/date=/<file>
+            groups.setdefault((filesystem.type_name, base), (filesystem, []))[1].append(path)
+    partitioning = pads.partitioning(pa.schema(_PARTITIONS), flavor="hive")
+    schema = pa.schema([*FRAME_SCHEMA, *_PARTITIONS])
+    datasets = []
+    for (_, base), (filesystem, paths) in groups.items():
+        try:
+            infos = filesystem.get_file_info(paths)
+        except OSError as error:
+            reason = " ".join(str(error).split())
+            raise Unavailable(f"the data root holding {base} cannot be read: {reason}") from None
+        present = [info.path for info in infos if info.type == pafs.FileType.File]
+        for info in infos:
+            if info.type != pafs.FileType.File:
+                _log.warning("a session's Parquet file %s is missing", info.path)
+        if present:
+            datasets.append(
+                pads.dataset(
+                    present,
+                    filesystem=filesystem,
+                    format="parquet",
+                    partitioning=partitioning,
+                    partition_base_dir=base,
+                    schema=schema,
+                )
+            )
+    return pads.dataset(datasets) if datasets else None
+
+
+def _connect(*, sessions: pa.Table, files: list[str], dataset: Any = None) -> duckdb.DuckDBPyConnection:
     con = duckdb.connect(
         ":memory:",
         config={"autoinstall_known_extensions": False, "autoload_known_extensions": False},
@@ -127,7 +171,10 @@ def _connect(*, sessions: pa.Table, files: list[str]) -> duckdb.DuckDBPyConnecti
         # Otherwise a query could read any Python variable in scope by naming it.
         con.execute("SET python_enable_replacements = false")
         con.register("sessions", sessions)
-        if files:
+        if dataset is not None:
+            con.register("_root_frames", dataset)
+            con.execute("CREATE VIEW frames AS SELECT * FROM _root_frames")
+        elif files:
             listing = "[" + ", ".join(_sql_string(f) for f in files) + "]"
             # Explicit partition types: a model named "123" stays a name, not a number.
             con.execute(
@@ -147,15 +194,28 @@ def _connect(*, sessions: pa.Table, files: list[str]) -> duckdb.DuckDBPyConnecti
     return con
 
 
-def run_query(sql: str, *, data_root: Path, engine: sa.Engine, tenant: str = "") -> pa.Table:
-    """Run one SQL statement (DuckDB's dialect) over the tenant's `frames` and `sessions`.
+def run_query(
+    sql: str,
+    *,
+    data_root: Path,
+    engine: sa.Engine,
+    tenant: str = "",
+    environ: Mapping[str, str] | None = None,
+) -> pa.Table:
+    """Run one SQL statement (DuckDB's dialect) over the tenant's `frames` and `sessions`. Files on
+    a data root are reached with the S3 settings of `environ` (default os.environ).
 
     Raises InvalidArgument with DuckDB's message when the SQL fails (syntax, unknown column, access
     to a file outside the dataset). The statement runs in a throw-away in-memory database; one
     without a result (CREATE VIEW) gives an empty table, a write gives DuckDB's count of rows written.
     """
     rows = SessionIndex(engine).all_sessions(tenant=tenant)
-    con = _connect(sessions=sessions_table(rows), files=_frame_files(rows, data_root))
+    if any(is_uri(row.location) for row in rows):
+        env = os.environ if environ is None else environ
+        dataset = _root_datasets(rows, data_root=data_root, environ=env)
+        con = _connect(sessions=sessions_table(rows), files=[], dataset=dataset)
+    else:
+        con = _connect(sessions=sessions_table(rows), files=_frame_files(rows, data_root))
     try:
         relation = con.sql(sql)
         if relation is None:

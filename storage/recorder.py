@@ -18,6 +18,9 @@ With a shared tier (`shared=`, replicas sharing a PostgreSQL index), the log is 
 (storage/shared.py) instead of a local file: `durable_seq` then means off this host, a session can
 be continued on another replica (`resumed=`), and one whose stream ended without a close is
 `park`ed for a resume rather than ended; `finish_orphan` ends one nobody resumed.
+
+With a data root (`root=`, storage/root.py), the Parquet written in the data folder is published
+there before the index is told, which then holds its URI (storage/publish.py).
 """
 
 from __future__ import annotations
@@ -47,7 +50,9 @@ from jitdyn.storage.parquet import (
     to_frame_table,
     write_parquet_stream,
 )
+from jitdyn.storage.publish import drop_local_copy, publish_frames
 from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, TickRecord, stored_word
+from jitdyn.storage.root import DataRoot
 from jitdyn.storage.shared import Fenced, Lease, SharedLogStream, SharedTier, TakenOver
 from jitdyn.storage.summary import Summariser
 from jitdyn.vocabulary import SessionStatus
@@ -114,6 +119,7 @@ class SessionRecorder:
         committer: GroupCommitter | None = None,
         shared: SharedTier | None = None,
         resumed: TakenOver | None = None,
+        root: DataRoot | None = None,
     ) -> None:
         if resumed is not None and shared is None:
             raise InvalidArgument("a resumed session needs the shared tier (shared=)")
@@ -122,6 +128,7 @@ class SessionRecorder:
         if not commit_interval > 0:
             raise InvalidArgument(f"commit_interval must be > 0 seconds, got {commit_interval}")
         self._data_root = data_root
+        self._root = root
         self._index = index
         self._header = header
         self._committer = committer if committer is not None else default_committer()
@@ -309,7 +316,8 @@ class SessionRecorder:
     ) -> str:
         """End the session: commit what is queued, compact the log to Parquet, mark the session
         `status` with `summary` (None: computed from the rows) in one index transaction, delete the
-        log. Returns the Parquet location relative to the data root. Blocks for the compaction;
+        log. Returns the Parquet location: its URI on the data root (`root=`), else relative to
+        the data folder. Blocks for the compaction (and the publish);
         call it off the event loop. A second call returns the same location and does nothing."""
         status = stored_word(SessionStatus, status, argument="status", among=FINAL_STATUSES)
         with self._cond:
@@ -338,8 +346,11 @@ class SessionRecorder:
                         summariser=summariser if summary is None else None,
                     )
                 summary = summariser.result() if summary is None else summary
-                self._index.finish(self._header.session_id, status=status, summary=summary, location=location)
+                stored = publish_frames(self._root, data=self._data_root, relative=location)
+                self._index.finish(self._header.session_id, status=status, summary=summary, location=stored)
                 _delete_log(self._log_path)
+                drop_local_copy(data=self._data_root, relative=location, location=stored)
+                location = stored
             except STORAGE_ERRORS as error:
                 raise storage_failure(
                     f"session {self._header.session_id} could not be stored", error
@@ -376,7 +387,10 @@ class SessionRecorder:
                         summariser=summariser if summary is None else None,
                     )
                 summary = summariser.result() if summary is None else summary
-                shared.finish(lease, status=status, summary=summary, location=location)
+                stored = publish_frames(self._root, data=self._data_root, relative=location)
+                shared.finish(lease, status=status, summary=summary, location=stored)
+                drop_local_copy(data=self._data_root, relative=location, location=stored)
+                location = stored
             except STORAGE_ERRORS as error:
                 raise storage_failure(
                     f"session {self._header.session_id} could not be stored", error
@@ -453,7 +467,7 @@ class SessionRecorder:
             self.fail()
 
 
-def _recover_one(*, data_root: Path, index: SessionIndex, row: SessionRow) -> bool:
+def _recover_one(*, data_root: Path, index: SessionIndex, row: SessionRow, root: DataRoot | None) -> bool:
     path = data_root / row.log_path
     fd = try_lock(path)
     if fd is None:
@@ -472,16 +486,19 @@ def _recover_one(*, data_root: Path, index: SessionIndex, row: SessionRow) -> bo
             if log.torn:
                 _log.info("session %s: dropped a torn last batch (never acknowledged)", row.session_id)
         summary = summariser.result()
-        index.finish(row.session_id, status=SessionStatus.RECOVERED, summary=summary, location=location)
+        stored = publish_frames(root, data=data_root, relative=location)
+        index.finish(row.session_id, status=SessionStatus.RECOVERED, summary=summary, location=stored)
         _delete_log(path)
+        drop_local_copy(data=data_root, relative=location, location=stored)
         return True
     finally:
         os.close(fd)
 
 
-def recover_unfinished(*, data_root: Path, index: SessionIndex) -> list[str]:
+def recover_unfinished(*, data_root: Path, index: SessionIndex, root: DataRoot | None = None) -> list[str]:
     """Compact every OPEN session whose log is here and not held by a live writer to Parquet, and
-    mark it RECOVERED with a summary computed from its rows. Returns the recovered session ids.
+    mark it RECOVERED with a summary computed from its rows (published to `root`, when given).
+    Returns the recovered session ids.
 
     A session whose log is missing is left OPEN with a warning: its log may be on another server's
     data root. A session another server recovers at the same moment is skipped.
@@ -497,14 +514,16 @@ def recover_unfinished(*, data_root: Path, index: SessionIndex) -> list[str]:
             )
             continue
         try:
-            if _recover_one(data_root=data_root, index=index, row=row):
+            if _recover_one(data_root=data_root, index=index, row=row, root=root):
                 recovered.append(row.session_id)
         except (FailedPrecondition, FileNotFoundError):
             _log.info("session %s was ended by another server meanwhile", row.session_id)
     return recovered
 
 
-def finish_orphan(*, data_root: Path, shared: SharedTier, taken: TakenOver) -> str:
+def finish_orphan(
+    *, data_root: Path, shared: SharedTier, taken: TakenOver, root: DataRoot | None = None
+) -> str:
     """End a session of the shared tier that nobody resumed (taken over by `SharedTier.claim_orphan`):
     its shared log compacted to Parquet under `data_root`, the index row ended as the lease says
     (RECOVERED: its server died; ABANDONED: its stream ended without a close). Blocking."""
@@ -512,5 +531,7 @@ def finish_orphan(*, data_root: Path, shared: SharedTier, taken: TakenOver) -> s
     summariser = Summariser(dof_names=header.dof_names)
     with shared.stream(header.session_id) as log:
         location = _compact(data_root=data_root, header=header, log=log, summariser=summariser)
-    shared.finish(taken.lease, status=taken.ended_as, summary=summariser.result(), location=location)
-    return location
+    stored = publish_frames(root, data=data_root, relative=location)
+    shared.finish(taken.lease, status=taken.ended_as, summary=summariser.result(), location=stored)
+    drop_local_copy(data=data_root, relative=location, location=stored)
+    return stored

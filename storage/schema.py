@@ -89,7 +89,8 @@ sessions = sa.Table(
     sa.Column("duration", sa.Float, nullable=False, server_default="0"),
     # Summary statistics of the session (e.g. torque ranges per joint), as JSON text.
     sa.Column("stats_json", sa.Text, nullable=False, server_default="{}"),
-    # The Parquet file, relative to the data root; "" until compacted.
+    # The Parquet file: its URI on the data root (s3://..., file://...), or a path relative to the
+    # data folder of the server that stored it (no data root, or not yet published); "" until compacted.
     sa.Column("location", sa.Text, nullable=False, server_default=""),
     # The crash-safe log, relative to the data root; "" once compacted.
     sa.Column("log_path", sa.Text, nullable=False, server_default=""),

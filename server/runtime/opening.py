@@ -327,6 +327,7 @@ class SessionOpener:
             committer=services.committer,
             shared=services.shared,
             resumed=taken,
+            root=services.root,
         )
         try:
             runtime = SessionRuntime(

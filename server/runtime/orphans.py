@@ -27,7 +27,7 @@ def finish_orphans_once(services: Services, *, data_root: Path) -> list[str]:
         return finished
     while (taken := shared.claim_orphan(resume_timeout=services.resume_timeout)) is not None:
         try:
-            finish_orphan(data_root=data_root, shared=shared, taken=taken)
+            finish_orphan(data_root=data_root, shared=shared, taken=taken, root=services.root)
         except Exception:  # noqa: BLE001 (any failure of one session must not stop the others')
             # Left held under this process's new epoch: its lease runs out, and it is tried again.
             _log.exception("session %s could not be stored from the shared log", taken.lease.session_id)

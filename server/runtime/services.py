@@ -19,6 +19,7 @@ from jitdyn.settings import Settings
 from jitdyn.storage.anonymise import Anonymiser
 from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.root import DataRoot
 from jitdyn.storage.shared import SharedTier
 
 __all__ = ["DEFAULT_SESSION_LIMITS", "Services", "SessionLimits"]
@@ -49,6 +50,8 @@ class Services:
     anonymiser: Anonymiser
     pool: WorkerPool
     data_root: Path
+    # Where finished sessions' Parquet is published (storage/root.py); None: the data folder only.
+    root: DataRoot | None = None
     limits: SessionLimits = DEFAULT_SESSION_LIMITS
     # One commit thread and one flush to disk per window for every session of this process.
     committer: GroupCommitter = field(default_factory=GroupCommitter)

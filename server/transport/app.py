@@ -30,6 +30,7 @@ from jitdyn.server.runtime.admission import Admission
 from jitdyn.server.runtime.heap import freeze_startup_heap, watch_collections
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.orphans import finish_orphans
+from jitdyn.server.runtime.publishing import publish_pending_loop
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
@@ -44,6 +45,7 @@ from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.layout import prepare_data_root
 from jitdyn.storage.recorder import recover_unfinished
+from jitdyn.storage.root import DataRoot, open_data_root
 from jitdyn.storage.shared import SharedTier, new_owner_id
 from jitdyn.v1 import (
     dynamics_pb2,
@@ -88,6 +90,8 @@ class ServerConfig:
     data_root: Path = _DEFAULTS.data
     index_url: str | None = _DEFAULTS.index_url  # None: a SQLite file in the data root
     index_schema: str | None = None  # PostgreSQL schema (tests isolate runs this way)
+    # Where finished sessions' Parquet is published (storage/root.py); None: the data folder only.
+    data_root_uri: str | None = _DEFAULTS.data_root_uri
     workers: int = field(default_factory=default_workers)
     secret_file: Path | None = None
     allowed_attributes: frozenset[str] = DEFAULT_ALLOWED_ATTRIBUTES
@@ -122,6 +126,7 @@ class ServerConfig:
             "address": settings.address,
             "data_root": settings.data,
             "index_url": settings.index_url,
+            "data_root_uri": settings.data_root_uri,
             "workers": settings.workers if settings.workers is not None else default_workers(),
             "secret_file": settings.secret_file,
             "tls_cert": settings.tls_cert,
@@ -167,6 +172,21 @@ def _check_security(config: ServerConfig) -> None:
         )
 
 
+def open_root(config: ServerConfig) -> DataRoot | None:
+    """The data root of `config`, checked reachable and writable; None without one. Blocking."""
+    if config.data_root_uri is None:
+        return None
+    return open_data_root(config.data_root_uri, environ=config.environ)
+
+
+def _recover(*, data_root: Path, index: SessionIndex, root: DataRoot | None) -> None:
+    recovered = recover_unfinished(data_root=data_root, index=index, root=root)
+    if recovered:
+        _log.warning(
+            "recovered %d unfinished session(s) to Parquet: %s", len(recovered), ", ".join(recovered)
+        )
+
+
 def prepare_data(config: ServerConfig, *, recover_only: bool = False) -> tuple[Path, str]:
     """What happens once per data folder before serving: the folder, the secret checked, the index
     migrated, sessions a dead server left open recovered (only logs no live process holds), the
@@ -174,17 +194,14 @@ def prepare_data(config: ServerConfig, *, recover_only: bool = False) -> tuple[P
     _check_security(config)
     if config.api_keys:
         load_api_keys(config.api_keys)  # refuse a bad key file before touching any data
+    root = open_root(config)  # a root that cannot be used stops the start before the folder is made
     data_root = prepare_data_root(config.data_root)
     load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
     url = config.index_url or default_index_url(data_root)
     engine = open_index(url, schema=config.index_schema)
     try:
         index = SessionIndex(engine)
-        recovered = recover_unfinished(data_root=data_root, index=index)
-        if recovered:
-            _log.warning(
-                "recovered %d unfinished session(s) to Parquet: %s", len(recovered), ", ".join(recovered)
-            )
+        _recover(data_root=data_root, index=index, root=root)
         if not recover_only:
             with ModelRegistry(engine=engine, data_root=data_root, limits=config.registry_limits) as registry:
                 registry.register_builtins()
@@ -250,6 +267,7 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
 async def _services(
     config: ServerConfig, server: grpc.aio.Server
 ) -> tuple[Services, health.aio.HealthServicer]:
+    root = await asyncio.to_thread(open_root, config)
     data_root = await asyncio.to_thread(prepare_data_root, config.data_root)
     secret = load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
     engine = await asyncio.to_thread(
@@ -257,11 +275,7 @@ async def _services(
     )
     index = SessionIndex(engine)
     if config.startup_tasks:
-        recovered = await asyncio.to_thread(recover_unfinished, data_root=data_root, index=index)
-        if recovered:
-            _log.warning(
-                "recovered %d unfinished session(s) to Parquet: %s", len(recovered), ", ".join(recovered)
-            )
+        await asyncio.to_thread(_recover, data_root=data_root, index=index, root=root)
     registry = ModelRegistry(engine=engine, data_root=data_root, limits=config.registry_limits)
     if config.startup_tasks:
         await asyncio.to_thread(registry.register_builtins)
@@ -282,6 +296,7 @@ async def _services(
         anonymiser=Anonymiser(secret, allowed_attributes=config.allowed_attributes),
         pool=WorkerPool(config.workers),
         data_root=data_root,
+        root=root,
         limits=config.session_limits,
         admission=Admission(
             budget=config.session_limits.tick_budget,
@@ -346,6 +361,8 @@ async def serve(
     announce(
         f"data in {services.data_root} (index: {config.index_url or default_index_url(services.data_root)})"
     )
+    if services.root is not None:
+        announce(f"finished sessions go to the data root {services.root.uri}")
     if config.metrics_address and process_index is None:
         announce(f"metrics on http://{config.metrics_address}/metrics")
     stop = asyncio.Event()
@@ -359,10 +376,12 @@ async def serve(
         if services.shared is not None
         else None
     )
+    publisher = asyncio.create_task(publish_pending_loop(services)) if services.root is not None else None
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
-    if orphans is not None:
-        orphans.cancel()
-        await asyncio.gather(orphans, return_exceptions=True)
+    for task in (orphans, publisher):
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
     if services.shared is not None:
         announce(f"jitdyn draining: open sessions are told to move (grace {config.drain_grace:g} s)")
         await server.health.enter_graceful_shutdown()  # type: ignore[attr-defined]

@@ -37,6 +37,7 @@ from prometheus_client import multiprocess as prometheus_multiprocess
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.transport.app import ServerConfig, prepare_data, serve
 from jitdyn.server.transport.metrics import MULTIPROCESS_ENV, serve_metrics
+from jitdyn.storage.root import normalise_root_uri
 
 __all__ = ["run_processes"]
 
@@ -211,6 +212,8 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
                 f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'}, {processes} processes)"
             )
             announce(f"data in {data_root} (index: {index_url})")
+            if config.data_root_uri is not None:
+                announce(f"finished sessions go to the data root {normalise_root_uri(config.data_root_uri)}")
             if config.metrics_address:
                 announce(f"metrics on http://{config.metrics_address}/metrics")
             children.supervise()

@@ -236,6 +236,19 @@ class Settings:
         default_text="index.sqlite in the data folder",
         help="SQL index, e.g. postgresql+psycopg://user@host/db (needs jitdyn[postgres])",
     )
+    data_root_uri: str | None = setting(
+        None,
+        parse=_text,
+        commands=("serve",),
+        flag="--data-root",
+        env="JITDYN_DATA_ROOT",
+        metavar="URI",
+        default_text="none: sessions stay in the data folder",
+        help="where every finished session's Parquet is published, for replicas on several hosts: "
+        "s3://BUCKET/PREFIX (endpoint and keys from AWS_ENDPOINT_URL, AWS_REGION, AWS_ACCESS_KEY_ID, "
+        "AWS_SECRET_ACCESS_KEY), or a shared folder (file:///PATH or a path); the index then holds "
+        "each session's URI",
+    )
     workers: int | None = setting(
         None,
         parse=positive_int,

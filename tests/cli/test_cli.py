@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import re
 import secrets
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -112,3 +113,49 @@ def test_bad_flags_say_what_was_expected() -> None:
     )
     result = jitdyn("sessions", "--data", "/nonexistent/jitdyn", "list", check=False)
     assert result.returncode == 1 and "no jitdyn data in /nonexistent/jitdyn" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("root", "message"),
+    [
+        (
+            "gs://bucket/p",
+            (
+                "jitdyn serve: InvalidArgument: --data-root scheme 'gs' is not supported; use "
+                "s3://bucket/prefix, file:///path or a path, got 'gs://bucket/p'\n"
+            ),
+        ),
+        (
+            "s3://",
+            "jitdyn serve: InvalidArgument: --data-root 's3://' names no bucket; write s3://BUCKET/PREFIX\n",
+        ),
+    ],
+)
+def test_serve_refuses_a_bad_data_root_before_touching_the_data_folder(
+    tmp_path: Path, root: str, message: str
+) -> None:
+    result = jitdyn(
+        "serve", "--address", "127.0.0.1:0", "--processes", "1", "--data", str(tmp_path / "data"),
+        "--data-root", root, check=False,
+    )  # fmt: skip
+    assert (result.returncode, result.stderr) == (1, message)
+    assert not (tmp_path / "data").exists()
+
+
+def test_serve_names_an_unreachable_data_root_and_why(tmp_path: Path) -> None:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]  # nobody listens there once the socket is closed
+    result = subprocess.run(
+        [sys.executable, "-m", "jitdyn.cli", "serve", "--address", "127.0.0.1:0", "--processes", "2",
+         "--data", str(tmp_path / "data"), "--data-root", "s3://bucket/prefix"],
+        capture_output=True, text=True, timeout=120, check=False,
+        env=dict(os.environ, JITDYN_SECRET=secrets.token_hex(32), AWS_ENDPOINT_URL=f"http://127.0.0.1:{port}",
+                 AWS_REGION="us-east-1", AWS_ACCESS_KEY_ID="testing", AWS_SECRET_ACCESS_KEY="testing"),
+    )  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr.startswith(
+        "jitdyn serve: Unavailable: the data root s3://bucket/prefix cannot be reached: "
+    ), result.stderr
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert not (tmp_path / "data").exists()

@@ -25,7 +25,7 @@ import threading
 import time
 import urllib.request
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Self
@@ -108,14 +108,16 @@ class Replica:
         port: int = 0,
         prefix: Sequence[str] = (),
         extra: Sequence[str] = (),
+        env: Mapping[str, str] | None = None,
         timeout: float = 60.0,
     ) -> Replica:
-        """Start and wait for "listening on". `prefix` runs it inside something (`ip netns exec`)."""
+        """Start and wait for "listening on". `prefix` runs it inside something (`ip netns exec`);
+        `env` adds to its environment (the AWS_* settings of a data root)."""
         data.mkdir(parents=True, exist_ok=True)
         log = data.parent / f"{name}.log"
         metrics_port = free_port(host) if not prefix else 9464
-        env = dict(os.environ, JITDYN_SECRET=SECRET, PYTHONUNBUFFERED="1")
-        env.pop("JITDYN_SECRET_FILE", None)
+        environment = dict(os.environ, **(env or {}), JITDYN_SECRET=SECRET, PYTHONUNBUFFERED="1")
+        environment.pop("JITDYN_SECRET_FILE", None)
         command = [
             *prefix,
             tool("jitdyn"),
@@ -132,7 +134,7 @@ class Replica:
         start = log.stat().st_size if log.exists() else 0
         with log.open("ab") as out:
             process = subprocess.Popen(
-                command, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True
+                command, stdout=out, stderr=subprocess.STDOUT, env=environment, start_new_session=True
             )
         replica = cls(name, host, port, metrics_port, data, process, log, start)
         try:
@@ -291,10 +293,11 @@ class MotoS3:
     log: Path
 
     @classmethod
-    def start(cls, *, workdir: Path) -> MotoS3:
+    def start(cls, *, workdir: Path, port: int | None = None) -> MotoS3:
+        """Start on `port` (a free one by default), and wait until it answers."""
         moto = tool("moto_server")
         workdir.mkdir(parents=True, exist_ok=True)
-        port = free_port()
+        port = free_port() if port is None else port
         log = workdir / "moto.log"
         with log.open("wb") as out:
             process = subprocess.Popen(

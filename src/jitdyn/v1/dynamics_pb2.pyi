@@ -1052,7 +1052,10 @@ class SessionSummary(_message.Message):
     late: _builtins.int
     """Frames that arrived after their tick was answered."""
     location: _builtins.str
-    """Where the session's frames are: the Parquet path relative to the data root."""
+    """Where the session's frames are: the Parquet file's URI on the server's data root
+    (s3://... or file://...), or, without one (or until it is published there), its path
+    relative to the server's data folder.
+    """
     mean_compute_us: _builtins.float
     """Mean compute time per result (microseconds)."""
     max_compute_us: _builtins.float

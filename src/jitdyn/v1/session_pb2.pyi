@@ -124,7 +124,9 @@ class Session(_message.Message):
     status: Global___SessionStatus.ValueType
     """Its status."""
     location: _builtins.str
-    """The Parquet file of its frames, relative to the data root; empty while open."""
+    """The Parquet file of its frames: its URI on the data root (s3://... or file://...), or its
+    path relative to the data folder of the server that stored it; empty while open.
+    """
     @_builtins.property
     def estimator(self) -> _common_pb2.EstimatorSettings:
         """The estimator settings in force."""
