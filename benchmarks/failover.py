@@ -199,11 +199,20 @@ def rolling(
     print(f"rolling: {sessions} REALTIME pendulum_3 sessions at {rate:g} Hz; SIGTERM each replica in turn")
     with contextlib.ExitStack() as stack:
         runs: list[Run] = []
+        refused: list[str] = []
         for _ in range(sessions):
             client = stack.enter_context(Client(balancer.address, timeout=30))
-            runs.append(Run(client.open_session(_options(rate)), 1.0 / rate))
+            try:
+                runs.append(Run(client.open_session(_options(rate)), 1.0 / rate))
+            except JitdynError as error:  # admission: the machine or a replica is full
+                refused.append(str(error))
+                continue
             runs[-1].start()
             time.sleep(0.05)
+        if refused:
+            print(
+                f"  {len(refused)} of {sessions} opens refused (the replicas' logs say why): {refused[0][:120]}"
+            )
         time.sleep(2.0)
         for index in range(len(replicas)):
             started = time.monotonic()
@@ -236,7 +245,7 @@ def rolling(
     answered = sum(len(run.answers) for run in runs)
     frames_lost = _acknowledged_lost(runs, replicas, index_url)
     print(
-        f"rolling: {len(replicas)} replicas restarted under {sessions} sessions; sessions lost {lost}; "
+        f"rolling: {len(replicas)} replicas restarted under {len(runs)} sessions; sessions lost {lost}; "
         f"acknowledged frames lost {frames_lost}; resumes {resumes}; ticks missed {missed}; "
         f"answered late {late} of {answered}"
     )
