@@ -23,15 +23,12 @@ import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
-import pyarrow.fs as pafs
-import pyarrow.parquet as pq
 import sqlalchemy as sa
 
-from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound, Unavailable
-from jitdyn.storage.columns import ARRAY_FIELDS, LOG_SCHEMA, SCALAR_FIELDS
-from jitdyn.storage.index import SessionIndex, SessionRow
-from jitdyn.storage.parquet import read_metadata
-from jitdyn.storage.root import is_uri, open_location
+from jitdyn.errors import InvalidArgument
+from jitdyn.storage.columns import ARRAY_FIELDS, SCALAR_FIELDS
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.stored import read_stored
 from jitdyn.vocabulary import Source, to_proto
 
 __all__ = ["FORMATS", "SOURCE_LEGEND", "element_names", "export_session"]
@@ -159,23 +156,6 @@ def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> Non
     _atomic_write(out, write)
 
 
-def _read_stored(
-    row: SessionRow, *, data_root: Path, environ: Mapping[str, str]
-) -> tuple[dict[str, Any], pa.Table]:
-    """The session's Parquet metadata and rows, from where its location says."""
-    filesystem, path = open_location(row.location, data=data_root, environ=environ)
-    try:
-        if filesystem.get_file_info(path).type != pafs.FileType.File:
-            where = row.location if is_uri(row.location) else path
-            raise NotFound(f"the Parquet file of session {row.session_id} is missing: {where}")
-        metadata = read_metadata(path, filesystem=filesystem)
-        table = pq.read_table(path, columns=list(LOG_SCHEMA.names), filesystem=filesystem)
-    except OSError as error:
-        reason = " ".join(str(error).split())
-        raise Unavailable(f"the Parquet file of session {row.session_id} cannot be read: {reason}") from None
-    return metadata, table
-
-
 def _target(out: Path, session_id: str, fmt: str) -> Path:
     if out.is_dir():
         return out / f"{session_id}.{fmt}"
@@ -207,12 +187,8 @@ def export_session(
     if fmt not in FORMATS:
         raise InvalidArgument(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     row = SessionIndex(engine).get(session_id, tenant=tenant)
-    if not row.location:
-        raise FailedPrecondition(
-            f"session {session_id} is {row.status} and has no Parquet file yet; export it once it has ended"
-        )
-    metadata, table = _read_stored(
-        row, data_root=data_root, environ=os.environ if environ is None else environ
+    metadata, table = read_stored(
+        row, data_root=data_root, environ=os.environ if environ is None else environ, purpose="export"
     )
     target = _target(out, session_id, fmt)
     if fmt == "csv":
