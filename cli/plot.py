@@ -71,7 +71,7 @@ def _empty(row: SessionRow, timeline: Timeline) -> str:
     return f"session {row.session_id} ({row.status}) is empty: no tick was answered, nothing to plot"
 
 
-def _title(row: SessionRow, timeline: Timeline, notes: Sequence[str]) -> list[str]:
+def _title(row: SessionRow, notes: Sequence[str]) -> list[str]:
     counts = " ".join(format_counts(row.summary).split())
     head = (
         f"session {row.session_id}  ·  {row.model_name} v{row.model_version}  ·  {row.scenario} {row.clock}, "
@@ -163,7 +163,7 @@ def plot_session(
     note = decimation(len(timeline.t)).note
     if note:
         notes.append(note)
-    title = _title(row, timeline, notes)
+    title = _title(row, notes)
     figure = draw_session(timeline, chosen, title=title, dt=row.dt)
     tmp = target.with_name(f".{target.name}.tmp")
     try:
