@@ -1,7 +1,8 @@
 """`jitdyn sessions plot ID`: one stored session as a PNG, or as one self-contained HTML page (the
 figure as inline SVG and a table of the session's facts; no server, no script).
 
-    path, notes = plot_session(session_id, data_root=root, engine=engine, out=None, joints=[])
+    plotted = plot_session(session_id, data_root=root, engine=engine, out=None, joints=[])
+    plotted.path, plotted.notes         # the file written, and what to tell the user
 
 The session is read where the index says (storage.stored), as `sessions export` reads it; what is
 drawn is storage.timeline's view of its rows (cli/session_figure.py).
@@ -26,6 +27,7 @@ from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.stored import read_stored
 from jitdyn.storage.summary import format_counts
 from jitdyn.storage.timeline import TIMELINE_COLUMNS, Timeline, session_timeline
+from jitdyn.vocabulary import Clock
 
 __all__ = ["FORMATS", "Plotted", "plot_session"]
 
@@ -154,17 +156,19 @@ def plot_session(
     timeline = session_timeline(table)
     if len(timeline.t) == 0:
         raise FailedPrecondition(_empty(row, timeline))
-    notes: list[str] = []
+    notes: list[str] = []  # in the figure's title
+    told: list[str] = []  # on the terminal, where the names of the joints left out fit
     if not joints and len(every) > len(chosen):
-        left = [j.name for j in every[len(chosen) :]]
-        notes.append(
-            f"{len(chosen)} of {len(every)} joints drawn; left out: {', '.join(left)} (choose with --joints NAME ...)"
-        )
-    note = decimation(len(timeline.t)).note
-    if note:
-        notes.append(note)
+        left = ", ".join(j.name for j in every[len(chosen) :])
+        choose = f"{len(chosen)} of {len(every)} joints drawn"
+        notes.append(f"{choose} (choose with --joints NAME ...)")
+        told.append(f"{choose}; left out: {left} (choose with --joints NAME ...)")
+    decimated = decimation(len(timeline.t)).note
+    if decimated:
+        notes.append(decimated)
+        told.append(decimated)
     title = _title(row, notes)
-    figure = draw_session(timeline, chosen, title=title, dt=row.dt)
+    figure = draw_session(timeline, chosen, title=title, dt=row.dt, realtime=row.clock == Clock.REALTIME)
     tmp = target.with_name(f".{target.name}.tmp")
     try:
         if target.suffix.lower() == ".html":
@@ -176,4 +180,4 @@ def plot_session(
         os.replace(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)
-    return Plotted(path=target, notes=tuple(notes))
+    return Plotted(path=target, notes=tuple(told))

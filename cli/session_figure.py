@@ -274,41 +274,41 @@ def _joint_force(ax: Axes, timeline: Timeline, joint: Joint, picks: _Picks) -> N
     ax.set_ylabel(f"qfrc_inverse{f' ({unit})' if unit else ''}", fontsize=8)
 
 
-def _network(ax: Axes, timeline: Timeline, picks: _Picks, dt: float) -> None:
-    delay_ms = timeline.frame_delay * 1e3
-    rejected = timeline.rejections
-    if np.isnan(delay_ms).all() and np.isnan(rejected.frame_delay).all():
+def _network(ax: Axes, timeline: Timeline, picks: _Picks, *, dt: float, realtime: bool) -> None:
+    if not realtime:
+        # LOCKSTEP stores 0: each frame is its own tick's deadline.
         ax.text(
             0.5,
             0.5,
-            "no network lateness stored (LOCKSTEP answers each frame on arrival)",
+            "LOCKSTEP: each frame is answered as it arrives; no network lateness",
             transform=ax.transAxes,
             ha="center",
             va="center",
             fontsize=8,
         )
+        ax.set_yticks([])
+        ax.set_ylabel("network", fontsize=8)
+        return
+    delay_ms = timeline.frame_delay * 1e3
+    rejected = timeline.rejections
     on_time = picks.line[~timeline.corrected[picks.line]]
-    ax.scatter(
-        timeline.t[on_time], delay_ms[on_time], s=8, color=_COLORS["MEASURED"], lw=0, label="frame arrival"
-    )
-    ax.scatter(
-        timeline.t[picks.corrected],
-        delay_ms[picks.corrected],
-        s=9,
-        color=_COLORS["CORRECTED"],
-        lw=0,
-        label="late frame (CORRECTED)",
-    )
-    if picks.rejected_late.size:
-        ax.scatter(
-            rejected.t[picks.rejected_late],
-            rejected.frame_delay[picks.rejected_late] * 1e3,
-            marker="x",
-            s=14,
-            lw=0.8,
-            color=_COLORS["REJECTED"],
-            label="late frame, rejected",
-        )
+    for at, times, values, style in (
+        (on_time, timeline.t, delay_ms, {"s": 8, "color": _COLORS["MEASURED"], "label": "frame on time"}),
+        (
+            picks.corrected,
+            timeline.t,
+            delay_ms,
+            {"s": 9, "color": _COLORS["CORRECTED"], "label": "late frame (CORRECTED)"},
+        ),
+        (
+            picks.rejected_late,
+            rejected.t,
+            rejected.frame_delay * 1e3,
+            {"s": 14, "marker": "x", "color": _COLORS["REJECTED"], "label": "late frame, rejected"},
+        ),
+    ):
+        if at.size:
+            ax.scatter(times[at], values[at], lw=0.8 if "marker" in style else 0, **style)  # type: ignore[arg-type]
     ax.axhline(dt * 1e3, color="#777777", lw=0.8, ls="--", label=f"one tick ({dt * 1e3:g} ms)")
     ax.set_ylabel("network\nframe after its\ntick (ms)", fontsize=8)
 
@@ -372,12 +372,14 @@ def _key(strip: Axes, ax: Axes) -> None:
     )
 
 
-def draw_session(timeline: Timeline, joints: Sequence[Joint], *, title: Sequence[str], dt: float) -> Figure:
+def draw_session(
+    timeline: Timeline, joints: Sequence[Joint], *, title: Sequence[str], dt: float, realtime: bool
+) -> Figure:
     """The figure of a session with at least one tick; `title` its lines, top to bottom."""
     stride = decimation(len(timeline.t)).stride
     picks = _picks(timeline, stride)
     spans = _gap_spans(timeline, dt)
-    heights = [0.9, *[1.7] * len(joints), 1.5, 1.4, 1.3]
+    heights = [0.9, *[1.7] * len(joints), 1.5 if realtime else 0.45, 1.4, 1.3]
     figure = Figure(figsize=(15, sum(heights) + 0.4 * len(title) + 0.6), layout="constrained")
     grid = figure.add_gridspec(len(heights), 2, height_ratios=heights, width_ratios=[1.2, 1.0])
     strip = figure.add_subplot(grid[0, :])
@@ -395,7 +397,7 @@ def draw_session(timeline: Timeline, joints: Sequence[Joint], *, title: Sequence
             q_ax.set_title("measured q against the answered q", fontsize=9, loc="left")
     bottom = len(joints) + 1
     network, server, nis = (figure.add_subplot(grid[bottom + i, :], sharex=strip) for i in range(3))
-    _network(network, timeline, picks, dt)
+    _network(network, timeline, picks, dt=dt, realtime=realtime)
     _server(server, timeline, picks, dt)
     _nis(nis, timeline, picks)
     for ax in (network, server, nis):
