@@ -19,6 +19,7 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 from matplotlib.axes import Axes
+from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
 from jitdyn.cli.joints import Joint
@@ -114,7 +115,7 @@ def _source_strip(ax: Axes, timeline: Timeline, dt: float) -> None:
     image = np.ones((len(rows), bins, 3))
     for i, (kind, times) in enumerate(rows.items()):
         counts, _ = np.histogram(times, bins=bins, range=(lo, hi))
-        rgb = np.array(_rgb(_COLORS[kind]))
+        rgb = np.array(to_rgb(_COLORS[kind]))
         image[i, counts > 0] = rgb
     ax.imshow(image, aspect="auto", interpolation="nearest", extent=(lo, hi, len(rows) - 0.5, -0.5))
     labels = {
@@ -126,12 +127,6 @@ def _source_strip(ax: Axes, timeline: Timeline, dt: float) -> None:
     ax.set_yticks(range(len(rows)), [labels[k] for k in rows], fontsize=8)
     ax.tick_params(axis="y", length=0)
     ax.set_title("source of each tick's answer", fontsize=9, loc="left")
-
-
-def _rgb(name: str) -> tuple[float, float, float]:
-    from matplotlib.colors import to_rgb
-
-    return to_rgb(name)
 
 
 @dataclass(frozen=True)
@@ -173,8 +168,12 @@ def _joint_q(ax: Axes, timeline: Timeline, joint: Joint, picks: _Picks) -> None:
             lw=0.9,
             label="answered when due" if first else None,
         )
-        _markers(ax, t, timeline.answered_qpos[:, column], picks.predicted, "PREDICTED", first)
-        _markers(ax, t, timeline.corrected_qpos[:, column], picks.corrected, "CORRECTED", first)
+        _markers(
+            ax, t, timeline.answered_qpos[:, column], at=picks.predicted, kind="PREDICTED", labelled=first
+        )
+        _markers(
+            ax, t, timeline.corrected_qpos[:, column], at=picks.corrected, kind="CORRECTED", labelled=first
+        )
         if picks.rejected_late.size:
             ax.scatter(
                 rejected.t[picks.rejected_late],
@@ -231,17 +230,19 @@ def _markers(
     ax: Axes,
     t: npt.NDArray[np.float64],
     values: npt.NDArray[np.float64],
+    *,
     at: npt.NDArray[np.intp],
     kind: str,
-    first: bool,
+    labelled: bool,
 ) -> None:
+    """A dot at each tick of `at`, coloured by `kind`; in the legend once (`labelled`)."""
     if at.size:
         ax.scatter(
             t[at],
             values[at],
             s=9,
             color=_COLORS[kind],
-            label=_LABELS[kind] if first else None,
+            label=_LABELS[kind] if labelled else None,
             zorder=3,
             lw=0,
         )
@@ -255,8 +256,8 @@ def _joint_force(ax: Axes, timeline: Timeline, joint: Joint, picks: _Picks) -> N
             continue
         drawn = True
         ax.plot(t[picks.line], timeline.answered_qfrc[picks.line, dof], color="tab:purple", lw=0.9)
-        _markers(ax, t, timeline.answered_qfrc[:, dof], picks.predicted, "PREDICTED", False)
-        _markers(ax, t, timeline.corrected_qfrc[:, dof], picks.corrected, "CORRECTED", False)
+        _markers(ax, t, timeline.answered_qfrc[:, dof], at=picks.predicted, kind="PREDICTED", labelled=False)
+        _markers(ax, t, timeline.corrected_qfrc[:, dof], at=picks.corrected, kind="CORRECTED", labelled=False)
     dofs = [dof for dof in joint.dofs if dof < timeline.answered_qfrc.shape[1]]
     _fit(ax, timeline.answered_qfrc[:, dofs], timeline.corrected_qfrc[:, dofs])
     if not drawn:

@@ -5,6 +5,7 @@ and one line, never a traceback, for each thing a user can get wrong."""
 
 from __future__ import annotations
 
+import io
 import os
 import re
 import secrets
@@ -20,6 +21,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
+import pyarrow as pa
 import pytest
 import sqlalchemy as sa
 
@@ -270,3 +272,59 @@ def test_without_matplotlib_it_names_the_extra(tmp_path: Path) -> None:
     assert one_line_error(result) == (
         "jitdyn sessions plot: needs matplotlib (plots), which is not installed: pip install 'jitdyn[experiments]'"
     )
+
+
+def big_table(ticks: int, nq: int) -> pa.Table:
+    """The rows of a session of `ticks` ticks of 10 ms: ticks 500-549 of every 1000 a gap, tick 999 of
+    every 1000 PREDICTED then CORRECTED."""
+    seq = np.arange(ticks)
+    late = seq[seq % 1000 == 999]
+    rows_seq = np.concatenate([seq, late])
+    source = np.where(np.isin(seq, late), "PREDICTED", "MEASURED").tolist() + ["CORRECTED"] * len(late)
+    gap = (seq % 1000 >= 500) & (seq % 1000 < 550)
+    framed = np.concatenate([~gap & ~np.isin(seq, late), np.ones(len(late), dtype=bool)])
+    t = rows_seq * 0.01
+    q = np.sin(t)[:, None] + np.arange(nq)[None, :]
+
+    def lists(values: np.ndarray, present: np.ndarray) -> pa.Array:
+        offsets = pa.array(np.arange(len(values) + 1, dtype=np.int32) * values.shape[1])
+        return pa.ListArray.from_arrays(offsets, pa.array(values.ravel()), mask=pa.array(~present))
+
+    n = len(rows_seq)
+    return pa.table(
+        {
+            "kind": ["result"] * n,
+            "seq": rows_seq,
+            "source": source,
+            "t": t,
+            "frame_received": framed,
+            "frame_delay": np.where(framed, 0.02, np.nan),
+            "nis": np.where(framed, 2.0, np.nan),
+            "compute_us": np.full(n, 300),
+            "receive_to_send_us": np.full(n, 400),
+            "reject_reason": [""] * n,
+            "frame_qpos": lists(q, framed),
+            "qpos": lists(q, np.ones(n, dtype=bool)),
+            "qfrc_inverse": lists(q * 2, np.ones(n, dtype=bool)),
+        }
+    )
+
+
+def test_a_long_session_is_decimated_and_says_so_with_nothing_lost() -> None:
+    from jitdyn.cli.joints import stored_joints
+    from jitdyn.cli.session_figure import decimation, draw_session
+    from jitdyn.storage.timeline import session_timeline
+
+    timeline = session_timeline(big_table(120_000, 2))
+    assert len(timeline.t) == 120_000 and timeline.gap.sum() == 120 * 50
+    assert timeline.corrected.sum() == 120
+    assert decimation(120_000).note == "every 40th tick drawn of 120 000 (sources and gaps: every tick)"
+    assert decimation(3000).note == ""
+    joints = stored_joints({"joint_names": ["a", "b"], "joint_types": ["hinge", "slide"]})
+    started = time.perf_counter()
+    figure = draw_session(timeline, joints, title=["big"], dt=0.01, realtime=True)
+    figure.savefig(io.BytesIO(), format="png", dpi=50)
+    assert time.perf_counter() - started < 20
+    # The source strip counts every tick: all 120 corrections are in its label.
+    labels = [label.get_text() for label in figure.axes[0].get_yticklabels()]
+    assert labels == ["MEASURED 119880", "PREDICTED 120", "CORRECTED (late) 120", "rejected frames 0"]
