@@ -25,7 +25,7 @@ import pyarrow as pa
 import pytest
 import sqlalchemy as sa
 
-from jitdyn.client import Client, FrameData, SessionOptions
+from jitdyn.client import Client, FrameData, Rejection, SessionOptions
 from jitdyn.registry import builtin_model_path
 from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.schema import sessions
@@ -70,7 +70,8 @@ def truth(name: str, ticks: int, dt: float) -> list[tuple[np.ndarray, np.ndarray
 
 
 def lockstep_session(client: Client) -> str:
-    """pendulum_2, 40 ticks: ticks 10-12 and 25 skipped (gaps), tick 12's frame sent late."""
+    """pendulum_2, 40 ticks: ticks 10-12 and 25 skipped (gaps), tick 12's frame sent late, tick 30's
+    frame sent twice (the second rejected)."""
     dt = 0.05
     with client.open_session(SessionOptions(model_name="pendulum_2", scenario="PASSIVE", dt=dt)) as session:
         states = truth("pendulum_2", 40, dt)
@@ -82,6 +83,8 @@ def lockstep_session(client: Client) -> str:
             if k == 14:
                 q12, v12 = states[12]
                 session.send_frame(FrameData(seq=12, t=12 * dt, qpos=q12, qvel=v12))
+            if k == 30:
+                assert isinstance(session.send_frame(FrameData(seq=k, t=k * dt, qpos=q, qvel=v)), Rejection)
         return session.opened.session_id
 
 
@@ -173,6 +176,7 @@ def test_the_timeline_holds_the_gaps_and_the_late_frames(stored: Stored) -> None
     assert timeline.source[12] == "PREDICTED" and timeline.source[13] == "MEASURED"
     assert np.isnan(timeline.frame_qpos[10]).all() and not np.isnan(timeline.frame_qpos[12]).any()
     np.testing.assert_array_equal(timeline.frame_qpos[12], timeline.corrected_qpos[12])
+    assert timeline.rejections.seq.tolist() == [30] and timeline.rejections.reason.tolist() == ["DUPLICATE"]
 
     engine = open_index(default_index_url(stored.data))
     try:
