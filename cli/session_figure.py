@@ -2,7 +2,7 @@
 each tick's source, then per joint its measured and answered q beside its answered generalized
 force, then the network's and the server's lateness, then the filter's NIS.
 
-    figure = draw_session(timeline, joints, title=["session ...", "ticks ..."], dt=0.01)
+    figure = draw_session(timeline, joints, title=["session ...", "ticks ..."], dt=0.01, realtime=True)
 
 Gaps (ticks no frame was ever used for) are shaded in every panel. Lines are decimated to about
 MAX_DRAWN points; the source strip and the shaded gaps are computed from every tick, so that no
@@ -36,15 +36,15 @@ _BINS: Final = 1500
 _MEASURED_LINE: Final = "#222222"
 _ANSWERED_LINE: Final = "tab:blue"
 _COLORS: Final = {
-    "MEASURED": "tab:blue",
-    "PREDICTED": "tab:orange",
-    "CORRECTED": "tab:green",
-    "REJECTED": "tab:red",
+    Source.MEASURED: "tab:blue",
+    Source.PREDICTED: "tab:orange",
+    Source.CORRECTED: "tab:green",
 }
+_REJECTED: Final = "tab:red"
 _GAP: Final = "#bbbbbb"
 _LABELS: Final = {
-    "PREDICTED": "PREDICTED (no frame yet)",
-    "CORRECTED": "CORRECTED (late frame replayed)",
+    Source.PREDICTED: "PREDICTED (no frame yet)",
+    Source.CORRECTED: "CORRECTED (late frame replayed)",
 }
 
 
@@ -104,27 +104,25 @@ def _shade(ax: Axes, spans: list[tuple[float, float]]) -> None:
 
 def _source_strip(ax: Axes, timeline: Timeline, dt: float) -> None:
     """One row per kind of answer, a column per time bin, coloured where any tick of the bin had it."""
-    rows = {
-        "MEASURED": timeline.t[timeline.source == Source.MEASURED.value],
-        "PREDICTED": timeline.t[timeline.source == Source.PREDICTED.value],
-        "CORRECTED": timeline.t[timeline.corrected],
-        "REJECTED": timeline.rejections.t,
-    }
+    measured = timeline.t[timeline.source == Source.MEASURED.value]
+    predicted = timeline.t[timeline.source == Source.PREDICTED.value]
+    corrected = timeline.t[timeline.corrected]
+    rejected = timeline.rejections.t
+    # (label, times, colour) of each row, top to bottom.
+    rows = (
+        (f"MEASURED {len(measured)}", measured, _COLORS[Source.MEASURED]),
+        (f"PREDICTED {len(predicted)}", predicted, _COLORS[Source.PREDICTED]),
+        (f"CORRECTED (late) {len(corrected)}", corrected, _COLORS[Source.CORRECTED]),
+        (f"rejected frames {len(rejected)}", rejected, _REJECTED),
+    )
     lo, hi = float(timeline.t[0]) - dt / 2, float(timeline.t[-1]) + dt / 2
     bins = max(1, min(_BINS, len(timeline.t)))
     image = np.ones((len(rows), bins, 3))
-    for i, (kind, times) in enumerate(rows.items()):
+    for i, (_, times, color) in enumerate(rows):
         counts, _ = np.histogram(times, bins=bins, range=(lo, hi))
-        rgb = np.array(to_rgb(_COLORS[kind]))
-        image[i, counts > 0] = rgb
+        image[i, counts > 0] = np.array(to_rgb(color))
     ax.imshow(image, aspect="auto", interpolation="nearest", extent=(lo, hi, len(rows) - 0.5, -0.5))
-    labels = {
-        "MEASURED": f"MEASURED {len(rows['MEASURED'])}",
-        "PREDICTED": f"PREDICTED {len(rows['PREDICTED'])}",
-        "CORRECTED": f"CORRECTED (late) {len(rows['CORRECTED'])}",
-        "REJECTED": f"rejected frames {len(rows['REJECTED'])}",
-    }
-    ax.set_yticks(range(len(rows)), [labels[k] for k in rows], fontsize=8)
+    ax.set_yticks(range(len(rows)), [label for label, _, _ in rows], fontsize=8)
     ax.tick_params(axis="y", length=0)
     ax.set_title("source of each tick's answer", fontsize=9, loc="left")
 
@@ -169,10 +167,20 @@ def _joint_q(ax: Axes, timeline: Timeline, joint: Joint, picks: _Picks) -> None:
             label="answered when due" if first else None,
         )
         _markers(
-            ax, t, timeline.answered_qpos[:, column], at=picks.predicted, kind="PREDICTED", labelled=first
+            ax,
+            t,
+            timeline.answered_qpos[:, column],
+            at=picks.predicted,
+            kind=Source.PREDICTED,
+            labelled=first,
         )
         _markers(
-            ax, t, timeline.corrected_qpos[:, column], at=picks.corrected, kind="CORRECTED", labelled=first
+            ax,
+            t,
+            timeline.corrected_qpos[:, column],
+            at=picks.corrected,
+            kind=Source.CORRECTED,
+            labelled=first,
         )
         if picks.rejected_late.size:
             ax.scatter(
@@ -181,7 +189,7 @@ def _joint_q(ax: Axes, timeline: Timeline, joint: Joint, picks: _Picks) -> None:
                 marker="x",
                 s=14,
                 lw=0.8,
-                color=_COLORS["REJECTED"],
+                color=_REJECTED,
                 label="late frame, rejected" if first else None,
                 zorder=3,
             )
@@ -232,7 +240,7 @@ def _markers(
     values: npt.NDArray[np.float64],
     *,
     at: npt.NDArray[np.intp],
-    kind: str,
+    kind: Source,
     labelled: bool,
 ) -> None:
     """A dot at each tick of `at`, coloured by `kind`; in the legend once (`labelled`)."""
@@ -256,8 +264,12 @@ def _joint_force(ax: Axes, timeline: Timeline, joint: Joint, picks: _Picks) -> N
             continue
         drawn = True
         ax.plot(t[picks.line], timeline.answered_qfrc[picks.line, dof], color="tab:purple", lw=0.9)
-        _markers(ax, t, timeline.answered_qfrc[:, dof], at=picks.predicted, kind="PREDICTED", labelled=False)
-        _markers(ax, t, timeline.corrected_qfrc[:, dof], at=picks.corrected, kind="CORRECTED", labelled=False)
+        _markers(
+            ax, t, timeline.answered_qfrc[:, dof], at=picks.predicted, kind=Source.PREDICTED, labelled=False
+        )
+        _markers(
+            ax, t, timeline.corrected_qfrc[:, dof], at=picks.corrected, kind=Source.CORRECTED, labelled=False
+        )
     dofs = [dof for dof in joint.dofs if dof < timeline.answered_qfrc.shape[1]]
     _fit(ax, timeline.answered_qfrc[:, dofs], timeline.corrected_qfrc[:, dofs])
     if not drawn:
@@ -294,20 +306,26 @@ def _network(ax: Axes, timeline: Timeline, picks: _Picks, *, dt: float, realtime
     rejected = timeline.rejections
     on_time = picks.line[~timeline.corrected[picks.line]]
     for at, times, values, style in (
-        (on_time, timeline.t, delay_ms, {"s": 8, "color": _COLORS["MEASURED"], "label": "frame on time"}),
+        (
+            on_time,
+            timeline.t,
+            delay_ms,
+            {"s": 8, "color": _COLORS[Source.MEASURED], "label": "frame on time"},
+        ),
         (
             picks.corrected,
             timeline.t,
             delay_ms,
-            {"s": 9, "color": _COLORS["CORRECTED"], "label": "late frame (CORRECTED)"},
+            {"s": 9, "color": _COLORS[Source.CORRECTED], "label": "late frame (CORRECTED)"},
         ),
         (
             picks.rejected_late,
             rejected.t,
             rejected.frame_delay * 1e3,
-            {"s": 14, "marker": "x", "color": _COLORS["REJECTED"], "label": "late frame, rejected"},
+            {"s": 14, "marker": "x", "color": _REJECTED, "label": "late frame, rejected"},
         ),
     ):
+        at = at[np.isfinite(values[at])]  # a rejection may keep its frame but not its arrival
         if at.size:
             ax.scatter(times[at], values[at], lw=0.8 if "marker" in style else 0, **style)  # type: ignore[arg-type]
     ax.axhline(dt * 1e3, color="#777777", lw=0.8, ls="--", label=f"one tick ({dt * 1e3:g} ms)")
