@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -332,3 +332,34 @@ def test_a_long_session_is_decimated_and_says_so_with_nothing_lost() -> None:
     # The source strip counts every tick: all 120 corrections are in its label.
     labels = [label.get_text() for label in figure.axes[0].get_yticklabels()]
     assert labels == ["MEASURED 119880", "PREDICTED 120", "CORRECTED (late) 120", "rejected frames 0"]
+
+
+def test_a_session_on_a_data_root_is_read_where_the_index_says(
+    tmp_path: Path, make_config: Callable[..., Any]
+) -> None:
+    from jitdyn.server.transport.background import BackgroundServer
+
+    data, shared = tmp_path / "data", tmp_path / "shared"
+    shared.mkdir()
+    with BackgroundServer(make_config(data, data_root_uri=f"file://{shared}")) as running:
+        client = Client(running.address, timeout=60)
+        with client:
+            session_id = lockstep_session(client)
+    engine = open_index(default_index_url(data))
+    with engine.connect() as connection:
+        location = connection.execute(
+            sa.select(sessions.c.location).where(sessions.c.session_id == session_id)
+        ).scalar_one()
+    engine.dispose()
+    assert location.startswith(f"file://{shared}/"), location
+    assert not list(data.rglob("*.parquet"))  # only the data root's copy is left to read
+    out = tmp_path / "shared.png"
+    result = jitdyn("sessions", "plot", session_id, "--data", str(data), "--out", str(out))
+    assert result.returncode == 0, result.stderr
+    png_size(out)
+
+
+def test_plot_explains_itself() -> None:
+    result = jitdyn("sessions", "plot", "--help")
+    assert result.returncode == 0 and "usage: jitdyn sessions plot" in result.stdout
+    assert "--joints NAME [NAME ...]" in result.stdout and ".png or .html" in result.stdout
