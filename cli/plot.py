@@ -173,10 +173,10 @@ def plot_session(
     try:
         if target.suffix.lower() == ".html":
             buffer = io.StringIO()
-            figure.savefig(buffer, format="svg", dpi=_DPI)
+            figure.savefig(buffer, format="svg", dpi=_DPI, metadata={"Title": title[0]})
             tmp.write_text(_html(row, buffer.getvalue(), title), encoding="utf-8")
         else:
-            figure.savefig(tmp, format="png", dpi=_DPI)
+            figure.savefig(tmp, format="png", dpi=_DPI, metadata={"Title": title[0]})
         os.replace(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)
