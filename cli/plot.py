@@ -5,7 +5,8 @@ figure as inline SVG and a table of the session's facts; no server, no script).
     plotted.path, plotted.notes         # the file written, and what to tell the user
 
 The session is read where the index says (storage.stored), as `sessions export` reads it; what is
-drawn is storage.timeline's view of its rows (cli/session_figure.py).
+drawn is storage.timeline's view of its rows (cli/session_figure.py). Why SVG in HTML and no
+plotting library: docs/decisions/0130-session-plot.md.
 """
 
 from __future__ import annotations
