@@ -211,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     sessions = leaf(
         commands,
         "sessions",
-        help="list, show, query and export stored sessions",
+        help="list, show, query, export and plot stored sessions",
         description="The stored sessions, read from the data folder and the SQL index (no server needed).",
     )
     session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
@@ -244,6 +244,28 @@ def build_parser() -> argparse.ArgumentParser:
     sexport.add_argument("session_id")
     sexport.add_argument("--format", choices=("csv", "sto"), default="csv")
     sexport.add_argument("--out", type=Path, help="output file (default <session id>.<format>)")
+    splot = leaf(
+        session_commands,
+        "plot",
+        "sessions",
+        help="draw one session: q measured and answered, forces, lateness, NIS (needs jitdyn[experiments])",
+        description="Draw one stored session as one figure on a shared time axis: the source of each "
+        "tick's answer; per joint the measured q against the answered q (PREDICTED and CORRECTED ticks "
+        "marked, gaps shaded) beside the answered generalized force; the frames' network lateness; the "
+        "server's time to answer; the filter's NIS. A PNG, or one self-contained HTML page. Needs "
+        "matplotlib (jitdyn[experiments]).",
+    )
+    splot.add_argument("session_id")
+    splot.add_argument(
+        "--out", type=Path, help="a .png or .html file, or a folder (default <session id>.png here)"
+    )
+    splot.add_argument(
+        "--joints",
+        nargs="+",
+        metavar="NAME",
+        default=[],
+        help="the joints to draw, by name (default: the first 6 of the model)",
+    )
 
     experiments = commands.add_parser(
         "experiments",

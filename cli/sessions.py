@@ -1,4 +1,4 @@
-"""`jitdyn sessions list | show | query | export`: the stored sessions, from the data folder and
+"""`jitdyn sessions list | show | query | export | plot`: the stored sessions, from the data folder and
 the SQL index, without a server. Counts are shown by storage.summary.format_counts, as the demo
 shows them, so that the two agree.
 
@@ -123,6 +123,8 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
     if args.sessions_command == "query":
         # Checked before reading anything: the query needs DuckDB, an extra.
         require_extra("duckdb", what="DuckDB", extra="query")
+    elif args.sessions_command == "plot":
+        require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
     engine = _engine(settings)
     data_root: Path = settings.data
     if args.sessions_command == "list":
@@ -156,6 +158,15 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
             print(f"{table.num_rows} rows written to {args.out}", file=sys.stderr)
         else:
             _write_query(table, args.format, sys.stdout)
+    elif args.sessions_command == "plot":
+        from jitdyn.cli.plot import plot_session
+
+        plotted = plot_session(
+            args.session_id, data_root=data_root, engine=engine, out=args.out, joints=args.joints
+        )
+        for note in plotted.notes:
+            print(note, file=sys.stderr)
+        print(f"plotted {args.session_id} to {plotted.path}")
     else:
         from jitdyn.storage.export import export_session
 

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from typing import Final
 
 import numpy as np
+import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.compute as pc
 
@@ -27,6 +28,7 @@ __all__ = [
     "SCALAR_FIELDS",
     "check_lengths",
     "expected_lengths",
+    "list_matrix",
     "records_to_batch",
 ]
 
@@ -176,3 +178,19 @@ def records_to_batch(
         expected = None if lengths is None else lengths.get(name)
         columns.append(_list_column(name, [getter(r) for r in records], expected))
     return pa.RecordBatch.from_arrays(columns, schema=LOG_SCHEMA)
+
+
+def list_matrix(column: pa.ChunkedArray | pa.Array) -> npt.NDArray[np.float64] | None:
+    """(rows, width) of an array column of LOG_SCHEMA, NaN where a row has no array; None when no
+    row has one."""
+    column = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    lengths = pc.list_value_length(column).fill_null(0).to_numpy(zero_copy_only=False)
+    width = int(lengths.max()) if len(lengths) else 0
+    if width == 0:
+        return None
+    out = np.full((len(column), width), np.nan)
+    present = np.flatnonzero(lengths == width)
+    values = pc.list_flatten(column.take(pa.array(present))).to_numpy(zero_copy_only=False)
+    out[present] = values.reshape(len(present), width)
+    # Rows of another length (never written by the recorder) are left NaN rather than misplaced.
+    return out

@@ -23,15 +23,12 @@ import numpy.typing as npt
 import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
-import pyarrow.fs as pafs
-import pyarrow.parquet as pq
 import sqlalchemy as sa
 
-from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound, Unavailable
-from jitdyn.storage.columns import ARRAY_FIELDS, LOG_SCHEMA, SCALAR_FIELDS
-from jitdyn.storage.index import SessionIndex, SessionRow
-from jitdyn.storage.parquet import read_metadata
-from jitdyn.storage.root import is_uri, open_location
+from jitdyn.errors import InvalidArgument
+from jitdyn.storage.columns import ARRAY_FIELDS, SCALAR_FIELDS, list_matrix
+from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.stored import read_stored
 from jitdyn.vocabulary import Source, to_proto
 
 __all__ = ["FORMATS", "SOURCE_LEGEND", "element_names", "export_session"]
@@ -70,21 +67,6 @@ def element_names(column: str, metadata: dict[str, Any], length: int) -> list[st
     return [str(i) for i in range(length)]
 
 
-def _matrix(column: pa.ChunkedArray | pa.Array) -> npt.NDArray[np.float64] | None:
-    """(rows, width) of a list column, NaN where a row has no array; None when no row has one."""
-    column = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
-    lengths = pc.list_value_length(column).fill_null(0).to_numpy(zero_copy_only=False)
-    width = int(lengths.max()) if len(lengths) else 0
-    if width == 0:
-        return None
-    out = np.full((len(column), width), np.nan)
-    present = np.flatnonzero(lengths == width)
-    values = pc.list_flatten(column.take(pa.array(present))).to_numpy(zero_copy_only=False)
-    out[present] = values.reshape(len(present), width)
-    # Rows of another length (never written by the recorder) are left NaN rather than misplaced.
-    return out
-
-
 def _atomic_write(out: Path, write: Any) -> None:
     tmp = out.with_name(f".{out.name}.tmp")
     try:
@@ -99,7 +81,7 @@ def _csv(table: pa.Table, metadata: dict[str, Any], out: Path) -> None:
     for f in SCALAR_FIELDS:
         columns[f.name] = table.column(f.name)
     for name in ARRAY_FIELDS:
-        matrix = _matrix(table.column(name))
+        matrix = list_matrix(table.column(name))
         if matrix is None:
             continue
         missing = pc.is_null(table.column(name)).to_numpy(zero_copy_only=False)
@@ -129,13 +111,13 @@ def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> Non
     ticks = _latest_results(table)
     headers: list[str] = ["time"]
     blocks: list[npt.NDArray[np.float64]] = [ticks["t"].to_numpy().reshape(-1, 1)]
-    qpos = _matrix(ticks["qpos"])
+    qpos = list_matrix(ticks["qpos"])
     if qpos is not None:
         # Coordinates are named by their joint, as OpenSim names coordinates.
         headers += element_names("qpos", metadata, qpos.shape[1])
         blocks.append(qpos)
     for column in ("qfrc_inverse", *_STO_ESTIMATES):
-        matrix = _matrix(ticks[column])
+        matrix = list_matrix(ticks[column])
         if matrix is None:
             continue
         headers += [f"{column}_{e}" for e in element_names(column, metadata, matrix.shape[1])]
@@ -157,23 +139,6 @@ def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> Non
             f.writelines("\t".join(_format(v) for v in row) + "\n" for row in data)
 
     _atomic_write(out, write)
-
-
-def _read_stored(
-    row: SessionRow, *, data_root: Path, environ: Mapping[str, str]
-) -> tuple[dict[str, Any], pa.Table]:
-    """The session's Parquet metadata and rows, from where its location says."""
-    filesystem, path = open_location(row.location, data=data_root, environ=environ)
-    try:
-        if filesystem.get_file_info(path).type != pafs.FileType.File:
-            where = row.location if is_uri(row.location) else path
-            raise NotFound(f"the Parquet file of session {row.session_id} is missing: {where}")
-        metadata = read_metadata(path, filesystem=filesystem)
-        table = pq.read_table(path, columns=list(LOG_SCHEMA.names), filesystem=filesystem)
-    except OSError as error:
-        reason = " ".join(str(error).split())
-        raise Unavailable(f"the Parquet file of session {row.session_id} cannot be read: {reason}") from None
-    return metadata, table
 
 
 def _target(out: Path, session_id: str, fmt: str) -> Path:
@@ -207,12 +172,8 @@ def export_session(
     if fmt not in FORMATS:
         raise InvalidArgument(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     row = SessionIndex(engine).get(session_id, tenant=tenant)
-    if not row.location:
-        raise FailedPrecondition(
-            f"session {session_id} is {row.status} and has no Parquet file yet; export it once it has ended"
-        )
-    metadata, table = _read_stored(
-        row, data_root=data_root, environ=os.environ if environ is None else environ
+    metadata, table = read_stored(
+        row, data_root=data_root, environ=os.environ if environ is None else environ, purpose="export"
     )
     target = _target(out, session_id, fmt)
     if fmt == "csv":

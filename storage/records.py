@@ -24,6 +24,7 @@ from jitdyn.vocabulary import Clock, JointType, Scenario, SessionStatus
 
 __all__ = [
     "FINAL_STATUSES",
+    "JOINT_WIDTHS",
     "KINDS",
     "SessionHeader",
     "SessionSummaryInfo",
@@ -110,7 +111,7 @@ class TickRecord:
 
 
 # (qpos values, dofs) of one joint of each type.
-_JOINT_WIDTHS: Final = {
+JOINT_WIDTHS: Final = {
     JointType.FREE: (7, 6),
     JointType.BALL: (4, 3),
     JointType.SLIDE: (1, 1),
@@ -219,13 +220,13 @@ class SessionHeader:
                 f"joint_types must have one entry per joint ({len(self.joint_names)}), "
                 f"got {len(self.joint_types)}"
             )
-        unknown = [t for t in self.joint_types if t not in _JOINT_WIDTHS]
+        unknown = [t for t in self.joint_types if t not in JOINT_WIDTHS]
         if unknown:
             raise InvalidArgument(f"joint_types must be among {', '.join(JointType)}, got {unknown!r}")
         joint_types = tuple(JointType(t) for t in self.joint_types)
         object.__setattr__(self, "joint_types", joint_types)
-        nq = sum(_JOINT_WIDTHS[t][0] for t in joint_types)
-        nv = sum(_JOINT_WIDTHS[t][1] for t in joint_types)
+        nq = sum(JOINT_WIDTHS[t][0] for t in joint_types)
+        nv = sum(JOINT_WIDTHS[t][1] for t in joint_types)
         if self.joint_types and (nq, nv) != (self.nq, self.nv):
             raise InvalidArgument(
                 f"the joints {[t.value for t in joint_types]} span nq={nq}, nv={nv}, "
