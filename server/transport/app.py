@@ -343,8 +343,11 @@ async def serve(
     processes of `jitdyn serve --processes N` (server/transport/processes.py), whose parent serves
     the metrics."""
     metrics().set_process(process_index or 0)
+    # The sessions gauge from the start, at 0: a dashboard sees an idle server as idle, not missing.
+    metrics().open_sessions.labels(metrics().process).set(0)
+    metrics_served = None
     if config.metrics_address and process_index is None:
-        serve_metrics(config.metrics_address)
+        metrics_served = serve_metrics(config.metrics_address)
     server, port, services = await create_server(config)
     await server.start()
     # After its startup the process's heap is frozen: a full collection of it stops the loop
@@ -363,8 +366,8 @@ async def serve(
     )
     if services.root is not None:
         announce(f"finished sessions go to the data root {services.root.uri}")
-    if config.metrics_address and process_index is None:
-        announce(f"metrics on http://{config.metrics_address}/metrics")
+    if metrics_served is not None:
+        announce(f"metrics on http://{metrics_served}/metrics")
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):

@@ -97,9 +97,10 @@ def metrics() -> Metrics:
     return _metrics
 
 
-def serve_metrics(address: str) -> None:
+def serve_metrics(address: str) -> str:
     """Serve /metrics on `address` (HOST:PORT) from a daemon thread: this process's metrics, or
-    every process's when PROMETHEUS_MULTIPROC_DIR is set."""
+    every process's when PROMETHEUS_MULTIPROC_DIR is set. Returns the address served (port 0 asks
+    for a free one)."""
     host, _, port = address.rpartition(":")
     if not host or not port.isdigit():
         raise InvalidArgument(f"--metrics-address must be HOST:PORT, got {address!r}")
@@ -109,8 +110,9 @@ def serve_metrics(address: str) -> None:
         prometheus_multiprocess.MultiProcessCollector(registry)  # type: ignore[no-untyped-call]
     try:
         if registry is None:
-            start_http_server(int(port), addr=host.strip("[]"))
+            http, _ = start_http_server(int(port), addr=host.strip("[]"))
         else:
-            start_http_server(int(port), addr=host.strip("[]"), registry=registry)
+            http, _ = start_http_server(int(port), addr=host.strip("[]"), registry=registry)
     except OSError as exc:
         raise InvalidArgument(f"cannot serve metrics on {address}: {exc.strerror}") from None
+    return f"{host}:{http.server_port}"

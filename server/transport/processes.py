@@ -196,8 +196,7 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
         data_root, index_url = prepare_data(config)
         metrics_dir = tempfile.mkdtemp(prefix="jitdyn-metrics-")
         os.environ[MULTIPROCESS_ENV] = metrics_dir  # inherited by the children, before they import metrics
-        if config.metrics_address:
-            serve_metrics(config.metrics_address)
+        metrics_served = serve_metrics(config.metrics_address) if config.metrics_address else None
         host = config.address.rpartition(":")[0]
         child_config = dataclasses.replace(
             config, address=f"{host}:{port}", data_root=data_root, startup_tasks=False, reuse_port=True
@@ -214,8 +213,8 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
             announce(f"data in {data_root} (index: {index_url})")
             if config.data_root_uri is not None:
                 announce(f"finished sessions go to the data root {normalise_root_uri(config.data_root_uri)}")
-            if config.metrics_address:
-                announce(f"metrics on http://{config.metrics_address}/metrics")
+            if metrics_served is not None:
+                announce(f"metrics on http://{metrics_served}/metrics")
             children.supervise()
             announce("jitdyn shutting down: open sessions are being stored")
         finally:

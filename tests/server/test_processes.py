@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.request
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -302,3 +303,23 @@ def test_one_client_s_sessions_spread_over_the_processes(tmp_path: Path, per_ses
         assert len(serving) == (2 if per_session else 1), by_process
     finally:
         server.stop()
+
+
+@pytest.mark.parametrize("processes", [1, 2])
+def test_metrics_on_port_0_announce_the_port_and_show_an_idle_server(tmp_path: Path, processes: int) -> None:
+    """`--metrics-address HOST:0` serves on a free port and says which; before any session, the
+    open-sessions gauge is there at 0 (a dashboard sees an idle server, not a missing one)."""
+    server = Serve(tmp_path / "data", processes=processes, extra=("--metrics-address", "127.0.0.1:0"))
+    try:
+        assert server.process.stdout is not None
+        for line in server.process.stdout:
+            server.lines.append(line)
+            if "metrics on" in line:
+                break
+        announced = re.search(r"metrics on http://(127\.0\.0\.1:(\d+))/metrics", server.lines[-1])
+        assert announced and int(announced.group(2)) != 0, server.lines
+        scraped = urllib.request.urlopen(f"http://{announced.group(1)}/metrics", timeout=10).read().decode()
+        assert re.search(r"^jitdyn_open_sessions\{.*\} 0\.0$", scraped, re.MULTILINE), scraped[:2000]
+    finally:
+        server.process.send_signal(signal.SIGTERM)
+        server.process.communicate(timeout=60)
