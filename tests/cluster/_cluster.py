@@ -28,7 +28,7 @@ import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Self
+from typing import Any, Self
 
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -326,6 +326,20 @@ class MotoS3:
     @property
     def endpoint_url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
+
+    def filesystem(self) -> Any:
+        """pyarrow's own S3 client on this server, as the replicas make it from AWS_ENDPOINT_URL,
+        AWS_REGION and the keys (moto takes any)."""
+        import pyarrow.fs as pafs
+
+        return pafs.S3FileSystem(
+            endpoint_override=self.endpoint_url.removeprefix("http://"),
+            scheme="http",
+            access_key="testing",
+            secret_key="testing",
+            region="us-east-1",
+            allow_bucket_creation=True,
+        )
 
     def close(self) -> None:
         _stop(self.process, grace=5)

@@ -35,14 +35,7 @@ def s3_env(server: MotoS3) -> dict[str, str]:
 
 
 def s3(server: MotoS3) -> pafs.S3FileSystem:
-    return pafs.S3FileSystem(
-        endpoint_override=server.endpoint_url.removeprefix("http://"),
-        scheme="http",
-        access_key="testing",
-        secret_key="testing",
-        region="us-east-1",
-        allow_bucket_creation=True,
-    )
+    return server.filesystem()
 
 
 def one_session(replica: Replica, ticks: int) -> tuple[str, str]:

@@ -19,14 +19,7 @@ BUCKET = "jitdyn-data"
 def _s3(server: MotoS3) -> pafs.S3FileSystem:
     # The settings the replicas will take from AWS_ENDPOINT_URL, AWS_REGION and the keys; moto
     # accepts any keys.
-    return pafs.S3FileSystem(
-        endpoint_override=server.endpoint_url.removeprefix("http://"),
-        scheme="http",
-        access_key="testing",
-        secret_key="testing",
-        region="us-east-1",
-        allow_bucket_creation=True,
-    )
+    return server.filesystem()
 
 
 def _frames(session: str, ticks: int) -> pa.Table:

@@ -38,14 +38,7 @@ def moto(tmp_path_factory: pytest.TempPathFactory) -> Iterator[MotoS3]:
     except Unavailable as reason:
         pytest.skip(f"{reason} (pip install 'moto[server]', in the dev extra)")
     with server:
-        s3 = pafs.S3FileSystem(
-            endpoint_override=server.endpoint_url.removeprefix("http://"),
-            scheme="http",
-            access_key="testing",
-            secret_key="testing",
-            region="us-east-1",
-            allow_bucket_creation=True,
-        )
+        s3 = server.filesystem()
         s3.create_dir(BUCKET)
         yield server
 
