@@ -427,9 +427,15 @@ class AsyncSession:
 
     async def sync(self) -> None:
         """Send a clock probe; its answer comes back among the results (a `SyncSample`)."""
-        await self._send(self._probe())
+        if self._closed:
+            raise FailedPrecondition("the session is closed")
+        async with self._write_lock:
+            # Stamped once the write may go: a probe that waited for a resume to re-send, stamped
+            # before, would tell the server a send time the wait earlier than it was.
+            await self._write(self._probe())
 
     def _probe(self) -> dynamics_pb2.StreamSessionRequest:
+        """The next clock probe, its send time now: write it at once."""
         self._probe_id += 1
         self._last_sync_sent = self.now()
         return sync_request(self._probe_id, self._last_sync_sent, self._last_probe)
