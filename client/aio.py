@@ -15,7 +15,6 @@ Every call raises a `jitdyn.errors` exception for the status the server ends it 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 import weakref
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
@@ -162,13 +161,19 @@ class AsyncSession:
         the reader takes the stream over; None when none came within `timeout`."""
         self._call = call = self._stub.StreamSession(metadata=self._metadata)
         self._write_refused = False
-        with contextlib.suppress(grpc.RpcError, asyncio.InvalidStateError):
+        try:
             await call.write(request)  # a refusal shows in the read that follows
+        except grpc.RpcError:
+            self._write_refused = True
+        except asyncio.InvalidStateError:
+            pass
         try:
             response = await asyncio.wait_for(call.read(), timeout)
         except TimeoutError:
             return None
         except grpc.RpcError as error:
+            if self._write_refused and error.code() == grpc.StatusCode.INTERNAL:
+                return END  # the stream ended under the write, and grpc.aio hides how (`_broken`)
             return error
         if not isinstance(response, dynamics_pb2.StreamSessionResponse):
             return END  # grpc.aio.EOF
@@ -245,16 +250,25 @@ class AsyncSession:
                         continue
                     break
                 resumed = self._ledger.resumed(outcome, cause=cause, attempts=attempt + 1, started=started)
-                for request in resumed:
-                    await self._write(request)
-                if self._close_sent:
-                    await self._write(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
-                    await self._write(None)
-                elif self._realtime and not self._closed:
-                    await self._write(self._probe())
+                try:
+                    await self._resend(resumed)
+                except JitdynError as error:  # the new stream ended in a way no resume mends
+                    self._fail(error)
+                    return False
                 return True
         self._fail(self._ledger.lost(cause, last))
         return False
+
+    async def _resend(self, requests: list[dynamics_pb2.StreamSessionRequest]) -> None:
+        """After a resume: the frames not durable, then the close if the caller had closed, or a
+        clock probe for the new server; the caller holds the write lock."""
+        for request in requests:
+            await self._write(request)
+        if self._close_sent:
+            await self._write(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
+            await self._write(None)
+        elif self._realtime and not self._closed:
+            await self._write(self._probe())
 
     def _finish(self) -> None:
         """The session is over (closed, cancelled, or failed for good): its connection may go."""
