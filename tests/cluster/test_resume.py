@@ -29,7 +29,7 @@ from jitdyn.client import (
     Summary,
     TickResult,
 )
-from jitdyn.errors import ResumeBufferFull
+from jitdyn.errors import JitdynError, ResumeBufferFull, SessionLost
 
 pytestmark = pytest.mark.postgres
 
@@ -334,3 +334,41 @@ def test_an_async_realtime_session_resumes_and_its_record_keeps_every_frame(
         if kind == "result" and got
     )
     assert measured == list(range(ticks)), "every frame sent is in the record, answered"
+
+
+def test_an_async_session_s_resume_buffer_is_bounded_and_resumption_can_be_off(
+    start_replica: Callable[..., Replica], tmp_path: Path
+) -> None:
+    replica = start_replica("r0", HOSTS[0], data=tmp_path / "shared-folder", extra=FAST)
+
+    async def bounded() -> list[int]:
+        async with AsyncClient(replica.address, resume=ResumePolicy(max_unacknowledged=5)) as client:
+            session = await client.open_session(options(new_model()))
+            for k in range(5):
+                await session.send(frame(k))  # pipelined: sent faster than a commit window
+            assert session.unacknowledged == 5
+            with pytest.raises(ResumeBufferFull, match="max_unacknowledged"):
+                await session.send(frame(5))
+            answered = []
+            async for answer in session.results(timeout=10):
+                answered.append(answer.seq)
+                if len(answered) == 5:
+                    break
+            session.cancel()
+            return answered
+
+    assert asyncio.run(bounded()) == list(range(5))
+
+    async def off() -> BaseException:
+        async with AsyncClient(replica.address, resume=False) as client:
+            session = await client.open_session(options(new_model()))
+            await session.send_frame(frame(0))
+            await asyncio.to_thread(replica.kill)
+            with pytest.raises(JitdynError) as broken:
+                for k in range(1, 40):
+                    await session.send_frame(frame(k))
+            return broken.value
+
+    error = asyncio.run(off())
+    print(f"async, with resume off: {type(error).__name__}: {error}")
+    assert not isinstance(error, SessionLost)
