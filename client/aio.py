@@ -15,6 +15,7 @@ Every call raises a `jitdyn.errors` exception for the status the server ends it 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 import weakref
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
@@ -192,13 +193,18 @@ class AsyncSession:
                     if cause is None:
                         self._fail(status_error(ended))
                         return
+                    self._call.cancel()  # a write waiting on the broken stream gives the lock up
+                    async with self._write_lock:
+                        resumed = await self._resume(cause)
                 else:
                     error = self._ledger.moving(ended)
                     if error is not None:
                         self._fail(error)
                         return
-                    cause = f"moving: {ended.reason}"
-                if not await self._resume(cause):
+                    async with self._write_lock:
+                        await self._leave(self._call)
+                        resumed = await self._resume(f"moving: {ended.reason}")
+                if not resumed:
                     return
         finally:
             self._responses.put_nowait(END)
@@ -223,6 +229,17 @@ class AsyncSession:
         except grpc.RpcError as error:
             return error
 
+    async def _leave(self, call: _Call) -> None:
+        """Leave a stream whose server said `moving`, reading it to its end: frames written before
+        the notice was read are still answered (and stored) there, and a resume goes on after them.
+        The server parks the session when the requests end without a close; one that does not
+        end the stream within the policy's `open_timeout` is left as it is."""
+        with contextlib.suppress(grpc.RpcError, asyncio.InvalidStateError, TimeoutError):
+            async with asyncio.timeout(self._ledger.policy.open_timeout):
+                await call.done_writing()
+                while isinstance(await self._read(call), dynamics_pb2.Moving):
+                    pass
+
     def _fail(self, error: JitdynError) -> None:
         """The session is over with `error`: the caller's next read raises it."""
         self._responses.put_nowait(error)
@@ -230,32 +247,32 @@ class AsyncSession:
 
     async def _resume(self, cause: str) -> bool:
         """Open the session again through the same target, re-send what is not durable, go on;
-        False when every attempt failed (the session is lost)."""
+        False when every attempt failed (the session is lost). The caller holds the write lock, so
+        that nothing is written until the frames not durable are re-sent."""
         policy = self._ledger.policy
         started = time.monotonic()
         self._call.cancel()
         last = cause
-        async with self._write_lock:
-            for attempt in range(policy.attempts):
-                await asyncio.sleep(policy.backoff(attempt))
-                if self._reconnect is not None:
-                    self._stub = self._reconnect()
-                first = await self._open_stream(self._ledger.resume_request(), policy.open_timeout)
-                outcome = resume_outcome(first, open_timeout=policy.open_timeout)
-                if isinstance(outcome, Refused):
-                    self._ledger.refused(attempt, outcome)
-                    last = outcome.reason
-                    self._call.cancel()
-                    if outcome.retry:
-                        continue
-                    break
-                resumed = self._ledger.resumed(outcome, cause=cause, attempts=attempt + 1, started=started)
-                try:
-                    await self._resend(resumed)
-                except JitdynError as error:  # the new stream ended in a way no resume mends
-                    self._fail(error)
-                    return False
-                return True
+        for attempt in range(policy.attempts):
+            await asyncio.sleep(policy.backoff(attempt))
+            if self._reconnect is not None:
+                self._stub = self._reconnect()
+            first = await self._open_stream(self._ledger.resume_request(), policy.open_timeout)
+            outcome = resume_outcome(first, open_timeout=policy.open_timeout)
+            if isinstance(outcome, Refused):
+                self._ledger.refused(attempt, outcome)
+                last = outcome.reason
+                self._call.cancel()
+                if outcome.retry:
+                    continue
+                break
+            resumed = self._ledger.resumed(outcome, cause=cause, attempts=attempt + 1, started=started)
+            try:
+                await self._resend(resumed)
+            except JitdynError as error:  # the new stream ended in a way no resume mends
+                self._fail(error)
+                return False
+            return True
         self._fail(self._ledger.lost(cause, last))
         return False
 
