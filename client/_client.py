@@ -16,6 +16,7 @@ told otherwise.
 
 from __future__ import annotations
 
+import collections
 import logging
 import queue
 import threading
@@ -125,6 +126,9 @@ class Session:
         open_message = options.to_message()
         self._ledger = ResumeLedger(resume if resume is not None else ResumePolicy(), open_message)
         self._reader: threading.Thread | None = None
+        # Answers a stream that said `moving` gave after the notice, handed out before the next
+        # stream's (see `_leave`).
+        self._left: collections.deque[tuple[float, dynamics_pb2.StreamSessionResponse]] = collections.deque()
         self._start_stream(dynamics_pb2.StreamSessionRequest(open=open_message))
         try:
             first = self._get(self._timeout)
@@ -204,7 +208,7 @@ class Session:
 
     def _get(self, timeout: float | None) -> tuple[float, dynamics_pb2.StreamSessionResponse] | None:
         while True:
-            item = self._raw(timeout)
+            item = self._left.popleft() if self._left else self._raw(timeout)
             if item is END:
                 self._responses.put((self._generation, END))
                 return None
@@ -220,6 +224,7 @@ class Session:
             if kind == "moving":
                 error = self._ledger.moving(response.moving)
                 if error is None:
+                    self._leave()
                     self._resume(f"moving: {response.moving.reason}")
                     continue
                 self._responses.put((self._generation, END))
@@ -228,6 +233,23 @@ class Session:
             if kind == "result" and not self._ledger.fresh(response.result):
                 continue
             return item
+
+    def _leave(self) -> None:
+        """Leave a stream whose server said `moving`, reading it to its end: frames sent before the
+        notice was read are still answered (and stored) there, and a resume goes on after them.
+        The server parks the session when the requests end without a close; one that does not end
+        the stream within the policy's `open_timeout` is left as it is."""
+        self._requests.put(END)
+        deadline = time.monotonic() + self._ledger.policy.open_timeout
+        while True:
+            try:
+                item = self._raw(max(0.0, deadline - time.monotonic()))
+            except NoAnswer:
+                return
+            if item is END or isinstance(item, grpc.RpcError):
+                return
+            if item[1].WhichOneof("payload") != "moving":
+                self._left.append(item)
 
     def _resume(self, cause: str) -> None:
         """Open the session again through the same target, re-send what is not durable, go on."""
