@@ -3,10 +3,10 @@
     from jitdyn.client import Client, SessionOptions, FrameData
     from jitdyn.client import AsyncClient      # the same over asyncio (grpc.aio)
 
-Value types live in `_models.py`, what both transports share in `_transport.py`, the sync transport
-in `_client.py` and the async one in `aio.py`. It may import the contract (jitdyn.v1, errors,
-vocabulary, estimator_settings) and jitdyn.registry (model packing); never the server or the
-research harness.
+Value types live in `_models.py`, what both transports share in `_transport.py` and
+`_resume.py` (a session's resume bookkeeping), the sync transport in `_client.py` and the async one
+in `aio.py`. It may import the contract (jitdyn.v1, errors, vocabulary, estimator_settings) and
+jitdyn.registry (model packing); never the server or the research harness.
 """
 
 from jitdyn.client._client import Client, Session

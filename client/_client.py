@@ -17,7 +17,6 @@ told otherwise.
 from __future__ import annotations
 
 import collections
-import dataclasses
 import logging
 import queue
 import threading
@@ -43,24 +42,16 @@ from jitdyn.client._models import (
     session_answer,
     sync_request,
 )
+from jitdyn.client._resume import Refused, ResumeLedger, resume_outcome
 from jitdyn.client._transport import (
     END,
-    RESUMABLE_CODES,
     End,
     auth_metadata,
     channel_options,
     explain_open_error,
     status_error,
 )
-from jitdyn.errors import (
-    FailedPrecondition,
-    JitdynError,
-    NoAnswer,
-    ResumeBufferFull,
-    SessionLost,
-    Unavailable,
-    error_for_status,
-)
+from jitdyn.errors import FailedPrecondition, JitdynError, NoAnswer, error_for_status
 from jitdyn.lifecycle import Closeable
 from jitdyn.v1 import (
     dynamics_pb2,
@@ -115,7 +106,6 @@ class Session:
         self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
         self._stub = stub
         self._metadata = tuple(metadata)
-        self._policy = resume if resume is not None else ResumePolicy()
         # Every stream's answers, tagged with the stream's generation: a resumed session ignores
         # what an earlier stream left behind.
         self._responses: queue.Queue[tuple[int, _Item]] = queue.Queue()
@@ -131,22 +121,15 @@ class Session:
         self._sync_interval = sync_interval
         self._last_sync_sent = -float("inf")
         self._closed = False
-        self._cancelled = False
         self._finished = False
         self.summary: Summary | None = None
-        # Frames and skips sent that no `durable_seq` covers yet, oldest first: what a resume re-sends.
-        self._unacknowledged: collections.deque[tuple[int, dynamics_pb2.StreamSessionRequest]] = (
-            collections.deque()
-        )
-        self._durable = -1
-        self._delivered = -1  # the highest tick answered to the caller (not counting CORRECTED)
-        self._after_resume = False  # the next fresh answer tells how many ticks the resume missed
-        self.resumptions: list[Resumption] = []
-        self.missed = 0
-        self._open_message = options.to_message()
-        self._token = ""
+        open_message = options.to_message()
+        self._ledger = ResumeLedger(resume if resume is not None else ResumePolicy(), open_message)
         self._reader: threading.Thread | None = None
-        self._start_stream(dynamics_pb2.StreamSessionRequest(open=self._open_message))
+        # Answers a stream that said `moving` gave after the notice, handed out before the next
+        # stream's (see `_leave`).
+        self._left: collections.deque[tuple[float, dynamics_pb2.StreamSessionResponse]] = collections.deque()
+        self._start_stream(dynamics_pb2.StreamSessionRequest(open=open_message))
         try:
             first = self._get(self._timeout)
         except JitdynError as error:
@@ -160,7 +143,7 @@ class Session:
         # transit until `sync` exchanges measure the offset.
         self._clock_start = first[0]
         self.opened = opened
-        self._token = opened.resume_token
+        self._ledger.opened(first[1].opened)
         if self._realtime:
             self.sync()
 
@@ -211,9 +194,6 @@ class Session:
             raise FailedPrecondition("the session stream has ended")
         return item[1]
 
-    def _resumable(self, code: grpc.StatusCode) -> bool:
-        return self._policy.enabled and bool(self._token) and not self._cancelled and code in RESUMABLE_CODES
-
     def _raw(self, timeout: float | None) -> _Item:
         """The current stream's next item, with none of the resume logic."""
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -228,12 +208,12 @@ class Session:
 
     def _get(self, timeout: float | None) -> tuple[float, dynamics_pb2.StreamSessionResponse] | None:
         while True:
-            item = self._raw(timeout)
+            item = self._left.popleft() if self._left else self._raw(timeout)
             if item is END:
                 self._responses.put((self._generation, END))
                 return None
             if isinstance(item, grpc.RpcError):
-                if self._resumable(item.code()):
+                if self._ledger.resumable(item.code()):
                     self._resume(f"{item.code().name}: {item.details()}")
                     continue
                 self._responses.put((self._generation, END))
@@ -242,107 +222,69 @@ class Session:
             response = item[1]
             kind = response.WhichOneof("payload")
             if kind == "moving":
-                if response.moving.HasField("durable_seq"):
-                    self._acknowledge(response.moving.durable_seq)
-                if self._policy.enabled and self._token and not self._cancelled:
+                error = self._ledger.moving(response.moving)
+                if error is None:
+                    self._leave()
                     self._resume(f"moving: {response.moving.reason}")
                     continue
                 self._responses.put((self._generation, END))
                 self._finish()
-                raise Unavailable(
-                    f"session {self.opened.session_id}: the server is moving it elsewhere "
-                    f"({response.moving.reason}) and resumption is off"
-                )
-            if kind == "result" and not self._fresh(response.result):
+                raise error
+            if kind == "result" and not self._ledger.fresh(response.result):
                 continue
             return item
 
-    def _fresh(self, result: dynamics_pb2.Result) -> bool:
-        """Bookkeeping of a result; False for the answer to a re-sent frame the caller already had."""
-        if result.HasField("durable_seq"):
-            self._acknowledge(result.durable_seq)
-        if result.source == dynamics_pb2.SOURCE_CORRECTED:
-            return True
-        if result.seq <= self._delivered:
-            return False
-        if self._after_resume:
-            self._after_resume = False
-            self.missed += result.seq - self._delivered - 1
-        self._delivered = result.seq
-        return True
-
-    def _acknowledge(self, durable_seq: int) -> None:
-        """Frames up to `durable_seq` are stored off the server's host: no resume needs them again."""
-        self._durable = max(self._durable, durable_seq)
-        while self._unacknowledged and self._unacknowledged[0][0] <= self._durable:
-            self._unacknowledged.popleft()
+    def _leave(self) -> None:
+        """Leave a stream whose server said `moving`, reading it to its end: frames sent before the
+        notice was read are still answered (and stored) there, and a resume goes on after them.
+        The server parks the session when the requests end without a close; one that does not end
+        the stream within the policy's `open_timeout` is left as it is."""
+        self._requests.put(END)
+        deadline = time.monotonic() + self._ledger.policy.open_timeout
+        while True:
+            try:
+                item = self._raw(max(0.0, deadline - time.monotonic()))
+            except NoAnswer:
+                return
+            if item is END or isinstance(item, grpc.RpcError):
+                return
+            if item[1].WhichOneof("payload") != "moving":
+                self._left.append(item)
 
     def _resume(self, cause: str) -> None:
         """Open the session again through the same target, re-send what is not durable, go on."""
-        session_id = self.opened.session_id
+        policy = self._ledger.policy
         started = time.monotonic()
         self._end_stream()
         last = cause
-        for attempt in range(self._policy.attempts):
-            time.sleep(self._policy.backoff(attempt))
+        for attempt in range(policy.attempts):
+            time.sleep(policy.backoff(attempt))
             if self._reconnect is not None:
                 self._stub = self._reconnect()
-            message = dynamics_pb2.OpenSession()
-            message.CopyFrom(self._open_message)
-            message.resume.session_id = session_id
-            message.resume.token = self._token
-            self._start_stream(dynamics_pb2.StreamSessionRequest(open=message))
+            self._start_stream(self._ledger.resume_request())
             try:
-                item = self._raw(self._policy.open_timeout)
+                first: _Item | None = self._raw(policy.open_timeout)
             except NoAnswer:
-                last = f"no `opened` within {self._policy.open_timeout} s"
-                _log.info("session %s: resume attempt %d: %s", session_id, attempt + 1, last)
+                first = None
+            outcome = resume_outcome(first, open_timeout=policy.open_timeout)
+            if isinstance(outcome, Refused):
+                self._ledger.refused(attempt, outcome)
+                last = outcome.reason
                 self._end_stream()
-                continue
-            if isinstance(item, grpc.RpcError):
-                code = item.code()
-                last = f"{code.name}: {item.details()}"
-                _log.info("session %s: resume attempt %d: %s", session_id, attempt + 1, last)
-                self._end_stream()
-                # The old owner may still hold the lease for a moment (FAILED_PRECONDITION).
-                if code in RESUMABLE_CODES or code == grpc.StatusCode.FAILED_PRECONDITION:
+                if outcome.retry:
                     continue
                 break
-            if item is END or item[1].WhichOneof("payload") != "opened":
-                last = "the stream ended before `opened`"
-                _log.info("session %s: resume attempt %d: %s", session_id, attempt + 1, last)
-                self._end_stream()
-                continue
-            opened = item[1].opened
-            from_seq = opened.resume_from_seq if opened.HasField("resume_from_seq") else 0
-            self._acknowledge(from_seq - 1)
-            for _, request in self._unacknowledged:
+            for request in self._ledger.resumed(outcome, cause=cause, attempts=attempt + 1, started=started):
                 self._requests.put(request)
             if self._closed:
                 self._requests.put(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
                 self._requests.put(END)
-            self._after_resume = True
-            self.resumptions.append(
-                Resumption(
-                    session_id=session_id,
-                    from_seq=from_seq,
-                    cause=cause,
-                    reason=opened.resume_reason,
-                    attempts=attempt + 1,
-                    took=time.monotonic() - started,
-                )
-            )
             if self._realtime and not self._closed:
                 self.sync()
             return
         self._responses.put((self._generation, END))
         self._finish()
-        raise SessionLost(
-            f"session {session_id} could not be resumed after its stream broke ({cause}); "
-            f"{self._policy.attempts} attempts, the last: {last}",
-            session_id=session_id,
-            attempts=self._policy.attempts,
-        )
+        raise self._ledger.lost(cause, last)
 
     def _convert(
         self, item: tuple[float, dynamics_pb2.StreamSessionResponse]
@@ -350,21 +292,15 @@ class Session:
         received_at, response = item
         answer = session_answer(response, received_at=received_at, clock_start=self._clock_start)
         if isinstance(answer, Summary):
-            answer = dataclasses.replace(answer, resumes=len(self.resumptions), missed=self.missed)
+            answer = self._ledger.summarised(answer)
             self.summary = answer
         return answer
 
     def _send(self, request: dynamics_pb2.StreamSessionRequest, seq: int | None = None) -> None:
         if self._closed:
             raise FailedPrecondition("the session is closed")
-        if seq is not None and self._policy.enabled and self._token:
-            if len(self._unacknowledged) >= self._policy.max_unacknowledged:
-                raise ResumeBufferFull(
-                    f"session {self.opened.session_id}: {len(self._unacknowledged)} frames are not "
-                    f"yet durable (the newest durable_seq is {self._durable}), the most the client "
-                    f"keeps for a resume (max_unacknowledged); frame {seq} was not sent"
-                )
-            self._unacknowledged.append((seq, request))
+        if seq is not None:
+            self._ledger.keep(seq, request)
         self._requests.put(request)
 
     @property
@@ -375,7 +311,17 @@ class Session:
     @property
     def unacknowledged(self) -> int:
         """Frames sent that no result's durable_seq covers yet (kept for a resume)."""
-        return len(self._unacknowledged)
+        return len(self._ledger)
+
+    @property
+    def resumptions(self) -> list[Resumption]:
+        """Every resume so far, oldest first."""
+        return self._ledger.resumptions
+
+    @property
+    def missed(self) -> int:
+        """Ticks no answer came for across the resumes (REALTIME ticks that passed meanwhile)."""
+        return self._ledger.missed
 
     def now(self) -> float:
         """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at
@@ -474,7 +420,7 @@ class Session:
         """Drop the stream without closing (the server stores the session as ABANDONED, or as
         RECOVERED when it was resumable and nobody resumes it)."""
         self._closed = True
-        self._cancelled = True
+        self._ledger.stop()
         if self._call is not None:
             self._call.cancel()
         self._requests.put(END)

@@ -15,7 +15,9 @@ Every call raises a `jitdyn.errors` exception for the status the server ends it 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
+import weakref
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar
@@ -27,6 +29,8 @@ from jitdyn.client._models import (
     ModelRef,
     Opened,
     Rejection,
+    ResumePolicy,
+    Resumption,
     SessionOptions,
     Summary,
     SyncSample,
@@ -36,9 +40,11 @@ from jitdyn.client._models import (
     session_answer,
     sync_request,
 )
+from jitdyn.client._resume import Refused, ResumeLedger, resume_outcome
 from jitdyn.client._transport import (
     CHANNEL_OPTIONS,
     END,
+    RESUMABLE_CODES,
     End,
     auth_metadata,
     explain_open_error,
@@ -64,6 +70,10 @@ __all__ = ["AsyncClient", "AsyncSession"]
 _Request = TypeVar("_Request")
 _Response = TypeVar("_Response")
 _Received: TypeAlias = tuple[float, dynamics_pb2.StreamSessionResponse]
+_First: TypeAlias = _Received | grpc.RpcError | End | None
+_Call: TypeAlias = (
+    "grpc.aio.StreamStreamCall[dynamics_pb2.StreamSessionRequest, dynamics_pb2.StreamSessionResponse]"
+)
 
 
 class AsyncSession:
@@ -74,9 +84,14 @@ class AsyncSession:
     without waiting for its answer, and `async for answer in session.results()` gives answers as
     they arrive, among them the `SyncSample`s of the clock probes the session sends by itself (at
     open, then every `sync_interval` seconds with the frames).
+
+    Resumption is the sync `Session`'s (`ResumePolicy`, `resumptions`, `missed`, `unacknowledged`),
+    run by the session's reader task: when the stream breaks it opens the session again and
+    re-sends what is not durable while writes wait, so the caller sees no error and no answer twice.
     """
 
     opened: Opened
+    _call: _Call  # the current stream, from `_open` on
 
     def __init__(
         self,
@@ -88,10 +103,18 @@ class AsyncSession:
         checksum: bool,
         sync_interval: float = 0.5,
         on_end: Callable[[], None] | None = None,
+        resume: ResumePolicy | None = None,
+        reconnect: Callable[[], DynamicsServiceAsyncStub] | None = None,
     ) -> None:
-        self._on_end = on_end  # called once the stream has ended: the client closes its connection
-        self._open_request = dynamics_pb2.StreamSessionRequest(open=options.to_message())
-        self._responses: asyncio.Queue[_Received | grpc.RpcError | End] = asyncio.Queue()
+        self._on_end = on_end  # called once the session has ended: the client closes its connection
+        self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
+        self._stub = stub
+        self._metadata = tuple(metadata)
+        open_message = options.to_message()
+        self._open_request = dynamics_pb2.StreamSessionRequest(open=open_message)
+        self._ledger = ResumeLedger(resume if resume is not None else ResumePolicy(), open_message)
+        self._responses: asyncio.Queue[_Received | JitdynError | End] = asyncio.Queue()
+        # Writes one at a time, as grpc.aio allows; a resume holds it until it has re-sent.
         self._write_lock = asyncio.Lock()
         self._close_lock = asyncio.Lock()
         self._timeout = timeout
@@ -103,112 +126,267 @@ class AsyncSession:
         self._sync_interval = sync_interval
         self._last_sync_sent = -float("inf")
         self._closed = False
+        self._close_sent = False  # `close` and the half-close are written: a resume writes them again
+        self._write_refused = False  # a write on the current stream failed (see `_broken`)
+        self._finished = False
         self.summary: Summary | None = None
-        self._call = stub.StreamSession(metadata=tuple(metadata))
-        # Reads as responses arrive, not as the caller asks: a pong's receive time is its arrival.
-        self._reader = asyncio.create_task(self._read(), name="jitdyn-session-reader")
+        self._reader: asyncio.Task[None] | None = None
 
     async def _open(self) -> None:
         try:
-            await self._write_now(self._open_request)
-            try:
-                first = await self._get(self._timeout)
-            except JitdynError as error:
-                raise explain_open_error(error) from None
+            first = await self._open_stream(self._open_request, self._timeout)
             if first is None:
+                raise NoAnswer(f"no answer from the server within {self._timeout} s")
+            if isinstance(first, grpc.RpcError):
+                raise explain_open_error(status_error(first))
+            if first is END:
                 raise FailedPrecondition("the session stream has ended")
             opened = opened_from_response(first[1])
         except BaseException:
             self.cancel()
-            await self._reader_done()
             raise
-        # The session clock starts when `opened` arrived (the reader's time of it): the server's
-        # starts as it sends it, so the two differ by one transit until `sync` exchanges measure
-        # the offset.
+        # The session clock starts when `opened` arrived: the server's starts as it sends it, so the
+        # two differ by one transit until `sync` exchanges measure the offset.
         self._clock_start = first[0]
         self.opened = opened
+        self._ledger.opened(first[1].opened)
+        # Reads as responses arrive, not as the caller asks: a pong's receive time is its arrival.
+        self._reader = asyncio.create_task(self._run(), name="jitdyn-session-reader")
         if self._realtime:
             await self.sync()
 
     # Plumbing.
 
-    async def _read(self) -> None:
+    async def _open_stream(self, request: dynamics_pb2.StreamSessionRequest, timeout: float | None) -> _First:
+        """A new stream that begins with `request` (an open), and its first answer, read here before
+        the reader takes the stream over; None when none came within `timeout`."""
+        self._call = call = self._stub.StreamSession(metadata=self._metadata)
+        self._write_refused = False
         try:
-            async for response in self._call:
-                received_at = time.monotonic()
-                if response.HasField("sync"):
-                    # t4 of this exchange, reported by the next probe however late the caller reads it.
-                    self._last_probe = (response.sync.id, received_at - self._clock_start)
-                self._responses.put_nowait((received_at, response))
+            await call.write(request)  # a refusal shows in the read that follows
+        except grpc.RpcError:
+            self._write_refused = True
+        except asyncio.InvalidStateError:
+            pass
+        try:
+            response = await asyncio.wait_for(call.read(), timeout)
+        except TimeoutError:
+            return None
         except grpc.RpcError as error:
-            self._responses.put_nowait(error)
+            if self._write_refused and error.code() == grpc.StatusCode.INTERNAL:
+                return END  # the stream ended under the write, and grpc.aio hides how (`_broken`)
+            return error
+        if not isinstance(response, dynamics_pb2.StreamSessionResponse):
+            return END  # grpc.aio.EOF
+        return time.monotonic(), response
+
+    async def _run(self) -> None:
+        """The session's reader: every stream's answers into the queue, a resume between streams,
+        and the session's end (its error, if any, then END)."""
+        try:
+            while True:
+                ended = await self._read(self._call)
+                if ended is None:
+                    return
+                if isinstance(ended, grpc.RpcError):
+                    cause = self._broken(ended)
+                    if cause is None:
+                        self._fail(status_error(ended))
+                        return
+                    self._call.cancel()  # a write waiting on the broken stream gives the lock up
+                    async with self._write_lock:
+                        resumed = await self._resume(cause)
+                else:
+                    error = self._ledger.moving(ended)
+                    if error is not None:
+                        self._fail(error)
+                        return
+                    async with self._write_lock:
+                        await self._leave(self._call)
+                        resumed = await self._resume(f"moving: {ended.reason}")
+                if not resumed:
+                    return
         finally:
             self._responses.put_nowait(END)
-            if self._on_end is not None:
-                self._on_end()
+
+    async def _read(self, call: _Call) -> grpc.RpcError | dynamics_pb2.Moving | None:
+        """One stream's answers into the queue, until it ends (None), breaks, or says `moving`."""
+        try:
+            while True:
+                response = await call.read()
+                if not isinstance(response, dynamics_pb2.StreamSessionResponse):
+                    return None  # grpc.aio.EOF
+                received_at = time.monotonic()
+                kind = response.WhichOneof("payload")
+                if kind == "sync":
+                    # t4 of this exchange, reported by the next probe however late the caller reads it.
+                    self._last_probe = (response.sync.id, received_at - self._clock_start)
+                elif kind == "moving":
+                    return response.moving
+                elif kind == "result" and not self._ledger.fresh(response.result):
+                    continue
+                self._responses.put_nowait((received_at, response))
+        except grpc.RpcError as error:
+            return error
+
+    async def _leave(self, call: _Call) -> None:
+        """Leave a stream whose server said `moving`, reading it to its end: frames written before
+        the notice was read are still answered (and stored) there, and a resume goes on after them.
+        The server parks the session when the requests end without a close; one that does not
+        end the stream within the policy's `open_timeout` is left as it is."""
+        with contextlib.suppress(grpc.RpcError, asyncio.InvalidStateError, TimeoutError):
+            async with asyncio.timeout(self._ledger.policy.open_timeout):
+                await call.done_writing()
+                while isinstance(await self._read(call), dynamics_pb2.Moving):
+                    pass
+
+    def _fail(self, error: JitdynError) -> None:
+        """The session is over with `error`: the caller's next read raises it."""
+        self._responses.put_nowait(error)
+        self._finish()
+
+    async def _resume(self, cause: str) -> bool:
+        """Open the session again through the same target, re-send what is not durable, go on;
+        False when every attempt failed (the session is lost). The caller holds the write lock, so
+        that nothing is written until the frames not durable are re-sent."""
+        policy = self._ledger.policy
+        started = time.monotonic()
+        self._call.cancel()
+        last = cause
+        for attempt in range(policy.attempts):
+            await asyncio.sleep(policy.backoff(attempt))
+            if self._reconnect is not None:
+                self._stub = self._reconnect()
+            first = await self._open_stream(self._ledger.resume_request(), policy.open_timeout)
+            outcome = resume_outcome(first, open_timeout=policy.open_timeout)
+            if isinstance(outcome, Refused):
+                self._ledger.refused(attempt, outcome)
+                last = outcome.reason
+                self._call.cancel()
+                if outcome.retry:
+                    continue
+                break
+            resumed = self._ledger.resumed(outcome, cause=cause, attempts=attempt + 1, started=started)
+            try:
+                await self._resend(resumed)
+            except JitdynError as error:  # the new stream ended in a way no resume mends
+                self._fail(error)
+                return False
+            return True
+        self._fail(self._ledger.lost(cause, last))
+        return False
+
+    async def _resend(self, requests: list[dynamics_pb2.StreamSessionRequest]) -> None:
+        """After a resume: the frames not durable, then the close if the caller had closed, or a
+        clock probe for the new server; the caller holds the write lock."""
+        for request in requests:
+            await self._write(request)
+        if self._close_sent:
+            await self._write(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
+            await self._write(None)
+        elif self._realtime and not self._closed:
+            await self._write(self._probe())
+
+    def _finish(self) -> None:
+        """The session is over (closed, cancelled, or failed for good): its connection may go."""
+        if self._finished:
+            return
+        self._finished = True
+        if self._on_end is not None:
+            self._on_end()
 
     async def _reader_done(self, timeout: float = 5.0) -> None:
+        if self._reader is None:
+            return
         await asyncio.wait({self._reader}, timeout=timeout)
         if self._reader.done() and not self._reader.cancelled():
             self._reader.exception()  # retrieved, so asyncio does not log it; the queue carries errors
 
-    async def _wait(self, timeout: float | None) -> _Received | None:
-        """The next response; None once the stream has ended. Raises TimeoutError after `timeout`."""
-        item = await asyncio.wait_for(self._responses.get(), timeout)
+    async def _get(self, timeout: float | None) -> _Received | None:
+        """The next answer; None once the session has ended. Raises the session's error, or
+        NoAnswer after `timeout`."""
+        try:
+            item = await asyncio.wait_for(self._responses.get(), timeout)
+        except TimeoutError:
+            raise NoAnswer(f"no answer from the server within {timeout} s") from None
+        if isinstance(item, JitdynError):
+            self._responses.put_nowait(END)
+            raise item
         if item is END:
             self._responses.put_nowait(END)
             return None
-        if isinstance(item, grpc.RpcError):
-            self._responses.put_nowait(END)
-            raise status_error(item)
         return item
-
-    async def _get(self, timeout: float | None) -> _Received | None:
-        try:
-            return await self._wait(timeout)
-        except TimeoutError:
-            raise NoAnswer(f"no answer from the server within {timeout} s") from None
-
-    async def _next_response(self, timeout: float | None) -> dynamics_pb2.StreamSessionResponse:
-        item = await self._get(timeout)
-        if item is None:
-            raise FailedPrecondition("the session stream has ended")
-        return item[1]
 
     def _convert(self, item: _Received) -> TickResult | Rejection | SyncSample | Summary:
         received_at, response = item
         answer = session_answer(response, received_at=received_at, clock_start=self._clock_start)
         if isinstance(answer, Summary):
+            answer = self._ledger.summarised(answer)
             self.summary = answer
         return answer
 
-    async def _send(self, request: dynamics_pb2.StreamSessionRequest) -> None:
+    async def _send(self, request: dynamics_pb2.StreamSessionRequest, seq: int | None = None) -> None:
         if self._closed:
             raise FailedPrecondition("the session is closed")
-        await self._write_now(request)
-
-    async def _write_now(self, request: dynamics_pb2.StreamSessionRequest | None) -> None:
-        """Write `request`, or end the requests (half-close) for None; one write at a time, as
-        grpc.aio allows."""
         async with self._write_lock:
-            try:
-                if request is None:
-                    await self._call.done_writing()
-                else:
-                    await self._call.write(request)
-            except grpc.RpcError as error:
+            if seq is not None:
+                self._ledger.keep(seq, request)
+            await self._write(request)
+
+    async def _write(self, request: dynamics_pb2.StreamSessionRequest | None) -> None:
+        """Write `request` on the current stream, or end its requests (half-close) for None; the
+        caller holds the write lock. On a stream broken in a way a resume mends this says nothing:
+        the reader resumes and re-sends what the ledger keeps."""
+        call = self._call
+        try:
+            if request is None:
+                await call.done_writing()
+            else:
+                await call.write(request)
+        except grpc.RpcError as error:
+            # Core refused the write because the stream has ended, and grpc.aio put INTERNAL in
+            # place of the status it ended with, which the reader may read (see `_broken`).
+            self._write_refused = True
+            if not self._resumable():
                 raise status_error(error) from None
-            except asyncio.InvalidStateError:
-                # The stream has already ended: say how, as a read would.
-                code = await self._call.code()
-                if code == grpc.StatusCode.OK:
-                    raise FailedPrecondition("the session stream has ended") from None
-                raise error_for_status(code, await self._call.details()) from None
+        except asyncio.InvalidStateError:
+            # The stream has already ended: say how, as a read would.
+            code = await call.code()
+            if code == grpc.StatusCode.OK:
+                raise FailedPrecondition("the session stream has ended") from None
+            if not (self._resumable() and (code in RESUMABLE_CODES or self._write_refused)):
+                raise error_for_status(code, await call.details()) from None
+
+    def _resumable(self) -> bool:
+        return not self._finished and self._ledger.active
+
+    def _broken(self, error: grpc.RpcError) -> str | None:
+        """Why a resume may mend the current stream, which ended with `error`; None if none may.
+        After a write Core refused, INTERNAL stands for a status nobody saw: the resume's open
+        finds out whether the session goes on."""
+        if self._write_refused and error.code() == grpc.StatusCode.INTERNAL:
+            return "the stream ended under a write (grpc.aio hides how)" if self._resumable() else None
+        return f"{error.code().name}: {error.details()}" if self._ledger.resumable(error.code()) else None
 
     @property
     def clock_start(self) -> float:
         """The time.monotonic() value that is 0 on the session clock."""
         return self._clock_start
+
+    @property
+    def unacknowledged(self) -> int:
+        """Frames sent that no result's durable_seq covers yet (kept for a resume)."""
+        return len(self._ledger)
+
+    @property
+    def resumptions(self) -> list[Resumption]:
+        """Every resume so far, oldest first."""
+        return self._ledger.resumptions
+
+    @property
+    def missed(self) -> int:
+        """Ticks no answer came for across the resumes (REALTIME ticks that passed meanwhile)."""
+        return self._ledger.missed
 
     def now(self) -> float:
         """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at
@@ -224,7 +402,7 @@ class AsyncSession:
 
     async def skip(self, seq: int) -> TickResult | Rejection:
         """Tell the server tick `seq` had no frame; returns the PREDICTED result (LOCKSTEP)."""
-        await self._send(dynamics_pb2.StreamSessionRequest(skip=dynamics_pb2.Skip(seq=seq)))
+        await self._send(dynamics_pb2.StreamSessionRequest(skip=dynamics_pb2.Skip(seq=seq)), seq)
         return await self._answer()
 
     async def _answer(self) -> TickResult | Rejection:
@@ -243,7 +421,9 @@ class AsyncSession:
         `sync_interval` seconds, so the server keeps client time on its clock."""
         if self._realtime and self.now() - self._last_sync_sent >= self._sync_interval:
             await self.sync()
-        await self._send(dynamics_pb2.StreamSessionRequest(frame=frame.to_message(checksum=self._checksum)))
+        await self._send(
+            dynamics_pb2.StreamSessionRequest(frame=frame.to_message(checksum=self._checksum)), frame.seq
+        )
 
     async def results(
         self, *, timeout: float | None = None
@@ -251,8 +431,8 @@ class AsyncSession:
         """Answers as they arrive, until the session is closed or `timeout` passes with none."""
         while True:
             try:
-                item = await self._wait(timeout)
-            except TimeoutError:
+                item = await self._get(timeout)
+            except NoAnswer:
                 return
             if item is None:
                 return
@@ -266,10 +446,10 @@ class AsyncSession:
         answers: list[TickResult | Rejection | SyncSample] = []
         while not self._responses.empty():
             item = self._responses.get_nowait()
-            if item is END or isinstance(item, grpc.RpcError):
+            if item is END or isinstance(item, JitdynError):
                 self._responses.put_nowait(END)
-                if isinstance(item, grpc.RpcError):
-                    raise status_error(item)
+                if isinstance(item, JitdynError):
+                    raise item
                 return answers
             answer = self._convert(item)
             if not isinstance(answer, Summary):
@@ -278,9 +458,18 @@ class AsyncSession:
 
     async def sync(self) -> None:
         """Send a clock probe; its answer comes back among the results (a `SyncSample`)."""
+        if self._closed:
+            raise FailedPrecondition("the session is closed")
+        async with self._write_lock:
+            # Stamped once the write may go: a probe that waited for a resume to re-send, stamped
+            # before, would tell the server a send time the wait earlier than it was.
+            await self._write(self._probe())
+
+    def _probe(self) -> dynamics_pb2.StreamSessionRequest:
+        """The next clock probe, its send time now: write it at once."""
         self._probe_id += 1
         self._last_sync_sent = self.now()
-        await self._send(sync_request(self._probe_id, self._last_sync_sent, self._last_probe))
+        return sync_request(self._probe_id, self._last_sync_sent, self._last_probe)
 
     # Ending.
 
@@ -292,23 +481,32 @@ class AsyncSession:
             if self._closed:
                 raise FailedPrecondition("the session ended without a summary")
             self._closed = True
-            await self._write_now(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
-            await self._write_now(None)
+            async with self._write_lock:
+                await self._write(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
+                await self._write(None)
+                self._close_sent = True
             while self.summary is None:
                 item = await self._get(self._timeout)
                 if item is None:
                     # results() in another task may have read the summary just before the end.
                     if self.summary is None:
+                        self._finish()
                         raise FailedPrecondition("the session stream ended without a summary")
                     break
                 self._convert(item)
             await self._reader_done()
+            self._finish()
             return self.summary
 
     def cancel(self) -> None:
-        """Drop the stream without closing (the server stores the session as ABANDONED)."""
+        """Drop the stream without closing (the server stores the session as ABANDONED, or as
+        RECOVERED when it was resumable and nobody resumes it)."""
         self._closed = True
+        self._ledger.stop()
         self._call.cancel()
+        if self._reader is not None:
+            self._reader.cancel()
+        self._finish()
 
     async def __aenter__(self) -> Self:
         return self
@@ -335,8 +533,12 @@ class AsyncClient:
         root_certificates: bytes | None = None,
         checksum: bool = True,
         connection_per_session: bool = True,
+        resume: ResumePolicy | bool = True,
     ) -> None:
+        """`resume`: how sessions resume by themselves when their stream breaks (`ResumePolicy`);
+        False turns it off."""
         self._address = address
+        self._resume = resume if isinstance(resume, ResumePolicy) else ResumePolicy(enabled=resume)
         self._root_certificates = root_certificates
         self._channel = self._new_channel(shared=True)
         # See Client: each session on its own connection, so that `jitdyn serve --processes N`
@@ -344,6 +546,8 @@ class AsyncClient:
         self._connection_per_session = connection_per_session
         self._session_channels: set[grpc.aio.Channel] = set()
         self._closing: set[asyncio.Task[None]] = set()
+        # Sessions end with the client, and are not resumed: their reader would reconnect.
+        self._open_sessions: weakref.WeakSet[AsyncSession] = weakref.WeakSet()
         self._metadata = auth_metadata(api_key)
         self._timeout = timeout
         self._checksum = checksum
@@ -443,41 +647,50 @@ class AsyncClient:
 
     async def open_session(self, options: SessionOptions) -> AsyncSession:
         """Open a session; raises the server's error (InvalidArgument, NotFound, ...) if it refuses."""
-        if not self._connection_per_session:
-            session = AsyncSession(
-                self._dynamics,
-                options,
-                timeout=self._timeout,
-                metadata=self._metadata,
-                checksum=self._checksum,
-            )
-            await session._open()
-            return session
-        channel = self._new_channel(shared=False)
-        self._session_channels.add(channel)
+        stub: DynamicsServiceAsyncStub = self._dynamics
+        ended: Callable[[], None] | None = None
+        reconnect: Callable[[], DynamicsServiceAsyncStub] | None = None
+        if self._connection_per_session:
+            current = [self._new_channel(shared=False)]
+            self._session_channels.add(current[0])
+            stub = dynamics_pb2_grpc.DynamicsServiceStub(current[0])
 
-        def ended() -> None:
-            if channel in self._session_channels:
-                self._session_channels.discard(channel)
-                task = asyncio.ensure_future(channel.close())
-                self._closing.add(task)
-                task.add_done_callback(self._closing.discard)
+            def ended() -> None:
+                channel = current[0]
+                if channel in self._session_channels:
+                    self._session_channels.discard(channel)
+                    task = asyncio.ensure_future(channel.close())
+                    self._closing.add(task)
+                    task.add_done_callback(self._closing.discard)
+
+            def reconnect() -> DynamicsServiceAsyncStub:
+                # See Client: a balancer keeps a connection's streams on the backend it first chose.
+                ended()
+                current[0] = self._new_channel(shared=False)
+                self._session_channels.add(current[0])
+                return dynamics_pb2_grpc.DynamicsServiceStub(current[0])
 
         session = AsyncSession(
-            dynamics_pb2_grpc.DynamicsServiceStub(channel),
+            stub,
             options,
             timeout=self._timeout,
             metadata=self._metadata,
             checksum=self._checksum,
             on_end=ended,
+            resume=self._resume,
+            reconnect=reconnect,
         )
         await session._open()
+        self._open_sessions.add(session)
         return session
 
     async def close(self) -> None:
         """Close the connections (open sessions end with them); safe to call twice."""
         if not self._closed:
             self._closed = True
+            for session in list(self._open_sessions):
+                if not session._finished:
+                    session.cancel()
             channels, self._session_channels = self._session_channels, set()
             await asyncio.gather(self._channel.close(), *(c.close() for c in channels), *self._closing)
 

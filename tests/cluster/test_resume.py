@@ -1,10 +1,12 @@
 """The SDK resumes a session by itself (issue 19, must-have 5, client side): a LOCKSTEP session
 through HAProxy whose replica is killed with -9 goes on on another replica with no error to the
 caller, and the stored session is one session holding every frame; a replica drained by SIGTERM
-moves its session the same way; the buffer of frames kept for a resume is bounded."""
+moves its session the same way; the buffer of frames kept for a resume is bounded. The asyncio SDK
+(`AsyncClient`) does the same, tested at the end."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import time
@@ -17,8 +19,17 @@ import pytest
 from _cluster import Balancer, Replica, wait_for
 from _raw import DT, new_model, session_row
 
-from jitdyn.client import Client, FrameData, ResumePolicy, SessionOptions, TickResult
-from jitdyn.errors import ResumeBufferFull
+from jitdyn.client import (
+    AsyncClient,
+    AsyncSession,
+    Client,
+    FrameData,
+    ResumePolicy,
+    SessionOptions,
+    Summary,
+    TickResult,
+)
+from jitdyn.errors import JitdynError, ResumeBufferFull, SessionLost
 
 pytestmark = pytest.mark.postgres
 
@@ -195,3 +206,169 @@ def test_a_realtime_session_resumes_and_its_record_keeps_every_frame(
         if kind == "result" and got
     )
     assert measured == list(range(ticks)), "every frame sent is in the record, answered"
+
+
+def test_an_async_session_resumes_after_its_replica_is_killed(
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    index_url: str,
+    tmp_path: Path,
+) -> None:
+    replicas, balancer = cluster(start_replica, start_balancer, tmp_path)
+
+    async def run() -> tuple[list[int], AsyncSession, Summary]:
+        async with AsyncClient(balancer.address, timeout=30) as client:
+            session = await client.open_session(options(new_model()))
+            assert session.opened.resume_token
+            seqs = [(await session.send_frame(frame(k))).seq for k in range(40)]
+            owner(replicas).kill()
+            seqs += [(await session.send_frame(frame(k))).seq for k in range(40, 80)]
+            return seqs, session, await session.close()
+
+    seqs, session, summary = asyncio.run(run())
+    assert seqs == list(range(80)), "every frame answered once, in order"
+    assert len(session.resumptions) == 1 and summary.resumes == 1 and summary.missed == 0
+    resumption = session.resumptions[0]
+    print(
+        f"async: resumed after kill -9 in {1e3 * resumption.took:.0f} ms ({resumption.attempts} "
+        f"attempts, cause {resumption.cause!r}) from tick {resumption.from_seq}: {resumption.reason}"
+    )
+    assert resumption.session_id == session.opened.session_id
+    row = session_row(index_url, session.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    assert stored_seqs(tmp_path / "shared-folder", str(row["location"])) == list(range(80))
+
+
+def test_a_draining_replica_moves_its_async_session(
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    index_url: str,
+    tmp_path: Path,
+) -> None:
+    replicas, balancer = cluster(start_replica, start_balancer, tmp_path)
+
+    async def run() -> tuple[list[int], AsyncSession, Summary, Replica]:
+        async with AsyncClient(balancer.address, timeout=30) as client:
+            session = await client.open_session(options(new_model()))
+            seqs = [(await session.send_frame(frame(k))).seq for k in range(30)]
+            leaving = owner(replicas)
+            os.killpg(leaving.process.pid, signal.SIGTERM)
+            wait_for(
+                lambda: balancer.server_states().get(leaving.name) != "UP",
+                timeout=10,
+                what="haproxy kept the draining replica UP",
+            )
+            seqs += [(await session.send_frame(frame(k))).seq for k in range(30, 60)]
+            return seqs, session, await session.close(), leaving
+
+    seqs, session, summary, leaving = asyncio.run(run())
+    leaving.process.wait(timeout=20)
+    assert seqs == list(range(60))
+    assert summary.resumes == 1 and session.resumptions[0].cause.startswith("moving")
+    print(
+        f"async: moved in {1e3 * session.resumptions[0].took:.0f} ms from tick {session.resumptions[0].from_seq}"
+    )
+    row = session_row(index_url, session.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    assert stored_seqs(tmp_path / "shared-folder", str(row["location"])) == list(range(60))
+
+
+def test_an_async_realtime_session_resumes_and_its_record_keeps_every_frame(
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    index_url: str,
+    tmp_path: Path,
+) -> None:
+    """As the sync REALTIME test, with a producer and a consumer task: the producer's writes wait
+    while the reader task resumes, and no tick goes unanswered."""
+    replicas, balancer = cluster(start_replica, start_balancer, tmp_path)
+    ticks = 80
+    answered: dict[int, float] = {}
+
+    async def run() -> tuple[AsyncSession, Summary]:
+        async with AsyncClient(balancer.address, timeout=30) as client:
+            session = await client.open_session(
+                SessionOptions(
+                    inline_mjcf=new_model(), inline_name="pendulum_2_inline", dt=DT, clock="REALTIME"
+                )
+            )
+
+            async def produce() -> None:
+                for k in range(ticks):
+                    await asyncio.sleep(max(0.0, k * DT - session.now()))
+                    await session.send(frame(k))
+                    if k == 30:
+                        await asyncio.to_thread(lambda: owner(replicas).kill())
+
+            async def consume() -> None:
+                async for answer in session.results(timeout=10):
+                    if isinstance(answer, TickResult) and answer.source != "CORRECTED":
+                        answered.setdefault(answer.seq, answer.received_at - session.clock_start)
+                        if answer.seq == ticks - 1:
+                            return
+
+            await asyncio.gather(produce(), consume())
+            return session, await session.close()
+
+    session, summary = asyncio.run(run())
+    late = [k for k, at in answered.items() if at > k * DT + session.opened.grace]
+    print(
+        f"async: resumed {summary.resumes}x (from tick {session.resumptions[0].from_seq} in "
+        f"{1e3 * session.resumptions[0].took:.0f} ms); ticks missed {summary.missed}; answered late: {sorted(late)}"
+    )
+    assert summary.resumes == 1 and summary.missed == 0
+    assert sorted(answered) == list(range(ticks)), (
+        f"ticks unanswered: {sorted(set(range(ticks)) - set(answered))}"
+    )
+    row = session_row(index_url, session.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    table = pq.read_table(tmp_path / "shared-folder" / str(row["location"]))
+    measured = sorted(
+        seq
+        for kind, seq, got in zip(
+            table["kind"].to_pylist(),
+            table["seq"].to_pylist(),
+            table["frame_received"].to_pylist(),
+            strict=True,
+        )
+        if kind == "result" and got
+    )
+    assert measured == list(range(ticks)), "every frame sent is in the record, answered"
+
+
+def test_an_async_session_s_resume_buffer_is_bounded_and_resumption_can_be_off(
+    start_replica: Callable[..., Replica], tmp_path: Path
+) -> None:
+    replica = start_replica("r0", HOSTS[0], data=tmp_path / "shared-folder", extra=FAST)
+
+    async def bounded() -> list[int]:
+        async with AsyncClient(replica.address, resume=ResumePolicy(max_unacknowledged=5)) as client:
+            session = await client.open_session(options(new_model()))
+            for k in range(5):
+                await session.send(frame(k))  # pipelined: sent faster than a commit window
+            assert session.unacknowledged == 5
+            with pytest.raises(ResumeBufferFull, match="max_unacknowledged"):
+                await session.send(frame(5))
+            answered = []
+            async for answer in session.results(timeout=10):
+                answered.append(answer.seq)
+                if len(answered) == 5:
+                    break
+            session.cancel()
+            return answered
+
+    assert asyncio.run(bounded()) == list(range(5))
+
+    async def off() -> BaseException:
+        async with AsyncClient(replica.address, resume=False) as client:
+            session = await client.open_session(options(new_model()))
+            await session.send_frame(frame(0))
+            await asyncio.to_thread(replica.kill)
+            with pytest.raises(JitdynError) as broken:
+                for k in range(1, 40):
+                    await session.send_frame(frame(k))
+            return broken.value
+
+    error = asyncio.run(off())
+    print(f"async, with resume off: {type(error).__name__}: {error}")
+    assert not isinstance(error, SessionLost)
