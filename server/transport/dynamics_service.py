@@ -92,6 +92,7 @@ class _Stream:
         m, process, model = metrics(), metrics().process, opened.info.name
         self._m_ticks = {s: m.ticks.labels(process, model, s) for s in Source}
         self._m_shed = m.shed.labels(process, model)
+        self._m_restarts = m.restarts.labels(process, model)
         self._m_compute = m.compute.labels(process, model)
         self._m_lateness = m.lateness.labels(process, model)
         self._m_lag = m.durable_lag.labels(process)
@@ -140,6 +141,8 @@ class _Stream:
         )
         durable = self.recorder.durable_seq
         self._m_ticks[outcome.source].inc()
+        if outcome.estimate is not None and outcome.estimate.reinitialised:
+            self._m_restarts.inc()
         if outcome.late_compute:
             self._m_shed.inc()
         else:

@@ -47,6 +47,11 @@ class Metrics:
         self.shed = Counter(
             "jitdyn_shed_ticks", "Ticks answered without the estimator (late_compute).", ["process", "model"]
         )
+        self.restarts = Counter(
+            "jitdyn_filter_restarts",
+            "Ticks whose estimator restarted (a divergence, a wrong model, a resume).",
+            ["process", "model"],
+        )
         self.rejections = Counter("jitdyn_rejections", "Frames rejected, by reason.", ["process", "reason"])
         self.refusals = Counter(
             "jitdyn_admission_refusals", "Sessions refused by the tick budget.", ["process"]
