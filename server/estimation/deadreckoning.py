@@ -126,6 +126,9 @@ class DeadReckoning:
             raise InvalidArgument(f"seconds must be finite and >= 0, got {seconds!r}")
         return self._at(anchor, self._elapsed * self._config.dt + seconds)
 
+    def glance(self, seconds: float) -> Estimate:
+        return self.extrapolate(seconds)  # already a closed form
+
     def snapshot(self) -> _Snapshot:
         return _Snapshot(owner=id(self), anchor=self._anchor, elapsed=self._elapsed)
 

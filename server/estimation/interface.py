@@ -154,6 +154,12 @@ class Estimator(Protocol):
         0 gives the current estimate."""
         ...
 
+    def glance(self, seconds: float) -> Estimate:
+        """The estimate `seconds` ahead at a fraction of extrapolate()'s cost (the mean carried
+        alone, the covariance grown by the process noise of that span), without changing the
+        estimator: a REALTIME answer for a tick whose frame may still come."""
+        ...
+
     def snapshot(self) -> object:
         """Everything needed to come back to this point (timewarp); immutable, cheap."""
         ...

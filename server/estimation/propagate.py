@@ -33,6 +33,7 @@ _CTRL: Final = int(mujoco.mjtState.mjSTATE_CTRL)
 _QFRC: Final = int(mujoco.mjtState.mjSTATE_QFRC_APPLIED)
 _INTEGRATION: Final = int(mujoco.mjtState.mjSTATE_INTEGRATION)
 _PRICED_STEPS: Final = 8
+_OTHER_COUNTS_KEPT: Final = 8  # buffers kept for step counts other than the tick's
 
 
 class Inputs(enum.Enum):
@@ -282,9 +283,11 @@ class Propagator:
     def _buffers_for(self, nstep: int) -> _Buffers:
         buffers = self._buffers.get(nstep)
         if buffers is None:
-            # An extrapolation horizon; keep the tick's buffers and at most one other count.
-            self._buffers = {self._nstep: self._buffers[self._nstep], nstep: self._new_buffers(nstep)}
-            buffers = self._buffers[nstep]
+            # An extrapolation horizon or a glance a few ticks ahead: keep the tick's buffers and a
+            # few other counts.
+            if len(self._buffers) > _OTHER_COUNTS_KEPT:
+                self._buffers = {self._nstep: self._buffers[self._nstep]}
+            buffers = self._buffers[nstep] = self._new_buffers(nstep)
         return buffers
 
     def __call__(

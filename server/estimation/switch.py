@@ -165,6 +165,9 @@ class SwitchingFilter:
     def extrapolate(self, seconds: float) -> Estimate:
         return self._active.extrapolate(seconds)
 
+    def glance(self, seconds: float) -> Estimate:
+        return self._active.glance(seconds)
+
     def snapshot(self) -> _Snapshot:
         return _Snapshot(
             owner=id(self),

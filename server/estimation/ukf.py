@@ -98,6 +98,9 @@ _INPUTS: Final = {
 }
 
 
+_SPANS_KEPT = 16  # process noises kept by span: a horizon, and a glance at each tick of a late window
+
+
 def process_noise(*, order: int, dt: float, var: float, nv: int) -> np.ndarray:
     """filterpy's discrete white-noise Q, one block per dof, in jitdyn's layout.
 
@@ -495,22 +498,10 @@ class UnscentedFilter:
 
     def extrapolate(self, seconds: float) -> Estimate:
         self._require_initialised("extrapolate")
-        if (
-            isinstance(seconds, bool)
-            or not isinstance(seconds, (int, float))
-            or not 0.0 <= seconds < float("inf")
-        ):
-            raise InvalidArgument(f"seconds must be finite and >= 0, got {seconds!r}")
-        timestep = float(self._model.opt.timestep)
-        nstep = round(seconds / timestep)
+        nstep = self._steps_in(seconds)
         if nstep == 0:
             return self._estimate()
-        Q = self._extrapolation_Q.get(nstep)
-        if Q is None:
-            Q = self._process_noise(nstep * timestep)
-            self._extrapolation_Q = {self._config.steps_per_tick: self._Q, nstep: Q}
-        if self._adapter is not None:
-            Q = self._adapter.q_for(Q)
+        Q = self._noise_over(nstep)
         if isinstance(self._kf, LinearForceUKF):
             sigmas_f = self._kf.sigmas_f
             x, P = self._kf.prior(self._kf.x, self._kf.P, nstep=nstep)
@@ -525,6 +516,56 @@ class UnscentedFilter:
         P = _symmetric(P)
         act = self._clip_act(self._propagated_act)
         return self._make_estimate(x, P, act=act)
+
+    def glance(self, seconds: float) -> Estimate:
+        """The mean alone carried through the physics (one point for the sigma set's 2n + 1) and P
+        grown by the process noise of the span: no unscented transform, no forecast combination.
+        For a few ticks, while a late frame may still come, the mean is what the sigma set's would
+        be to second order."""
+        self._require_initialised("glance")
+        nstep = self._steps_in(seconds)
+        if nstep == 0:
+            return self._estimate()
+        nq, nv = self._nq, self._nv
+        x = self._kf.x
+        force = x[nq + nv : nq + 2 * nv] if self._driven else None
+        rate = x[nq + 2 * nv : nq + 3 * nv] if self._fblocks == 2 else None
+        out = self._propagator(
+            x[None, :nq],
+            x[None, nq : nq + nv],
+            act=self._act,
+            ctrl=self._ctrl,
+            qfrc=self._qfrc if force is None else force[None, :],
+            qfrc_rate=None if rate is None else rate[None, :],
+            nstep=nstep,
+        )
+        ahead = np.array(x, dtype=np.float64)
+        ahead[:nq], ahead[nq : nq + nv] = out.qpos[0], out.qvel[0]
+        if self._controlled and out.qacc is not None:
+            ahead[nq + nv :] = out.qacc[0]
+        if rate is not None:
+            ahead[nq + nv : nq + 2 * nv] += nstep * float(self._model.opt.timestep) * rate
+        act = self._clip_act(out.act[0]) if self._na else self._act
+        return self._make_estimate(ahead, _symmetric(self._kf.P + self._noise_over(nstep)), act=act)
+
+    def _steps_in(self, seconds: float) -> int:
+        if (
+            isinstance(seconds, bool)
+            or not isinstance(seconds, (int, float))
+            or not 0.0 <= seconds < float("inf")
+        ):
+            raise InvalidArgument(f"seconds must be finite and >= 0, got {seconds!r}")
+        return round(seconds / float(self._model.opt.timestep))
+
+    def _noise_over(self, nstep: int) -> np.ndarray:
+        """The process noise of nstep physics steps (the adapter's factors applied)."""
+        Q = self._extrapolation_Q.get(nstep)
+        if Q is None:
+            Q = self._process_noise(nstep * float(self._model.opt.timestep))
+            if len(self._extrapolation_Q) >= _SPANS_KEPT:
+                self._extrapolation_Q = {self._config.steps_per_tick: self._Q}
+            self._extrapolation_Q[nstep] = Q
+        return self._adapter.q_for(Q) if self._adapter is not None else Q
 
     def snapshot(self) -> FilterSnapshot:
         kf = self._kf

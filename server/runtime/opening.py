@@ -339,6 +339,7 @@ class SessionOpener:
                 history=plan.history,
                 max_history_bytes=self._limits.max_history_bytes,
                 first_tick=first_tick,
+                wait_for_late=plan.clock == Clock.REALTIME,  # docs/decisions/0007
             )
             return OpenedSession(
                 plan=plan,

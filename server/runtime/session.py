@@ -16,8 +16,9 @@ from __future__ import annotations
 import dataclasses
 import enum
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass
+from typing import Final
 
 import mujoco
 import numpy as np
@@ -32,6 +33,10 @@ from jitdyn.vocabulary import Scenario, Source
 __all__ = ["Place", "SessionCounts", "SessionRuntime", "TickOutcome"]
 
 _RESIZE_EVERY = 64  # ticks between two measures of the snapshots' size (it creeps as windows fill)
+# A session that waits for late frames waits as many ticks as its frames came late lately (the most
+# of the last _LATENESS_KEPT), and at most _MAX_WAIT.
+_LATENESS_KEPT: Final = 64
+_MAX_WAIT: Final = 8
 
 
 class Place(enum.Enum):
@@ -120,6 +125,7 @@ class SessionRuntime:
         history: int,
         max_history_bytes: int | None = None,
         first_tick: int = 0,
+        wait_for_late: bool = False,
     ) -> None:
         self._model = model
         self._estimator = estimator
@@ -150,6 +156,14 @@ class SessionRuntime:
         # The first tick shed without a frame: from it on the estimator is behind, until a frame
         # re-initialises it or a late frame at or before it replays the ticks properly.
         self._stale_since: int | None = None
+        # The first tick the estimator has not run. Ticks from it to `_next` were answered by a
+        # glance ahead and wait for frames that may come late (docs/decisions/0007): the estimator
+        # runs each once, in tick order, when its frame comes or it has waited `_wait` ticks, so a
+        # late frame costs one tick of the filter instead of a replay of every tick since.
+        self._frontier = first_tick
+        self._waits = wait_for_late
+        self._lateness: deque[int] = deque(maxlen=_LATENESS_KEPT)
+        self._wait = 0
 
     @property
     def history(self) -> int:
@@ -192,19 +206,24 @@ class SessionRuntime:
             return self.shed(frame)
         started = time.perf_counter_ns()
         seq = self._next
-        ctrl = self._control_for(seq, frame)
-        tick = _Tick(seq=seq, before=self._snapshot(), frame=frame, ctrl=ctrl)
-        estimate = self._run_tick(tick)
+        tick = _Tick(seq=seq, before=None, frame=frame, ctrl=self._control_for(seq, frame))
         self._ticks[seq] = tick
-        self._keep_history(tick)
         self._next += 1
         self.counts.ticks += 1
         if frame is not None:
             self.counts.frames += 1
             self.counts.measured += 1
+            self._note_lateness(0)
         else:
             self.counts.predicted += 1
-        outcome = self._outcome(tick, estimate, late_ticks=0, started=started, horizon=horizon)
+        wait = self._wait if frame is None and self._initialised else 0
+        estimate = self._run_through(seq - wait)
+        ahead = 0.0
+        if wait:
+            ahead = (seq - self._frontier + 1) * self._dt
+            estimate = self._estimator.glance(ahead)
+        self._keep_history()
+        outcome = self._outcome(tick, estimate, late_ticks=0, started=started, horizon=horizon, ahead=ahead)
         self.counts.add_result(outcome)
         self._last = outcome
         return outcome
@@ -214,8 +233,22 @@ class SessionRuntime:
         the deadline: from the frame when it came (the estimator re-initialised from it, a cheap
         reset), else the last answer repeated (the estimator is then a tick behind: the next frame
         re-initialises it). The tick stays in the history with the estimator's state before it, so
-        a late frame for it or an earlier tick replays it properly and repairs the estimate."""
+        a late frame for it or an earlier tick replays it properly and repairs the estimate.
+
+        A session that waits for late frames keeps a shed tick without a frame waiting for it, as
+        it keeps any tick answered before its frame, while fewer than `wait` ticks wait: the
+        estimator is not behind, only later."""
         started = time.perf_counter_ns()
+        if frame is None and self._stale_since is None and self._next - self._frontier < self._wait:
+            tick = self._add_waiting()
+            self.counts.ticks += 1
+            self.counts.predicted += 1
+            self.counts.late_compute += 1
+            outcome = dataclasses.replace(self._repeat_last(tick, started=started), late_compute=True)
+            self.counts.add_result(outcome)
+            self._last = outcome
+            return outcome
+        self._abandon_waiting()
         seq = self._next
         ctrl = self._control_for(seq, frame)
         tick = _Tick(seq=seq, before=self._snapshot(), frame=frame, ctrl=ctrl)
@@ -228,8 +261,10 @@ class SessionRuntime:
         elif self._initialised and self._stale_since is None:
             self._stale_since = seq
         self._ticks[seq] = tick
-        self._keep_history(tick)
+        self._size_history(tick)
+        self._keep_history()
         self._next += 1
+        self._frontier = self._next
         self.counts.ticks += 1
         self.counts.late_compute += 1
         if frame is not None:
@@ -244,9 +279,9 @@ class SessionRuntime:
         self._last = outcome
         return outcome
 
-    def _keep_history(self, newest: _Tick) -> None:
-        """Drop the ticks beyond what is retained, re-sized from the newest snapshot every
-        _RESIZE_EVERY ticks and whenever the estimator's state dimension changes."""
+    def _size_history(self, newest: _Tick) -> None:
+        """Re-size the ticks retained from the newest snapshot every _RESIZE_EVERY ticks and
+        whenever the estimator's state dimension changes."""
         limit = self._max_history_bytes
         if limit is not None and newest.before is not None:
             dimension = self._estimator.state_dimension
@@ -254,16 +289,73 @@ class SessionRuntime:
                 self._sized_for = dimension
                 size = max(1, snapshot_bytes(newest.before))
                 self._retained = max(1, min(self._history, limit // size))
-        while len(self._ticks) > self._retained:
+
+    def _keep_history(self) -> None:
+        """Drop the ticks beyond what is retained (never one still waiting for its frame)."""
+        while len(self._ticks) > max(self._retained, self._next - self._frontier):
             self._ticks.popitem(last=False)
+
+    def _note_lateness(self, late_ticks: int) -> None:
+        """A frame came `late_ticks` after its tick was answered: the wait follows the lateness."""
+        if not self._waits:
+            return
+        self._lateness.append(late_ticks)
+        self._wait = min(max(self._lateness), _MAX_WAIT, self._retained - 1)
+
+    def _run_through(self, last: int, *, answer: int | None = None) -> Estimate | None:
+        """Run the estimator through every tick from the frontier to `last`, in order; the estimate
+        of tick `answer` (default `last`) when it ran, else None."""
+        answer = last if answer is None else answer
+        estimate: Estimate | None = None
+        previous_ctrl = self._ctrl_before(self._frontier)
+        for seq in range(self._frontier, last + 1):
+            tick = self._ticks[seq]
+            tick.before = self._snapshot()
+            tick.ctrl = self._pick_ctrl(tick.frame, previous_ctrl)
+            previous_ctrl = tick.ctrl
+            ran = self._run_tick(tick, answered=seq == answer)
+            if seq == answer:
+                estimate = ran
+            self._size_history(tick)
+            self._frontier = seq + 1
+        return estimate
+
+    def _add_waiting(self) -> _Tick:
+        """The next tick, without a frame, left for the estimator to run when its wait ends."""
+        seq = self._next
+        tick = _Tick(seq=seq, before=None, frame=None, ctrl=self._control_for(seq, None))
+        self._ticks[seq] = tick
+        self._next += 1
+        self._keep_history()
+        return tick
+
+    def _abandon_waiting(self) -> None:
+        """Give the ticks waiting for frames the estimator as it is, as a shed tick gets it: the
+        estimator is behind from the first of them, until a frame re-initialises it or a late
+        frame at or before it runs the ticks properly."""
+        if self._frontier >= self._next:
+            return
+        snapshot = self._snapshot()
+        for seq in range(self._frontier, self._next):
+            self._ticks[seq].before = snapshot
+        if self._initialised and self._stale_since is None:
+            self._stale_since = self._frontier
+        self._frontier = self._next
 
     def skip(self, count: int) -> None:
         """Leave the next `count` ticks unanswered: a server far behind answers a tick by its
         deadline or not at all. The history goes (no late frame replays across the gap) and the
-        estimator, now behind, restarts from the next frame."""
+        estimator, now behind, restarts from the next frame. A session that waits for late frames
+        keeps the ticks of a stall that ends within the wait waiting for their frames."""
         if count <= 0:
             return
+        if self._stale_since is None and self._next + count - self._frontier <= self._wait:
+            for _ in range(count):
+                self._add_waiting()
+            self.counts.skipped += count
+            return
         self._next += count
+        self._frontier = self._next
         self.counts.skipped += count
         self._ticks.clear()
         if self._initialised and self._stale_since is None:
@@ -291,17 +383,15 @@ class SessionRuntime:
         if target.frame is not None:
             raise ValueError(f"tick {frame.seq} already has a frame")
         target.frame = frame
-        self._restore(target.before)
-        corrected: Estimate | None = None
-        previous_ctrl = self._ctrl_before(frame.seq)
-        for seq in range(frame.seq, self._next):
-            tick = self._ticks[seq]
-            tick.before = self._snapshot()
-            tick.ctrl = self._pick_ctrl(tick.frame, previous_ctrl)
-            previous_ctrl = tick.ctrl
-            estimate = self._run_tick(tick)
-            if seq == frame.seq:
-                corrected = estimate
+        self.note_late(frame.seq)
+        if frame.seq >= self._frontier:
+            corrected = self._run_through(frame.seq)  # it was waiting: the ticks before it, then it
+        else:
+            # The timewarp: back to the state before it, and every tick the estimator ran since.
+            ran = self._frontier
+            self._restore(target.before)
+            self._frontier = frame.seq
+            corrected = self._run_through(ran - 1, answer=frame.seq)
         if self._stale_since is not None and frame.seq <= self._stale_since:
             self._stale_since = None  # every skipped tick was just replayed properly
         # Ticks answered since this one was due, itself included: 1 = just missed its deadline.
@@ -312,6 +402,16 @@ class SessionRuntime:
         outcome = self._outcome(target, corrected, late_ticks=late_ticks, started=started, horizon=0.0)
         self.counts.add_result(outcome)
         return outcome
+
+    def note_late(self, seq: int) -> None:
+        """A frame for `seq` came after its tick was answered (applied or not): a session that
+        waits for late frames waits as long as they come late."""
+        self._note_lateness(self._next - seq)
+
+    def late_cost(self, seq: int) -> int:
+        """Ticks of the estimator a late frame for `seq` costs: those up to it when it was waiting,
+        else the timewarp's replay of every tick run since it."""
+        return seq - self._frontier + 1 if seq >= self._frontier else self._frontier - seq
 
     def extrapolated(self, seconds: float) -> Estimate | None:
         """The current estimate carried `seconds` ahead, without changing the estimator."""
@@ -352,12 +452,17 @@ class SessionRuntime:
             raise ValueError("a measurement needs a frame")
         return Measurement(qpos=frame.qpos, qvel=frame.qvel, qacc=frame.qacc, ctrl=frame.ctrl)
 
-    def _run_tick(self, tick: _Tick) -> Estimate | None:
-        """Advance the estimator through one tick; None while it has no frame to start from."""
+    def _run_tick(self, tick: _Tick, *, answered: bool = True) -> Estimate | None:
+        """Advance the estimator through one tick; None while it has no frame to start from, or
+        when a tick without a frame is not `answered` (its answer was given already)."""
         if tick.frame is None:
             if not self._initialised:
                 return None
-            return self._estimator.predict(ctrl=tick.ctrl if self._controlled else None)
+            ctrl = tick.ctrl if self._controlled else None
+            if not answered:
+                self._estimator.advance(ctrl=ctrl)
+                return None
+            return self._estimator.predict(ctrl=ctrl)
         measurement = self._measurement(tick)
         if not self._initialised:
             self._estimator.initialise(measurement)
@@ -397,6 +502,7 @@ class SessionRuntime:
         late_ticks: int,
         started: int,
         horizon: float,
+        ahead: float = 0.0,
     ) -> TickOutcome:
         frame = tick.frame
         if frame is not None:
@@ -416,8 +522,13 @@ class SessionRuntime:
             qpos, qvel, qacc = self._qpos0, self._zero_nv, self._zero_nv
             source = Source.PREDICTED
         if horizon > 0.0 and self._initialised:
-            ahead = self._estimator.extrapolate(horizon)
-            qpos, qvel, qacc = ahead.qpos, ahead.qvel, ahead.qacc
+            # `ahead`: the tick is that far past the estimator (it waits for a late frame).
+            further = (
+                self._estimator.extrapolate(horizon)
+                if ahead == 0.0
+                else self._estimator.glance(ahead + horizon)
+            )
+            qpos, qvel, qacc = further.qpos, further.qvel, further.qacc
         else:
             horizon = 0.0
         dynamics = self._dynamics.compute(qpos=qpos, qvel=qvel, qacc=qacc, ctrl=tick.ctrl)

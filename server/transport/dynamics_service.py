@@ -201,6 +201,7 @@ class _Stream:
             return self.reject(seq, RejectReason.TOO_OLD, self._too_old(seq), frame=checked)
         unaffordable = self._unaffordable_replay(seq)
         if unaffordable is not None:
+            self.runtime.note_late(seq)  # refused, it still says how late frames come
             return self.reject(seq, RejectReason.TOO_OLD, unaffordable, frame=checked)
         outcome = self.runtime.apply_late(checked)
         return [Response(result=self.record_result(outcome, arrived=arrived))]
@@ -234,13 +235,14 @@ class _Stream:
         """
         if self.ticket is None:
             return None
-        replay = self.runtime.next_tick - seq
-        cost = replay * self.ticket.compute_per_tick
+        runs = self.runtime.late_cost(seq)
+        cost = runs * self.ticket.compute_per_tick
         free = max(0.0, self.plan.dt / 2 - self.ticket.cost_per_tick)
         if cost <= free:
             return None
         return (
-            f"frame {seq}: {replay} ticks late; replaying them would take about "
+            f"frame {seq}: {self.runtime.next_tick - seq} ticks late; applying it means running "
+            f"{runs} ticks of the filter, about "
             f"{1e3 * cost:.1f} ms, and with this session's own ticks at {1e3 * self.ticket.cost_per_tick:.1f} ms "
             f"only {1e3 * free:.1f} ms of half its {1e3 * self.plan.dt:g} ms tick is free, so it is not applied"
         )
