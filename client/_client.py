@@ -221,6 +221,9 @@ class Session:
                 raise status_error(item)
             response = item[1]
             kind = response.WhichOneof("payload")
+            if kind == "overloaded":
+                self._ledger.warned(response.overloaded)
+                continue
             if kind == "moving":
                 error = self._ledger.moving(response.moving)
                 if error is None:
@@ -322,6 +325,13 @@ class Session:
     def missed(self) -> int:
         """Ticks no answer came for across the resumes (REALTIME ticks that passed meanwhile)."""
         return self._ledger.missed
+
+    @property
+    def overloaded(self) -> str | None:
+        """The server's latest in-band warning that this session's answers may go late (it is past
+        what it serves on time, and this session was among the last admitted), or None. The
+        session goes on; resuming it elsewhere or lowering its rate is the caller's choice."""
+        return self._ledger.overloaded
 
     def now(self) -> float:
         """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at

@@ -68,6 +68,13 @@ class ResumeLedger:
         self._after_resume = False  # the next fresh answer tells how many ticks the resume missed
         self.resumptions: list[Resumption] = []
         self.missed = 0
+        self.overloaded: str | None = None  # the server's latest warning that answers may go late
+
+    def warned(self, message: dynamics_pb2.Overloaded) -> None:
+        """The server's in-band warning that this session's answers may go late: kept and logged,
+        once per warning (the server repeats it every few seconds while it holds)."""
+        self.overloaded = message.reason
+        _log.warning("session %s: the server warns: %s", self.session_id, message.reason)
 
     def opened(self, opened: dynamics_pb2.SessionOpened) -> None:
         """The session's first `opened`: its id, and the token a resume presents."""

@@ -223,6 +223,9 @@ class AsyncSession:
                     self._last_probe = (response.sync.id, received_at - self._clock_start)
                 elif kind == "moving":
                     return response.moving
+                elif kind == "overloaded":
+                    self._ledger.warned(response.overloaded)
+                    continue
                 elif kind == "result" and not self._ledger.fresh(response.result):
                     continue
                 self._responses.put_nowait((received_at, response))
@@ -387,6 +390,13 @@ class AsyncSession:
     def missed(self) -> int:
         """Ticks no answer came for across the resumes (REALTIME ticks that passed meanwhile)."""
         return self._ledger.missed
+
+    @property
+    def overloaded(self) -> str | None:
+        """The server's latest in-band warning that this session's answers may go late (it is past
+        what it serves on time, and this session was among the last admitted), or None. The
+        session goes on; resuming it elsewhere or lowering its rate is the caller's choice."""
+        return self._ledger.overloaded
 
     def now(self) -> float:
         """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at

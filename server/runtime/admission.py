@@ -42,6 +42,11 @@ _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 # Cores of the machine kept free of new sessions: the slack that keeps ticks on time when the
 # machine is nearly full (a tick late by a scheduling quantum is late).
 MACHINE_HEADROOM: Final = 0.1
+# An answer this far past its deadline is late, for admission; when more than LATE_SHARE of a
+# window's answers are, the process admits no one and tells its newest sessions, in band.
+LATE_ANSWER: Final = 5e-3  # s
+LATE_SHARE: Final = 0.01
+_LATE_EVIDENCE: Final = 20  # answers a window needs before its share of late ones counts
 
 
 def _machine_times() -> tuple[int, int] | None:
@@ -122,6 +127,9 @@ class Admission:
     _window_compute: float = 0.0
     _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
     machine_free: float | None = None  # cores the machine left idle over the last window
+    _answers: int = 0
+    _late_answers: int = 0
+    late_share: float = 0.0  # of the answers of the last window more than LATE_ANSWER late
 
     def __post_init__(self) -> None:
         if not 0.0 < self.budget <= 1.0:
@@ -143,20 +151,24 @@ class Admission:
             return self._sample_cpu()
 
     def _sample_cpu(self) -> float:
-        if not self.count_process_cpu:
-            return 0.0
+        """This process's CPU use in cores (0 when not counted), once a window is over also its
+        overhead per tick, the machine's idle CPU and the share of late answers."""
         wall, cpu = time.monotonic(), time.process_time()
         since, used = self._cpu_mark
         if wall - since >= _CPU_WINDOW:
-            self._cpu_load = (cpu - used) / (wall - since)
-            if self._window_ticks >= 50:
-                # What a tick cost this process beyond its estimator: its CPU per tick, less compute.
-                per_tick = (cpu - used) / self._window_ticks - self._window_compute / self._window_ticks
-                self.overhead += 0.5 * (max(per_tick, 100e-6) - self.overhead)
+            if self.count_process_cpu:
+                self._cpu_load = (cpu - used) / (wall - since)
+                if self._window_ticks >= 50:
+                    # What a tick cost this process beyond its estimator: its CPU per tick, less compute.
+                    per_tick = (cpu - used) / self._window_ticks - self._window_compute / self._window_ticks
+                    self.overhead += 0.5 * (max(per_tick, 100e-6) - self.overhead)
+                self._sample_machine()
             self._window_ticks, self._window_compute = 0, 0.0
             self._cpu_mark = (wall, cpu)
-            self._sample_machine()
-        return self._cpu_load
+            enough = self._answers >= _LATE_EVIDENCE
+            self.late_share = self._late_answers / self._answers if enough else 0.0
+            self._answers, self._late_answers = 0, 0
+        return self._cpu_load if self.count_process_cpu else 0.0
 
     def _sample_machine(self) -> None:
         if not self.count_machine_cpu:
@@ -171,6 +183,37 @@ class Admission:
         with self._lock:
             self._window_ticks += 1
             self._window_compute += compute
+
+    def observe_lateness(self, seconds: float) -> None:
+        """A REALTIME answer went `seconds` past its deadline (0 when on time)."""
+        with self._lock:
+            self._answers += 1
+            self._late_answers += seconds > LATE_ANSWER
+
+    def unaffordable(self, ticket: Ticket) -> str | None:
+        """Why `ticket`'s session cannot count on being answered on time here, or None. When the
+        process's answers go late or its CPU passes its budget, the sessions admitted last, as many
+        as carry the excess (at least one), are told, so that they can move before they go late."""
+        with self._lock:
+            measured = self._sample_cpu()
+            late = self.late_share > LATE_SHARE
+            need = measured - self.budget
+            if not late and need <= 0:
+                return None
+            covered = 0.0
+            for other in sorted(self._by_id.values(), key=lambda t: t.admitted_at, reverse=True):
+                if covered > 0.0 and covered >= need:
+                    return None
+                if other is ticket:
+                    return (
+                        f"this server process is past what it serves on time ({100 * measured:.0f} % of "
+                        f"a core against its tick budget of {100 * self.budget:.0f} %; "
+                        f"{100 * self.late_share:.1f} % of its answers more than {1e3 * LATE_ANSWER:g} ms "
+                        "late) and this session is among the last admitted: its answers may go late. "
+                        "Resume it on another server or lower its rate"
+                    )
+                covered += other.load
+            return None
 
     def load(self) -> float:
         """The process's load in cores: the larger of its sessions' estimates and its measured CPU."""
@@ -223,7 +266,10 @@ class Admission:
                         100 * (current + ticket.load),
                         100 * self.budget,
                     )
-            elif not first:
+            elif first:
+                # Its own filter must still find the machine's CPU free.
+                self._check_machine(ticket, load=filter_seconds / dt, what=what)
+            else:
                 self._check_room(ticket, current=current, what=what)
             self._by_id[id(ticket)] = ticket
         if grace is not None and self.switch is not None:
@@ -232,7 +278,16 @@ class Admission:
 
     def _check_room(self, ticket: Ticket, *, current: float, what: str) -> None:
         """ResourceExhausted, saying why, when `ticket` does not fit the process's budget or the
-        machine's idle CPU. Under the lock."""
+        machine's idle CPU, or while the process's answers go late. Under the lock."""
+        if self.late_share > LATE_SHARE:
+            self.refused += 1
+            raise ResourceExhausted(
+                f"this server process answered {100 * self.late_share:.1f} % of its ticks more than "
+                f"{1e3 * LATE_ANSWER:g} ms past their deadlines in the last {_CPU_WINDOW:g} s (at "
+                f"{100 * current:.0f} % of a core, tick budget {100 * self.budget:.0f} %): the CPU its "
+                f"sessions get is short, so a session of {what} is not admitted. Try again later, on "
+                "another server, or at a lower rate"
+            )
         if current + ticket.load > self.budget:
             self.refused += 1
             raise ResourceExhausted(
@@ -241,18 +296,22 @@ class Admission:
                 f"estimated at {1e6 * ticket.cost_per_tick:.0f} us per tick, {100 * ticket.load:.1f} % more. "
                 "Try again later, on another server, or at a lower rate"
             )
+        self._check_machine(ticket, load=ticket.load, what=what)
+
+    def _check_machine(self, ticket: Ticket, *, load: float, what: str) -> None:
+        """ResourceExhausted when `load` (cores) does not fit the CPU the machine left idle in the
+        last window, less what was admitted since. Under the lock."""
         if self.machine_free is not None:
-            # What the machine left idle in the last window, less what was admitted since.
             since = self._cpu_mark[0]
             recent = sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
             free = self.machine_free - recent
-            if ticket.load > free - MACHINE_HEADROOM:
+            if load > free - MACHINE_HEADROOM:
                 self.refused += 1
                 raise ResourceExhausted(
                     f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
                     f"programs, this server's other processes or its clients use the rest); a session "
-                    f"of {what} is estimated at {1e6 * ticket.cost_per_tick:.0f} us per tick, "
-                    f"{ticket.load:.2f} of a core, and {MACHINE_HEADROOM:g} of a core is kept free. "
+                    f"of {what} is estimated at {1e6 * load * ticket.dt:.0f} us per tick, "
+                    f"{load:.2f} of a core, and {MACHINE_HEADROOM:g} of a core is kept free. "
                     "Try again later, on another server, or at a lower rate"
                 )
 

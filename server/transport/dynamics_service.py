@@ -68,6 +68,10 @@ _EARLY_TOLERANCE = 0.002
 # client re-sends (the SDK sends them right after `opened`; a loaded replica may take a while to
 # read them) before they are skipped (seconds).
 RESUME_REPLAY_WAIT = 1.0
+# REALTIME: how often a session asks admission whether it may go late, and how often it repeats
+# the in-band `overloaded` warning while that holds (s).
+OVERLOAD_CHECK = 1.0
+OVERLOAD_REPEAT = 10.0
 
 
 _R = TypeVar("_R")
@@ -113,15 +117,37 @@ class _Stream:
         self.replay_until = -math.inf
         # Responses come from the request loop, the REALTIME clock and a drain's `moving`.
         self._write_lock = asyncio.Lock()
+        self._overload_checked = self._overload_told = -math.inf
 
     async def write(self, context: _Context, *responses: Response) -> None:
         """Send `responses` in order, as one batch: the request loop and the REALTIME clock each
         compute their answers in tick order, and a batch split across two holds of the lock would
         let the other writer's newer tick overtake the rest of it (the first answer to tick 58
         after tick 59's). The lock is FIFO, and batches queue in the order they were computed."""
+        notice = self.overload_notice()
         async with self._write_lock:
             for response in responses:
                 await context.write(response)
+            if notice is not None:
+                await context.write(notice)
+
+    def overload_notice(self) -> Response | None:
+        """REALTIME: the in-band warning that this session's answers may go late
+        (Admission.unaffordable), asked at most every OVERLOAD_CHECK s and repeated every
+        OVERLOAD_REPEAT s while it holds."""
+        if self.ticket is None:
+            return None
+        now = self.clock.now()
+        if now - self._overload_checked < OVERLOAD_CHECK:
+            return None
+        self._overload_checked = now
+        admission = self.ticket.admission
+        reason = admission.unaffordable(self.ticket)
+        if reason is None or now - self._overload_told < OVERLOAD_REPEAT:
+            return None
+        self._overload_told = now
+        _log.warning("session %s: told it may go late: %s", self.recorder.header.session_id, reason)
+        return Response(overloaded=dynamics_pb2.Overloaded(reason=reason, late_share=admission.late_share))
 
     # Everything below runs in a worker thread, under `lock`.
 
@@ -316,7 +342,10 @@ class _Stream:
             if self.ticket is not None:
                 self.ticket.observe(outcome.compute_us / 1e6)
         response = Response(result=self.record_result(outcome, arrived=due))
-        self._m_lateness.observe(max(0.0, self.clock.now() - self.deadline(outcome.seq)))
+        lateness = max(0.0, self.clock.now() - self.deadline(outcome.seq))
+        self._m_lateness.observe(lateness)
+        if self.ticket is not None:
+            self.ticket.admission.observe_lateness(lateness)
         return response
 
     def catch_up(self) -> list[Response]:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from jitdyn.errors import ResourceExhausted
@@ -146,3 +148,48 @@ def test_an_admission_without_a_switch_leaves_the_gil_alone() -> None:
     )
     assert sys.getswitchinterval() == pytest.approx(SWITCH_DEFAULT)
     ticket.release()
+
+
+def test_a_process_whose_answers_go_late_refuses_new_sessions_and_warns_its_newest(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Admission learns from what it observes: when more than 1 % of a window's answers went more
+    than 5 ms past their deadlines, the budget's estimate notwithstanding, no session is admitted,
+    and the sessions admitted last are told, so that they can move before they go late."""
+    import time
+
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.2)
+    admission = Admission(budget=0.75, count_process_cpu=False)
+    first, second, third = (
+        admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz") for _ in range(3)
+    )
+    # A window of answers on time: nothing to say, room for more.
+    for _ in range(100):
+        admission.observe_lateness(0.001)
+    time.sleep(0.25)
+    assert [admission.unaffordable(t) for t in (first, second, third)] == [None, None, None]
+    assert admission.late_share == 0.0
+    # A window with 3 answers in 100 more than 5 ms late: the process is past what it serves.
+    for k in range(100):
+        admission.observe_lateness(0.012 if k % 33 == 0 else 0.0)
+    time.sleep(0.25)
+    warned = [admission.unaffordable(t) for t in (first, second, third)]
+    assert warned[:2] == [None, None]
+    assert warned[2] is not None and re.fullmatch(
+        r"this server process is past what it serves on time \(0 % of a core against its tick budget of "
+        r"75 %; 4\.0 % of its answers more than 5 ms late\) and this session is among the last admitted: "
+        r"its answers may go late\. Resume it on another server or lower its rate",
+        warned[2],
+    ), warned[2]
+    with pytest.raises(
+        ResourceExhausted, match=r"^this server process answered 4\.0 % of its ticks more than 5 ms"
+    ):
+        admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+    # Too few answers in a window are no evidence; on time again, admission opens.
+    for _ in range(10):
+        admission.observe_lateness(0.05)
+    time.sleep(0.25)
+    assert admission.unaffordable(third) is None
+    admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")

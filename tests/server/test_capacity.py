@@ -6,20 +6,12 @@ that capacity is a handful of sessions."""
 from __future__ import annotations
 
 import asyncio
-import os
 import re
-import secrets
-import signal
-import socket
-import subprocess
-import sys
 import urllib.request
 from pathlib import Path
 
 import pytest
-
-from jitdyn.client import AsyncClient, FrameData, Rejection, SessionOptions, TickResult
-from jitdyn.errors import ResourceExhausted
+from _serve import Serve, free_port, realtime_session
 
 # Run on its own, on a quiet machine (pytest -m timing): a loop stall just over a tick, or an open
 # that went unanswered for 30 s, fails it now and then on a shared machine.
@@ -29,90 +21,11 @@ DT = 0.05
 TICKS = 60  # 3 s
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-class Serve:
-    def __init__(self, data: Path, *args: str) -> None:
-        env = dict(os.environ, JITDYN_SECRET=secrets.token_hex(32))
-        env.pop("JITDYN_INDEX_URL", None)
-        self.process = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "jitdyn.cli",
-                "serve",
-                "--address",
-                "127.0.0.1:0",
-                "--data",
-                str(data),
-                "--workers",
-                "1",
-                *args,
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env=env,
-        )
-        assert self.process.stdout is not None
-        self.lines: list[str] = []
-        for line in self.process.stdout:
-            self.lines.append(line)
-            match = re.search(r"listening on (127\.0\.0\.1:\d+)", line)
-            if match:
-                self.address = match.group(1)
-                return
-        raise RuntimeError("the server did not start:\n" + "".join(self.lines))
-
-    def stop(self) -> None:
-        self.process.send_signal(signal.SIGTERM)
-        self.process.communicate(timeout=120)
-
-
-async def _session(address: str, index: int) -> tuple[str, list[float], int]:
-    """('refused', message) or ('ran', lateness of each tick's first answer, MEASURED count)."""
-    async with AsyncClient(address, timeout=30) as client:
-        try:
-            session = await client.open_session(
-                SessionOptions(model_name="pendulum_3", dt=DT, clock="REALTIME", scenario="PASSIVE")
-            )
-        except ResourceExhausted as error:
-            return str(error), [], 0
-        first: dict[int, TickResult] = {}
-        async with session:
-
-            async def produce() -> None:
-                for k in range(TICKS):
-                    await asyncio.sleep(max(0.0, k * DT - session.now()))
-                    await session.send(
-                        FrameData(seq=k, t=k * DT, qpos=[0.3, -0.2, 0.1], qvel=[0.0, 0.0, 0.0])
-                    )
-
-            async def consume() -> None:
-                async for answer in session.results(timeout=5):
-                    if isinstance(answer, TickResult):
-                        first.setdefault(answer.seq, answer)
-                    if isinstance(answer, (TickResult, Rejection)) and answer.seq >= TICKS - 1:
-                        return  # the last tick answered, or its frame rejected (a skipped tick)
-
-            await asyncio.gather(produce(), consume())
-        grace = session.opened.grace
-        lateness = [
-            first[k].received_at - session.clock_start - (k * DT + grace) if k in first else float("inf")
-            for k in range(TICKS)
-        ]
-        return "ran", lateness, sum(r.source == "MEASURED" for r in first.values())
-
-
 @pytest.mark.parametrize("processes", [1, 2])
 def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
     tmp_path: Path, processes: int
 ) -> None:
-    metrics_port = _free_port()
+    metrics_port = free_port()
     server = Serve(
         tmp_path / "data",
         "--processes",
@@ -129,7 +42,7 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
             results = []
             tasks = []
             for i in range(8 * processes):
-                tasks.append(asyncio.create_task(_session(server.address, i)))
+                tasks.append(asyncio.create_task(realtime_session(server.address, dt=DT, ticks=TICKS)))
                 await asyncio.sleep(0.15)
             results = await asyncio.gather(*tasks)
             return results

@@ -187,6 +187,7 @@ class StreamSessionResponse(_message.Message):
     SYNC_FIELD_NUMBER: _builtins.int
     CLOSED_FIELD_NUMBER: _builtins.int
     MOVING_FIELD_NUMBER: _builtins.int
+    OVERLOADED_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def opened(self) -> Global___SessionOpened:
         """The session is open."""
@@ -211,6 +212,14 @@ class StreamSessionResponse(_message.Message):
     def moving(self) -> Global___Moving:
         """The server is draining: resume this session on another replica now (see `resume`)."""
 
+    @_builtins.property
+    def overloaded(self) -> Global___Overloaded:
+        """The server cannot count on answering this session on time: it is past what it serves on
+        time and this session was among the last admitted. The session goes on; the client may
+        resume it elsewhere (see `resume`) or lower its rate. Sent again while it holds, at most
+        every few seconds.
+        """
+
     def __init__(
         self,
         *,
@@ -220,16 +229,47 @@ class StreamSessionResponse(_message.Message):
         sync: Global___SyncPong | None = ...,
         closed: Global___SessionClosed | None = ...,
         moving: Global___Moving | None = ...,
+        overloaded: Global___Overloaded | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "overloaded", b"overloaded", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "overloaded", b"overloaded", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_payload: _TypeAlias = _typing.Literal["opened", "result", "rejected", "sync", "closed", "moving"]  # noqa: Y015
+    _WhichOneofReturnType_payload: _TypeAlias = _typing.Literal["opened", "result", "rejected", "sync", "closed", "moving", "overloaded"]  # noqa: Y015
     _WhichOneofArgType_payload: _TypeAlias = _typing.Literal["payload", b"payload"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_payload) -> _WhichOneofReturnType_payload | None: ...
 
 Global___StreamSessionResponse: _TypeAlias = StreamSessionResponse  # noqa: Y015
+
+@_typing.final
+class Overloaded(_message.Message):
+    """Why the server warns that this session's answers may go late."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    REASON_FIELD_NUMBER: _builtins.int
+    LATE_SHARE_FIELD_NUMBER: _builtins.int
+    reason: _builtins.str
+    """Why, for people: the server's load against its budget and the share of its answers that
+    went late.
+    """
+    late_share: _builtins.float
+    """The share (0-1) of the server process's answers of the last window that went more than
+    5 ms past their deadlines.
+    """
+    def __init__(
+        self,
+        *,
+        reason: _builtins.str = ...,
+        late_share: _builtins.float = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["late_share", b"late_share", "reason", b"reason"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___Overloaded: _TypeAlias = Overloaded  # noqa: Y015
 
 @_typing.final
 class Moving(_message.Message):

@@ -1,0 +1,8 @@
+"""The server-level tests' helpers live in _serve.py, importable from the tests as `_serve`."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))

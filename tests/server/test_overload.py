@@ -1,0 +1,98 @@
+"""Admission that keeps its promise beside other work (issue: the serving core): with a CPU hog on
+the machine, the sessions a real `jitdyn serve` admits are answered on time and the surplus is
+refused saying why; a session the server finds it can no longer serve on time is told in band."""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from _serve import Serve, realtime_session
+
+from jitdyn.client import Client, FrameData, SessionOptions
+
+DT = 0.05
+TICKS = 60  # 3 s
+
+# Why a session is refused: the process's budget, the machine's idle CPU, or answers already late.
+REFUSALS = (
+    (
+        r"this server process is at \d+ % of a core and its tick budget is \d+ % \(--tick-budget [\d.]+\); "
+        r"a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us per tick, [\d.]+ % more\. "
+        r"Try again later, on another server, or at a lower rate"
+    ),
+    (
+        r"this machine has [\d.]+ of its \d+ cores free \(other programs, this server's other processes or "
+        r"its clients use the rest\); a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us "
+        r"per tick, [\d.]+ of a core, and 0\.1 of a core is kept free\. Try again later, on another server, "
+        r"or at a lower rate"
+    ),
+    (
+        r"this server process answered [\d.]+ % of its ticks more than 5 ms past their deadlines in the last "
+        r"2 s \(at \d+ % of a core, tick budget \d+ %\): the CPU its sessions get is short, so a session of "
+        r"pendulum_3 \(passive\) at 20 Hz is not admitted\. Try again later, on another server, or at a "
+        r"lower rate"
+    ),
+)
+
+
+def test_beside_a_cpu_hog_the_admitted_sessions_are_on_time_and_the_surplus_refused(tmp_path: Path) -> None:
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # one core of the two
+    server = Serve(tmp_path / "data", "--tick-budget", "0.3")
+    try:
+        time.sleep(2.5)  # a window of the machine's CPU with the hog in it
+
+        async def offer() -> list[tuple[str, list[float], int]]:
+            tasks = []
+            for _ in range(16):  # one after another, so that each admission sees the ones before
+                tasks.append(asyncio.create_task(realtime_session(server.address, dt=DT, ticks=TICKS)))
+                await asyncio.sleep(0.15)
+            return list(await asyncio.gather(*tasks))
+
+        outcomes = asyncio.run(offer())
+    finally:
+        server.stop()
+        hog.kill()
+        hog.wait()
+    ran = [o for o in outcomes if o[0] == "ran"]
+    refused = [o[0] for o in outcomes if o[0] != "ran"]
+    assert ran and refused, outcomes
+    for message in refused:
+        assert any(re.fullmatch(pattern, message) for pattern in REFUSALS), message
+    lateness = sorted(x for _, late, _ in ran for x in late)
+    p99 = lateness[int(0.99 * (len(lateness) - 1))]
+    measured = sum(m for _, _, m in ran) / (TICKS * len(ran))
+    assert p99 <= 0.010 and measured >= 0.99, (len(ran), p99, measured, "".join(server.lines[-20:]))
+
+
+def test_a_session_the_server_cannot_serve_on_time_is_told_in_band_and_goes_on(tmp_path: Path) -> None:
+    # A budget of 5 % of a core: the first session of an idle process is admitted on its filter's
+    # cost, and at 100 Hz the process's measured CPU soon passes the budget.
+    server = Serve(tmp_path / "data", "--tick-budget", "0.05")
+    try:
+        with Client(server.address, timeout=30) as client:
+            options = SessionOptions(model_name="pendulum_1", dt=0.01, clock="REALTIME", scenario="PASSIVE")
+            with client.open_session(options) as session:
+                answered = 0
+                for k in range(800):  # 8 s at most
+                    time.sleep(max(0.0, k * 0.01 - session.now()))
+                    session.send(FrameData(seq=k, t=k * 0.01, qpos=[0.3], qvel=[0.0]))
+                    answered += len(session.poll())
+                    if session.overloaded is not None and k >= 100:
+                        break
+                warning = session.overloaded
+                answered += sum(1 for _ in session.poll())
+    finally:
+        server.stop()
+    assert warning is not None and re.fullmatch(
+        r"this server process is past what it serves on time \(\d+ % of a core against its tick budget "
+        r"of 5 %; [\d.]+ % of its answers more than 5 ms late\) and this session is among the last "
+        r"admitted: its answers may go late\. Resume it on another server or lower its rate",
+        warning,
+    ), warning
+    assert answered > 100  # the session went on after the warning
+    assert any("told it may go late" in line for line in server.lines), "".join(server.lines[-20:])
