@@ -83,7 +83,9 @@ def _frames(model: mujoco.MjModel, case: Case, ticks: int) -> list[FrameIn]:
     return frames
 
 
-def _runtime(model: mujoco.MjModel, case: Case, pool: WorkerPool, *, wait: bool) -> tuple[SessionRuntime, Counting]:
+def _runtime(
+    model: mujoco.MjModel, case: Case, pool: WorkerPool, *, wait: bool
+) -> tuple[SessionRuntime, Counting]:
     config = resolve_config(
         model=model,
         scenario=case.scenario,
@@ -128,7 +130,10 @@ def test_frames_late_by_three_ticks_cost_one_tick_each_and_end_where_on_time_fra
             if k >= late:
                 costs.append(runtime.late_cost(k - late))
                 corrected = runtime.apply_late(frames[k - late])
-                assert (corrected.source, corrected.late_ticks) == (Source.CORRECTED, min(late, ticks + late - k))
+                assert (corrected.source, corrected.late_ticks) == (
+                    Source.CORRECTED,
+                    min(late, ticks + late - k),
+                )
             if k < ticks:
                 answers.append(runtime.advance(None))
         # The first late frames replay the ticks run before the session knew frames come late;
@@ -147,7 +152,9 @@ def test_frames_late_by_three_ticks_cost_one_tick_each_and_end_where_on_time_fra
 
 
 @pytest.mark.parametrize("case", CASES, ids=lambda c: c.model)
-def test_a_lost_frame_and_a_frame_later_than_the_wait_end_where_the_same_frames_on_time_end(case: Case) -> None:
+def test_a_lost_frame_and_a_frame_later_than_the_wait_end_where_the_same_frames_on_time_end(
+    case: Case,
+) -> None:
     model = mujoco.MjModel.from_xml_path(str(builtin_model_path(case.model)))
     ticks, lost, very_late = 40, 20, 25
     frames = _frames(model, case, ticks)
