@@ -74,7 +74,14 @@ def _arrivals(ticks: int, dt: float, network: Network, seed: int) -> list[tuple[
 
 def _frame(seq: int, dt: float, m: Measurement, arrived: float) -> FrameIn:
     return FrameIn(
-        seq=seq, t=seq * dt, qpos=m.qpos, qvel=m.qvel, qacc=None, ctrl=m.ctrl, sensordata=None, received=arrived
+        seq=seq,
+        t=seq * dt,
+        qpos=m.qpos,
+        qvel=m.qvel,
+        qacc=None,
+        ctrl=m.ctrl,
+        sensordata=None,
+        received=arrived,
     )
 
 
@@ -133,7 +140,9 @@ def _run(
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--rounds", type=int, default=3, help="sessions per mode and case (default 3)")
     parser.add_argument("--ticks", type=int, default=600, help="ticks per session (default 600)")
     parser.add_argument(
