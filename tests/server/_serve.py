@@ -70,6 +70,8 @@ class Serve:
         self.process.send_signal(signal.SIGTERM)
         self.process.wait(timeout=120)
         self._reader.join(timeout=10)
+        assert self.process.stdout is not None
+        self.process.stdout.close()
 
 
 async def realtime_session(address: str, *, dt: float, ticks: int) -> tuple[str, list[float], int]:
