@@ -44,7 +44,7 @@ _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 MACHINE_HEADROOM: Final = 0.1
 # An answer this far past its deadline is late, for admission; when more than LATE_SHARE of a
 # window's answers are, the process admits no one and tells its newest sessions, in band.
-LATE_ANSWER: Final = 5e-3  # s
+LATE_ANSWER: Final = 5e-3  # s (docs/decisions/0008-admission-learns-from-lateness.md)
 LATE_SHARE: Final = 0.01
 _LATE_EVIDENCE: Final = 20  # answers a window needs before its share of late ones counts
 
