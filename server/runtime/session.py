@@ -5,7 +5,9 @@ PREDICTED when not. A frame that arrives after its tick was answered rolls the e
 state before that tick, applies the frame, replays the later ticks with the inputs they had
 (timewarp, as in distributed simulation) and yields a CORRECTED outcome for that tick. Because the
 replay uses the same inputs in the same order, the estimator ends exactly where a run in which the
-frame came on time would be.
+frame came on time would be. A REALTIME session waits for frames that come late instead: the
+estimator runs each tick once, in tick order, when its frame comes or its wait is over, and the
+ticks it has not reached are answered by a glance ahead (docs/decisions/0007).
 
 Calls are synchronous and CPU-bound, one at a time: LOCKSTEP sessions run them in a worker thread,
 REALTIME sessions on the event loop (their deadlines are its timers).
