@@ -39,6 +39,9 @@ _RESIZE_EVERY = 64  # ticks between two measures of the snapshots' size (it cree
 # of the last _LATENESS_KEPT), and at most _MAX_WAIT.
 _LATENESS_KEPT: Final = 64
 _MAX_WAIT: Final = 8
+# A stall (ticks skipped or shed) leaves at most _MAX_WAIT ticks waiting for their frames, and the
+# ticks past the wait are run at most _CATCH_UP a tick, so a stall's work is spread, not queued.
+_CATCH_UP: Final = 2
 
 
 class Place(enum.Enum):
@@ -218,10 +221,12 @@ class SessionRuntime:
             self._note_lateness(0)
         else:
             self.counts.predicted += 1
-        wait = self._wait if frame is None and self._initialised else 0
-        estimate = self._run_through(seq - wait)
+        last = seq
+        if frame is None and self._initialised:
+            last = min(seq - self._wait, self._frontier + _CATCH_UP - 1)
+        estimate = self._run_through(last)
         ahead = 0.0
-        if wait:
+        if self._frontier <= seq:
             ahead = (seq - self._frontier + 1) * self._dt
             estimate = self._estimator.glance(ahead)
         self._keep_history()
@@ -238,10 +243,10 @@ class SessionRuntime:
         a late frame for it or an earlier tick replays it properly and repairs the estimate.
 
         A session that waits for late frames keeps a shed tick without a frame waiting for it, as
-        it keeps any tick answered before its frame, while fewer than `wait` ticks wait: the
+        it keeps any tick answered before its frame, while fewer than _MAX_WAIT ticks wait: the
         estimator is not behind, only later."""
         started = time.perf_counter_ns()
-        if frame is None and self._stale_since is None and self._next - self._frontier < self._wait:
+        if frame is None and self._stale_since is None and self._next - self._frontier < self._stall_room():
             tick = self._add_waiting()
             self.counts.ticks += 1
             self.counts.predicted += 1
@@ -322,6 +327,11 @@ class SessionRuntime:
             self._frontier = seq + 1
         return estimate
 
+    def _stall_room(self) -> int:
+        """How many ticks may wait for their frames through a stall: none for a session that does
+        not wait, else _MAX_WAIT (fewer when the history is shorter)."""
+        return min(_MAX_WAIT, self._retained - 1) if self._waits and self._initialised else 0
+
     def _add_waiting(self) -> _Tick:
         """The next tick, without a frame, left for the estimator to run when its wait ends."""
         seq = self._next
@@ -348,10 +358,11 @@ class SessionRuntime:
         """Leave the next `count` ticks unanswered: a server far behind answers a tick by its
         deadline or not at all. The history goes (no late frame replays across the gap) and the
         estimator, now behind, restarts from the next frame. A session that waits for late frames
-        keeps the ticks of a stall that ends within the wait waiting for their frames."""
+        keeps the ticks of a stall that leaves at most _MAX_WAIT ticks waiting, waiting for their
+        frames: a frame that comes for one of them (`classify` says LATE) is applied as a late frame."""
         if count <= 0:
             return
-        if self._stale_since is None and self._next + count - self._frontier <= self._wait:
+        if self._stale_since is None and self._next + count - self._frontier <= self._stall_room():
             for _ in range(count):
                 self._add_waiting()
             self.counts.skipped += count
@@ -386,7 +397,10 @@ class SessionRuntime:
             raise ValueError(f"tick {frame.seq} already has a frame")
         target.frame = frame
         self.note_late(frame.seq)
-        if frame.seq >= self._frontier:
+        corrected: Estimate | None
+        if self._restarts_from(frame.seq):
+            corrected = self._restart_at(target)
+        elif frame.seq >= self._frontier:
             corrected = self._run_through(frame.seq)  # it was waiting: the ticks before it, then it
         else:
             # The timewarp: back to the state before it, and every tick the estimator ran since.
@@ -411,9 +425,35 @@ class SessionRuntime:
         self._note_lateness(self._next - seq)
 
     def late_cost(self, seq: int) -> int:
-        """Ticks of the estimator a late frame for `seq` costs: those up to it when it was waiting,
-        else the timewarp's replay of every tick run since it."""
+        """Ticks of the estimator a late frame for `seq` costs: one when it restarts a behind
+        estimator, those up to it when it was waiting, else the timewarp's replay of every tick
+        run since it."""
+        if self._restarts_from(seq):
+            return 1
         return seq - self._frontier + 1 if seq >= self._frontier else self._frontier - seq
+
+    def replay_cost(self, seq: int) -> int:
+        """Ticks of the estimator a late frame for `seq` adds to those every tick runs once: the
+        timewarp's replay of the ticks run since it, none when its tick was waiting (the ticks up
+        to it run now instead of later) or when it restarts a behind estimator."""
+        if self._restarts_from(seq) or seq >= self._frontier:
+            return 0
+        return self._frontier - seq
+
+    def _restarts_from(self, seq: int) -> bool:
+        """Whether a late frame for `seq` restarts the estimator: it is behind (a stall outlasted
+        the wait) since a tick at or before `seq`, so the frame is the best state there is, and
+        at most _MAX_WAIT ticks after it wait to be run from it."""
+        stale = self._stale_since
+        return stale is not None and seq >= stale and self._next - seq <= self._stall_room()
+
+    def _restart_at(self, tick: _Tick) -> Estimate:
+        """Restart the estimator from a late frame at its tick: the ticks after it wait for the
+        estimator as a late frame's ticks do (`advance` catches up _CATCH_UP a tick)."""
+        self._estimator.initialise(self._measurement(tick))
+        self._stale_since = None
+        self._frontier = tick.seq + 1
+        return dataclasses.replace(self._estimator.extrapolate(0.0), reinitialised=True)
 
     def extrapolated(self, seconds: float) -> Estimate | None:
         """The current estimate carried `seconds` ahead, without changing the estimator."""

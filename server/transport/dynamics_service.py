@@ -225,11 +225,15 @@ class _Stream:
             return self.reject(seq, RejectReason.DUPLICATE, f"frame {seq}: tick {seq} already has a frame")
         if place == Place.TOO_OLD:
             return self.reject(seq, RejectReason.TOO_OLD, self._too_old(seq), frame=checked)
-        unaffordable = self._unaffordable_replay(seq)
+        return self._late(checked, arrived)
+
+    def _late(self, frame: FrameIn, arrived: float) -> list[Response]:
+        """A frame for a tick answered (or skipped) before it came: applied when it fits."""
+        unaffordable = self._unaffordable_replay(frame.seq)
         if unaffordable is not None:
-            self.runtime.note_late(seq)  # refused, it still says how late frames come
-            return self.reject(seq, RejectReason.TOO_OLD, unaffordable, frame=checked)
-        outcome = self.runtime.apply_late(checked)
+            self.runtime.note_late(frame.seq)  # refused, it still says how late frames come
+            return self.reject(frame.seq, RejectReason.TOO_OLD, unaffordable, frame=frame)
+        outcome = self.runtime.apply_late(frame)
         return [Response(result=self.record_result(outcome, arrived=arrived))]
 
     def _wait_for_tick(self, frame: FrameIn) -> list[Response]:
@@ -255,20 +259,22 @@ class _Stream:
     def _unaffordable_replay(self, seq: int) -> str | None:
         """REALTIME: why a late frame's timewarp is not applied, or None when it fits.
 
-        The timewarp replays every tick since the late one, on the event loop; it is applied only
-        when it fits, with the session's own next tick, in half a tick, because replays on a server
-        that is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md).
+        The timewarp replays every tick the estimator ran since the late one, on the event loop; it
+        is applied only when it fits, with the session's own next tick, in half a tick, because
+        replays on a server that is already behind make it fall further behind
+        (docs/decisions/0001-timewarp-budget.md). A frame whose tick waited for it adds no work
+        (docs/decisions/0007-wait-for-late-frames.md): it is always applied.
         """
-        if self.ticket is None:
+        runs = self.runtime.replay_cost(seq)
+        if self.ticket is None or runs == 0:
             return None
-        runs = self.runtime.late_cost(seq)
         cost = runs * self.ticket.compute_per_tick
         free = max(0.0, self.plan.dt / 2 - self.ticket.cost_per_tick)
         if cost <= free:
             return None
         return (
             f"frame {seq}: {self.runtime.next_tick - seq} ticks late; applying it means running "
-            f"{runs} ticks of the filter, about "
+            f"{runs} ticks of the filter again, about "
             f"{1e3 * cost:.1f} ms, and with this session's own ticks at {1e3 * self.ticket.cost_per_tick:.1f} ms "
             f"only {1e3 * free:.1f} ms of half its {1e3 * self.plan.dt:g} ms tick is free, so it is not applied"
         )
@@ -352,7 +358,9 @@ class _Stream:
         """REALTIME: when the loop reaches a session more than a tick late, skip (answer not at all)
         every tick whose deadline is already SHED_AFTER behind but the newest, so that the next
         answer is about the present and an overloaded process sheds work instead of queueing it.
-        A frame that was waiting for a skipped tick is rejected TOO_OLD, its values stored."""
+        A frame that was waiting for a skipped tick is applied as a late frame when the session
+        keeps that tick waiting (a short stall of a session that waits for late frames), else it
+        is rejected TOO_OLD, its values stored."""
         if self.replaying():
             return []
         seq = self.runtime.next_tick
@@ -372,17 +380,19 @@ class _Stream:
             newest - 1,
         )
         self.runtime.skip(newest - seq)
-        return [
-            response
-            for frame in waiting
-            for response in self.reject(
+        responses: list[Response] = []
+        for frame in waiting:
+            if self.runtime.classify(frame.seq) == Place.LATE:
+                responses += self._late(frame, frame.received)
+                continue
+            responses += self.reject(
                 frame.seq,
                 RejectReason.TOO_OLD,
                 f"frame {frame.seq}: the server was behind and skipped ticks {seq}-{newest - 1}; "
                 "the frame is stored, not used",
                 frame=frame,
             )
-        ]
+        return responses
 
     @_counting_warnings
     def answer_ready(self) -> list[Response]:

@@ -1,7 +1,9 @@
-"""A stalled event loop (a long garbage collection, a blocking call) makes a REALTIME server skip
-the ticks it is too late for. The frames that were waiting for those ticks are answered as TOO_OLD
-rejections and stored with their values: no measurement a client sent is lost. A real server
-in this process, its loop blocked for real; the stored Parquet read back."""
+"""A stalled event loop (a long garbage collection, a blocking call, a busy neighbour) makes a
+REALTIME server skip the ticks it is too late for. After a short stall (at most 8 ticks waiting)
+the frames that were waiting for those ticks are applied as late frames, CORRECTED; after a longer
+one they are answered as TOO_OLD rejections and stored with their values: no measurement a client
+sent is lost. A real server in this process, its loop blocked for real; the stored Parquet read
+back."""
 
 from __future__ import annotations
 
@@ -10,14 +12,16 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow.parquet as pq
+import pytest
 
 from jitdyn.client import Client, FrameData, Rejection, SessionOptions, TickResult
 
 DT = 0.05
 
 
-def test_frames_waiting_for_ticks_a_stall_skipped_are_rejected_and_stored(
-    tmp_path: Path, make_config: Any
+@pytest.mark.parametrize("stall_ticks", [6, 14], ids=["short", "long"])
+def test_frames_waiting_for_ticks_a_stall_skipped_are_applied_or_rejected_and_stored(
+    tmp_path: Path, make_config: Any, stall_ticks: int
 ) -> None:
     from jitdyn.server.transport.background import BackgroundServer
 
@@ -26,7 +30,7 @@ def test_frames_waiting_for_ticks_a_stall_skipped_are_rejected_and_stored(
         session = client.open_session(
             SessionOptions(model_name="pendulum_3", dt=DT, clock="REALTIME", scenario="PASSIVE")
         )
-        ticks = 20
+        ticks = 30
         frames = [
             FrameData(seq=k, t=k * DT, qpos=[0.1 * k, -0.2, 0.3], qvel=[0.0, 0.0, 0.0]) for k in range(ticks)
         ]
@@ -36,8 +40,8 @@ def test_frames_waiting_for_ticks_a_stall_skipped_are_rejected_and_stored(
         for k in range(5, ticks):  # early: each waits on the server for its tick
             session.send(frames[k])
         time.sleep(0.05)
-        # The server's own loop (a test may reach in): blocked for six ticks.
-        server._loop.call_soon_threadsafe(time.sleep, 6 * DT)
+        # The server's own loop (a test may reach in): blocked for `stall_ticks` ticks.
+        server._loop.call_soon_threadsafe(time.sleep, stall_ticks * DT)
         answers: dict[int, object] = {}
         for answer in session.results(timeout=10):
             if isinstance(answer, (TickResult, Rejection)):
@@ -47,10 +51,17 @@ def test_frames_waiting_for_ticks_a_stall_skipped_are_rejected_and_stored(
         summary = session.close()
 
     rejected = sorted(seq for seq, a in answers.items() if isinstance(a, Rejection))
-    print(f"rejected after the stall: {rejected}; {summary.rejected} rejections stored")
-    assert rejected, "the stall skipped no tick with a waiting frame"
-    assert all(answers[seq].reason == "TOO_OLD" for seq in rejected)  # type: ignore[attr-defined]
-    assert "skipped ticks" in answers[rejected[0]].message  # type: ignore[attr-defined]
+    corrected = sorted(
+        seq for seq, a in answers.items() if isinstance(a, TickResult) and a.source == "CORRECTED"
+    )
+    print(f"after a {stall_ticks}-tick stall: corrected {corrected}, rejected {rejected}")
+    if stall_ticks <= 8:
+        assert not rejected, "a short stall's frames are applied, not refused"
+        assert len(corrected) >= stall_ticks - 2, "the skipped ticks' frames were applied late"
+    else:
+        assert rejected, "the stall skipped no tick with a waiting frame"
+        assert all(answers[seq].reason == "TOO_OLD" for seq in rejected)  # type: ignore[attr-defined]
+        assert "skipped ticks" in answers[rejected[0]].message  # type: ignore[attr-defined]
     table = pq.read_table(data / summary.location)
     kept = {}
     for row in table.select(["kind", "seq", "frame_received", "frame_qpos"]).to_pylist():
