@@ -9,34 +9,10 @@ in `aio.py`. It may import the contract (jitdyn.v1, errors, vocabulary, estimato
 jitdyn.registry (model packing); never the server or the research harness.
 """
 
+from jitdyn.client import _models
 from jitdyn.client._client import Client, Session
-from jitdyn.client._models import (
-    FrameData,
-    ModelRef,
-    Opened,
-    Rejection,
-    ResumePolicy,
-    Resumption,
-    SessionOptions,
-    Summary,
-    SyncSample,
-    TickResult,
-)
+from jitdyn.client._models import *  # the value types, `_models.__all__`
 from jitdyn.client.aio import AsyncClient, AsyncSession
 
-__all__ = [
-    "AsyncClient",
-    "AsyncSession",
-    "Client",
-    "FrameData",
-    "ModelRef",
-    "Opened",
-    "Rejection",
-    "ResumePolicy",
-    "Resumption",
-    "Session",
-    "SessionOptions",
-    "Summary",
-    "SyncSample",
-    "TickResult",
-]
+__all__ = ["AsyncClient", "AsyncSession", "Client", "Session"]
+__all__ += _models.__all__

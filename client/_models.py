@@ -44,13 +44,9 @@ __all__ = [
     "Summary",
     "SyncSample",
     "TickResult",
-    "opened_from_response",
-    "register_request",
-    "session_answer",
-    "settings_from_message",
-    "settings_message",
-    "sync_request",
 ]
+# The value types above are the SDK's public ones (jitdyn.client re-exports this list); the
+# conversions below them are the transports' own, imported by name.
 
 
 _Word = TypeVar("_Word", Channel, Output)
