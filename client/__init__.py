@@ -3,9 +3,9 @@
     from jitdyn.client import Client, SessionOptions, FrameData
     from jitdyn.client import AsyncClient      # the same over asyncio (grpc.aio)
 
-Value types live in `_models.py`, what both transports share in `_transport.py` and
-`_resume.py` (a session's resume bookkeeping), the sync transport in `_client.py` and the async one
-in `aio.py`. It may import the contract (jitdyn.v1, errors, vocabulary, estimator_settings) and
+Value types live in `_models.py`, what both transports share in `_transport.py`, `_session.py` (a
+session's state and its steps without I/O) and `_resume.py` (its resume bookkeeping), the sync
+transport in `_client.py` and the async one in `aio.py`. It may import the contract (jitdyn.v1, errors, vocabulary, estimator_settings) and
 jitdyn.registry (model packing); never the server or the research harness.
 """
 
