@@ -23,7 +23,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from types import TracebackType
-from typing import Any, Self, TypeVar
+from typing import Any, Self, TypeVar, Unpack
 
 import grpc
 
@@ -39,7 +39,7 @@ from jitdyn.client._models import (
     register_request,
 )
 from jitdyn.client._resume import Refused, resume_outcome
-from jitdyn.client._session import SessionCore
+from jitdyn.client._session import SessionArguments, SessionCore
 from jitdyn.client._transport import (
     END,
     End,
@@ -90,23 +90,10 @@ class Session(SessionCore):
         stub: dynamics_pb2_grpc.DynamicsServiceStub,
         options: SessionOptions,
         *,
-        timeout: float | None,
-        metadata: Sequence[tuple[str, str]],
-        checksum: bool,
-        sync_interval: float = 0.5,
-        on_end: Callable[[], None] | None = None,
-        resume: ResumePolicy | None = None,
         reconnect: Callable[[], dynamics_pb2_grpc.DynamicsServiceStub] | None = None,
+        **arguments: Unpack[SessionArguments],
     ) -> None:
-        super().__init__(
-            options,
-            timeout=timeout,
-            metadata=metadata,
-            checksum=checksum,
-            sync_interval=sync_interval,
-            on_end=on_end,
-            resume=resume,
-        )
+        super().__init__(options, **arguments)
         self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
         self._stub = stub
         # Every stream's answers, tagged with the stream's generation: a resumed session ignores

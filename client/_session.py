@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from typing import NotRequired, TypedDict
 
 from jitdyn.client._models import (
     FrameData,
@@ -25,10 +26,21 @@ from jitdyn.client._resume import ResumeLedger
 from jitdyn.v1 import dynamics_pb2
 from jitdyn.vocabulary import Clock
 
-__all__ = ["Received", "SessionCore"]
+__all__ = ["Received", "SessionArguments", "SessionCore"]
 
 # An answer with the client's time.monotonic() of its arrival.
 Received = tuple[float, dynamics_pb2.StreamSessionResponse]
+
+
+class SessionArguments(TypedDict):
+    """What a transport's session passes on to `SessionCore` (see its arguments)."""
+
+    timeout: float | None
+    metadata: Sequence[tuple[str, str]]
+    checksum: bool
+    sync_interval: NotRequired[float]
+    on_end: NotRequired[Callable[[], None] | None]
+    resume: NotRequired[ResumePolicy | None]
 
 
 class SessionCore:
@@ -43,10 +55,13 @@ class SessionCore:
         timeout: float | None,
         metadata: Sequence[tuple[str, str]],
         checksum: bool,
-        sync_interval: float,
-        on_end: Callable[[], None] | None,
-        resume: ResumePolicy | None,
+        sync_interval: float = 0.5,
+        on_end: Callable[[], None] | None = None,
+        resume: ResumePolicy | None = None,
     ) -> None:
+        """`timeout`: how long a read waits (None: for ever); `metadata`: the stream's call
+        metadata; `checksum`: whether frames carry CRC32C; `sync_interval`: seconds between the
+        REALTIME clock probes; `on_end`: called once when the session ends; `resume`: its policy."""
         self._on_end = on_end  # called once the session has ended: the client closes its connection
         self._metadata = tuple(metadata)
         self._timeout = timeout

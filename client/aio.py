@@ -20,7 +20,7 @@ import time
 import weakref
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from types import TracebackType
-from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar
+from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar, Unpack
 
 import grpc
 
@@ -36,7 +36,7 @@ from jitdyn.client._models import (
     register_request,
 )
 from jitdyn.client._resume import Refused, resume_outcome
-from jitdyn.client._session import Received, SessionCore
+from jitdyn.client._session import Received, SessionArguments, SessionCore
 from jitdyn.client._transport import (
     CHANNEL_OPTIONS,
     END,
@@ -92,23 +92,10 @@ class AsyncSession(SessionCore):
         stub: DynamicsServiceAsyncStub,
         options: SessionOptions,
         *,
-        timeout: float | None,
-        metadata: Sequence[tuple[str, str]],
-        checksum: bool,
-        sync_interval: float = 0.5,
-        on_end: Callable[[], None] | None = None,
-        resume: ResumePolicy | None = None,
         reconnect: Callable[[], DynamicsServiceAsyncStub] | None = None,
+        **arguments: Unpack[SessionArguments],
     ) -> None:
-        super().__init__(
-            options,
-            timeout=timeout,
-            metadata=metadata,
-            checksum=checksum,
-            sync_interval=sync_interval,
-            on_end=on_end,
-            resume=resume,
-        )
+        super().__init__(options, **arguments)
         self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
         self._stub = stub
         self._open_request = dynamics_pb2.StreamSessionRequest(open=self._open_message)
