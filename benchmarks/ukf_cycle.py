@@ -206,8 +206,6 @@ def main(argv: list[str] | None = None) -> int:
             model=model,
             scenario=case.scenario,
             dt=case.dt,
-            requested={},
-            model_defaults={},
             preset=args.preset,
             measured=measured,
         )

@@ -23,7 +23,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from types import TracebackType
-from typing import Any, Self, TypeVar
+from typing import Any, Self, TypeVar, Unpack
 
 import grpc
 
@@ -32,17 +32,14 @@ from jitdyn.client._models import (
     ModelRef,
     Rejection,
     ResumePolicy,
-    Resumption,
     SessionOptions,
     Summary,
     SyncSample,
     TickResult,
-    opened_from_response,
     register_request,
-    session_answer,
-    sync_request,
 )
-from jitdyn.client._resume import Refused, ResumeLedger, resume_outcome
+from jitdyn.client._resume import Refused, resume_outcome
+from jitdyn.client._session import SessionArguments, SessionCore
 from jitdyn.client._transport import (
     END,
     End,
@@ -61,7 +58,6 @@ from jitdyn.v1 import (
     session_pb2,
     session_pb2_grpc,
 )
-from jitdyn.vocabulary import Clock
 
 __all__ = ["Client", "Session"]
 
@@ -72,7 +68,7 @@ _Request = TypeVar("_Request")
 _Response = TypeVar("_Response")
 
 
-class Session:
+class Session(SessionCore):
     """One open session. Use as a context manager; `close()` is safe to call twice.
 
     LOCKSTEP: `send_frame` and `skip` return the server's one answer. REALTIME: `send` queues a frame
@@ -94,42 +90,23 @@ class Session:
         stub: dynamics_pb2_grpc.DynamicsServiceStub,
         options: SessionOptions,
         *,
-        timeout: float | None,
-        metadata: Sequence[tuple[str, str]],
-        checksum: bool,
-        sync_interval: float = 0.5,
-        on_end: Callable[[], None] | None = None,
-        resume: ResumePolicy | None = None,
         reconnect: Callable[[], dynamics_pb2_grpc.DynamicsServiceStub] | None = None,
+        **arguments: Unpack[SessionArguments],
     ) -> None:
-        self._on_end = on_end  # called once the session has ended: the client closes its connection
+        super().__init__(options, **arguments)
         self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
         self._stub = stub
-        self._metadata = tuple(metadata)
         # Every stream's answers, tagged with the stream's generation: a resumed session ignores
         # what an earlier stream left behind.
         self._responses: queue.Queue[tuple[int, _Item]] = queue.Queue()
         self._generation = 0
         self._requests: queue.Queue[dynamics_pb2.StreamSessionRequest | End] = queue.Queue()
         self._call: grpc.Call | None = None
-        self._timeout = timeout
-        self._checksum = checksum
-        self._clock_start = time.monotonic()
-        self._last_probe: tuple[int, float] | None = None
-        self._probe_id = 0
-        self._realtime = options.clock == Clock.REALTIME
-        self._sync_interval = sync_interval
-        self._last_sync_sent = -float("inf")
-        self._closed = False
-        self._finished = False
-        self.summary: Summary | None = None
-        open_message = options.to_message()
-        self._ledger = ResumeLedger(resume if resume is not None else ResumePolicy(), open_message)
         self._reader: threading.Thread | None = None
         # Answers a stream that said `moving` gave after the notice, handed out before the next
         # stream's (see `_leave`).
         self._left: collections.deque[tuple[float, dynamics_pb2.StreamSessionResponse]] = collections.deque()
-        self._start_stream(dynamics_pb2.StreamSessionRequest(open=open_message))
+        self._start_stream(dynamics_pb2.StreamSessionRequest(open=self._open_message))
         try:
             first = self._get(self._timeout)
         except JitdynError as error:
@@ -137,13 +114,8 @@ class Session:
         if first is None:
             self._finish()
             raise FailedPrecondition("the session stream has ended")
-        opened = opened_from_response(first[1])
-        # The session clock starts when `opened` arrived (the reader's time of it, not the time
-        # this thread got to it): the server's starts as it sends it, so the two differ by one
-        # transit until `sync` exchanges measure the offset.
-        self._clock_start = first[0]
-        self.opened = opened
-        self._ledger.opened(first[1].opened)
+        # The reader's time of `opened`, not the time this thread got to it.
+        self._opened(first)
         if self._realtime:
             self.sync()
 
@@ -171,22 +143,12 @@ class Session:
         try:
             for response in call:
                 received_at = time.monotonic()
-                if response.HasField("sync"):
-                    # t4 of this exchange, reported by the next probe however late the caller reads it.
-                    self._last_probe = (response.sync.id, received_at - self._clock_start)
+                self._pong(received_at, response)
                 self._responses.put((generation, (received_at, response)))
         except grpc.RpcError as error:
             self._responses.put((generation, error))
         finally:
             self._responses.put((generation, END))
-
-    def _finish(self) -> None:
-        """The session is over (closed, cancelled, or failed for good): its connection may go."""
-        if self._finished:
-            return
-        self._finished = True
-        if self._on_end is not None:
-            self._on_end()
 
     def _next_response(self, timeout: float | None) -> dynamics_pb2.StreamSessionResponse:
         item = self._get(timeout)
@@ -289,54 +251,12 @@ class Session:
         self._finish()
         raise self._ledger.lost(cause, last)
 
-    def _convert(
-        self, item: tuple[float, dynamics_pb2.StreamSessionResponse]
-    ) -> TickResult | Rejection | SyncSample | Summary:
-        received_at, response = item
-        answer = session_answer(response, received_at=received_at, clock_start=self._clock_start)
-        if isinstance(answer, Summary):
-            answer = self._ledger.summarised(answer)
-            self.summary = answer
-        return answer
-
     def _send(self, request: dynamics_pb2.StreamSessionRequest, seq: int | None = None) -> None:
         if self._closed:
             raise FailedPrecondition("the session is closed")
         if seq is not None:
             self._ledger.keep(seq, request)
         self._requests.put(request)
-
-    @property
-    def clock_start(self) -> float:
-        """The time.monotonic() value that is 0 on the session clock."""
-        return self._clock_start
-
-    @property
-    def unacknowledged(self) -> int:
-        """Frames sent that no result's durable_seq covers yet (kept for a resume)."""
-        return len(self._ledger)
-
-    @property
-    def resumptions(self) -> list[Resumption]:
-        """Every resume so far, oldest first."""
-        return self._ledger.resumptions
-
-    @property
-    def missed(self) -> int:
-        """Ticks no answer came for across the resumes (REALTIME ticks that passed meanwhile)."""
-        return self._ledger.missed
-
-    @property
-    def overloaded(self) -> str | None:
-        """The server's latest in-band warning that this session's answers may go late (it is past
-        what it serves on time, and this session was among the last admitted), or None. The
-        session goes on; resuming it elsewhere or lowering its rate is the caller's choice."""
-        return self._ledger.overloaded
-
-    def now(self) -> float:
-        """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at
-        `seq * dt` on this clock."""
-        return time.monotonic() - self._clock_start
 
     # LOCKSTEP.
 
@@ -364,11 +284,9 @@ class Session:
     def send(self, frame: FrameData) -> None:
         """Queue a frame without waiting for its answer. In REALTIME a clock probe goes along every
         `sync_interval` seconds, so the server keeps client time on its clock."""
-        if self._realtime and self.now() - self._last_sync_sent >= self._sync_interval:
+        if self._sync_due():
             self.sync()
-        self._send(
-            dynamics_pb2.StreamSessionRequest(frame=frame.to_message(checksum=self._checksum)), frame.seq
-        )
+        self._send(self._frame_request(frame), frame.seq)
 
     def results(self, *, timeout: float | None = None) -> Iterator[TickResult | Rejection | SyncSample]:
         """Answers as they arrive, until the session is closed or `timeout` passes with none."""
@@ -400,9 +318,7 @@ class Session:
 
     def sync(self) -> None:
         """Send a clock probe; its answer comes back among the results (a `SyncSample`)."""
-        self._probe_id += 1
-        self._last_sync_sent = self.now()
-        self._send(sync_request(self._probe_id, self._last_sync_sent, self._last_probe))
+        self._send(self._probe())
 
     # Ending.
 

@@ -19,6 +19,7 @@ import numpy as np
 from jitdyn.checksum import frame_checksum
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.estimator_settings import SETTINGS, SettingValue
+from jitdyn.settings_message import settings_from_message, settings_message
 from jitdyn.v1 import common_pb2, dynamics_pb2, model_registry_pb2
 from jitdyn.vocabulary import (
     Channel,
@@ -44,13 +45,9 @@ __all__ = [
     "Summary",
     "SyncSample",
     "TickResult",
-    "opened_from_response",
-    "register_request",
-    "session_answer",
-    "settings_from_message",
-    "settings_message",
-    "sync_request",
 ]
+# The value types above are the SDK's public ones (jitdyn.client re-exports this list); the
+# conversions below them are the transports' own, imported by name.
 
 
 _Word = TypeVar("_Word", Channel, Output)
@@ -60,31 +57,6 @@ def _array(values: Any) -> np.ndarray:
     array = np.asarray(values, dtype=np.float64)
     array.flags.writeable = False
     return array
-
-
-def settings_message(settings: Mapping[str, SettingValue]) -> common_pb2.EstimatorSettings:
-    """The message of settings keyed by jitdyn.estimator_settings.SETTINGS' names: enum settings
-    as their vocabulary member, the others as a number."""
-    message = common_pb2.EstimatorSettings()
-    for name, value in settings.items():
-        if isinstance(value, float):
-            setattr(message, name, value)
-        else:
-            setattr(message, name, to_proto(value))
-    return message
-
-
-def settings_from_message(message: common_pb2.EstimatorSettings, *, argument: str) -> dict[str, SettingValue]:
-    """The settings a message sets, in SETTINGS' order; unset ones are left out."""
-    settings: dict[str, SettingValue] = {}
-    for name, row in SETTINGS.items():
-        if row.choices is not None:
-            member = from_proto(row.choices, getattr(message, name), argument=f"{argument}.{name}")
-            if member is not None:
-                settings[name] = member
-        elif message.HasField(name):  # type: ignore[arg-type]  # a name of the table, a field of the message
-            settings[name] = float(getattr(message, name))
-    return settings
 
 
 def _requested_settings(values: object) -> dict[str, SettingValue]:
@@ -210,7 +182,7 @@ class SessionOptions:
             measured=[common_pb2.Channel.ValueType(to_proto(cast(Channel, c))) for c in self.measured],
             outputs=[common_pb2.Output.ValueType(to_proto(cast(Output, o))) for o in self.outputs],
             horizon=dynamics_pb2.Horizon.ValueType(to_proto(cast(Horizon, self.horizon))),
-            estimator=settings_message(cast(Mapping[str, SettingValue], self.estimator)),
+            estimator=settings_message(self.estimator),
             grace=self.grace,
             history=self.history,
         )

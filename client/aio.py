@@ -20,27 +20,23 @@ import time
 import weakref
 from collections.abc import AsyncIterator, Callable, Mapping, Sequence
 from types import TracebackType
-from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar
+from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar, Unpack
 
 import grpc
 
 from jitdyn.client._models import (
     FrameData,
     ModelRef,
-    Opened,
     Rejection,
     ResumePolicy,
-    Resumption,
     SessionOptions,
     Summary,
     SyncSample,
     TickResult,
-    opened_from_response,
     register_request,
-    session_answer,
-    sync_request,
 )
-from jitdyn.client._resume import Refused, ResumeLedger, resume_outcome
+from jitdyn.client._resume import Refused, resume_outcome
+from jitdyn.client._session import Received, SessionArguments, SessionCore
 from jitdyn.client._transport import (
     CHANNEL_OPTIONS,
     END,
@@ -59,7 +55,6 @@ from jitdyn.v1 import (
     session_pb2,
     session_pb2_grpc,
 )
-from jitdyn.vocabulary import Clock
 
 if TYPE_CHECKING:
     # The async stubs exist for type checkers only; at run time the sync stub class builds them.
@@ -69,14 +64,14 @@ __all__ = ["AsyncClient", "AsyncSession"]
 
 _Request = TypeVar("_Request")
 _Response = TypeVar("_Response")
-_Received: TypeAlias = tuple[float, dynamics_pb2.StreamSessionResponse]
+_Received: TypeAlias = Received
 _First: TypeAlias = _Received | grpc.RpcError | End | None
 _Call: TypeAlias = (
     "grpc.aio.StreamStreamCall[dynamics_pb2.StreamSessionRequest, dynamics_pb2.StreamSessionResponse]"
 )
 
 
-class AsyncSession:
+class AsyncSession(SessionCore):
     """One open session, from `await AsyncClient.open_session(...)`. Use as an async context
     manager; `close()` is safe to call twice.
 
@@ -90,7 +85,6 @@ class AsyncSession:
     re-sends what is not durable while writes wait, so the caller sees no error and no answer twice.
     """
 
-    opened: Opened
     _call: _Call  # the current stream, from `_open` on
 
     def __init__(
@@ -98,38 +92,19 @@ class AsyncSession:
         stub: DynamicsServiceAsyncStub,
         options: SessionOptions,
         *,
-        timeout: float | None,
-        metadata: Sequence[tuple[str, str]],
-        checksum: bool,
-        sync_interval: float = 0.5,
-        on_end: Callable[[], None] | None = None,
-        resume: ResumePolicy | None = None,
         reconnect: Callable[[], DynamicsServiceAsyncStub] | None = None,
+        **arguments: Unpack[SessionArguments],
     ) -> None:
-        self._on_end = on_end  # called once the session has ended: the client closes its connection
+        super().__init__(options, **arguments)
         self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
         self._stub = stub
-        self._metadata = tuple(metadata)
-        open_message = options.to_message()
-        self._open_request = dynamics_pb2.StreamSessionRequest(open=open_message)
-        self._ledger = ResumeLedger(resume if resume is not None else ResumePolicy(), open_message)
+        self._open_request = dynamics_pb2.StreamSessionRequest(open=self._open_message)
         self._responses: asyncio.Queue[_Received | JitdynError | End] = asyncio.Queue()
         # Writes one at a time, as grpc.aio allows; a resume holds it until it has re-sent.
         self._write_lock = asyncio.Lock()
         self._close_lock = asyncio.Lock()
-        self._timeout = timeout
-        self._checksum = checksum
-        self._clock_start = time.monotonic()
-        self._last_probe: tuple[int, float] | None = None
-        self._probe_id = 0
-        self._realtime = options.clock == Clock.REALTIME
-        self._sync_interval = sync_interval
-        self._last_sync_sent = -float("inf")
-        self._closed = False
         self._close_sent = False  # `close` and the half-close are written: a resume writes them again
         self._write_refused = False  # a write on the current stream failed (see `_broken`)
-        self._finished = False
-        self.summary: Summary | None = None
         self._reader: asyncio.Task[None] | None = None
 
     async def _open(self) -> None:
@@ -141,15 +116,10 @@ class AsyncSession:
                 raise explain_open_error(status_error(first))
             if first is END:
                 raise FailedPrecondition("the session stream has ended")
-            opened = opened_from_response(first[1])
+            self._opened(first)
         except BaseException:
             self.cancel()
             raise
-        # The session clock starts when `opened` arrived: the server's starts as it sends it, so the
-        # two differ by one transit until `sync` exchanges measure the offset.
-        self._clock_start = first[0]
-        self.opened = opened
-        self._ledger.opened(first[1].opened)
         # Reads as responses arrive, not as the caller asks: a pong's receive time is its arrival.
         self._reader = asyncio.create_task(self._run(), name="jitdyn-session-reader")
         if self._realtime:
@@ -217,11 +187,9 @@ class AsyncSession:
                 if not isinstance(response, dynamics_pb2.StreamSessionResponse):
                     return None  # grpc.aio.EOF
                 received_at = time.monotonic()
+                self._pong(received_at, response)
                 kind = response.WhichOneof("payload")
-                if kind == "sync":
-                    # t4 of this exchange, reported by the next probe however late the caller reads it.
-                    self._last_probe = (response.sync.id, received_at - self._clock_start)
-                elif kind == "moving":
+                if kind == "moving":
                     return response.moving
                 elif kind == "overloaded":
                     self._ledger.warned(response.overloaded)
@@ -290,14 +258,6 @@ class AsyncSession:
         elif self._realtime and not self._closed:
             await self._write(self._probe())
 
-    def _finish(self) -> None:
-        """The session is over (closed, cancelled, or failed for good): its connection may go."""
-        if self._finished:
-            return
-        self._finished = True
-        if self._on_end is not None:
-            self._on_end()
-
     async def _reader_done(self, timeout: float = 5.0) -> None:
         if self._reader is None:
             return
@@ -319,14 +279,6 @@ class AsyncSession:
             self._responses.put_nowait(END)
             return None
         return item
-
-    def _convert(self, item: _Received) -> TickResult | Rejection | SyncSample | Summary:
-        received_at, response = item
-        answer = session_answer(response, received_at=received_at, clock_start=self._clock_start)
-        if isinstance(answer, Summary):
-            answer = self._ledger.summarised(answer)
-            self.summary = answer
-        return answer
 
     async def _send(self, request: dynamics_pb2.StreamSessionRequest, seq: int | None = None) -> None:
         if self._closed:
@@ -371,38 +323,6 @@ class AsyncSession:
             return "the stream ended under a write (grpc.aio hides how)" if self._resumable() else None
         return f"{error.code().name}: {error.details()}" if self._ledger.resumable(error.code()) else None
 
-    @property
-    def clock_start(self) -> float:
-        """The time.monotonic() value that is 0 on the session clock."""
-        return self._clock_start
-
-    @property
-    def unacknowledged(self) -> int:
-        """Frames sent that no result's durable_seq covers yet (kept for a resume)."""
-        return len(self._ledger)
-
-    @property
-    def resumptions(self) -> list[Resumption]:
-        """Every resume so far, oldest first."""
-        return self._ledger.resumptions
-
-    @property
-    def missed(self) -> int:
-        """Ticks no answer came for across the resumes (REALTIME ticks that passed meanwhile)."""
-        return self._ledger.missed
-
-    @property
-    def overloaded(self) -> str | None:
-        """The server's latest in-band warning that this session's answers may go late (it is past
-        what it serves on time, and this session was among the last admitted), or None. The
-        session goes on; resuming it elsewhere or lowering its rate is the caller's choice."""
-        return self._ledger.overloaded
-
-    def now(self) -> float:
-        """The client's session clock: seconds since `opened` arrived. REALTIME frames are due at
-        `seq * dt` on this clock."""
-        return time.monotonic() - self._clock_start
-
     # LOCKSTEP.
 
     async def send_frame(self, frame: FrameData) -> TickResult | Rejection:
@@ -429,11 +349,9 @@ class AsyncSession:
     async def send(self, frame: FrameData) -> None:
         """Write a frame without waiting for its answer. In REALTIME a clock probe goes along every
         `sync_interval` seconds, so the server keeps client time on its clock."""
-        if self._realtime and self.now() - self._last_sync_sent >= self._sync_interval:
+        if self._sync_due():
             await self.sync()
-        await self._send(
-            dynamics_pb2.StreamSessionRequest(frame=frame.to_message(checksum=self._checksum)), frame.seq
-        )
+        await self._send(self._frame_request(frame), frame.seq)
 
     async def results(
         self, *, timeout: float | None = None
@@ -474,12 +392,6 @@ class AsyncSession:
             # Stamped once the write may go: a probe that waited for a resume to re-send, stamped
             # before, would tell the server a send time the wait earlier than it was.
             await self._write(self._probe())
-
-    def _probe(self) -> dynamics_pb2.StreamSessionRequest:
-        """The next clock probe, its send time now: write it at once."""
-        self._probe_id += 1
-        self._last_sync_sent = self.now()
-        return sync_request(self._probe_id, self._last_sync_sent, self._last_probe)
 
     # Ending.
 

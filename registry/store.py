@@ -9,14 +9,13 @@ extracted, so no stored asset name ever becomes a server path.
 from __future__ import annotations
 
 import io
-import os
-import uuid
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 
 import sqlalchemy as sa
 
+from jitdyn.storage.layout import write_durably
 from jitdyn.storage.schema import model_blobs
 
 __all__ = ["blob_path", "fetch_blob", "publish_blob", "read_blob", "write_blob"]
@@ -54,21 +53,7 @@ def _write_local(data_root: Path, relative: str, data: bytes) -> None:
     if final.exists():
         return  # content-addressed: the same id is the same content
     final.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    temporary = final.with_name(f".{final.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        # Readable by the server's user only, whatever the umask (DESIGN: Security and limits).
-        with os.fdopen(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "wb") as file:
-            file.write(data)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(temporary, final)
-    finally:
-        temporary.unlink(missing_ok=True)
-    directory = os.open(final.parent, os.O_RDONLY)
-    try:
-        os.fsync(directory)  # the rename itself survives a crash
-    finally:
-        os.close(directory)
+    write_durably(final, [data])
 
 
 def publish_blob(engine: sa.Engine, model_id: str, data: bytes) -> None:

@@ -20,7 +20,7 @@ import json
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Any, Final, NotRequired, TypedDict, Unpack
 
 import sqlalchemy as sa
 
@@ -29,7 +29,7 @@ from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummary
 from jitdyn.storage.schema import sessions
 from jitdyn.vocabulary import Clock, Scenario, SessionStatus
 
-__all__ = ["MAX_PAGE_SIZE", "SessionIndex", "SessionRow", "finish_session"]
+__all__ = ["MAX_PAGE_SIZE", "Ending", "SessionIndex", "SessionRow", "finish_session"]
 
 MAX_PAGE_SIZE: Final = 1000
 _TOKEN_VERSION: Final = 1
@@ -208,24 +208,14 @@ class SessionIndex:
                 .values(**_summary_values(summary))
             )
 
-    def finish(
-        self,
-        session_id: str,
-        *,
-        status: SessionStatus | str,
-        summary: SessionSummaryInfo,
-        location: str,
-        ended_at: _dt.datetime | None = None,
-    ) -> None:
+    def finish(self, session_id: str, **ending: Unpack[Ending]) -> None:
         """End an OPEN session in one transaction: its status, summary, Parquet location and end.
 
         Raises FailedPrecondition when the session is not OPEN (already ended, or recovered by
         another server), NotFound when the index has no such session.
         """
         with self._engine.begin() as conn:
-            finish_session(
-                conn, session_id, status=status, summary=summary, location=location, ended_at=ended_at
-            )
+            finish_session(conn, session_id, **ending)
 
     def discard(self, session_id: str) -> None:
         """Remove the row of a session that was never served (its open failed or was abandoned
@@ -367,18 +357,22 @@ class SessionIndex:
             return [_row(m) for m in conn.execute(query).mappings()]
 
 
-def finish_session(
-    conn: sa.Connection,
-    session_id: str,
-    *,
-    status: SessionStatus | str,
-    summary: SessionSummaryInfo,
-    location: str,
-    ended_at: _dt.datetime | None = None,
-) -> None:
+class Ending(TypedDict):
+    """How a session ended, as `SessionIndex.finish` and `finish_session` take it: its final
+    status, its summary, where its Parquet file is, and when (default: now)."""
+
+    status: SessionStatus | str
+    summary: SessionSummaryInfo
+    location: str
+    ended_at: NotRequired[_dt.datetime | None]
+
+
+def finish_session(conn: sa.Connection, session_id: str, **ending: Unpack[Ending]) -> None:
     """`SessionIndex.finish` inside the caller's transaction (the shared tier ends a lease in it too)."""
-    status = stored_word(SessionStatus, status, argument="status", among=FINAL_STATUSES)
+    status = stored_word(SessionStatus, ending["status"], argument="status", among=FINAL_STATUSES)
+    ended_at = ending.get("ended_at")
     end = _dt.datetime.now(_dt.UTC) if ended_at is None else _aware("ended_at", ended_at)
+    summary, location = ending["summary"], ending["location"]
     result = conn.execute(
         sa.update(sessions)
         .where(sessions.c.session_id == session_id, sessions.c.status == SessionStatus.OPEN.value)

@@ -10,6 +10,8 @@ path, and leaves the data folder.
 from __future__ import annotations
 
 import os
+import uuid
+from collections.abc import Iterable
 from pathlib import Path, PurePosixPath
 
 __all__ = [
@@ -20,6 +22,7 @@ __all__ = [
     "log_location",
     "make_dirs",
     "prepare_data_root",
+    "write_durably",
 ]
 
 LOG_DIR = "logs"
@@ -43,6 +46,23 @@ def fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def write_durably(target: Path, chunks: Iterable[bytes]) -> None:
+    """Write `chunks` as the file `target`, whole or not at all: through a temporary file beside it
+    (0600, the server's user's only whatever the umask), fsynced, renamed over `target`, and the
+    rename made durable in the folder."""
+    temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        with os.fdopen(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600), "wb") as file:
+            for chunk in chunks:
+                file.write(chunk)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, target)
+    finally:
+        temporary.unlink(missing_ok=True)
+    fsync_dir(target.parent)
 
 
 def make_dirs(root: Path, relative: str) -> Path:

@@ -29,7 +29,8 @@ import enum
 import logging
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from pathlib import Path
 from types import TracebackType
 from typing import Self
@@ -327,39 +328,28 @@ class SessionRecorder:
                 return self._location
             self._state = _State.CLOSED
         self._stop_committing()
-        if self._shared is not None:
-            return self._close_shared(self._shared, summary, status)
+        try:
+            if self._shared is not None:
+                return self._close_shared(self._shared, summary, status)
+            return self._close_local(summary, status)
+        except BaseException as exc:
+            self._close_error = exc
+            raise
+
+    def _close_local(self, summary: SessionSummaryInfo | None, status: SessionStatus) -> str:
         assert self._writer is not None
         try:
             if self._failure is not None:
                 # The log holds what was durable; the session stays OPEN, and the next start
                 # recovers it.
                 raise self._failure
-            try:
-                self._writer.finish()
-                summariser = Summariser(dof_names=self._header.dof_names)
-                with stream_log(self._log_path) as log:
-                    location = _compact(
-                        data_root=self._data_root,
-                        header=self._header,
-                        log=log,
-                        summariser=summariser if summary is None else None,
-                    )
-                summary = summariser.result() if summary is None else summary
-                stored = publish_frames(self._root, data=self._data_root, relative=location)
-                self._index.finish(self._header.session_id, status=status, summary=summary, location=stored)
+            self._writer.finish()
+
+            def end(summary: SessionSummaryInfo, location: str) -> None:
+                self._index.finish(self._header.session_id, status=status, summary=summary, location=location)
                 _delete_log(self._log_path)
-                drop_local_copy(data=self._data_root, relative=location, location=stored)
-                location = stored
-            except STORAGE_ERRORS as error:
-                raise storage_failure(
-                    f"session {self._header.session_id} could not be stored", error
-                ) from None
-            self._location, self._stored_summary = location, summary
-            return location
-        except BaseException as exc:
-            self._close_error = exc
-            raise
+
+            return self._store(stream_log(self._log_path), summary, end)
         finally:
             # Released only now: until the index says the session ended, its lock keeps a
             # recovering server away from it.
@@ -370,36 +360,43 @@ class SessionRecorder:
     ) -> str:
         lease = self._lease
         assert lease is not None
+        if self._failure is not None:
+            # What was committed stays in the shared tier; a resume or a live replica ends it.
+            raise self._failure
+
+        def end(summary: SessionSummaryInfo, location: str) -> None:
+            shared.finish(lease, status=status, summary=summary, location=location)
+
+        # A resumed session's counts on this stream are only its latest part: its summary is
+        # computed from all of its rows.
+        return self._store(shared.stream(self._header.session_id), None if self._resumed else summary, end)
+
+    def _store(
+        self,
+        opened_log: AbstractContextManager[LogStream | SharedLogStream],
+        summary: SessionSummaryInfo | None,
+        end: Callable[[SessionSummaryInfo, str], None],
+    ) -> str:
+        """Compact the log to Parquet (summarising its rows when `summary` is None), publish it,
+        `end(summary, location)` the session in the index, drop the local copy; returns where the
+        Parquet file is stored. A storage error becomes Unavailable naming the session."""
         try:
-            if self._failure is not None:
-                # What was committed stays in the shared tier; a resume or a live replica ends it.
-                raise self._failure
-            try:
-                # A resumed session's counts on this stream are only its latest part: its summary
-                # is computed from all of its rows.
-                summary = None if self._resumed else summary
-                summariser = Summariser(dof_names=self._header.dof_names)
-                with shared.stream(self._header.session_id) as log:
-                    location = _compact(
-                        data_root=self._data_root,
-                        header=self._header,
-                        log=log,
-                        summariser=summariser if summary is None else None,
-                    )
-                summary = summariser.result() if summary is None else summary
-                stored = publish_frames(self._root, data=self._data_root, relative=location)
-                shared.finish(lease, status=status, summary=summary, location=stored)
-                drop_local_copy(data=self._data_root, relative=location, location=stored)
-                location = stored
-            except STORAGE_ERRORS as error:
-                raise storage_failure(
-                    f"session {self._header.session_id} could not be stored", error
-                ) from None
-            self._location, self._stored_summary = location, summary
-            return location
-        except BaseException as exc:
-            self._close_error = exc
-            raise
+            summariser = Summariser(dof_names=self._header.dof_names)
+            with opened_log as log:
+                location = _compact(
+                    data_root=self._data_root,
+                    header=self._header,
+                    log=log,
+                    summariser=summariser if summary is None else None,
+                )
+            summary = summariser.result() if summary is None else summary
+            stored = publish_frames(self._root, data=self._data_root, relative=location)
+            end(summary, stored)
+            drop_local_copy(data=self._data_root, relative=location, location=stored)
+        except STORAGE_ERRORS as error:
+            raise storage_failure(f"session {self._header.session_id} could not be stored", error) from None
+        self._location, self._stored_summary = stored, summary
+        return stored
 
     def park(self) -> None:
         """The stream ended without a close (its client's connection broke, or this server is

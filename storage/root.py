@@ -15,7 +15,6 @@ that says what is wrong. Why pyarrow.fs and publishing at finish: docs/decisions
 from __future__ import annotations
 
 import functools
-import os
 import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ from urllib.parse import urlsplit
 import pyarrow.fs as pafs
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, Unavailable
-from jitdyn.storage.layout import fsync_dir, make_dirs
+from jitdyn.storage.layout import make_dirs, write_durably
 
 __all__ = [
     "SCHEMES",
@@ -188,20 +187,8 @@ class DataRoot:
         base = Path(self.base)
         folder = make_dirs(base, str(PurePosixPath(relative).parent))
         target = folder / PurePosixPath(relative).name
-        tmp = folder / f".{target.name}.{uuid.uuid4().hex[:8]}.tmp"
-        try:
-            with (
-                source.open("rb") as src,
-                os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT, 0o600), "wb") as dst,
-            ):
-                while chunk := src.read(_COPY_CHUNK):
-                    dst.write(chunk)
-                dst.flush()
-                os.fsync(dst.fileno())
-            os.replace(tmp, target)
-        finally:
-            tmp.unlink(missing_ok=True)
-        fsync_dir(folder)
+        with source.open("rb") as src:
+            write_durably(target, iter(lambda: src.read(_COPY_CHUNK), b""))
 
     def _publish_object(self, source: Path, relative: str) -> None:
         # An object appears whole when its upload completes, or not at all.

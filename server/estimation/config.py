@@ -15,6 +15,7 @@ import enum
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any, Final
 
 import mujoco
@@ -288,20 +289,23 @@ def check_against_model(model: mujoco.MjModel, config: EstimatorConfig) -> None:
         )
 
 
+_NONE_SET: Final[Mapping[str, object]] = MappingProxyType({})
+
+
 def resolve_config(
     *,
     model: mujoco.MjModel,
     scenario: Scenario | str,
     dt: float,
-    requested: Mapping[str, object],
-    model_defaults: Mapping[str, object],
+    requested: Mapping[str, object] = _NONE_SET,
+    model_defaults: Mapping[str, object] = _NONE_SET,
     preset: Preset | str = Preset.JITDYN,
     measured: Iterable[str],
 ) -> EstimatorConfig:
     """The complete settings of a session: each field from the request if set there, else from the
     model's defaults for the scenario, else from the preset (`preset_values`).
 
-    requested, model_defaults: some of SETTING_FIELDS.
+    requested, model_defaults: some of SETTING_FIELDS (default: none set).
     Raises InvalidArgument naming the first bad field.
     """
     _check_names(requested, "requested")

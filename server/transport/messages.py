@@ -6,9 +6,11 @@ only place that knows both sides.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
-from jitdyn.server.runtime.frames import Rejection
+from jitdyn.server.runtime.frames import FrameIn, Rejection
 from jitdyn.server.runtime.session import SessionCounts, TickOutcome
 from jitdyn.storage.records import SessionSummaryInfo, TickRecord
 from jitdyn.v1 import common_pb2, dynamics_pb2
@@ -82,6 +84,15 @@ def rejected_message(rejection: Rejection) -> dynamics_pb2.Rejected:
     )
 
 
+# What a frame brings to its stored row, as the `frame_*` columns.
+_FRAME_FIELDS = ("t", "qpos", "qvel", "qacc", "ctrl", "sensordata")
+
+
+def _frame_columns(frame: FrameIn | None) -> dict[str, Any]:
+    """The `frame_*` columns of a stored row: the frame's values, or None where none arrived."""
+    return {f"frame_{name}": None if frame is None else getattr(frame, name) for name in _FRAME_FIELDS}
+
+
 def tick_record(
     outcome: TickOutcome, *, server_time: float, frame_delay: float | None, receive_to_send_us: int
 ) -> TickRecord:
@@ -97,12 +108,7 @@ def tick_record(
         t=outcome.t,
         server_time=server_time,
         frame_received=frame is not None,
-        frame_t=frame.t if frame is not None else None,
-        frame_qpos=frame.qpos if frame is not None else None,
-        frame_qvel=frame.qvel if frame is not None else None,
-        frame_qacc=frame.qacc if frame is not None else None,
-        frame_ctrl=frame.ctrl if frame is not None else None,
-        frame_sensordata=frame.sensordata if frame is not None else None,
+        **_frame_columns(frame),
         late_ticks=outcome.late_ticks,
         frame_delay=frame_delay,
         qpos=outcome.qpos,
@@ -135,12 +141,7 @@ def rejection_record(rejection: Rejection, *, server_time: float, t: float) -> T
         t=t,
         server_time=server_time,
         frame_received=True,
-        frame_t=frame.t if frame is not None else None,
-        frame_qpos=frame.qpos if frame is not None else None,
-        frame_qvel=frame.qvel if frame is not None else None,
-        frame_qacc=frame.qacc if frame is not None else None,
-        frame_ctrl=frame.ctrl if frame is not None else None,
-        frame_sensordata=frame.sensordata if frame is not None else None,
+        **_frame_columns(frame),
         late_ticks=0,
         frame_delay=None,
         qpos=None,

@@ -10,15 +10,14 @@ vocabulary members: {"PASSIVE": {"preset": Preset.THESIS, "alpha": 0.001}}.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Any
 
 from google.protobuf import timestamp_pb2
 
 from jitdyn.errors import InvalidArgument
-from jitdyn.estimator_settings import SETTINGS
 from jitdyn.registry import ModelInfo, ModelMetadata
 from jitdyn.registry.info import check_metadata
+from jitdyn.settings_message import settings_from_message, settings_message
 from jitdyn.v1 import common_pb2, model_registry_pb2
 from jitdyn.vocabulary import JointType, Scenario, from_proto, parse, to_proto
 
@@ -26,37 +25,7 @@ __all__ = [
     "metadata_from_message",
     "metadata_message",
     "model_message",
-    "settings_from_message",
-    "settings_message",
 ]
-
-
-def settings_from_message(settings: common_pb2.EstimatorSettings, *, argument: str) -> dict[str, Any]:
-    """The settings a message sets, one per row of estimator_settings.SETTINGS: an enum setting as
-    its vocabulary member, a number as a float; unset ones left out."""
-    present = {descriptor.name: value for descriptor, value in settings.ListFields()}
-    result: dict[str, Any] = {}
-    for name, row in SETTINGS.items():
-        if row.choices is not None:
-            word = from_proto(row.choices, getattr(settings, name), argument=f"{argument}.{name}")
-            if word is not None:
-                result[name] = word
-        elif name in present:  # the numbers are `optional`: set to 0 is not unset
-            result[name] = present[name]
-    return result
-
-
-def settings_message(settings: Mapping[str, Any]) -> common_pb2.EstimatorSettings:
-    """The message of a settings dict (as `settings_from_message` makes; enum settings may also be
-    their names)."""
-    message = common_pb2.EstimatorSettings()
-    for name, value in settings.items():
-        choices = SETTINGS[name].choices
-        if choices is not None:
-            setattr(message, name, to_proto(parse(choices, value, argument=f"settings.{name}")))
-        else:
-            setattr(message, name, value)
-    return message
 
 
 def metadata_from_message(message: model_registry_pb2.ModelMetadata) -> ModelMetadata:

@@ -9,12 +9,8 @@ from __future__ import annotations
 from jitdyn.errors import InvalidArgument
 from jitdyn.server.runtime.opening import OpenedSession
 from jitdyn.server.runtime.plan import InlineModel, ModelChoice, OpenRequest, Resume
-from jitdyn.server.transport.model_messages import (
-    metadata_from_message,
-    model_message,
-    settings_from_message,
-    settings_message,
-)
+from jitdyn.server.transport.model_messages import metadata_from_message, model_message
+from jitdyn.settings_message import settings_from_message, settings_message
 from jitdyn.v1 import common_pb2, dynamics_pb2
 from jitdyn.vocabulary import Channel, Clock, Horizon, Output, Scenario, from_proto, to_proto
 

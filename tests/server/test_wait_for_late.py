@@ -90,8 +90,6 @@ def _runtime(
         model=model,
         scenario=case.scenario,
         dt=case.dt,
-        requested={},
-        model_defaults={},
         preset="JITDYN",
         measured={"qpos", "qvel"},
     )

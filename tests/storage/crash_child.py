@@ -9,41 +9,22 @@ from __future__ import annotations
 import datetime as dt
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
 
+# Run as a script, this file's folder is first on sys.path: the storage tests' header is this one's.
+from conftest import build_header
+
 from jitdyn.storage.db import open_index
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.recorder import SessionRecorder
-from jitdyn.storage.records import SessionHeader, TickRecord
+from jitdyn.storage.records import TickRecord
 
 
 def main() -> None:
     data_root, url = Path(sys.argv[1]), sys.argv[2]
-    header = SessionHeader(
-        session_id=str(uuid.uuid4()),
-        tenant="",
-        model_id="sha256:" + "cd" * 32,
-        model_name="pendulum_3",
-        model_version=1,
-        joint_names=("hinge_1", "hinge_2", "hinge_3"),
-        joint_types=("hinge", "hinge", "hinge"),
-        dof_names=("hinge_1", "hinge_2", "hinge_3"),
-        nq=3,
-        nv=3,
-        nu=3,
-        nsensordata=0,
-        timestep=0.002,
-        dt=0.01,
-        scenario="PASSIVE",
-        clock="LOCKSTEP",
-        estimator={"estimator": "UKF"},
-        subject_pseudonym="",
-        subject_attributes={},
-        started_at=dt.datetime.now(dt.UTC),
-    )
+    header = build_header(actuator_names=(), started_at=dt.datetime.now(dt.UTC))
     index = SessionIndex(open_index(url))
     recorder = SessionRecorder(data_root=data_root, index=index, header=header, commit_every=64)
     print(header.session_id, flush=True)
