@@ -27,6 +27,7 @@ from jitdyn.registry.store import blob_path, fetch_blob, read_blob
 from jitdyn.storage.db import open_index
 from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.stored import read_stored
+from jitdyn.storage.summary import format_counts
 from jitdyn.storage.timeline import TIMELINE_COLUMNS, Timeline, session_timeline
 from jitdyn.vocabulary import Source
 
@@ -148,14 +149,17 @@ def _png_tick(session: _Session, frame: float | None) -> tuple[int, str]:
     t, dt = session.timeline.t, session.row.dt
     if frame is None:
         i = len(t) // 2
-        return i, f"the frame at t = {t[i]:.3f} s, the middle of the session (choose another with --frame)"
+        return i, (
+            f"the frame of tick {i + 1} at t = {t[i]:.3f} s, the middle of the session (choose another "
+            f"with --frame), {_source(session.timeline, i)[0]}"
+        )
     if not t[0] - dt / 2 <= frame <= t[-1] + dt / 2:
         raise InvalidArgument(
             f"--frame {frame:g}s is outside session {session.row.session_id}, whose ticks run from "
             f"{t[0]:g} s to {t[-1]:g} s"
         )
     i = int(np.argmin(np.abs(t - frame)))
-    return i, f"the frame of tick {i + 1} at t = {t[i]:.3f} s"
+    return i, f"the frame of tick {i + 1} at t = {t[i]:.3f} s, {_source(session.timeline, i)[0]}"
 
 
 def _write_png(path: Path, frames: Iterator[Pixels], fps: float) -> None:
@@ -222,16 +226,29 @@ def replay(request: RenderRequest) -> Rendered:
     """Draw the session of `request` into `request.out`, written whole or not at all."""
     session = _load(request)
     ticks, fps, note = _plan(request, session)
-    bare, dressed = dressed_model(session.mjcf, session.assets)
+    try:
+        timeline = session.timeline
+        poses = np.concatenate([timeline.answered_qpos[ticks], timeline.frame_qpos[ticks]])
+        dressed, view = dressed_model(session.mjcf, session.assets, poses)
+    except ValueError as error:  # MuJoCo's compile error: the registry compiled it, this copy did not
+        raise FailedPrecondition(
+            f"the model of session {session.row.session_id} ({session.row.model_id}) does not compile "
+            f"for drawing: {' '.join(str(error).split())}"
+        ) from None
     target = request.out
     tmp = target.with_name(f".{target.stem}.tmp{target.suffix}")
     try:
-        with SessionScene(dressed, framing=bare, size=request.size) as scene:
+        with SessionScene(dressed, view=view, size=request.size) as scene:
             _WRITERS[target.suffix.lower()](tmp, _frames(scene, session, ticks), fps)
         os.replace(tmp, target)
     finally:
         tmp.unlink(missing_ok=True)
-    return Rendered(path=target, notes=(note,))
+    row = session.row
+    told = (
+        f"session {row.session_id}: {row.model_name} v{row.model_version}, {row.scenario} {row.clock}, "
+        f"{row.status}, {' '.join(format_counts(row.summary).split())}"
+    )
+    return Rendered(path=target, notes=(told, note))
 
 
 def _answer(request_text: str) -> dict[str, Any]:

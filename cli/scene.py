@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image, ImageDraw, ImageFont
 
-__all__ = ["Caption", "Pixels", "SessionScene", "dressed_model"]
+__all__ = ["Caption", "Pixels", "SessionScene", "View", "dressed_model", "session_view"]
 
 Pixels = npt.NDArray[np.uint8]
 
@@ -41,47 +41,106 @@ def _has_floor(spec: mujoco.MjSpec) -> bool:
     return any(geom.type == mujoco.mjtGeom.mjGEOM_PLANE for geom in spec.worldbody.find_all("geom"))
 
 
-def dressed_model(mjcf: str, assets: Mapping[str, bytes]) -> tuple[mujoco.MjModel, mujoco.MjModel]:
-    """The model as registered, and the same model with a sky and a floor where it had none (the
-    floor one extent below its centre, touching nothing). Compiled from memory only."""
-    spec = mujoco.MjSpec.from_string(mjcf, assets=dict(assets))
-    bare = spec.compile()
+@dataclass(frozen=True)
+class View:
+    """Where the camera looks: the sphere (centre, radius, m) the moving bodies stay in over the
+    session, and the height of the lowest geom (m), for a floor. With a floating base the centre is
+    relative to the root's (x, y), which the camera follows."""
+
+    center: npt.NDArray[np.float64]  # (3,)
+    radius: float
+    lowest: float
+    follow: bool
+
+
+def _moving_geoms(model: mujoco.MjModel) -> npt.NDArray[np.bool_]:
+    """(ngeom,) the geoms of bodies that have a joint or hang from one that has."""
+    moving = np.zeros(model.nbody, dtype=bool)
+    for body in range(1, model.nbody):  # a parent's index is below its children's
+        moving[body] = model.body_jntnum[body] > 0 or moving[model.body_parentid[body]]
+    return np.asarray(moving[model.geom_bodyid], dtype=bool)
+
+
+def session_view(model: mujoco.MjModel, poses: npt.NDArray[np.float64], *, samples: int = 200) -> View:
+    """The view of the bodies moving through `poses` (k, nq), up to `samples` of them evenly spread."""
+    follow = bool(np.any(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE))
+    moving = _moving_geoms(model) & (model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE)
+    solid = model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE
+    data = mujoco.MjData(model)
+    poses = poses[np.isfinite(poses).all(axis=1)]
+    chosen = poses[np.linspace(0, len(poses) - 1, min(samples, len(poses))).astype(int)] if len(poses) else []
+    lo, hi, lowest = np.full(3, np.inf), np.full(3, -np.inf), np.inf
+    for qpos in [model.qpos0, *chosen]:
+        data.qpos[:] = qpos
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        shift = np.array([*data.subtree_com[1][:2], 0.0]) if follow else np.zeros(3)
+        reach = model.geom_rbound[:, None]
+        if moving.any():
+            lo = np.minimum(lo, (data.geom_xpos[moving] - reach[moving] - shift).min(axis=0))
+            hi = np.maximum(hi, (data.geom_xpos[moving] + reach[moving] - shift).max(axis=0))
+        if solid.any():
+            lowest = min(lowest, float((data.geom_xpos[solid, 2] - model.geom_rbound[solid]).min()))
+    if not moving.any():  # nothing moves: the whole model, as MuJoCo frames it
+        center, radius = np.asarray(model.stat.center, dtype=np.float64), float(model.stat.extent)
+    else:
+        center, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
+    lowest = lowest if np.isfinite(lowest) else float(center[2] - radius)
+    return View(center=center, radius=max(radius, 1e-3), lowest=lowest, follow=follow)
+
+
+def _add_sky(spec: mujoco.MjSpec) -> None:
+    spec.add_texture(
+        name="jitdyn_sky",
+        type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+        builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
+        rgb1=_SKY[0],
+        rgb2=_SKY[1],
+        width=256,
+        height=256,
+    )
+
+
+def _add_floor(spec: mujoco.MjSpec, view: View) -> None:
+    spec.add_texture(
+        name="jitdyn_floor",
+        type=mujoco.mjtTexture.mjTEXTURE_2D,
+        builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+        rgb1=_FLOOR[0],
+        rgb2=_FLOOR[1],
+        width=512,
+        height=512,
+    )
+    material = spec.add_material(name="jitdyn_floor", texrepeat=[12, 12])
+    material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "jitdyn_floor"
+    spec.worldbody.add_geom(
+        name="jitdyn_floor",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[12 * view.radius, 12 * view.radius, 0.05],
+        pos=[*view.center[:2], view.lowest - 0.25 * view.radius],
+        fromto=[math.nan] * 6,  # a default class may give geoms a fromto, which a plane refuses
+        material="jitdyn_floor",
+        rgba=[1, 1, 1, 1],
+        contype=0,
+        conaffinity=0,
+        group=0,
+    )
+
+
+def dressed_model(
+    mjcf: str, assets: Mapping[str, bytes], poses: npt.NDArray[np.float64]
+) -> tuple[mujoco.MjModel, View]:
+    """The model with a sky and a floor where it had none (below its lowest geom over `poses`
+    (k, nq), touching nothing), and the view of its moving bodies. Compiled from memory only."""
+    # Included XML files are assets to the registry, `include` to MjSpec.
+    included = {name: data for name, data in assets.items() if name.lower().endswith(".xml")}
+    spec = mujoco.MjSpec.from_string(mjcf, include=included, assets=dict(assets))
+    view = session_view(spec.compile(), poses)
     if not _has_skybox(spec):
-        spec.add_texture(
-            name="jitdyn_sky",
-            type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
-            builtin=mujoco.mjtBuiltin.mjBUILTIN_GRADIENT,
-            rgb1=_SKY[0],
-            rgb2=_SKY[1],
-            width=256,
-            height=256,
-        )
+        _add_sky(spec)
     if not _has_floor(spec):
-        spec.add_texture(
-            name="jitdyn_floor",
-            type=mujoco.mjtTexture.mjTEXTURE_2D,
-            builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
-            rgb1=_FLOOR[0],
-            rgb2=_FLOOR[1],
-            width=512,
-            height=512,
-        )
-        material = spec.add_material(name="jitdyn_floor", texrepeat=[10, 10])
-        material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "jitdyn_floor"
-        extent = float(bare.stat.extent)
-        spec.worldbody.add_geom(
-            name="jitdyn_floor",
-            type=mujoco.mjtGeom.mjGEOM_PLANE,
-            size=[8 * extent, 8 * extent, 0.05],
-            pos=[*bare.stat.center[:2], bare.stat.center[2] - extent],
-            fromto=[math.nan] * 6,  # a default class may give geoms a fromto, which a plane refuses
-            material="jitdyn_floor",
-            rgba=[1, 1, 1, 1],
-            contype=0,
-            conaffinity=0,
-            group=0,
-        )
-    return bare, spec.compile()
+        _add_floor(spec, view)
+    return spec.compile(), view
 
 
 @dataclass(frozen=True)
@@ -105,13 +164,12 @@ class SessionScene:
     """An offscreen renderer of one model; a context manager, `close()` safe twice.
 
     Args:
-      model: the dressed model (dressed_model), whose stat frames the camera.
-      framing: the model whose stat.center and stat.extent the camera looks at (the bare model: the
-        floor would widen the extent).
+      model: the dressed model (dressed_model).
+      view: what the camera frames (dressed_model, session_view).
       size: (width, height) of a frame in pixels, caption included.
     """
 
-    def __init__(self, model: mujoco.MjModel, *, framing: mujoco.MjModel, size: tuple[int, int]) -> None:
+    def __init__(self, model: mujoco.MjModel, *, view: View, size: tuple[int, int]) -> None:
         width, height = size
         self._model = model
         model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), width)
@@ -124,11 +182,13 @@ class SessionScene:
         self._perturb = mujoco.MjvPerturb()
         self._camera = mujoco.MjvCamera()
         self._camera.type = mujoco.mjtCamera.mjCAMERA_FREE
-        self._camera.lookat[:] = framing.stat.center
-        self._camera.distance = 2.0 * float(framing.stat.extent)
+        self._camera.lookat[:] = view.center
+        # Far enough that the view's sphere fits the frame's height, with a margin.
+        half_fovy = math.radians(float(model.vis.global_.fovy)) / 2
+        self._camera.distance = 1.1 * view.radius / math.sin(half_fovy)
         self._camera.azimuth, self._camera.elevation = 90.0, -12.0
         # A floating base (the biped) walks away from where it started: the camera follows its root.
-        self._follow = bool(np.any(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE))
+        self._view = view
         self._font = _font(_FONT_SIZE)
         self._closed = False
 
@@ -153,8 +213,8 @@ class SessionScene:
         """The frame of one tick: `qpos` (nq,) solid, `ghost` (nq,) translucent when given (and
         finite), the caption below; (height, width, 3) uint8."""
         self._pose(self._answered, qpos)
-        if self._follow:
-            self._camera.lookat[:2] = self._answered.subtree_com[1][:2]
+        if self._view.follow:
+            self._camera.lookat[:2] = self._view.center[:2] + self._answered.subtree_com[1][:2]
         self._renderer.update_scene(self._answered, self._camera, self._option)
         if ghost is not None and np.isfinite(ghost).all():
             self._pose(self._ghost, ghost)
