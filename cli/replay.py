@@ -228,7 +228,8 @@ def replay(request: RenderRequest) -> Rendered:
     ticks, fps, note = _plan(request, session)
     try:
         timeline = session.timeline
-        poses = np.concatenate([timeline.answered_qpos[ticks], timeline.frame_qpos[ticks]])
+        # Every tick, whichever are drawn: a PNG is framed as the video of the same session is.
+        poses = np.concatenate([timeline.answered_qpos, timeline.frame_qpos])
         dressed, view = dressed_model(session.mjcf, session.assets, poses)
     except ValueError as error:  # MuJoCo's compile error: the registry compiled it, this copy did not
         raise FailedPrecondition(

@@ -43,25 +43,39 @@ def _has_floor(spec: mujoco.MjSpec) -> bool:
 
 @dataclass(frozen=True)
 class View:
-    """Where the camera looks: the sphere (centre, radius, m) the moving bodies stay in over the
+    """Where the camera looks: the box (centre, half sizes, m) the moving bodies stay in over the
     session, and the height of the lowest geom (m), for a floor. With a floating base the centre is
     relative to the root's (x, y), which the camera follows."""
 
     center: npt.NDArray[np.float64]  # (3,)
-    radius: float
+    half: npt.NDArray[np.float64]  # (3,)
     lowest: float
     follow: bool
 
+    @property
+    def radius(self) -> float:
+        return float(np.linalg.norm(self.half))
+
+    def distance(self, fovy_degrees: float, aspect: float) -> float:
+        """How far a camera looking along +y must stand for the box to fill most of its frame."""
+        tan_y = math.tan(math.radians(fovy_degrees) / 2)
+        fit = max(self.half[2] / tan_y, self.half[0] / (tan_y * aspect))
+        return 1.25 * float(fit) + float(self.half[1])
+
 
 def _moving_geoms(model: mujoco.MjModel) -> npt.NDArray[np.bool_]:
-    """(ngeom,) the geoms of bodies that have a joint or hang from one that has."""
+    """(ngeom,) the geoms of bodies that have a joint or hang from one that has, and of the body a
+    jointed body hangs from (the upper arm of an elbow: what the motion is seen against)."""
     moving = np.zeros(model.nbody, dtype=bool)
     for body in range(1, model.nbody):  # a parent's index is below its children's
         moving[body] = model.body_jntnum[body] > 0 or moving[model.body_parentid[body]]
-    return np.asarray(moving[model.geom_bodyid], dtype=bool)
+    shown = moving.copy()
+    shown[model.body_parentid[moving]] = True
+    shown[0] = False  # the world: a room, a floor
+    return np.asarray(shown[model.geom_bodyid], dtype=bool)
 
 
-def session_view(model: mujoco.MjModel, poses: npt.NDArray[np.float64], *, samples: int = 200) -> View:
+def session_view(model: mujoco.MjModel, poses: npt.NDArray[np.float64], *, samples: int = 500) -> View:
     """The view of the bodies moving through `poses` (k, nq), up to `samples` of them evenly spread."""
     follow = bool(np.any(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE))
     moving = _moving_geoms(model) & (model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE)
@@ -69,24 +83,29 @@ def session_view(model: mujoco.MjModel, poses: npt.NDArray[np.float64], *, sampl
     data = mujoco.MjData(model)
     poses = poses[np.isfinite(poses).all(axis=1)]
     chosen = poses[np.linspace(0, len(poses) - 1, min(samples, len(poses))).astype(int)] if len(poses) else []
-    lo, hi, lowest = np.full(3, np.inf), np.full(3, -np.inf), np.inf
+    lows, highs, bottoms = [], [], []  # per pose: the moving geoms' box, the lowest geom
+    reach = model.geom_rbound[:, None]
     for qpos in [model.qpos0, *chosen]:
         data.qpos[:] = qpos
         mujoco.mj_kinematics(model, data)
         mujoco.mj_comPos(model, data)
         shift = np.array([*data.subtree_com[1][:2], 0.0]) if follow else np.zeros(3)
-        reach = model.geom_rbound[:, None]
         if moving.any():
-            lo = np.minimum(lo, (data.geom_xpos[moving] - reach[moving] - shift).min(axis=0))
-            hi = np.maximum(hi, (data.geom_xpos[moving] + reach[moving] - shift).max(axis=0))
+            lows.append((data.geom_xpos[moving] - reach[moving] - shift).min(axis=0))
+            highs.append((data.geom_xpos[moving] + reach[moving] - shift).max(axis=0))
         if solid.any():
-            lowest = min(lowest, float((data.geom_xpos[solid, 2] - model.geom_rbound[solid]).min()))
+            bottoms.append(float((data.geom_xpos[solid, 2] - model.geom_rbound[solid]).min()))
     if not moving.any():  # nothing moves: the whole model, as MuJoCo frames it
-        center, radius = np.asarray(model.stat.center, dtype=np.float64), float(model.stat.extent)
+        center, half = np.asarray(model.stat.center, dtype=np.float64), np.full(3, float(model.stat.extent))
     else:
-        center, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2)
-    lowest = lowest if np.isfinite(lowest) else float(center[2] - radius)
-    return View(center=center, radius=max(radius, 1e-3), lowest=lowest, follow=follow)
+        # A few diverged predictions far away must not shrink the body to a dot: 1 % of the poses
+        # may leave the frame when there are a hundred or more.
+        cut = 1.0 if len(lows) >= 100 else 0.0
+        lo, hi = np.percentile(lows, cut, axis=0), np.percentile(highs, 100 - cut, axis=0)
+        center, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-3)
+    lowest = float(np.percentile(bottoms, 1.0 if len(bottoms) >= 100 else 0.0)) if bottoms else math.nan
+    lowest = lowest if np.isfinite(lowest) else float(center[2] - half[2])
+    return View(center=center, half=half, lowest=lowest, follow=follow)
 
 
 def _add_sky(spec: mujoco.MjSpec) -> None:
@@ -111,12 +130,14 @@ def _add_floor(spec: mujoco.MjSpec, view: View) -> None:
         width=512,
         height=512,
     )
-    material = spec.add_material(name="jitdyn_floor", texrepeat=[12, 12])
+    # Squares of a fifth of the box's size, however large the floor.
+    repeat = 2.5 / max(float(view.half.max()), 1e-3)
+    material = spec.add_material(name="jitdyn_floor", texrepeat=[repeat, repeat], texuniform=True)
     material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "jitdyn_floor"
     spec.worldbody.add_geom(
         name="jitdyn_floor",
         type=mujoco.mjtGeom.mjGEOM_PLANE,
-        size=[12 * view.radius, 12 * view.radius, 0.05],
+        size=[100 * view.radius, 100 * view.radius, 0.05],
         pos=[*view.center[:2], view.lowest - 0.25 * view.radius],
         fromto=[math.nan] * 6,  # a default class may give geoms a fromto, which a plane refuses
         material="jitdyn_floor",
@@ -124,6 +145,16 @@ def _add_floor(spec: mujoco.MjSpec, view: View) -> None:
         contype=0,
         conaffinity=0,
         group=0,
+    )
+    # A light from high above for the whole floor: a model's own spot lights its bodies only, and
+    # the floor beyond them went black.
+    spec.worldbody.add_light(
+        name="jitdyn_sun",
+        type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+        dir=[0.0, 0.4, -1.0],
+        diffuse=[0.45, 0.45, 0.45],
+        specular=[0.05, 0.05, 0.05],
+        castshadow=False,
     )
 
 
@@ -183,9 +214,8 @@ class SessionScene:
         self._camera = mujoco.MjvCamera()
         self._camera.type = mujoco.mjtCamera.mjCAMERA_FREE
         self._camera.lookat[:] = view.center
-        # Far enough that the view's sphere fits the frame's height, with a margin.
-        half_fovy = math.radians(float(model.vis.global_.fovy)) / 2
-        self._camera.distance = 1.1 * view.radius / math.sin(half_fovy)
+        aspect = self._size[0] / self._size[1]
+        self._camera.distance = view.distance(float(model.vis.global_.fovy), aspect)
         self._camera.azimuth, self._camera.elevation = 90.0, -12.0
         # A floating base (the biped) walks away from where it started: the camera follows its root.
         self._view = view
