@@ -142,6 +142,8 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
         require_extra("duckdb", what="DuckDB", extra="query")
     elif args.sessions_command == "plot":
         require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
+    elif args.sessions_command == "render":
+        require_extra("PIL", what="Pillow (frames and captions)", extra="render")
     engine = _engine(settings)
     if args.sessions_command == "render":
         return _render(args, settings)
