@@ -60,25 +60,25 @@ class View:
         """How far a camera looking along +y must stand for the box to fill most of its frame."""
         tan_y = math.tan(math.radians(fovy_degrees) / 2)
         fit = max(self.half[2] / tan_y, self.half[0] / (tan_y * aspect))
-        return 1.25 * float(fit) + float(self.half[1])
+        return 1.15 * float(fit) + 0.5 * float(self.half[1])
 
 
-def _moving_geoms(model: mujoco.MjModel) -> npt.NDArray[np.bool_]:
-    """(ngeom,) the geoms of bodies that have a joint or hang from one that has, and of the body a
-    jointed body hangs from (the upper arm of an elbow: what the motion is seen against)."""
+def _moving(model: mujoco.MjModel) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.intp]]:
+    """(ngeom,) the geoms of bodies that have a joint or hang from one that has, and the bodies
+    those hang from, whose origins (a shoulder for an elbow) the view includes: the motion is seen
+    against them. Their geoms are left out: a skeleton's whole torso would dwarf a hand."""
     moving = np.zeros(model.nbody, dtype=bool)
     for body in range(1, model.nbody):  # a parent's index is below its children's
         moving[body] = model.body_jntnum[body] > 0 or moving[model.body_parentid[body]]
-    shown = moving.copy()
-    shown[model.body_parentid[moving]] = True
-    shown[0] = False  # the world: a room, a floor
-    return np.asarray(shown[model.geom_bodyid], dtype=bool)
+    anchors = np.unique(model.body_parentid[moving])
+    return np.asarray(moving[model.geom_bodyid], dtype=bool), anchors[(anchors > 0) & ~moving[anchors]]
 
 
 def session_view(model: mujoco.MjModel, poses: npt.NDArray[np.float64], *, samples: int = 500) -> View:
     """The view of the bodies moving through `poses` (k, nq), up to `samples` of them evenly spread."""
     follow = bool(np.any(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE))
-    moving = _moving_geoms(model) & (model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE)
+    moving, anchors = _moving(model)
+    moving &= model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE
     solid = model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE
     data = mujoco.MjData(model)
     poses = poses[np.isfinite(poses).all(axis=1)]
@@ -91,8 +91,10 @@ def session_view(model: mujoco.MjModel, poses: npt.NDArray[np.float64], *, sampl
         mujoco.mj_comPos(model, data)
         shift = np.array([*data.subtree_com[1][:2], 0.0]) if follow else np.zeros(3)
         if moving.any():
-            lows.append((data.geom_xpos[moving] - reach[moving] - shift).min(axis=0))
-            highs.append((data.geom_xpos[moving] + reach[moving] - shift).max(axis=0))
+            points = np.concatenate([data.geom_xpos[moving] - reach[moving], data.xpos[anchors]])
+            lows.append((points - shift).min(axis=0))
+            points = np.concatenate([data.geom_xpos[moving] + reach[moving], data.xpos[anchors]])
+            highs.append((points - shift).max(axis=0))
         if solid.any():
             bottoms.append(float((data.geom_xpos[solid, 2] - model.geom_rbound[solid]).min()))
     if not moving.any():  # nothing moves: the whole model, as MuJoCo frames it
@@ -146,8 +148,11 @@ def _add_floor(spec: mujoco.MjSpec, view: View) -> None:
         conaffinity=0,
         group=0,
     )
-    # A light from high above for the whole floor: a model's own spot lights its bodies only, and
-    # the floor beyond them went black.
+
+
+def _add_sun(spec: mujoco.MjSpec) -> None:
+    """A light from high above for the whole floor: a model's own spot lights light its bodies
+    only, and the floor beyond them went black."""
     spec.worldbody.add_light(
         name="jitdyn_sun",
         type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
@@ -156,6 +161,10 @@ def _add_floor(spec: mujoco.MjSpec, view: View) -> None:
         specular=[0.05, 0.05, 0.05],
         castshadow=False,
     )
+
+
+def _has_sun(spec: mujoco.MjSpec) -> bool:
+    return any(light.type == mujoco.mjtLightType.mjLIGHT_DIRECTIONAL for light in spec.lights)
 
 
 def dressed_model(
@@ -171,6 +180,8 @@ def dressed_model(
         _add_sky(spec)
     if not _has_floor(spec):
         _add_floor(spec, view)
+    if not _has_sun(spec):
+        _add_sun(spec)
     return spec.compile(), view
 
 
