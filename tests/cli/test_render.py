@@ -217,3 +217,30 @@ def test_render_explains_itself() -> None:
     result = jitdyn("sessions", "render", "--help")
     assert result.returncode == 0 and "usage: jitdyn sessions render" in result.stdout
     assert "--frame T" in result.stdout and "libosmesa6" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("flag", "environ", "chosen"),
+    [
+        (None, {}, "osmesa"),
+        (None, {"MUJOCO_GL": "EGL "}, "egl"),
+        ("osmesa", {"MUJOCO_GL": "egl"}, "osmesa"),
+        ("egl", {}, "egl"),
+    ],
+)
+def test_the_gl_is_the_flag_then_mujoco_gl_then_osmesa(
+    flag: str | None, environ: dict[str, str], chosen: str
+) -> None:
+    from jitdyn.cli.render import choose_gl
+
+    assert choose_gl(flag, environ).name == chosen
+
+
+def test_a_mujoco_gl_that_cannot_render_offscreen_is_named() -> None:
+    from jitdyn.cli.render import choose_gl
+    from jitdyn.errors import InvalidArgument
+
+    with pytest.raises(
+        InvalidArgument, match=r"^MUJOCO_GL in the environment must be osmesa or egl .*, got 'glx'$"
+    ):
+        choose_gl(None, {"MUJOCO_GL": "glx"})
