@@ -211,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     sessions = leaf(
         commands,
         "sessions",
-        help="list, show, query, export and plot stored sessions",
+        help="list, show, query, export, plot and render stored sessions",
         description="The stored sessions, read from the data folder and the SQL index (no server needed).",
     )
     session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
@@ -267,6 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="the joints to draw, by name (default: the first 6 of the model)",
     )
 
+    _add_render(session_commands, leaf)
+
     experiments = commands.add_parser(
         "experiments",
         help="reproduce the thesis experiments (needs jitdyn[experiments])",
@@ -275,6 +277,41 @@ def build_parser() -> argparse.ArgumentParser:
     )
     experiments.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
+
+
+def _add_render(
+    session_commands: argparse._SubParsersAction[argparse.ArgumentParser],
+    leaf: Callable[..., argparse.ArgumentParser],
+) -> None:
+    from jitdyn.cli.render import DEFAULT_GL, FORMATS, GL_BACKENDS
+
+    render = leaf(
+        session_commands,
+        "render",
+        "sessions",
+        help="replay one session with MuJoCo's renderer: MP4, GIF or one PNG frame (needs jitdyn[render])",
+        description="Replay one stored session with MuJoCo's offscreen renderer: the model moving as the "
+        "server answered it, the measured pose beside it as a translucent blue ghost, and the source of "
+        "each tick (MEASURED, PREDICTED, CORRECTED when its frame came late) in a caption. Videos play in "
+        "real time, decimated to at most 30 (MP4) or 20 (GIF) frames a second. Needs jitdyn[render] and "
+        "an offscreen GL library: libosmesa6 (Debian) for osmesa.",
+    )
+    render.add_argument("session_id")
+    render.add_argument(
+        "--out", type=Path, required=True, help=f"the file to write: {', '.join(FORMATS)} (one frame)"
+    )
+    render.add_argument(
+        "--frame",
+        type=argparse_type(parse_duration, "duration"),
+        metavar="T",
+        help="the time of the PNG's frame on the session's clock, with a unit: 1.5s, 250ms "
+        "(default: the middle of the session)",
+    )
+    render.add_argument(
+        "--gl",
+        choices=tuple(GL_BACKENDS),
+        help=f"MuJoCo's offscreen GL (default: MUJOCO_GL if set, else {DEFAULT_GL}; egl on a GPU host)",
+    )
 
 
 def _server_config(settings: Settings, **overrides: Any) -> Any:

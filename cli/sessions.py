@@ -1,4 +1,4 @@
-"""`jitdyn sessions list | show | query | export | plot`: the stored sessions, from the data folder and
+"""`jitdyn sessions list | show | query | export | plot | render`: the stored sessions, from the data folder and
 the SQL index, without a server. Counts are shown by storage.summary.format_counts, as the demo
 shows them, so that the two agree.
 
@@ -119,13 +119,34 @@ def _write_query(table: Any, fmt: str, out: TextIO) -> None:
         out.writelines(text + "\n" for text in format_table(columns, rows))
 
 
+def _render(args: argparse.Namespace, settings: Settings) -> int:
+    from jitdyn.cli.render import RenderRequest, render_session
+
+    request = RenderRequest(
+        session_id=args.session_id,
+        data_root=settings.data,
+        index_url=settings.index_url or default_index_url(settings.data),
+        out=args.out,
+        frame=args.frame,
+    )
+    rendered = render_session(request, gl=args.gl)
+    for note in rendered.notes:
+        print(note, file=sys.stderr)
+    print(f"rendered {args.session_id} to {rendered.path}")
+    return 0
+
+
 def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
     if args.sessions_command == "query":
         # Checked before reading anything: the query needs DuckDB, an extra.
         require_extra("duckdb", what="DuckDB", extra="query")
     elif args.sessions_command == "plot":
         require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
+    elif args.sessions_command == "render":
+        require_extra("PIL", what="Pillow (frames and captions)", extra="render")
     engine = _engine(settings)
+    if args.sessions_command == "render":
+        return _render(args, settings)
     data_root: Path = settings.data
     if args.sessions_command == "list":
         index = SessionIndex(engine)
