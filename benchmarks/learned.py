@@ -12,11 +12,12 @@ The autoregression: for each horizon h its own linear map (direct multi-step), f
 feature a match compares (q at four lags over 150 ms, qd, and 1) to q(t + h) - q(t), all dofs at
 once, fitted by RLS with forgetting 0.999 (half-life about 7 s at 100 Hz), P0 = 100 I.
 
-Cost: CPU time per tick of each learner on pendulum_3 (dt 50 ms) and myoHand (dt 2 ms) with a full
-window (a periodic motion of the model's dofs; the cost does not depend on what the motion is):
-record a frame, match a probe's start every stride ticks as the forecast combination does, follow
-every live probe; beside one tick of the DRIVEN filter's physics (its sigma points times the
-steps of a tick, one mj_step of the process model priced by estimation/propagate.step_seconds).
+Cost: CPU time per tick on pendulum_3 (dt 50 ms) and myoHand (dt 2 ms), a periodic motion of the
+model's dofs (the cost does not depend on what the motion is): for matching, what it adds to a
+tick with a frame of the forecast combination, window full (experiments/foresight.learned_cost);
+for the autoregression, a frame learnt and a prediction at each of its four horizons; beside one
+tick of the DRIVEN filter's physics (its sigma points times the steps of a tick, one mj_step of
+the process model priced by estimation/propagate.step_seconds).
 
     python -m benchmarks.learned                 # needs jitdyn[experiments] (biomdp, myo_sim)
     python -m benchmarks.learned --noise         # with the wearable's noise
@@ -29,14 +30,12 @@ import math
 import time
 from collections.abc import Callable
 
-import mujoco
 import numpy as np
 
 from benchmarks.ukf_cycle import load
+from jitdyn.experiments.foresight import learned_cost
 from jitdyn.experiments.recorded import RECORDINGS, research_object
-from jitdyn.server.estimation.forecast import PROBES
-from jitdyn.server.estimation.matching import MotionMatcher
-from jitdyn.server.estimation.propagate import process_model, step_seconds
+from jitdyn.server.estimation.matching import K, MotionMatcher
 from jitdyn.vocabulary import Scenario
 
 HORIZONS = (0.035, 0.100, 0.200, 0.500)
@@ -126,8 +125,8 @@ def accuracy(name: str, *, noise: bool) -> list[tuple[float, dict[str, float]]]:
                 "CONSTANT_VELOCITY": zq[t] + zv[t] * s,
                 "CONSTANT_ACCELERATION": zq[t] + zv[t] * s + 0.5 * a0 * s * s,
             }
-            ticks = np.full((1, 6), np.nan) if found is None else found.ticks[None, :].astype(float)
-            weights = np.zeros((1, 6)) if found is None else found.weights[None, :]
+            ticks = np.full((1, K), np.nan) if found is None else found.ticks[None, :].astype(float)
+            weights = np.zeros((1, K)) if found is None else found.weights[None, :]
             guesses["MATCHING"] = matcher.follow(ticks, weights, np.array([h]), zq[t][None], zv[t][None])[0][
                 0
             ]
@@ -149,54 +148,23 @@ def _thread_us(run: Callable[[], None], count: int) -> float:
     return (time.thread_time() - began) / count * 1e6
 
 
-def cost(name: str, dt: float) -> tuple[float, float, float]:
-    """us per tick: matching, the autoregression (its four horizons), the filter's physics."""
-    model, _ = load(name)
-    process = process_model(model, scenario="DRIVEN")
-    nv = int(model.nv)
-    horizon = math.ceil(0.5 / dt - 1e-9)
-    stride = max(1, -(-horizon // PROBES))
-    matcher = MotionMatcher(nv=nv, dt=dt, horizon=horizon)
+def autoregression_cost(name: str, dt: float) -> float:
+    """us per tick of the autoregression: a frame learnt by each horizon's RLS, each predicting."""
+    nv = int(load(name)[0].nv)
     ar = RlsAutoregression(nv=nv, dt=dt, horizons=tuple(math.ceil(h / dt - 1e-9) for h in HORIZONS))
-    phase = np.arange(nv)
+    phase, w = np.arange(nv), 2 * math.pi / 0.8
+    tick = [0]
 
-    def frame(k: int) -> tuple[np.ndarray, np.ndarray]:
-        w = 2 * math.pi / 0.8
-        return 0.5 * np.sin(w * k * dt + phase), 0.5 * w * np.cos(w * k * dt + phase)
-
-    warm = round(25.0 / dt)
-    for k in range(warm):
-        matcher.record(k, *frame(k))
-    live = np.full((PROBES, 6), float(warm - horizon - 7))
-    weights = np.full((PROBES, 6), 1.0 / 6)
-    ages = np.arange(PROBES) % horizon + 1
-    state = {"k": warm}
-
-    def match_tick() -> None:
-        k = state["k"]
-        state["k"] = k + 1
-        q, v = frame(k)
-        matcher.record(k, q, v)
-        if k % stride == 0:
-            matcher.match(k)
-        matcher.follow(live, weights, ages, np.tile(q, (PROBES, 1)), np.tile(v, (PROBES, 1)))
-
-    for k in range(min(warm, 3000)):
-        ar.record(*frame(k))
-
-    def ar_tick() -> None:
-        ar.record(*frame(state["k"]))
+    def one() -> None:
+        k = tick[0]
+        tick[0] = k + 1
+        ar.record(0.3 * np.sin(w * k * dt + phase), 0.3 * w * np.cos(w * k * dt + phase))
         for h in ar._horizons:
             ar.predict(h)
 
-    count = max(200, round(2.0 / dt))
-    matching = min(_thread_us(match_tick, count) for _ in range(3))
-    autoregression = min(_thread_us(ar_tick, min(count, 500)) for _ in range(3))
-    n = 2 * nv
-    nsigma = 2 * n + 1 if 3 * nv < 32 else n + 1
-    steps = max(1, round(dt / process.opt.timestep))
-    physics = nsigma * steps * step_seconds(process, mujoco.MjData(process)) * 1e6
-    return matching, autoregression, physics
+    for _ in range(200):
+        one()
+    return min(_thread_us(one, 300) for _ in range(3))
 
 
 def main() -> None:
@@ -214,10 +182,11 @@ def main() -> None:
             cells = " ".join(f"{errors[n]:9.4f}" for n in errors)
             print(f"{name:<11} {horizon * 1000:4.0f} {cells} {errors['MATCHING'] / best:10.3f} "
                   f"{errors['RLS_AR'] / best:8.3f}")  # fmt: skip
-    print("\ncost per tick (us, CPU)")
+    print("\ncost per tick (us, CPU; matching: what it adds to a tick of the forecast combination)")
     print(f"{'model':<11} {'matching':>9} {'RLS_AR':>9} {'physics':>9} {'match/phys':>10} {'ar/phys':>8}")
     for name, dt in (("pendulum_3", 0.05), ("myohand", 0.002)):
-        m, a, p = cost(name, dt)
+        m, p = learned_cost(name, dt=dt)
+        a = autoregression_cost(name, dt)
         print(f"{name:<11} {m:9.1f} {a:9.1f} {p:9.1f} {m / p:10.3f} {a / p:8.3f}")
 
 

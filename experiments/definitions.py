@@ -742,7 +742,7 @@ def _learned_cost_table(ctx: Context) -> Table:
     """The learned predictor's CPU time per tick beside the tick's physics (experiments/foresight.py)."""
     rows = []
     for name, dt, limit in (("pendulum_3", 0.05, "< 100 us"), ("myohand", 0.002, "< 10 % of physics")):
-        matching, physics = learned_cost(name, dt=dt, seconds=0.5 if ctx.quick else 2.0)
+        matching, physics = learned_cost(name, dt=dt, ticks=100 if ctx.quick else 300)
         ok = matching < 100.0 if name == "pendulum_3" else matching < 0.1 * physics
         rows.append(
             (name, dt * 1000, matching, physics, matching / physics, limit, "met" if ok else "missed")

@@ -3,7 +3,7 @@ extrapolator per recording and horizon, the targets they are held to, and what t
 predictor (server/estimation/matching.py) costs a tick beside the tick's physics.
 
     rows = foresight_rows(errors)              # errors: {(recording, sensors, estimator): {gap: error}}
-    matching_us, physics_us = learned_cost("pendulum_3", dt=0.05)
+    added_us, physics_us = learned_cost("pendulum_3", dt=0.05)
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 
 import mujoco
 import numpy as np
@@ -19,9 +19,9 @@ import numpy as np
 from jitdyn.experiments.objects import load_source
 from jitdyn.experiments.recorded import RECORDINGS
 from jitdyn.server.estimation.config import LARGE_STATE
-from jitdyn.server.estimation.forecast import PROBES
-from jitdyn.server.estimation.matching import K, MotionMatcher
+from jitdyn.server.estimation.forecast import ForecastCombiner
 from jitdyn.server.estimation.propagate import process_model, step_seconds
+from jitdyn.server.estimation.ukf import FORECAST_HORIZON
 
 __all__ = ["HORIZONS", "RECORDING_GAPS", "foresight_rows", "learned_cost", "target"]
 
@@ -80,48 +80,55 @@ def foresight_rows(
     return rows
 
 
-def _thread_us(run: Callable[[], None], count: int) -> float:
-    began = time.thread_time()
-    for _ in range(count):
-        run()
-    return (time.thread_time() - began) / count * 1e6
+def _tick_us(combiner: ForecastCombiner, *, dt: float, start: int, count: int) -> float:
+    """CPU time (us) of a tick of `combiner` with its frame (advance, observe: the scoring) on a
+    periodic motion of its dofs (the cost does not depend on what the motion is), the best of three
+    runs."""
+    nv = combiner.nv
+    phase, w = np.arange(nv), 2 * math.pi / 0.8
+    act, force = np.zeros(combiner.na), np.zeros(nv)
+
+    def tick(k: int) -> None:
+        q, v = 0.3 * np.sin(w * k * dt + phase), 0.3 * w * np.cos(w * k * dt + phase)
+        combiner.advance()
+        combiner.observe(q, v, mean_qpos=q, mean_qvel=v, act=act, force=force, rate=None)
+
+    for k in range(start, start + combiner.horizon + 4):  # every probe alive
+        tick(k)
+    best, k = math.inf, start + combiner.horizon + 4
+    for _ in range(3):
+        began = time.thread_time()
+        for j in range(k, k + count):
+            tick(j)
+        best = min(best, time.thread_time() - began)
+        k += count
+    return best / count * 1e6
 
 
-def learned_cost(name: str, *, dt: float, seconds: float = 2.0) -> tuple[float, float]:
-    """(us, us): CPU time of the learned predictor's work in a tick of a DRIVEN session of model
-    `name` (frame recorded, a probe matched every stride ticks, every live probe followed), with a
-    full window; and of the tick's physics (the filter's sigma points times the physics steps of a
-    tick, one mj_step priced by step_seconds). The best of three runs of `seconds` of ticks."""
+def learned_cost(name: str, *, dt: float, ticks: int = 300) -> tuple[float, float]:
+    """(us, us): what the learned predictor adds to a tick with a frame of a DRIVEN session's
+    forecast combination of model `name` (the CPU time of a tick with it less one without, each the
+    best of three runs of `ticks` ticks, the learner's window full; a gap's ticks instead solve for
+    5 weights instead of 4, once a horizon), and the tick's physics (the filter's
+    sigma points times the physics steps of a tick, one mj_step priced by step_seconds)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # myo_sim: "Attaching a spec with an empty prefix"
         model = load_source(name).compile()
     process = process_model(model, scenario="DRIVEN")
     nv = int(model.nv)
-    horizon = math.ceil(0.5 / dt - 1e-9)
-    stride = max(1, -(-horizon // PROBES))
-    matcher = MotionMatcher(nv=nv, dt=dt, horizon=horizon)
-    phase, w = np.arange(nv), 2 * math.pi / 0.8
-    warm = round(25.0 / dt)
-    for k in range(warm):  # a periodic motion: the cost does not depend on what the motion is
-        matcher.record(k, 0.5 * np.sin(w * k * dt + phase), 0.5 * w * np.cos(w * k * dt + phase))
-    live = np.full((PROBES, K), float(warm - horizon - 7))
-    weights = np.full((PROBES, K), 1.0 / K)
-    ages = np.arange(PROBES) % horizon + 1
-    tick = [warm]
-
-    def one() -> None:
-        k = tick[0]
-        tick[0] = k + 1
-        q, v = 0.5 * np.sin(w * k * dt + phase), 0.5 * w * np.cos(w * k * dt + phase)
-        matcher.record(k, q, v)
-        if k % stride == 0:
-            matcher.match(k)
-        matcher.follow(live, weights, ages, np.tile(q, (PROBES, 1)), np.tile(v, (PROBES, 1)))
-
-    count = max(100, round(seconds / dt))
-    matching = min(_thread_us(one, count) for _ in range(3))
+    steps = max(1, round(dt / process.opt.timestep))
+    horizon = math.ceil(FORECAST_HORIZON / dt - 1e-9)
+    costs = []
+    for learner in (False, True):
+        combiner = ForecastCombiner(process, dt=dt, steps_per_tick=steps, horizon=horizon, learner=learner)
+        warm = combiner.fill_window(lambda k: _frame(k, dt=dt, nv=nv)) if learner else 0
+        costs.append(_tick_us(combiner, dt=dt, start=warm, count=ticks))
     n = 2 * nv  # [q, qd]: 2n + 1 points below LARGE_STATE (of [q, qd, f]), n + 1 simplex points from it on
     nsigma = 2 * (3 * nv) + 1 if 3 * nv < LARGE_STATE else n + 1
-    steps = max(1, round(dt / process.opt.timestep))
     physics = nsigma * steps * step_seconds(process, mujoco.MjData(process)) * 1e6
-    return matching, physics
+    return costs[1] - costs[0], physics
+
+
+def _frame(k: int, *, dt: float, nv: int) -> tuple[np.ndarray, np.ndarray]:
+    phase, w = np.arange(nv), 2 * math.pi / 0.8
+    return 0.3 * np.sin(w * k * dt + phase), 0.3 * w * np.cos(w * k * dt + phase)

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
@@ -192,6 +193,25 @@ class ForecastCombiner:
     @property
     def horizon(self) -> int:
         return self._horizon
+
+    @property
+    def nv(self) -> int:
+        return self._nv
+
+    @property
+    def na(self) -> int:
+        return self._na
+
+    def fill_window(self, frames: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> int:
+        """Ticks pass with the learned predictor's whole window of frames (q, qd) = frames(tick)
+        recorded and nothing scored: what a measure of a learnt session's cost starts from. Returns
+        the tick reached (0 without the learned predictor)."""
+        if self._matcher is None:
+            return self._tick
+        for _ in range(self._matcher.window):
+            self._tick += 1
+            self._matcher.record(self._tick, *frames(self._tick))
+        return self._tick
 
     @property
     def predictors(self) -> tuple[str, ...]:

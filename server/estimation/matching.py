@@ -13,7 +13,8 @@ time (the ring keeps REWIND_MARGIN seconds beyond the window, so that the rows a
 never those of its own future). Every CANDIDATE_EVERY seconds a frame also stores its feature: its
 q at four lags over the last LAG seconds and its qd, the description of "now" that a match
 compares. A match is the K nearest candidates by the distance of their features to the frame's,
-each dof's q and qd scaled by its spread over the window, weighted by inverse distance;
+each feature scaled by its spread (a fading variance over about the window), weighted by inverse
+distance;
 a candidate must have HORIZON ticks of past after it (its continuation is known).
 
 What a match predicts h ticks on: the frame's q plus the weighted displacement of the candidates
@@ -39,7 +40,7 @@ __all__ = ["CANDIDATE_EVERY", "LAG", "WINDOW", "K", "Match", "MotionMatcher"]
 WINDOW: Final = 20.0
 CANDIDATE_EVERY: Final = 0.01
 LAG: Final = 0.15
-K: Final = 6
+K: Final = 10
 # The time constant (s) over which the frame's own qd, where it differs from the candidates', fades
 # into theirs.
 FADE: Final = 0.1
@@ -80,13 +81,17 @@ class MotionMatcher:
         # Candidates: one slot every `every` ticks, stamped with its tick; (LAGS + 1) nv features.
         self._cstamp = np.full(self._slots, -1, dtype=np.int64)
         self._features = np.zeros((self._slots, (_LAGS + 1) * self._nv))
-        self._qcols = _LAGS * self._nv
-        self._inverse = np.ones((_LAGS + 1) * self._nv)
+        self._last: tuple[int, np.ndarray | None] = (-1, None)  # the last candidate tick's feature
         self._moments = np.zeros((2, (_LAGS + 1) * self._nv))  # fading mean and variance
 
     @property
     def horizon(self) -> int:
         return self._horizon
+
+    @property
+    def window(self) -> int:
+        """Ticks of past a match searches."""
+        return self._window
 
     def record(self, tick: int, qpos: np.ndarray, qvel: np.ndarray) -> None:
         """The frame of `tick` (nv,) each; a tick recorded twice keeps the later frame."""
@@ -103,6 +108,7 @@ class MotionMatcher:
             slot = (tick // self._every) % self._slots
             feature = self._feature(tick)
             self._cstamp[slot] = -1 if feature is None else tick
+            self._last = (tick, feature)
             if feature is not None:
                 self._features[slot] = feature
                 # The spread of each feature, a fading average over about the window.
@@ -120,19 +126,15 @@ class MotionMatcher:
     def match(self, tick: int) -> Match | None:
         """The K candidates most like the frame of `tick` (recorded), or None (no feature for it:
         a hole within LAG before it, or too few candidates yet)."""
-        query = self._feature(tick)
+        query = self._last[1] if self._last[0] == tick else self._feature(tick)
         if query is None:
             return None
         stamps = self._cstamp
         ok = (stamps > tick - self._window) & (stamps <= tick - self._horizon)
         if np.count_nonzero(ok) < K:
             return None
-        # Each dof's q (its lags alike) and qd by its spread.
-        variance = self._moments[1]
-        nv, cols = self._nv, self._qcols
-        inverse = self._inverse
-        inverse[:cols] = 1.0 / np.maximum(np.tile(variance[:nv], _LAGS), 1e-18)
-        inverse[cols:] = 1.0 / np.maximum(variance[cols:], 1e-18)
+        # Each feature by its spread.
+        inverse = 1.0 / np.maximum(self._moments[1], 1e-18)
         distance = np.square(self._features - query) @ inverse
         distance[~ok] = np.inf
         nearest = np.argpartition(distance, K - 1)[:K]
@@ -187,6 +189,6 @@ class MotionMatcher:
         a hole."""
         ticks = tick - self._lags
         rows = ticks % self._capacity
-        if not np.array_equal(self._stamp[rows], ticks):
+        if not (self._stamp[rows] == ticks).all():
             return None
         return np.concatenate([self._q[rows].ravel(), self._v[rows[0]]])
