@@ -75,6 +75,10 @@ LEARNED: Final = "LEARNED"
 # (weight of the past per sample 0.8: about 5 scored forecasts per horizon, so that the weights
 # follow the regime of the motion just before a gap; measured in docs/experiments.md).
 MIN_SAMPLES: Final = 3
+# Scored forecasts of LEARNED from a real match a horizon needs before LEARNED takes weight there
+# (until it has a match it answers as CONSTANT_VELOCITY, and scores earned so must not weigh a
+# match made later): about the fading memory's length.
+LEARNED_SAMPLES: Final = 5
 FORGETTING: Final = 0.8
 # Probes alive at once: the cost of scoring is this many single-point rollouts of one tick per tick.
 PROBES: Final = 16
@@ -150,6 +154,7 @@ class CombinerSnapshot:
     # The learned predictor's state beside its log of frames; the log is indexed by tick and a
     # replay rewrites it (estimation/matching.py), so a snapshot does not copy it.
     learner: np.ndarray | None
+    learned_count: np.ndarray
 
 
 class ForecastCombiner:
@@ -232,6 +237,7 @@ class ForecastCombiner:
         self._weights: dict[int, np.ndarray] = {}
         self._variances: dict[int, tuple[float, float]] = {}  # w' C_h w and w' D_h w, as _weights
         self._count = np.zeros(self._horizon + 1)
+        self._learned_count = np.zeros(self._horizon + 1)  # LEARNED's scores from a real match
         self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # last frame's (q, v, tick)
 
     def advance(self) -> None:
@@ -333,7 +339,7 @@ class ForecastCombiner:
             self._match(i)
         weights = self._weights.get(h)
         if weights is None:
-            weights = self._weights[h] = _min_variance_weights(self._cov[h])
+            weights = self._weights[h] = self._solve_weights(h)
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd)
@@ -371,6 +377,7 @@ class ForecastCombiner:
             count=self._count.copy(),
             anchor=self._anchor,
             learner=None if self._matcher is None else self._matcher.state(),
+            learned_count=self._learned_count.copy(),
         )
 
     def restore(self, snap: CombinerSnapshot) -> None:
@@ -383,6 +390,7 @@ class ForecastCombiner:
         self._cov = snap.cov.copy()
         self._cov_v = snap.cov_v.copy()
         self._count = snap.count.copy()
+        self._learned_count = snap.learned_count.copy()
         self._anchor = snap.anchor
         if self._matcher is not None and snap.learner is not None:
             self._matcher.restore(snap.learner)
@@ -411,6 +419,17 @@ class ForecastCombiner:
 
     def _last_origin(self) -> int:
         return -1 if self._anchor is None else self._anchor[2]
+
+    def _solve_weights(self, h: int) -> np.ndarray:
+        """The weights of horizon h; LEARNED's 0 until it has LEARNED_SAMPLES scores from real
+        matches there."""
+        C = self._cov[h]
+        if self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES:
+            return _min_variance_weights(C)
+        k = len(PREDICTORS)
+        weights = np.zeros(len(self._predictors))
+        weights[:k] = _min_variance_weights(C[:k, :k])
+        return weights
 
     def _match(self, i: int) -> None:
         """Probe i's LEARNED match, from its frame (the log holds it: its origin is a frame's tick)."""
@@ -493,6 +512,8 @@ class ForecastCombiner:
         learned = self._learned(rows, ages)
         if learned is not None:
             positions[:, 4] = learned[0]
+            matched = ages[~np.isnan(rows[:, c.match_ticks][:, 0])]
+            np.add.at(self._learned_count, matched, 1.0)
         errors = positions - qpos[None, None, :]  # (S, P, nv)
         verrors = np.empty_like(errors)  # the qd of `_predictions`, against the frame's
         verrors[:, 0] = rows[:, c.qvel] - qvel
