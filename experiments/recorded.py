@@ -104,7 +104,8 @@ def load_isen(part: str, path: Path | None = None) -> np.ndarray:
     of the iSen recording named ("isen_gait" or "isen_tasks")."""
     if part not in _ISEN_PARTS:
         raise ValueError(f"part must be one of {sorted(_ISEN_PARTS)}, got {part!r}")
-    rows = list(csv.reader((path or recording_path("iSen_angles.csv")).open(encoding="utf-8-sig")))
+    text = (path or recording_path("iSen_angles.csv")).read_text(encoding="utf-8-sig")
+    rows = list(csv.reader(text.splitlines()))
     header = rows[0]
     columns = []
     for wanted in ISEN_COLUMNS:
