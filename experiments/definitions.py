@@ -19,11 +19,12 @@ import numpy as np
 from jitdyn.client import Client, FrameData, SessionOptions, SyncSample, TickResult
 from jitdyn.experiments import thesis
 from jitdyn.experiments.analysis import RunMetrics, gap_profile, summarise
+from jitdyn.experiments.foresight import HORIZONS, RECORDING_GAPS, foresight_rows, learned_cost
 from jitdyn.experiments.metrics import gap_errors
 from jitdyn.experiments.netem import DelayedSender, Distribution, NetworkProfile, sample_delays
 from jitdyn.experiments.objects import make_object
 from jitdyn.experiments.progress import track
-from jitdyn.experiments.recorded import research_object
+from jitdyn.experiments.recorded import RECORDINGS, research_object
 from jitdyn.experiments.report import (
     Column,
     Figure,
@@ -52,6 +53,8 @@ _SECONDS = {
     "myoelbow": (8.0, 0.06),
     "myohand": (4.0, 0.02),
     "cmj": (7.9, 0.3),  # the recording lasts 7.985 s
+    "isen_gait": (10.25, 4.0),  # 10.29 s
+    "isen_tasks": (17.95, 4.0),  # 17.99 s
 }
 
 
@@ -436,6 +439,8 @@ def _gap_objects(ctx: Context) -> list[_GapObject]:
         return [
             _GapObject("pendulum_1", Scenario.PASSIVE, False),
             _GapObject("pendulum_1", Scenario.EXTERNAL, True),
+            _GapObject("isen_gait", Scenario.EXTERNAL, True),
+            _GapObject("isen_tasks", Scenario.EXTERNAL, True),
         ]
     return [
         _GapObject("pendulum_3", Scenario.PASSIVE, False),
@@ -445,6 +450,8 @@ def _gap_objects(ctx: Context) -> list[_GapObject]:
         _GapObject("myoelbow", Scenario.EXTERNAL, True),
         _GapObject("myohand", Scenario.EXTERNAL, True),
         _GapObject("cmj", Scenario.EXTERNAL, True),
+        _GapObject("isen_gait", Scenario.EXTERNAL, True),
+        _GapObject("isen_tasks", Scenario.EXTERNAL, True),
     ]
 
 
@@ -570,11 +577,14 @@ def gaps(ctx: Context) -> Section:
     runs: list[_GapRun] = []
     for obj_spec in _gap_objects(ctx):
         obj = research_object(obj_spec.name, obj_spec.scenario)
-        gap_ticks = math.ceil(max(GAPS) / obj.dt - 1e-9)
-        # A gap every 0.5 s: the filter has frames again for 0.3 s before the next one.
-        period = max(gap_ticks + 2, round(0.5 / obj.dt))
-        if obj_spec.name == "cmj":
-            seconds = ctx.seconds("cmj")
+        recorded = obj_spec.name in RECORDINGS
+        # A gap every 0.5 s: the filter has frames again for 0.3 s before the next one; the
+        # recordings: 500 ms every 1.25 s, for the horizons of foresight.
+        gap, every = RECORDING_GAPS if recorded else (max(GAPS), 0.5)
+        gap_ticks = math.ceil(gap / obj.dt - 1e-9)
+        period = max(gap_ticks + 2, round(every / obj.dt))
+        if recorded:
+            seconds = ctx.seconds(obj_spec.name)
         elif obj_spec.name == "myohand" and not ctx.quick:
             seconds = 10.0  # the myoHand targets are over 10 s
         else:
@@ -597,7 +607,7 @@ def gaps(ctx: Context) -> Section:
                 trace = ctx.run(spec)
                 profile = gap_profile(trace)
                 profiles[est.label] = profile
-                g = gap_errors(est.label, profile, dt=obj.dt, gaps=GAPS)
+                g = gap_errors(est.label, profile, dt=obj.dt, gaps=HORIZONS)
                 m = summarise(trace)
                 runs.append(_GapRun(obj_spec, sensors, est.label, dict(g.by_gap), m, trace))
                 nees = m.nees
@@ -607,7 +617,7 @@ def gaps(ctx: Context) -> Section:
                         sensors,
                         est.label,
                         trace.opened_scenario,
-                        *(g.by_gap[x] for x in GAPS),
+                        *(g.by_gap[x] if math.isfinite(g.by_gap[x]) else None for x in HORIZONS),
                         m.armse["q"],
                         None if nees is None else nees.mean / trace.nx,
                         None if nees is None else nees.fraction_inside,
@@ -622,7 +632,7 @@ def gaps(ctx: Context) -> Section:
                 profiles,
                 ctx.out / file,
                 dt=obj.dt,
-                marks=GAPS,
+                marks=HORIZONS if recorded else GAPS,
                 title=f"{obj_spec.name} {obj_spec.scenario.value.lower()}, {sensors} sensors: q error without frames",
             )
             figs.append(
@@ -637,7 +647,7 @@ def gaps(ctx: Context) -> Section:
         "sensors",
         "estimator",
         "scenario in force",
-        *(f"q error @{round(g * 1000)} ms" for g in GAPS),
+        *(f"q error @{round(g * 1000)} ms" for g in HORIZONS),
         "q aRMSE (whole run)",
         "avg NEES / dim",
         "in 1-sample CI",
@@ -646,7 +656,7 @@ def gaps(ctx: Context) -> Section:
         "reinit",
         "compute (ms/tick)",
     )
-    target_rows = _targets(runs)
+    target_rows = _targets([r for r in runs if r.obj.name not in RECORDINGS])
     target_columns = ("target", "object", "sensors", "ours", "to beat", "best extrapolator", "verdict")
     myohand = [r for r in runs if r.obj.name == "myohand" and r.label == "UKF, defaults"]
     for r in myohand:
@@ -691,7 +701,9 @@ def gaps(ctx: Context) -> Section:
         f"'wearable' frames add white noise of {WEARABLE[0]} rad (m) on q and {WEARABLE[1]} rad/s (m/s) "
         "on qd, seeded, the same noise for every estimator. 'UKF, defaults' sends no scenario and no "
         "settings: the server picks DRIVEN for every model here (they all have actuators). "
-        "NEES is over [q, qd] (a DRIVEN filter's force has no truth to compare with)."
+        "NEES is over [q, qd] (a DRIVEN filter's force has no truth to compare with). The recorded "
+        "motions (cmj, isen_gait, isen_tasks) lose 500 ms of frames every 1.25 s instead, for the "
+        "horizons of foresight; the others have no 500 ms column."
     )
     return Section(
         name,
@@ -699,10 +711,52 @@ def gaps(ctx: Context) -> Section:
         text,
         (
             Table(f"{name}_targets", "Issue 10's targets", target_columns, tuple(target_rows)),
+            _foresight_table(runs),
+            _learned_cost_table(ctx),
             Table(name, title, columns, tuple(rows)),
         ),
         tuple(figs),
     )
+
+
+def _foresight_table(runs: Sequence[_GapRun]) -> Table:
+    """The defaults against the best extrapolator on the recorded motions, with the targets of
+    foresight (docs/decisions/0026-learned-foresight.md)."""
+    errors = {(r.obj.name, r.sensors, r.label): r.by_gap for r in runs if r.obj.name in RECORDINGS}
+    columns = (
+        "recording",
+        "motion",
+        "sensors",
+        "horizon (ms)",
+        "defaults",
+        "best extrapolator",
+        "which",
+        "defaults / best",
+        "target",
+        "verdict",
+    )
+    return Table("gaps_foresight", "Foresight on recorded motion", columns, tuple(foresight_rows(errors)))
+
+
+def _learned_cost_table(ctx: Context) -> Table:
+    """The learned predictor's CPU time per tick beside the tick's physics (experiments/foresight.py)."""
+    rows = []
+    for name, dt, limit in (("pendulum_3", 0.05, "< 100 us"), ("myohand", 0.002, "< 10 % of physics")):
+        matching, physics = learned_cost(name, dt=dt, ticks=100 if ctx.quick else 300)
+        ok = matching < 100.0 if name == "pendulum_3" else matching < 0.1 * physics
+        rows.append(
+            (name, dt * 1000, matching, physics, matching / physics, limit, "met" if ok else "missed")
+        )
+    columns = (
+        "model",
+        "dt (ms)",
+        "learned (us/tick)",
+        "physics (us/tick)",
+        "learned / physics",
+        "target",
+        "verdict",
+    )
+    return Table("gaps_learned_cost", "The learned predictor's cost per tick", columns, tuple(rows))
 
 
 # The thesis' R = 0.01 I says "measurements are noisy" for noise-free sensors; with P of order 1e-4
@@ -1101,7 +1155,9 @@ EXPERIMENTS: dict[str, Experiment] = {
             "gaps",
             "Beyond the thesis: the q error after 35, 100 and 200 ms without frames "
             "for the UKF (both presets) and the static, constant-velocity and constant-acceleration "
-            "dead reckoning of IEEE 1278.",
+            "dead reckoning of IEEE 1278; on recorded human motion (a jump, steady stepping, "
+            "movements that do not repeat) also after 500 ms, the defaults as a multiple of the best "
+            "extrapolator, and the learned predictor's cost per tick.",
             gaps,
         ),
         Experiment(

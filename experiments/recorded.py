@@ -1,9 +1,24 @@
-"""A research object whose truth is recorded human motion: the right leg's sagittal angles of a
-countermovement jump, replayed on a hip-knee-ankle chain with human segment parameters::
+"""Research objects whose truth is recorded human motion, replayed on chains with human segment
+parameters::
 
-    obj = RecordedJump()                 # reads the recording from the installed biomdp package
+    obj = research_object("isen_gait", Scenario.EXTERNAL)   # reads biomdp's installed package data
     truth = obj.reset(seed=0)            # frame 0 of the replay (100 Hz)
     truth = obj.step()                   # the next one
+
+Three recordings, all read at run time from biomdp 0.11.2's package data (MIT licence, by its
+authors; `pip install --no-deps biomdp==0.11.2`; nothing of them is copied into this repository):
+- "cmj", a countermovement jump (Vicon, 200 Hz), below;
+- "isen_gait" and "isen_tasks", from tests/datasets/iSen_angles.csv: the sagittal hip and knee
+  angles of both legs measured by iSen inertial sensors at 100 Hz over 36 s. From 26 s to the end
+  the subject steps in a steady rhythm (a cycle of about 0.75 s): "isen_gait", repetitive. From 7
+  to 25 s the legs do a sequence of different movements, none repeated in the same way:
+  "isen_tasks", the recording that is not repetitive. Columns "Flexo-extensión cadera
+  derecha::Y", "... rodilla derecha::Y", "... cadera izquierda::Y", "... rodilla izquierda::Y",
+  their first occurrence (the angle block; later blocks are their velocities and accelerations),
+  degrees. Replayed on both legs hanging from a fixed pelvis (hip and knee hinges, the foot fixed
+  to the shank), de Leva's segments as below.
+
+The jump:
 
 The recording: biomdp 0.11.2 (MIT licence, by its authors; `pip install --no-deps biomdp==0.11.2`)
 ships a Vicon export, tests/datasets/vicon_CMJ_kinem_kinet_emg.csv, whose "Model Outputs" block
@@ -22,6 +37,7 @@ for a 75 kg subject (the recording does not give the subject's mass).
 
 from __future__ import annotations
 
+import csv
 import importlib.util
 import math
 from pathlib import Path
@@ -31,12 +47,33 @@ import numpy as np
 
 from jitdyn.experiments.objects import ModelSource, ResearchObject, Scenario, TrueState, make_object
 
-__all__ = ["BODY_MASS", "COLUMNS", "RecordedJump", "load_recording", "recording_path", "research_object"]
+__all__ = [
+    "BODY_MASS",
+    "COLUMNS",
+    "ISEN_COLUMNS",
+    "RECORDINGS",
+    "RecordedJump",
+    "RecordedMotion",
+    "load_isen",
+    "load_recording",
+    "recorded_isen",
+    "recording_path",
+    "research_object",
+]
 
 COLUMNS: Final = ("AngArtHip_R", "AngArtKnee_R", "AngArtAnkle_R")
 BODY_MASS: Final = 75.0  # kg
 _RATE: Final = 200.0  # Hz, the "Model Outputs" block's
 _DROP: Final = 3  # leading frames whose signs flip
+ISEN_COLUMNS: Final = (
+    "Flexo-extensión cadera derecha::Y",
+    "Flexo-extensión rodilla derecha::Y",
+    "Flexo-extensión cadera izquierda::Y",
+    "Flexo-extensión rodilla izquierda::Y",
+)
+_ISEN_RATE: Final = 100.0  # Hz (its time column steps by 0.0099973 s: read as 100 Hz)
+# The parts of the iSen recording replayed (s): steady stepping, and movements not repeated.
+_ISEN_PARTS: Final = {"isen_gait": (26.0, 36.3), "isen_tasks": (7.0, 25.0)}
 
 # de Leva 1996, table 4, males: mass (fraction of body mass), length (m), centre of mass from the
 # proximal joint (fraction of length), sagittal radius of gyration about it (fraction of length).
@@ -47,23 +84,40 @@ _SEGMENTS: Final = {
 }
 
 
-def recording_path() -> Path:
-    """The CSV inside the installed biomdp package (FileNotFoundError saying how to install it)."""
+def recording_path(name: str = "vicon_CMJ_kinem_kinet_emg.csv") -> Path:
+    """A file of biomdp's test datasets inside the installed package (FileNotFoundError saying how
+    to install it)."""
     spec = importlib.util.find_spec("biomdp")
     if spec is None or not spec.submodule_search_locations:
         raise FileNotFoundError(
-            "the recorded jump needs biomdp 0.11.2: pip install --no-deps biomdp==0.11.2 "
+            "the recorded motions need biomdp 0.11.2: pip install --no-deps biomdp==0.11.2 "
             "(or the 'experiments' extra of jitdyn)"
         )
-    path = (
-        Path(next(iter(spec.submodule_search_locations)))
-        / "tests"
-        / "datasets"
-        / "vicon_CMJ_kinem_kinet_emg.csv"
-    )
+    path = Path(next(iter(spec.submodule_search_locations))) / "tests" / "datasets" / name
     if not path.is_file():
         raise FileNotFoundError(f"biomdp is installed but has no {path.name}; biomdp 0.11.2 ships it")
     return path
+
+
+def load_isen(part: str, path: Path | None = None) -> np.ndarray:
+    """(T, 4) right hip, right knee, left hip, left knee flexion in radians at 100 Hz, of the part
+    of the iSen recording named ("isen_gait" or "isen_tasks")."""
+    if part not in _ISEN_PARTS:
+        raise ValueError(f"part must be one of {sorted(_ISEN_PARTS)}, got {part!r}")
+    text = (path or recording_path("iSen_angles.csv")).read_text(encoding="utf-8-sig")
+    rows = list(csv.reader(text.splitlines()))
+    header = rows[0]
+    columns = []
+    for wanted in ISEN_COLUMNS:
+        if wanted not in header:
+            raise ValueError(f"the iSen recording has no column {wanted!r}")
+        columns.append(header.index(wanted))  # the first: the angle block
+    start, end = _ISEN_PARTS[part]
+    first, last = round(start * _ISEN_RATE), round(end * _ISEN_RATE)
+    degrees = np.array([[float(r[c]) for c in columns] for r in rows[1 + first : 1 + last]])
+    if degrees.shape[0] < 10 or not np.all(np.isfinite(degrees)):
+        raise ValueError(f"the iSen angles must be finite, got {degrees.shape[0]} rows")
+    return np.asarray(np.radians(degrees))
 
 
 def load_recording(path: Path | None = None) -> np.ndarray:
@@ -96,14 +150,7 @@ def chain_mjcf(body_mass: float = BODY_MASS) -> str:
     """The hip-knee-ankle chain (see the module docstring); timestep 2 ms."""
 
     def inertial(segment: str, axis: tuple[float, float, float]) -> str:
-        fraction, length, com, radius = _SEGMENTS[segment]
-        mass = fraction * body_mass
-        inertia = mass * (radius * length) ** 2
-        pos = " ".join(f"{com * length * a:.6f}" for a in axis)
-        return (
-            f'<inertial pos="{pos}" mass="{mass:.6f}" '
-            f'diaginertia="{inertia:.6e} {inertia:.6e} {inertia * 0.1:.6e}"/>'
-        )
+        return _inertial(segment, axis, body_mass)
 
     thigh, shank = _SEGMENTS["thigh"][1], _SEGMENTS["shank"][1]
     foot = _SEGMENTS["foot"][1]
@@ -135,36 +182,85 @@ def chain_mjcf(body_mass: float = BODY_MASS) -> str:
 """
 
 
-class RecordedJump(ResearchObject):
-    """The right leg of a recorded countermovement jump (see the module docstring), 100 Hz frames.
+def _inertial(segment: str, axis: tuple[float, float, float], body_mass: float) -> str:
+    fraction, length, com, radius = _SEGMENTS[segment]
+    mass = fraction * body_mass
+    inertia = mass * (radius * length) ** 2
+    pos = " ".join(f"{com * length * a:.6f}" for a in axis)
+    return f'<inertial pos="{pos}" mass="{mass:.6f}" diaginertia="{inertia:.6e} {inertia:.6e} {inertia * 0.1:.6e}"/>'
+
+
+def legs_mjcf(body_mass: float = BODY_MASS) -> str:
+    """Both legs from a fixed pelvis: hip and knee hinges (sagittal), the foot fixed to the shank
+    at a right angle; de Leva's segments (see the module docstring); timestep 2 ms."""
+    thigh, shank, foot = (_SEGMENTS[s][1] for s in ("thigh", "shank", "foot"))
+    legs = []
+    for side, y in (("r", -0.09), ("l", 0.09)):
+        legs.append(
+            f"""    <body name="thigh_{side}" pos="0 {y} 1">
+      <joint name="hip_flexion_{side}" type="hinge" axis="0 -1 0"/>
+      {_inertial("thigh", (0.0, 0.0, -1.0), body_mass)}
+      <geom type="capsule" fromto="0 0 0 0 0 -{thigh}" size="0.06" contype="0" conaffinity="0" mass="0"/>
+      <body name="shank_{side}" pos="0 0 -{thigh}">
+        <joint name="knee_flexion_{side}" type="hinge" axis="0 1 0"/>
+        {_inertial("shank", (0.0, 0.0, -1.0), body_mass)}
+        <geom type="capsule" fromto="0 0 0 0 0 -{shank}" size="0.04" contype="0" conaffinity="0" mass="0"/>
+        <body name="foot_{side}" pos="0 0 -{shank}">
+          {_inertial("foot", (1.0, 0.0, 0.0), body_mass)}
+          <geom type="capsule" fromto="0 0 0 {foot} 0 0" size="0.03" contype="0" conaffinity="0" mass="0"/>
+        </body>
+      </body>
+    </body>"""
+        )
+    motors = "".join(f'<motor joint="{j}_flexion_{side}"/>' for side in ("r", "l") for j in ("hip", "knee"))
+    body = "\n".join(legs)
+    return f"""<mujoco model="isen_legs">
+  <option timestep="0.002" gravity="0 0 -9.81"/>
+  <worldbody>
+{body}
+  </worldbody>
+  <actuator>
+    {motors}
+  </actuator>
+</mujoco>
+"""
+
+
+class RecordedMotion(ResearchObject):
+    """Recorded angles (T, nv) at `rate` Hz replayed on the model `source`, frames every `dt`.
 
     The truth is the recording, not a simulation: `step` takes the next sample; the forces that
-    moved the leg are whatever inverse dynamics says, and the server never sees them.
+    moved the body are whatever inverse dynamics says, and the server never sees them. qd and qdd
+    are central differences of the recorded angles.
     """
 
     def __init__(
-        self, scenario: Scenario = Scenario.EXTERNAL, *, dt: float = 0.01, angles: np.ndarray | None = None
+        self,
+        source: ModelSource,
+        angles: np.ndarray,
+        *,
+        rate: float,
+        dt: float = 0.01,
+        scenario: Scenario = Scenario.EXTERNAL,
+        description: str = "",
     ) -> None:
         if scenario is not Scenario.EXTERNAL:
             raise ValueError(
-                f"the recorded jump is driven by the person: EXTERNAL only, got {scenario.value}"
+                f"a recorded motion is driven by the person: EXTERNAL only, got {scenario.value}"
             )
-        source = ModelSource(name="cmj_leg", mjcf=chain_mjcf(), builtin=False)
         super().__init__(source, scenario=scenario, dt=dt, jitter=0.0)
-        q = load_recording() if angles is None else np.asarray(angles, dtype=float)
-        h = 1.0 / _RATE
+        q = np.asarray(angles, dtype=float)
+        if q.ndim != 2 or q.shape[1] != self.nv:
+            raise ValueError(f"angles must be (T, {self.nv}) for {source.name}, got {q.shape}")
+        h = 1.0 / rate
         qd = np.gradient(q, h, axis=0)
         qdd = np.gradient(qd, h, axis=0)
-        stride = round(dt * _RATE)
-        if stride < 1 or not math.isclose(stride / _RATE, dt):
-            raise ValueError(f"dt must be a whole multiple of the recording's {1 / _RATE} s, got {dt}")
+        stride = round(dt * rate)
+        if stride < 1 or not math.isclose(stride / rate, dt):
+            raise ValueError(f"dt must be a whole multiple of the recording's {1 / rate} s, got {dt}")
         self._q, self._qd, self._qdd = q[::stride], qd[::stride], qdd[::stride]
         self.seconds = (self._q.shape[0] - 1) * dt
-        self.description = (
-            f"right hip, knee and ankle flexion of a recorded countermovement jump (biomdp 0.11.2, Vicon, "
-            f"{_RATE:g} Hz, {self.seconds:.2f} s) replayed at {1 / dt:g} Hz on a de Leva (1996) leg of a "
-            f"{BODY_MASS:g} kg male, hip fixed"
-        )
+        self.description = description
 
     def reset(self, seed: int) -> TrueState:
         self._tick = 0
@@ -198,9 +294,44 @@ class RecordedJump(ResearchObject):
         )
 
 
+class RecordedJump(RecordedMotion):
+    """The right leg of the recorded countermovement jump (see the module docstring), 100 Hz frames."""
+
+    def __init__(
+        self, scenario: Scenario = Scenario.EXTERNAL, *, dt: float = 0.01, angles: np.ndarray | None = None
+    ) -> None:
+        source = ModelSource(name="cmj_leg", mjcf=chain_mjcf(), builtin=False)
+        q = load_recording() if angles is None else np.asarray(angles, dtype=float)
+        super().__init__(source, q, rate=_RATE, dt=dt, scenario=scenario)
+        self.description = (
+            f"right hip, knee and ankle flexion of a recorded countermovement jump (biomdp 0.11.2, Vicon, "
+            f"{_RATE:g} Hz, {self.seconds:.2f} s) replayed at {1 / dt:g} Hz on a de Leva (1996) leg of a "
+            f"{BODY_MASS:g} kg male, hip fixed"
+        )
+
+
+def recorded_isen(part: str, scenario: Scenario = Scenario.EXTERNAL) -> RecordedMotion:
+    """A part of the iSen recording ("isen_gait", "isen_tasks") on both legs, 100 Hz frames."""
+    source = ModelSource(name="isen_legs", mjcf=legs_mjcf(), builtin=False)
+    what = "steady stepping" if part == "isen_gait" else "a sequence of different leg movements"
+    obj = RecordedMotion(source, load_isen(part), rate=_ISEN_RATE, scenario=scenario)
+    obj.description = (
+        f"{what}: hip and knee flexion of both legs (biomdp 0.11.2, iSen inertial sensors, "
+        f"{_ISEN_RATE:g} Hz, {obj.seconds:.2f} s) on de Leva (1996) legs of a {BODY_MASS:g} kg male, "
+        "pelvis fixed"
+    )
+    return obj
+
+
+# The recorded motions by name, and whether each is repetitive (what a learned predictor can learn).
+RECORDINGS: Final = {"cmj": False, "isen_gait": True, "isen_tasks": False}
+
+
 def research_object(name: str, scenario: Scenario) -> ResearchObject:
-    """Any research object by name: the simulated ones of experiments/objects.py, or "cmj", the
-    recorded jump (which reads biomdp's file, so only when asked for)."""
+    """Any research object by name: the simulated ones of experiments/objects.py, or a recorded
+    motion of RECORDINGS (which reads biomdp's files, so only when asked for)."""
     if name == "cmj":
         return RecordedJump(scenario)
+    if name in _ISEN_PARTS:
+        return recorded_isen(name, scenario)
     return make_object(name, scenario)

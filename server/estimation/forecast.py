@@ -11,7 +11,12 @@ The predictors, from the last frame and the filter's last posterior:
 - MODEL: the posterior mean rolled out by the process model under its estimated force (the force
   held, or ramped with its rate under the integrated random walk): the physics' forecast;
 - STATIC, CONSTANT_VELOCITY, CONSTANT_ACCELERATION: IEEE 1278's extrapolators from the last frame
-  (qdd from the last two frames' qd), exactly as estimation/deadreckoning.py computes them.
+  (qdd from the last two frames' qd), exactly as estimation/deadreckoning.py computes them;
+- LEARNED (a combiner built with `learner=True`): motion matching over the session's own frames
+  (estimation/matching.py): what followed the past moments most like the last frame. A scoring
+  probe matches when it starts, the last frame's probe when a gap first asks for it. Where the
+  motion does not repeat, its scores are poor and its weight falls
+  (docs/decisions/0026-learned-foresight.md).
 
 Scoring: every `stride` ticks a probe starts from the frame and posterior of that tick and is
 carried forward one tick per tick, for `horizon` ticks; whenever a frame arrives, every live probe
@@ -42,7 +47,9 @@ plain arrays, so `snapshot()`/`restore()` serve the timewarp and a replay is exa
 
 from __future__ import annotations
 
+import functools
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
@@ -50,14 +57,28 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-__all__ = ["MIN_SAMPLES", "PREDICTORS", "CombinedForecast", "CombinerSnapshot", "ForecastCombiner"]
+from jitdyn.server.estimation.matching import K, MotionMatcher
 
-# The predictors' order in weights (Result.forecast_weights).
+__all__ = [
+    "LEARNED",
+    "MIN_SAMPLES",
+    "PREDICTORS",
+    "CombinedForecast",
+    "CombinerSnapshot",
+    "ForecastCombiner",
+]
+
+# The predictors' order in weights (Result.forecast_weights), and the learned one after them.
 PREDICTORS: Final = ("MODEL", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION")
+LEARNED: Final = "LEARNED"
 # Samples a horizon needs before its weights answer; fading memory of the error covariances
 # (weight of the past per sample 0.8: about 5 scored forecasts per horizon, so that the weights
 # follow the regime of the motion just before a gap; measured in docs/experiments.md).
 MIN_SAMPLES: Final = 3
+# Scored forecasts of LEARNED from a real match a horizon needs before LEARNED takes weight there
+# (until it has a match it answers as CONSTANT_VELOCITY, and scores earned so must not weigh a
+# match made later): about the fading memory's length.
+LEARNED_SAMPLES: Final = 5
 FORGETTING: Final = 0.8
 # Probes alive at once: the cost of scoring is this many single-point rollouts of one tick per tick.
 PROBES: Final = 16
@@ -72,6 +93,7 @@ _ORIGIN: Final = 0  # tick of the frame the probe starts from
 _AGE: Final = 1  # ticks carried forward
 _KEEP: Final = 2  # 1: a scoring probe; 0: only the last frame's, kept for a gap
 _RAMP: Final = 3  # 1: its force ramps with its rate (integrated random walk)
+_MATCHED: Final = 4  # 1: its LEARNED match is made (its columns hold it, NaN ticks for none)
 
 
 @dataclass(frozen=True)
@@ -103,12 +125,14 @@ class _Columns:
     q0: slice
     v0: slice
     a0: slice
+    match_ticks: slice
+    match_weights: slice
     width: int
 
     @staticmethod
-    def of(nq: int, nv: int, na: int) -> _Columns:
+    def of(nq: int, nv: int, na: int, k: int) -> _Columns:
         sizes = {"qpos": nq, "qvel": nv, "qacc": nv, "act": na, "force": nv, "rate": nv}
-        sizes |= {"q0": nv, "v0": nv, "a0": nv}
+        sizes |= {"q0": nv, "v0": nv, "a0": nv, "match_ticks": k, "match_weights": k}
         start, spans = 0, {}
         for name, size in sizes.items():
             spans[name] = slice(start, start + size)
@@ -121,22 +145,27 @@ class CombinerSnapshot:
     """A ForecastCombiner's whole state: its probes, scores and last frame's anchor."""
 
     tick: int
-    marks: np.ndarray  # (probes, 4)
+    marks: np.ndarray  # (probes, 5)
     table: np.ndarray  # (probes, width)
     cov: np.ndarray
     cov_v: np.ndarray
     count: np.ndarray
     anchor: tuple[np.ndarray, np.ndarray, int] | None
+    # The learned predictor's state beside its log of frames; the log is indexed by tick and a
+    # replay rewrites it (estimation/matching.py), so a snapshot does not copy it.
+    learner: np.ndarray | None
+    learned_count: np.ndarray
 
 
 class ForecastCombiner:
     """See the module docstring. process: the filter's process model (warm start off, actuation
     off for DRIVEN), whose qfrc_applied is the estimated force; horizon: ticks scored (the longest
-    gap whose weights are learnt; a longer gap uses the last horizon's)."""
+    gap whose weights are learnt; a longer gap uses the last horizon's); learner: add the LEARNED
+    predictor."""
 
     # The live probes, rows [0, n) oldest first: their vectors (_Columns) and integer marks.
     _table: np.ndarray  # (capacity, width)
-    _marks: np.ndarray  # (capacity, 4)
+    _marks: np.ndarray  # (capacity, 5)
 
     def __init__(
         self,
@@ -145,6 +174,7 @@ class ForecastCombiner:
         dt: float,
         steps_per_tick: int,
         horizon: int,
+        learner: bool = False,
     ) -> None:
         if int(process.nq) != int(process.nv):
             raise ValueError("the forecast combination needs nq == nv (no ball or free joints)")
@@ -156,7 +186,9 @@ class ForecastCombiner:
         self._stride = max(1, -(-self._horizon // PROBES))
         self._nv = int(process.nv)
         self._na = int(process.na)
-        self._columns = _Columns.of(int(process.nq), self._nv, self._na)
+        self._matcher = MotionMatcher(nv=self._nv, dt=self._dt, horizon=self._horizon) if learner else None
+        self._predictors = PREDICTORS + ((LEARNED,) if learner else ())
+        self._columns = _Columns.of(int(process.nq), self._nv, self._na, K if learner else 0)
         # Scoring probes alive at once, and the last frame's (twice, for a second frame of a tick).
         self._n = 0
         self._capacity = 0
@@ -167,9 +199,34 @@ class ForecastCombiner:
     def horizon(self) -> int:
         return self._horizon
 
+    @property
+    def nv(self) -> int:
+        return self._nv
+
+    @property
+    def na(self) -> int:
+        return self._na
+
+    def fill_window(self, frames: Callable[[int], tuple[np.ndarray, np.ndarray]]) -> int:
+        """Ticks pass with the learned predictor's whole window of frames (q, qd) = frames(tick)
+        recorded and nothing scored: what a measure of a learnt session's cost starts from. Returns
+        the tick reached (0 without the learned predictor)."""
+        if self._matcher is None:
+            return self._tick
+        for _ in range(self._matcher.window):
+            self._tick += 1
+            self._matcher.record(self._tick, *frames(self._tick))
+        return self._tick
+
+    @property
+    def predictors(self) -> tuple[str, ...]:
+        """The predictors' names in the order of the weights."""
+        return self._predictors
+
     def reset(self) -> None:
-        """Forget every score and probe."""
-        P = len(PREDICTORS)
+        """Forget every score and probe (the learned predictor keeps the frames it has seen: they
+        are the motion's, not the filter's)."""
+        P = len(self._predictors)
         self._tick = 0
         self._n = 0  # live probes: rows [0, n) of the table, oldest first
         self._cov = np.zeros((self._horizon + 1, P, P))
@@ -180,6 +237,7 @@ class ForecastCombiner:
         self._weights: dict[int, np.ndarray] = {}
         self._variances: dict[int, tuple[float, float]] = {}  # w' C_h w and w' D_h w, as _weights
         self._count = np.zeros(self._horizon + 1)
+        self._learned_count = np.zeros(self._horizon + 1)  # LEARNED's scores from a real match
         self._anchor: tuple[np.ndarray, np.ndarray, int] | None = None  # last frame's (q, v, tick)
 
     def advance(self) -> None:
@@ -237,6 +295,9 @@ class ForecastCombiner:
         # back from one) predicts worse than the anchors gaps start from.
         streak = previous is not None and previous[2] == self._tick - 1
         self._anchor = (np.array(qpos), np.array(qvel), self._tick)
+        keep = streak and self._tick % self._stride == 0
+        if self._matcher is not None:
+            self._matcher.record(self._tick, qpos, qvel)
         if m + 1 > self._capacity:
             self._grow(2 * self._capacity)
         c, row = self._columns, self._table[m]
@@ -244,8 +305,10 @@ class ForecastCombiner:
         row[c.act], row[c.force] = act, force
         row[c.rate] = 0.0 if rate is None else rate
         row[c.q0], row[c.v0], row[c.a0] = qpos, qvel, a0
-        self._marks[m] = (self._tick, 0, streak and self._tick % self._stride == 0, rate is not None)
+        self._marks[m] = (self._tick, 0, keep, rate is not None, 0)
         self._n = m + 1
+        if keep:
+            self._match(m)
 
     def forecast(
         self,
@@ -272,9 +335,11 @@ class ForecastCombiner:
         h = min(int(self._marks[i, _AGE]), self._horizon)
         if self._count[h] < MIN_SAMPLES:
             return None
+        if not self._marks[i, _MATCHED]:
+            self._match(i)
         weights = self._weights.get(h)
         if weights is None:
-            weights = self._weights[h] = _min_variance_weights(self._cov[h])
+            weights = self._weights[h] = self._solve_weights(h)
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd)
@@ -311,6 +376,8 @@ class ForecastCombiner:
             cov_v=self._cov_v.copy(),
             count=self._count.copy(),
             anchor=self._anchor,
+            learner=None if self._matcher is None else self._matcher.state(),
+            learned_count=self._learned_count.copy(),
         )
 
     def restore(self, snap: CombinerSnapshot) -> None:
@@ -323,7 +390,10 @@ class ForecastCombiner:
         self._cov = snap.cov.copy()
         self._cov_v = snap.cov_v.copy()
         self._count = snap.count.copy()
+        self._learned_count = snap.learned_count.copy()
         self._anchor = snap.anchor
+        if self._matcher is not None and snap.learner is not None:
+            self._matcher.restore(snap.learner)
         self._weights = {}
         self._variances = {}
 
@@ -333,7 +403,7 @@ class ForecastCombiner:
         """Room for `capacity` probes: the table, the marks and the batch that steps them."""
         n = self._n
         table = np.zeros((capacity, self._columns.width))
-        marks = np.zeros((capacity, 4), dtype=np.int64)
+        marks = np.zeros((capacity, 5), dtype=np.int64)
         if n:
             table[:n], marks[:n] = self._table[:n], self._marks[:n]
         self._table, self._marks = table, marks
@@ -349,6 +419,40 @@ class ForecastCombiner:
 
     def _last_origin(self) -> int:
         return -1 if self._anchor is None else self._anchor[2]
+
+    def _solve_weights(self, h: int) -> np.ndarray:
+        """The weights of horizon h; LEARNED's 0 until it has LEARNED_SAMPLES scores from real
+        matches there."""
+        C = self._cov[h]
+        if self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES:
+            return _min_variance_weights(C)
+        k = len(PREDICTORS)
+        weights = np.zeros(len(self._predictors))
+        weights[:k] = _min_variance_weights(C[:k, :k])
+        return weights
+
+    def _match(self, i: int) -> None:
+        """Probe i's LEARNED match, from its frame (the log holds it: its origin is a frame's tick)."""
+        self._marks[i, _MATCHED] = 1
+        if self._matcher is None:
+            return
+        c, row = self._columns, self._table[i]
+        found = self._matcher.match(int(self._marks[i, _ORIGIN]))
+        if found is None:
+            row[c.match_ticks], row[c.match_weights] = np.nan, 0.0
+        else:
+            row[c.match_ticks], row[c.match_weights] = found.ticks, found.weights
+
+    def _learned(
+        self, rows: np.ndarray, ages: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The LEARNED predictor's qpos, qvel, qacc (S, nv) for table rows (S, width) at ages (S,)."""
+        if self._matcher is None:
+            return None
+        c = self._columns
+        return self._matcher.follow(
+            rows[:, c.match_ticks], rows[:, c.match_weights], ages, rows[:, c.q0], rows[:, c.v0]
+        )
 
     def _step(self, rows: slice | np.ndarray, ids: np.ndarray) -> None:
         """Probes `ids` (sorted; `rows`, the same rows as a slice when they are contiguous) one
@@ -384,11 +488,14 @@ class ForecastCombiner:
         c, row = self._columns, self._table[i]
         t = int(self._marks[i, _AGE]) * self._dt
         q0, v0, a0 = row[c.q0], row[c.v0], row[c.a0]
-        q, v, a = np.empty((3, len(PREDICTORS), self._nv))
+        q, v, a = np.empty((3, len(self._predictors), self._nv))
         q[0], q[1], q[2] = row[c.qpos], q0, q0 + v0 * t
         q[3] = q0 + v0 * t + 0.5 * a0 * t * t
         v[0], v[1], v[2], v[3] = row[c.qvel], v0, v0, v0 + a0 * t
         a[0], a[1], a[2], a[3] = row[c.qacc], 0.0, 0.0, a0
+        learned = self._learned(self._table[i : i + 1], self._marks[i : i + 1, _AGE])
+        if learned is not None:
+            q[4], v[4], a[4] = (x[0] for x in learned)
         return q, v, a
 
     def _score(self, ids: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
@@ -398,15 +505,22 @@ class ForecastCombiner:
         ages = self._marks[ids, _AGE]
         t = (ages * self._dt)[:, None]
         q0, v0, a0 = rows[:, c.q0], rows[:, c.v0], rows[:, c.a0]
-        positions = np.empty((ids.size, len(PREDICTORS), self._nv))  # the q of `_predictions`
+        positions = np.empty((ids.size, len(self._predictors), self._nv))  # the q of `_predictions`
         positions[:, 0], positions[:, 1] = rows[:, c.qpos], q0
         positions[:, 2] = q0 + v0 * t
         positions[:, 3] = q0 + v0 * t + 0.5 * a0 * t * t
+        learned = self._learned(rows, ages)
+        if learned is not None:
+            positions[:, 4] = learned[0]
+            matched = ages[~np.isnan(rows[:, c.match_ticks][:, 0])]
+            np.add.at(self._learned_count, matched, 1.0)
         errors = positions - qpos[None, None, :]  # (S, P, nv)
         verrors = np.empty_like(errors)  # the qd of `_predictions`, against the frame's
         verrors[:, 0] = rows[:, c.qvel] - qvel
         verrors[:, 1] = verrors[:, 2] = v0 - qvel
         verrors[:, 3] = v0 + a0 * t - qvel
+        if learned is not None:
+            verrors[:, 4] = learned[1] - qvel
         finite = np.isfinite(errors).all(axis=(1, 2)) & np.isfinite(verrors).all(axis=(1, 2))
         if not finite.all():
             errors, verrors, ages = errors[finite], verrors[finite], ages[finite]
@@ -469,7 +583,7 @@ def _min_variance_weights(C: np.ndarray) -> np.ndarray:
         return w
     # A little ridge keeps near-collinear predictors (CV and CA over one tick) from extreme weights.
     C = C + 1e-9 * scale * np.eye(P)
-    subsets = _SUBSETS if P == len(PREDICTORS) else _subsets(P)
+    subsets = _subsets(P)
     best_w, best_v = None, np.inf
     for size in subsets:
         solved = _solve_each(C[size[:, :, None], size[:, None, :]])
@@ -489,13 +603,10 @@ def _min_variance_weights(C: np.ndarray) -> np.ndarray:
     return best_w
 
 
+@functools.cache
 def _subsets(P: int) -> tuple[np.ndarray, ...]:
     """Every subset of range(P), by size: one (subsets, size) index array per size."""
     return tuple(np.array(list(itertools.combinations(range(P), k)), dtype=np.intp) for k in range(1, P + 1))
-
-
-# The subsets of the predictors.
-_SUBSETS: Final = _subsets(len(PREDICTORS))
 
 
 def _solve_each(systems: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

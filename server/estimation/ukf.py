@@ -18,10 +18,11 @@ The scenarios are the thesis' (reference/thesis-experiments.md):
   are off in the process model: their forces are part of the restored force.
 
 DRIVEN with Forecast.COMBINED (PRESET_JITDYN's default): a tick without a frame is answered by the
-combination of the model's rollout and IEEE 1278's extrapolators that scored best on the session's
-own frames (estimation/forecast.py); its variance over [q, qd] is the larger of the combination's
-scored error and the filter's prediction (the filter's own mean and covariance go on predicting
-under it, unchanged). DRIVEN with SIMPLEX_LINEAR_FORCE: estimation/linear_force.py.
+combination of the model's rollout, IEEE 1278's extrapolators and motion matching over the
+session's own past that scored best on the session's own frames (estimation/forecast.py); its
+variance over [q, qd] is the larger of the combination's scored error and the filter's prediction,
+and its unknown force the inverse dynamics of the forecast motion (the filter's own mean and
+covariance go on predicting under their own force, unchanged). DRIVEN with SIMPLEX_LINEAR_FORCE: estimation/linear_force.py.
 
 Muscle activations (act, na of them) are physics state but not filter state: every sigma point
 starts a tick from the same act, and the filter keeps the weighted mean of the propagated acts
@@ -87,8 +88,8 @@ __all__ = ["FilterSnapshot", "UnscentedFilter", "process_noise"]
 # give each dof alone: 10 rad/s^2 (or m/s^2), 100 rad/s^3; scaled by the mass matrix's diagonal.
 FORCE_P0_ACCELERATION: Final = 10.0
 FORCE_RATE_P0_JERK: Final = 100.0
-# The longest gap the forecast combination learns its weights for, s (a longer gap keeps these).
-FORECAST_HORIZON: Final = 0.2
+# The longest gap the forecast combination learns its weights for, s (past it the filter answers).
+FORECAST_HORIZON: Final = 0.5
 # What moves the sigma points besides the model's own forces, per scenario.
 _INPUTS: Final = {
     Scenario.PASSIVE: Inputs.NONE,
@@ -270,6 +271,7 @@ class UnscentedFilter:
             dt=config.dt,
             steps_per_tick=config.steps_per_tick,
             horizon=int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9)),
+            learner=True,
         )
 
     def _clear(self) -> None:
@@ -744,6 +746,11 @@ class UnscentedFilter:
         nq, nv = self._nq, self._nv
         state = np.array(estimate.state)
         state[:nq], state[nq : nq + nv] = answer.qpos, answer.qvel
+        # The unknown force answered is the one under which the physics follows the forecast: the
+        # inverse dynamics of its q, qd and qdd (so torques over a gap agree with the motion).
+        force = self._inverse(answer.qpos, answer.qvel, answer.qacc)
+        if np.all(np.isfinite(force)):
+            state[nq + nv : nq + 2 * nv] = force
         frozen = read_only(state)
         P = np.array(estimate.covariance)
         root = self._answer_scale(P, answer)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from jitdyn.experiments.objects import Biped, Pendulum, Scenario, UnstableSimulation, load_source, make_object
+from jitdyn.experiments.recorded import load_isen, research_object
 
 
 def _run(obj, seed, ticks):
@@ -146,3 +147,26 @@ def test_myohand_bends_the_index_first():
     assert obj.scenario is Scenario.EXTERNAL
     with pytest.raises(ValueError, match="myohand runs only in the EXTERNAL scenario, got CONTROLLED"):
         MyoHand(Scenario.CONTROLLED)
+
+
+@pytest.mark.parametrize(("name", "seconds"), [("isen_gait", 10.29), ("isen_tasks", 17.99)])
+def test_the_isen_recordings_replay_both_legs_at_100_hz(name: str, seconds: float) -> None:
+    """biomdp's iSen angles: hip and knee flexion of both legs, 100 Hz, in radians; the chain's
+    four hinges take them, and the replay ends with the recording."""
+    obj = research_object(name, Scenario.EXTERNAL)
+    assert (obj.nv, obj.dt, obj.name) == (4, 0.01, "isen_legs")
+    assert abs(obj.seconds - seconds) < 1e-9
+    first = obj.reset(0)
+    assert np.all(np.abs(first.qpos) < np.radians(120))
+    states = [obj.step() for _ in range(round(obj.seconds / obj.dt))]
+    # The knees flex: over the stepping part each knee reaches past 40 degrees.
+    assert np.degrees(np.max([s.qpos[1] for s in states])) > 40
+    with pytest.raises(IndexError, match="the recording ends at"):
+        obj.step()
+
+
+def test_a_part_of_the_isen_recording_must_be_one_of_its_parts() -> None:
+    with pytest.raises(
+        ValueError, match=r"part must be one of \['isen_gait', 'isen_tasks'\], got 'isen_run'"
+    ):
+        load_isen("isen_run")

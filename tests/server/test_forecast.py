@@ -463,7 +463,7 @@ def test_a_default_session_reports_which_predictors_answered_a_gap(client: Any) 
                 result = session.skip(k)
                 assert isinstance(result, TickResult) and result.source == "PREDICTED"
                 assert result.forecast_weights is not None
-                assert len(result.forecast_weights) == len(PREDICTORS)
+                assert len(result.forecast_weights) == len(PREDICTORS) + 1  # and LEARNED
                 assert abs(sum(result.forecast_weights) - 1.0) < 1e-9
                 np.testing.assert_array_equal(result.filter_state[: model.nq], result.qpos)
                 weights.append(result.forecast_weights)
@@ -541,7 +541,7 @@ def test_the_combination_is_jitdyns_driven_default_below_a_large_state(links: in
 
 
 def test_past_the_scored_horizon_the_filter_answers_and_the_answer_keeps_moving(client: Any) -> None:
-    """A gap longer than the combination's horizon (0.2 s: 4 ticks at 50 ms): the last frame's probe
+    """A gap longer than the combination's horizon (0.5 s: 10 ticks at 50 ms): the last frame's probe
     stops there (it waits to be scored), so the combination's answer would stand still for the rest
     of the gap; past the horizon nothing is scored, and the filter answers, moving on."""
     model = _pendulum(2)
@@ -559,8 +559,37 @@ def test_past_the_scored_horizon_the_filter_answers_and_the_answer_keeps_moving(
                     assert isinstance(result, TickResult)
                     gap.append(result)
             assert isinstance(result, TickResult)
-    horizon = 4
+    horizon = 10
     assert all(r.forecast_weights is not None for r in gap[:horizon])
     assert all(r.forecast_weights is None for r in gap[horizon:])
     moves = [float(np.max(np.abs(b.qpos - a.qpos))) for a, b in zip(gap[horizon:], gap[horizon + 1 :])]
     assert min(moves) > 1e-6, moves
+
+
+def test_over_a_gap_the_force_answered_moves_the_model_along_the_forecast(client: Any) -> None:
+    """A gap answered by the combination: the unknown force in `filter_state` is the inverse
+    dynamics of the forecast q, qd, qdd (so the torques answered agree with the motion answered),
+    and it is what `qfrc_inverse` says; not the filter's held force."""
+    model = _pendulum(2)
+    process = process_model(model, scenario="DRIVEN")
+    data = mujoco.MjData(process)
+    frames = _driven_frames(model, 60)
+    nv = model.nv
+    options = SessionOptions(model_name="pendulum_2", dt=0.05, outputs=("FILTER_STATE", "INVERSE_DYNAMICS"))
+    answered = 0
+    with client.open_session(options) as session:
+        for k, (q, v) in enumerate(frames):
+            if k >= 30 and k % 10 in (0, 1, 2):
+                result = session.skip(k)
+                assert isinstance(result, TickResult)
+                if result.forecast_weights is None:
+                    continue
+                data.qpos[:], data.qvel[:], data.qacc[:] = result.qpos, result.qvel, result.qacc
+                mujoco.mj_inverse(process, data)
+                force = result.filter_state[2 * nv : 3 * nv]
+                np.testing.assert_allclose(force, data.qfrc_inverse, rtol=1e-9, atol=1e-9)
+                np.testing.assert_allclose(result.qfrc_inverse, force, rtol=1e-9, atol=1e-9)
+                answered += 1
+            else:
+                session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
+    assert answered >= 6

@@ -302,14 +302,17 @@ class _ForecastEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Forecast.Val
     """The filter's predicted mean, as in the thesis."""
     FORECAST_COMBINED: _Forecast.ValueType  # 2
     """SCENARIO_DRIVEN, ESTIMATOR_UKF, models without ball or free joints: the server scores its own
-    forecasts against every frame it gets, at every horizon up to 0.2 s (in ticks), for four
-    predictors: the posterior mean rolled out by the model under its estimated force (MODEL), and
-    IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last frame. Over a
-    gap of h ticks it answers the combination of the four with the least error variance at h on
-    the recent frames (weights >= 0 summing to 1; fading memory of about 5 scored forecasts per
-    horizon); `Result.forecast_weights` says which predictors answered and how much. Until a
-    horizon has 3 scores, and in a gap longer than 0.2 s beyond it, the filter answers (or the
-    0.2 s weights hold). The filter itself (`filter_state`'s force and `covariance`) is unchanged.
+    forecasts against every frame it gets, at every horizon up to 0.5 s (in ticks), for five
+    predictors: the posterior mean rolled out by the model under its estimated force (MODEL),
+    IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last frame, and
+    LEARNED: motion matching over the session's own frames of the last 20 s (what followed the
+    past moments most like the last frame). Over a gap of h ticks it answers the combination of
+    the five with the least error variance at h on the recent frames (weights >= 0 summing to 1;
+    fading memory of about 5 scored forecasts per horizon); `Result.forecast_weights` says which
+    predictors answered and how much. Until a horizon has 3 scores, and in a gap longer than 0.5 s
+    beyond it, the filter answers. The answer's unknown force (in `filter_state`, and so
+    `qfrc_inverse`) is the inverse dynamics of the forecast q, qd and qdd; the filter's own mean
+    and covariance go on predicting unchanged.
     """
 
 class Forecast(_Forecast, metaclass=_ForecastEnumTypeWrapper):
@@ -324,14 +327,17 @@ FORECAST_FILTER: Forecast.ValueType  # 1
 """The filter's predicted mean, as in the thesis."""
 FORECAST_COMBINED: Forecast.ValueType  # 2
 """SCENARIO_DRIVEN, ESTIMATOR_UKF, models without ball or free joints: the server scores its own
-forecasts against every frame it gets, at every horizon up to 0.2 s (in ticks), for four
-predictors: the posterior mean rolled out by the model under its estimated force (MODEL), and
-IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last frame. Over a
-gap of h ticks it answers the combination of the four with the least error variance at h on
-the recent frames (weights >= 0 summing to 1; fading memory of about 5 scored forecasts per
-horizon); `Result.forecast_weights` says which predictors answered and how much. Until a
-horizon has 3 scores, and in a gap longer than 0.2 s beyond it, the filter answers (or the
-0.2 s weights hold). The filter itself (`filter_state`'s force and `covariance`) is unchanged.
+forecasts against every frame it gets, at every horizon up to 0.5 s (in ticks), for five
+predictors: the posterior mean rolled out by the model under its estimated force (MODEL),
+IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last frame, and
+LEARNED: motion matching over the session's own frames of the last 20 s (what followed the
+past moments most like the last frame). Over a gap of h ticks it answers the combination of
+the five with the least error variance at h on the recent frames (weights >= 0 summing to 1;
+fading memory of about 5 scored forecasts per horizon); `Result.forecast_weights` says which
+predictors answered and how much. Until a horizon has 3 scores, and in a gap longer than 0.5 s
+beyond it, the filter answers. The answer's unknown force (in `filter_state`, and so
+`qfrc_inverse`) is the inverse dynamics of the forecast q, qd and qdd; the filter's own mean
+and covariance go on predicting unchanged.
 """
 Global___Forecast: _TypeAlias = Forecast  # noqa: Y015
 

@@ -956,8 +956,8 @@ class Result(_message.Message):
     def forecast_weights(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """FORECAST_COMBINED, a PREDICTED tick answered by the combination: the weight (0 to 1, summing to
         1) of each predictor in `qpos`, `qvel`, `qacc` and the [q, qd] block of `filter_state`, in the
-        order MODEL, STATIC, CONSTANT_VELOCITY, CONSTANT_ACCELERATION (see `Forecast`). Empty when the
-        filter answered alone.
+        order MODEL, STATIC, CONSTANT_VELOCITY, CONSTANT_ACCELERATION, LEARNED (see `Forecast`). Empty
+        when the filter answered alone.
         """
 
     def __init__(
