@@ -373,43 +373,47 @@ LOAD: tuple[DemoRun, ...] = (
 _RETRY = 2.0  # s between a refused demo's tries
 
 
-def demo_worker(address: str, run: DemoRun, *, seconds: float, seed: int) -> int:
-    """One demo session until `seconds` from now, opened again while admission refuses it (on a
-    machine that other programs keep busy it refuses, as it should); 0 once one ran."""
+def demo_worker(address: str, run: DemoRun, *, seconds: float, wait: float, seed: int) -> int:
+    """One demo session of `seconds`, opened again every few seconds while admission refuses it (a
+    machine that other programs keep busy refuses, as it should), for at most `wait` seconds; 0
+    once it ran."""
     from jitdyn.errors import ResourceExhausted
     from jitdyn.experiments.demo import DemoSettings, run_demo
     from jitdyn.vocabulary import Scenario
 
-    deadline = time.monotonic() + seconds
-    while (remaining := deadline - time.monotonic()) >= 3.0:
-        settings = DemoSettings(
-            model=run.model,
-            scenario=Scenario[run.scenario],
-            seconds=remaining,
-            latency=run.latency,
-            jitter=run.jitter,
-            loss=run.loss,
-            seed=seed,
-        )
+    settings = DemoSettings(
+        model=run.model,
+        scenario=Scenario[run.scenario],
+        seconds=seconds,
+        latency=run.latency,
+        jitter=run.jitter,
+        loss=run.loss,
+        seed=seed,
+    )
+    deadline = time.monotonic() + wait
+    while time.monotonic() < deadline:
         try:
             run_demo(address, settings, out=sys.stdout, progress=False)
             return 0
         except ResourceExhausted as exc:
             print(f"refused, trying again in {_RETRY:g} s: {exc}", flush=True)
             time.sleep(_RETRY)
-    print(f"{run.model}: refused until its time was up", flush=True)
+    print(f"{run.model}: refused for {wait:g} s", flush=True)
     return 1
 
 
 class Load:
-    """REALTIME demo sessions against `address` for `seconds`, each in a process of its own (this
-    script's demo_worker), started a little apart so that their imports do not all land at once."""
+    """REALTIME demo sessions of `seconds` against `address`, each in a process of its own (this
+    script's demo_worker, waiting up to `wait` seconds to be admitted), started a little apart so
+    that their imports do not all land at once."""
 
-    def __init__(self, address: str, workdir: Path, *, runs: Sequence[DemoRun], seconds: float) -> None:
+    def __init__(
+        self, address: str, workdir: Path, *, runs: Sequence[DemoRun], seconds: float, wait: float
+    ) -> None:
         self.demos: list[_Process] = []
         try:
             for k, run in enumerate(runs):
-                job = {"address": address, "run": run.__dict__, "seconds": seconds, "seed": k}
+                job = {"address": address, "run": run.__dict__, "seconds": seconds, "wait": wait, "seed": k}
                 self.demos.append(
                     _Process(
                         [sys.executable, str(Path(__file__).resolve()), "--demo-worker", json.dumps(job)],
@@ -589,10 +593,17 @@ def _style_axes(ax: Any, unit: str) -> None:
 
 
 def _time_axis(ax: Any, start: float, end: float) -> None:
+    """Clock times at a round interval that leaves ~110 px a label, none at the very edges (where
+    they would run into the y axis' labels)."""
     import matplotlib.dates as mdates
 
     ax.set_xlim(_date(start), _date(end))
-    ax.xaxis.set_major_locator(mdates.SecondLocator(bysecond=range(0, 60, 15)))
+    width = ax.get_position().width * ax.figure.bbox.width
+    span = end - start
+    step = next((s for s in (5, 10, 15, 30, 60, 120, 300, 600, 1800) if span / s <= width / 110), 3600)
+    margin = 0.04 * span
+    first = math.ceil((start + margin) / step) * step
+    ax.set_xticks([_date(t) for t in np.arange(first, end - margin, step)])
     ax.xaxis.set_major_formatter(mdates.DateFormatter("%H:%M:%S"))
 
 
@@ -602,16 +613,19 @@ def _date(seconds: float) -> float:
 
 def _draw_timeseries(fig: Any, box: _Box, data: PanelData, window: tuple[float, float]) -> None:
     unit = _unit(data.panel)
+    # In the targets' order (A, B, ...), each target's series by name, as Grafana lists them.
     lines = [
-        (legend(target.legend_format, series.labels), series)
+        line
         for target in data.targets
-        for series in target.series
+        for line in sorted(
+            ((legend(target.legend_format, s.labels), s) for s in target.series), key=lambda x: x[0]
+        )
     ]
-    lines.sort(key=lambda item: item[0])
-    legend_rows = max(1, math.ceil(len(lines) / 4))
-    ax = fig.add_axes(
-        box.inset(0.052, (22 + 16 * legend_rows) / fig.bbox.height, 0.008, 36 / fig.bbox.height)
-    )
+    # Grafana's list legend flows its entries left to right: as many columns as the longest fits.
+    entry = 40 + 6.2 * max((len(name) for name, _ in lines), default=0)
+    columns = max(1, min(len(lines), int(box.width * fig.bbox.width // entry)))
+    rows = max(1, math.ceil(len(lines) / columns))
+    ax = fig.add_axes(box.inset(0.052, (26 + 16 * rows) / fig.bbox.height, 0.008, 36 / fig.bbox.height))
     _style_axes(ax, unit)
     for k, (name, series) in enumerate(lines):
         ax.plot(
@@ -631,8 +645,9 @@ def _draw_timeseries(fig: Any, box: _Box, data: PanelData, window: tuple[float, 
     if lines:
         ax.legend(
             loc="upper left",
-            bbox_to_anchor=(-0.01, -0.09),
-            ncol=min(4, len(lines)),
+            bbox_to_anchor=(box.left + 4 / fig.bbox.width, box.bottom + (8 + 16 * rows) / fig.bbox.height),
+            bbox_transform=fig.transFigure,
+            ncol=columns,
             frameon=False,
             fontsize=8,
             labelcolor=_TEXT,
@@ -694,7 +709,8 @@ def _draw_stat(fig: Any, box: _Box, data: PanelData, window: tuple[float, float]
         [_date(t) for t in series[0].times], series[0].values, color=_STAT_GREEN, alpha=0.15, lw=0
     )
     ax.plot([_date(t) for t in series[0].times], series[0].values, color=_STAT_GREEN, lw=1, alpha=0.6)
-    ax.set_ylim(bottom=0)
+    top = max((abs(v) for v in values), default=1.0) or 1.0
+    ax.set_ylim(0, 2.5 * top)  # the sparkline in the panel's lower part, under the number
     ax.text(
         0.5,
         0.55,
@@ -737,8 +753,9 @@ def draw(panels: Sequence[PanelData], *, title: str, window: tuple[float, float]
     fig.text(
         1 - _PAD / width,
         1 - (_PAD + 18) / height,
-        f"{time.strftime('%H:%M:%S', time.gmtime(window[0]))} to "
-        f"{time.strftime('%H:%M:%S', time.gmtime(window[1]))} UTC",
+        f"{time.strftime('%Y-%m-%d %H:%M:%S', time.gmtime(window[0]))} to "
+        f"{time.strftime('%H:%M:%S', time.gmtime(window[1]))} UTC   ·   drawn from Prometheus by "
+        "scripts/dashboard_preview.py (not a Grafana screenshot)",
         color=_WEAK,
         fontsize=9,
         ha="right",
@@ -755,6 +772,7 @@ def draw(panels: Sequence[PanelData], *, title: str, window: tuple[float, float]
                 facecolor=_PANEL,
                 edgecolor=_BORDER,
                 linewidth=1,
+                zorder=-1,  # under the panel's axes
             )
         )
         fig.text(
@@ -814,6 +832,20 @@ def _report(panels: Sequence[PanelData]) -> list[str]:
     return empty
 
 
+def _first_open(prometheus: Prometheus, *, start: float, timeout: float) -> float | None:
+    """When the server first had a session open (Unix seconds, as scraped), waiting up to `timeout`
+    seconds for it; None if it had none."""
+    deadline = time.monotonic() + timeout
+    while True:
+        now = time.time()
+        found = prometheus.query_range(
+            "sum(jitdyn_open_sessions) > 0", start=start, end=now, step=SCRAPE_INTERVAL
+        )
+        if found or time.monotonic() > deadline:
+            return float(found[0].times[0]) if found else None
+        time.sleep(1.0)
+
+
 def run(args: argparse.Namespace) -> int:
     dashboard = json.loads(args.dashboard.read_text())
     with contextlib.ExitStack() as stack:
@@ -823,31 +855,40 @@ def run(args: argparse.Namespace) -> int:
         prometheus = stack.enter_context(Prometheus(workdir, targets=[server.metrics_address]))
         print(f"prometheus on {prometheus.url}, scraping every {SCRAPE_INTERVAL:g} s")
         start = time.time()
-        load = stack.enter_context(Load(server.address, workdir, runs=LOAD, seconds=args.seconds))
+        load = stack.enter_context(
+            Load(server.address, workdir, runs=LOAD, seconds=args.seconds, wait=args.wait)
+        )
         print(
-            f"{len(LOAD)} demo sessions for {args.seconds:g} s: "
+            f"{len(LOAD)} demo sessions of {args.seconds:g} s, each admitted within {args.wait:g} s or not run: "
             + ", ".join(f"{r.model} {r.scenario}" for r in LOAD)
         )
-        time.sleep(min(15.0, args.seconds / 3))
+        opened = _first_open(prometheus, start=start, timeout=args.wait)
+        if opened is not None:
+            print(f"first session open {opened - start:.0f} s after the start")
+            time.sleep(min(10.0, args.seconds / 4))
         print(f"refused, as it should be: {refuse_one(server.address)}")
-        for failure in load.wait(timeout=args.seconds + 120):
-            print(f"a demo failed: {failure}")
+        failures = load.wait(timeout=args.wait + args.seconds + 120)
+        print(f"{len(LOAD) - len(failures)} of {len(LOAD)} demo sessions ran")
+        for failure in failures:
+            print(f"  did not run: {failure}")
         time.sleep(3 * SCRAPE_INTERVAL)  # the last ticks' scrape
         end = time.time()
-        step = max(SCRAPE_INTERVAL, (end - start) / 300)
+        # From a little before the first session opened: a wait for admission is not the picture.
+        shown = start if opened is None else max(start, opened - 15.0)
+        step = max(SCRAPE_INTERVAL, (end - shown) / 300)
         panels = evaluate(
             dashboard,
-            lambda expr: prometheus.query_range(expr, start=start, end=end, step=step),
+            lambda expr: prometheus.query_range(expr, start=shown, end=end, step=step),
             step=step,
-            span=end - start,
+            span=end - shown,
         )
     empty = _report(panels)
-    draw(panels, title=str(dashboard.get("title", "")), window=(start, end), out=args.out)
+    draw(panels, title=str(dashboard.get("title", "")), window=(shown, end), out=args.out)
     print(f"wrote {args.out}")
     if empty:
         print(f"panels with no data: {', '.join(empty)}")
-    else:
-        print("every panel has data")
+        return 1
+    print("every panel has data")
     return 0
 
 
@@ -863,14 +904,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--seconds", type=float, default=60.0, help="length of the demo sessions, s (default 60)"
     )
+    parser.add_argument(
+        "--wait",
+        type=float,
+        default=300.0,
+        help="how long a demo session waits to be admitted, s (default 300)",
+    )
     parser.add_argument("--processes", type=int, default=2, help="server processes (default 2)")
     parser.add_argument("--demo-worker", metavar="JSON", help=argparse.SUPPRESS)  # one of Load's processes
     args = parser.parse_args(argv)
     if args.demo_worker:
         job = json.loads(args.demo_worker)
-        return demo_worker(job["address"], DemoRun(**job["run"]), seconds=job["seconds"], seed=job["seed"])
-    if args.seconds <= 0:
-        parser.error(f"--seconds must be > 0, got {args.seconds:g}")
+        return demo_worker(
+            job["address"], DemoRun(**job["run"]), seconds=job["seconds"], wait=job["wait"], seed=job["seed"]
+        )
+    for name in ("seconds", "wait"):
+        if getattr(args, name) <= 0:
+            parser.error(f"--{name} must be > 0, got {getattr(args, name):g}")
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         return run(args)

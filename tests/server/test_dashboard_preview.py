@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
 import pytest
 
 from jitdyn.client import Client, FrameData, SessionOptions
@@ -142,3 +143,42 @@ def test_legends_follow_legend_format(fmt: str, labels: dict[str, str], name: st
 )
 def test_values_are_shown_in_the_panels_unit(value: float, unit: str, text: str) -> None:
     assert preview.format_value(value, unit) == text
+
+
+def _panel(kind: str, x: int, y: int, unit: str = "s") -> dict[str, object]:
+    return {
+        "type": kind,
+        "title": kind,
+        "gridPos": {"x": x, "y": y, "w": 12, "h": 8},
+        "fieldConfig": {"defaults": {"unit": unit}},
+        "targets": [{"refId": "A", "expr": "x", "legendFormat": "{{le}}"}],
+    }
+
+
+def test_every_panel_kind_is_drawn_at_its_grid_place(tmp_path: Path) -> None:
+    """A timeseries, a heatmap of cumulative buckets, a stat and a panel with no data, drawn at
+    Grafana's grid size: 16 rows of 30 px and 8 px gaps, 1600 px wide."""
+    import matplotlib.image
+
+    times = np.arange(100.0, 160.0)
+    cumulative = [np.full(60, 1.0), np.full(60, 3.0), np.linspace(3.0, 9.0, 60)]
+    buckets = tuple(
+        preview.Series(labels={"le": le}, times=times, values=values)
+        for le, values in zip(("0.001", "0.01", "+Inf"), cumulative, strict=True)
+    )
+    panels = [
+        preview.PanelData(panel=_panel(kind, x, y), targets=(preview.TargetData("A", "x", "{{le}}", series),))
+        for kind, x, y, series in (
+            ("timeseries", 0, 0, buckets),
+            ("heatmap", 12, 0, buckets),
+            ("stat", 0, 8, buckets[:1]),
+            ("timeseries", 12, 8, ()),
+        )
+    ]
+    assert [len(p.empty_targets()) for p in panels] == [0, 0, 0, 1]
+    bounds, _, counts = preview._buckets(panels[1].targets[0])
+    assert bounds == ["0.001", "0.01", "+Inf"]
+    assert counts[:, -1].tolist() == [1.0, 2.0, 6.0]  # per bucket, not cumulative
+    out = tmp_path / "dashboard.png"
+    preview.draw(panels, title="t", window=(100.0, 160.0), out=out)
+    assert matplotlib.image.imread(out).shape[:2] == (2 * 12 + 44 + 16 * 38 - 8, 1600)
