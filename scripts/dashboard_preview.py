@@ -491,7 +491,10 @@ _TEXT = "#ccccdc"
 _WEAK = "#8e8e9e"
 _GRID = "#26282e"
 # Grafana's classic palette, in its order.
-_PALETTE = ("#7EB26D", "#EAB839", "#6ED0E0", "#EF843C", "#E24D42", "#1F78C1", "#BA43A9", "#705DA0", "#508642")
+_PALETTE = (
+    *("#7EB26D", "#EAB839", "#6ED0E0", "#EF843C", "#E24D42", "#1F78C1", "#BA43A9", "#705DA0"),
+    *("#508642", "#CCA300", "#447EBC", "#C15C17", "#890F02", "#0A437C", "#6D1F62", "#584477"),
+)
 _STAT_GREEN = "#73BF69"
 # Grafana's grid: 24 columns, rows 30 px high, 8 px between panels.
 _COLUMNS = 24
@@ -543,6 +546,29 @@ def format_value(value: float, unit: str) -> str:
         return _number(value)
     scaled, suffix = _scaled(value, ("", " K", " Mil", " Bil"))
     return f"{_number(scaled)}{suffix}"
+
+
+def overrides(panel: Mapping[str, Any], name: str) -> dict[str, Any]:
+    """The fieldConfig override properties that apply to the series called `name` (matchers byName
+    and byRegexp, later ones winning, as in Grafana)."""
+    found: dict[str, Any] = {}
+    for override in panel.get("fieldConfig", {}).get("overrides", []):
+        matcher = override.get("matcher", {})
+        option = str(matcher.get("options", ""))
+        if matcher.get("id") == "byName":
+            hit = option == name
+        elif matcher.get("id") == "byRegexp":
+            pattern = (
+                option[1:-1]
+                if len(option) > 1 and option.startswith("/") and option.endswith("/")
+                else option
+            )
+            hit = re.fullmatch(pattern, name) is not None
+        else:
+            continue
+        if hit:
+            found.update({p["id"]: p.get("value") for p in override.get("properties", [])})
+    return found
 
 
 def _unit(panel: Mapping[str, Any]) -> str:
@@ -628,11 +654,14 @@ def _draw_timeseries(fig: Any, box: _Box, data: PanelData, window: tuple[float, 
     ax = fig.add_axes(box.inset(0.052, (26 + 16 * rows) / fig.bbox.height, 0.008, 36 / fig.bbox.height))
     _style_axes(ax, unit)
     for k, (name, series) in enumerate(lines):
+        style = overrides(data.panel, name)
+        line, colour = style.get("custom.lineStyle") or {}, style.get("color") or {}
         ax.plot(
             [_date(t) for t in series.times],
             series.values,
-            color=_PALETTE[k % len(_PALETTE)],
+            color=colour.get("fixedColor") or _PALETTE[k % len(_PALETTE)],
             lw=1.3,
+            dashes=line.get("dash", ()) if line.get("fill") == "dash" else (),
             label=name,
         )
     _time_axis(ax, *window)
@@ -732,80 +761,63 @@ _DRAWERS: dict[str, Callable[[Any, _Box, PanelData, tuple[float, float]], None]]
 }
 
 
+def _header(fig: Any, *, title: str, window: tuple[float, float]) -> None:
+    width, height = fig.bbox.width, fig.bbox.height
+    top = 1 - (_PAD + 18) / height
+    fig.text(_PAD / width, top, f"Dashboards  ›  {title}", color=_TEXT, fontsize=13, va="center")
+    shown = (
+        f"{time.strftime('%Y-%m-%d %H:%M:%S', time.gmtime(window[0]))} to "
+        f"{time.strftime('%H:%M:%S', time.gmtime(window[1]))} UTC   ·   drawn from Prometheus by "
+        "scripts/dashboard_preview.py (not a Grafana screenshot)"
+    )
+    fig.text(1 - _PAD / width, top, shown, color=_WEAK, fontsize=9, ha="right", va="center")
+
+
+def _frame(fig: Any, box: _Box, title: str) -> None:
+    """A panel's background, border and title."""
+    from matplotlib.patches import FancyBboxPatch
+
+    fig.patches.append(
+        FancyBboxPatch(
+            (box.left, box.bottom),
+            box.width,
+            box.height,
+            boxstyle="round,pad=0,rounding_size=0.002",
+            transform=fig.transFigure,
+            facecolor=_PANEL,
+            edgecolor=_BORDER,
+            linewidth=1,
+            zorder=-1,  # under the panel's axes
+        )
+    )
+    top = box.bottom + box.height - 18 / fig.bbox.height
+    fig.text(box.left + 8 / fig.bbox.width, top, title, color=_TEXT, fontsize=10.5, va="center")
+
+
+def _note(fig: Any, box: _Box, text: str) -> None:
+    middle = (box.left + box.width / 2, box.bottom + box.height / 2)
+    fig.text(*middle, text, color=_WEAK, fontsize=13, ha="center", va="center")
+
+
 def draw(panels: Sequence[PanelData], *, title: str, window: tuple[float, float], out: Path) -> None:
     """The dashboard as Grafana lays it out, into the PNG `out`."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import FancyBboxPatch
 
     width, height, boxes = _layout(panels)
     fig = plt.figure(figsize=(width / _DPI, height / _DPI), dpi=_DPI, facecolor=_CANVAS)
-    fig.text(
-        _PAD / width,
-        1 - (_PAD + 18) / height,
-        f"Dashboards  ›  {title}",
-        color=_TEXT,
-        fontsize=13,
-        va="center",
-    )
-    fig.text(
-        1 - _PAD / width,
-        1 - (_PAD + 18) / height,
-        f"{time.strftime('%Y-%m-%d %H:%M:%S', time.gmtime(window[0]))} to "
-        f"{time.strftime('%H:%M:%S', time.gmtime(window[1]))} UTC   ·   drawn from Prometheus by "
-        "scripts/dashboard_preview.py (not a Grafana screenshot)",
-        color=_WEAK,
-        fontsize=9,
-        ha="right",
-        va="center",
-    )
+    _header(fig, title=title, window=window)
     for data, box in zip(panels, boxes, strict=True):
-        fig.patches.append(
-            FancyBboxPatch(
-                (box.left, box.bottom),
-                box.width,
-                box.height,
-                boxstyle="round,pad=0,rounding_size=0.002",
-                transform=fig.transFigure,
-                facecolor=_PANEL,
-                edgecolor=_BORDER,
-                linewidth=1,
-                zorder=-1,  # under the panel's axes
-            )
-        )
-        fig.text(
-            box.left + 8 / width,
-            box.bottom + box.height - 18 / height,
-            data.title,
-            color=_TEXT,
-            fontsize=10.5,
-            va="center",
-        )
+        _frame(fig, box, data.title)
         kind = str(data.panel.get("type"))
         if not any(t.series for t in data.targets):
-            fig.text(
-                box.left + box.width / 2,
-                box.bottom + box.height / 2,
-                "No data",
-                color=_WEAK,
-                fontsize=13,
-                ha="center",
-                va="center",
-            )
+            _note(fig, box, "No data")
         elif kind in _DRAWERS:
             _DRAWERS[kind](fig, box, data, window)
         else:
-            fig.text(
-                box.left + box.width / 2,
-                box.bottom + box.height / 2,
-                f"(a {kind} panel: not drawn)",
-                color=_WEAK,
-                fontsize=11,
-                ha="center",
-                va="center",
-            )
+            _note(fig, box, f"(a {kind} panel: not drawn)")
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=_DPI, facecolor=_CANVAS)
     plt.close(fig)

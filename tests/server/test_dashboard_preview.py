@@ -182,3 +182,23 @@ def test_every_panel_kind_is_drawn_at_its_grid_place(tmp_path: Path) -> None:
     out = tmp_path / "dashboard.png"
     preview.draw(panels, title="t", window=(100.0, 160.0), out=out)
     assert matplotlib.image.imread(out).shape[:2] == (2 * 12 + 44 + 16 * 38 - 8, 1600)
+
+
+def test_overrides_apply_by_name_and_by_regexp() -> None:
+    panel = {
+        "fieldConfig": {
+            "overrides": [
+                {
+                    "matcher": {"id": "byRegexp", "options": "/rejected .*/"},
+                    "properties": [{"id": "a", "value": 1}],
+                },
+                {
+                    "matcher": {"id": "byName", "options": "rejected TOO_OLD"},
+                    "properties": [{"id": "a", "value": 2}],
+                },
+            ]
+        }
+    }
+    assert preview.overrides(panel, "rejected DUPLICATE") == {"a": 1}
+    assert preview.overrides(panel, "rejected TOO_OLD") == {"a": 2}
+    assert preview.overrides(panel, "shed biped") == {}
