@@ -614,7 +614,7 @@ def _style_axes(ax: Any, unit: str) -> None:
     ax.tick_params(colors=_WEAK, labelsize=8, length=0, pad=4)
     ax.grid(True, color=_GRID, linewidth=0.8)
     ax.set_axisbelow(True)
-    ax.yaxis.set_major_locator(MaxNLocator(nbins=5))
+    ax.yaxis.set_major_locator(MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10]))
     ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: format_value(v, unit)))
 
 
@@ -670,7 +670,7 @@ def _draw_timeseries(fig: Any, box: _Box, data: PanelData, window: tuple[float, 
         middle = finite[0]
         ax.set_ylim(middle - 1 if middle == 0 else middle * 0.5, middle + 1 if middle == 0 else middle * 1.5)
     elif finite and min(finite) >= 0:
-        ax.set_ylim(bottom=0)
+        ax.set_ylim(0, 1.08 * max(finite))  # headroom over the highest line, as Grafana leaves
     if lines:
         ax.legend(
             loc="upper left",
@@ -714,8 +714,9 @@ def _draw_heatmap(fig: Any, box: _Box, data: PanelData, window: tuple[float, flo
     edges = [_date(t - step / 2) for t in times] + [_date(times[-1] + step / 2)]
     shown = np.ma.masked_less_equal(counts, 1e-9)  # Grafana hides empty cells
     mesh = ax.pcolormesh(edges, np.arange(len(bounds) + 1), shown, cmap=colours, shading="flat")
-    labels = [("+Inf" if b in ("+Inf", "inf") else format_value(float(b), unit)) for b in bounds]
-    ax.set_yticks(np.arange(len(bounds)) + 0.5, labels)
+    # Each row is one bucket, its bounds on its edges (Grafana's "le" layout).
+    labels = ["0", *(("+Inf" if b in ("+Inf", "inf") else format_value(float(b), unit)) for b in bounds)]
+    ax.set_yticks(np.arange(len(bounds) + 1), labels)
     _time_axis(ax, *window)
     scale = fig.add_axes(
         box.inset(0.052, 16 / fig.bbox.height, box.width - 0.052 - 0.16, box.height - 24 / fig.bbox.height)
