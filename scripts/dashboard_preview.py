@@ -6,11 +6,12 @@ PromQL is evaluated through Prometheus' HTTP API (/api/v1/query_range) and drawn
 at the dashboard's grid layout, in Grafana's dark style. Grafana itself is not needed (it is not
 in Debian); Prometheus is (`apt-get install prometheus`).
 
-    python scripts/dashboard_preview.py                      # ~75 s, writes docs/img/dashboard.png
+    python scripts/dashboard_preview.py      # ~100 s (more while admission refuses), docs/img/dashboard.png
     python scripts/dashboard_preview.py --seconds 20 --out /tmp/dashboard.png
 
 It prints each panel's series, and names the panels whose queries returned none: such a panel
 shows "No data" in Grafana too. Every process it starts is stopped on exit, Ctrl-C and errors too.
+Why it is built this way: docs/decisions/0133-dashboard-preview.md.
 """
 
 from __future__ import annotations
