@@ -25,6 +25,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, star
 from prometheus_client import multiprocess as prometheus_multiprocess
 
 from jitdyn.errors import InvalidArgument
+from jitdyn.vocabulary import RejectReason
 
 __all__ = ["MULTIPROCESS_ENV", "Metrics", "metrics", "serve_metrics"]
 
@@ -88,7 +89,15 @@ class Metrics:
         )
 
     def set_process(self, index: int) -> None:
+        """This process's index. Its counters of rare events start at 0: rate() needs a sample
+        before an increment to see it, so a series born at 1 hides the process's first refusal
+        (or rejection of a reason, or collection of a generation) from the dashboard."""
         self.process = str(index)
+        self.refusals.labels(self.process)
+        for reason in RejectReason:
+            self.rejections.labels(self.process, reason)
+        for generation in ("0", "1", "2"):
+            self.gc_pause.labels(self.process, generation)
 
 
 _metrics: Metrics | None = None
