@@ -417,10 +417,13 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace, Settings], int]] = {
 
 
 def _experiments(argv: list[str], *, verbose: bool) -> int:
+    from jitdyn.experiments.reproduce import main as experiments_main
+    from jitdyn.experiments.reproduce import parser
+
+    # Parsed first: `--help` and a usage error need none of the extras, running does.
+    parser().parse_args(argv)
     require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
     require_extra("myo_sim", what="myo-sim (the MyoSuite objects)", extra="experiments")
-    from jitdyn.experiments.reproduce import main as experiments_main
-
     return int(experiments_main(argv, verbose=verbose) or 0)
 
 
