@@ -35,6 +35,7 @@ from jitdyn.settings import (
     checked,
     default_workers,
     parse_duration,
+    parse_seconds,
     positive_int,
     resolve,
 )
@@ -60,10 +61,9 @@ _probability = checked(
     malformed="a probability like 0.05 or 5%",
 )
 _seconds = checked(
-    float,
+    parse_seconds,
     lambda value: value > 0,
-    "a number of seconds > 0",
-    malformed="a number of seconds > 0, like 10 or 2.5",
+    "a duration > 0, like 10s, 2500ms or 10 (seconds)",
 )
 
 
@@ -191,7 +191,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="default passive",
     )
     for flag, parse_text, kind, default, text in (
-        ("--seconds", _seconds, "seconds", 10.0, "session length, s (default 10)"),
+        (
+            "--seconds",
+            _seconds,
+            "seconds",
+            10.0,
+            "session length: 10s, 2500ms, or a bare number of seconds (default 10s)",
+        ),
         (
             "--latency",
             parse_duration,
@@ -288,7 +294,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
 
     if settings.workers is None:  # the CPUs shared among the processes (jitdyn.settings.default_workers)
         settings = dataclasses.replace(settings, workers=default_workers(settings.processes))
-    config = _server_config(settings, **limit_settings(args))
+    config = _server_config(settings, **limit_settings(args, os.environ))
     if settings.processes > 1:
         from jitdyn.server.transport.processes import run_processes
 
@@ -477,6 +483,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     _configure_logging(getattr(args, "verbose", False))
     try:
         return _HANDLERS[args.command](args, settings)
+    except SettingError as error:
+        _fail(command, str(error), EXIT_USAGE)
     except MissingExtra as error:
         _fail(command, str(error))
     except JitdynError as error:

@@ -36,6 +36,7 @@ __all__ = [
     "default_workers",
     "parse_address",
     "parse_duration",
+    "parse_seconds",
     "positive_int",
     "resolve",
     "settings_for",
@@ -71,6 +72,15 @@ def parse_duration(text: str) -> float:
             f"a duration needs a unit (us, ms or s): write {match.group(1)}ms or {match.group(1)}s, got {text!r}"
         )
     return float(match.group(1)) * _DURATION_UNITS[match.group(2)]
+
+
+def parse_seconds(text: str) -> float:
+    """A duration of an option that has always taken seconds: '60s', '500ms', '200us' with a unit,
+    and a bare number as the seconds it always meant ('60' -> 60.0)."""
+    match = _DURATION.match(text)
+    if not match:
+        raise ValueError(f"expected a duration like 60s, 500ms or 60 (seconds), got {text!r}")
+    return float(match.group(1)) * _DURATION_UNITS[match.group(2) or "s"]
 
 
 def parse_address(text: str) -> str:

@@ -3,13 +3,21 @@ user runs the command (a separate process, a real server on a loopback port)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import secrets
+import signal
 import subprocess
 import sys
+import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
+
+from jitdyn.errors import JitdynError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -73,3 +81,104 @@ def test_running_experiments_without_the_extra_names_it(tmp_path: Path) -> None:
     assert one_line_error(result, 1) == (
         "jitdyn experiments: needs matplotlib (plots), which is not installed: pip install 'jitdyn[experiments]'"
     )
+
+
+# -- every duration takes a unit; a bare number keeps its documented meaning --------------------------
+
+
+@contextlib.contextmanager
+def serving(*args: str, data: Path, env: dict[str, str] | None = None) -> Iterator[str]:
+    """`jitdyn serve ARGS` on a free loopback port, one process; yields its address."""
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("JITDYN_")}
+    environ.update(JITDYN_SECRET=secrets.token_hex(32), **(env or {}))
+    command = [sys.executable, "-m", "jitdyn.cli", "serve", "--address", "127.0.0.1:0", "--processes", "1"]
+    process = subprocess.Popen(
+        [*command, "--workers", "1", "--data", str(data), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=environ,
+    )
+    try:
+        assert process.stdout is not None
+        first = process.stdout.readline()
+        listening = re.match(r"jitdyn listening on (\S+) ", first)
+        assert listening, first + (process.stderr.read() if process.stderr else "")
+        yield listening.group(1)
+    finally:
+        process.send_signal(signal.SIGINT)
+        process.communicate(timeout=30)
+
+
+def idle_session_ends_after(address: str) -> str:
+    """What a server says to a LOCKSTEP session that sends nothing for 1.5 s after its open."""
+    from jitdyn.client import Client, FrameData, SessionOptions
+
+    with Client(address, resume=False, timeout=10) as client:
+        session = client.open_session(SessionOptions(model_name="pendulum_1", dt=0.05))
+        time.sleep(1.5)
+        with pytest.raises(JitdynError) as ended:
+            session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0]))
+    return str(ended.value)
+
+
+@pytest.mark.parametrize(
+    ("flags", "env", "said"),
+    [
+        (["--idle-timeout", "800ms"], {}, "for 0.8 s, the limit (--idle-timeout)"),
+        (["--idle-timeout", "1"], {}, "for 1 s, the limit (--idle-timeout)"),  # bare: seconds, as always
+        ([], {"JITDYN_IDLE_TIMEOUT": "0.6s"}, "for 0.6 s, the limit (--idle-timeout)"),
+    ],
+)
+def test_serve_takes_the_idle_timeout_with_a_unit(
+    flags: list[str], env: dict[str, str], said: str, tmp_path: Path
+) -> None:
+    with serving(*flags, data=tmp_path / "data", env=env) as address:
+        assert said in idle_session_ends_after(address)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["serve", "--idle-timeout", "2min"],
+            "jitdyn serve: error: argument --idle-timeout: expected a duration > 0, like 60s, 500ms or "
+            "60 (seconds), got '2min'",
+        ),
+        (
+            ["serve", "--compile-timeout", "0s"],
+            "jitdyn serve: error: argument --compile-timeout: expected a duration > 0, like 60s, 500ms or "
+            "60 (seconds), got '0s'",
+        ),
+        (
+            ["demo", "--seconds", "2 h"],
+            "jitdyn demo: error: argument --seconds: expected a duration > 0, like 10s, 2500ms or 10 "
+            "(seconds), got '2 h'",
+        ),
+        (
+            ["demo", "--latency", "35"],
+            "jitdyn demo: error: argument --latency: a duration needs a unit (us, ms or s): write 35ms or "
+            "35s, got '35'",
+        ),
+    ],
+)
+def test_a_bad_duration_is_one_line(args: list[str], message: str, tmp_path: Path) -> None:
+    result = jitdyn(*args, "--data", str(tmp_path / "data"))
+    assert one_line_error(result, 2) == message
+    assert not (tmp_path / "data").exists()
+
+
+def test_a_bad_limit_in_the_environment_is_named(tmp_path: Path) -> None:
+    result = jitdyn("serve", "--data", str(tmp_path / "data"), env={"JITDYN_MAX_CLOCK_OFFSET": "5 min"})
+    assert one_line_error(result, 2) == (
+        "jitdyn serve: environment variable JITDYN_MAX_CLOCK_OFFSET: expected a duration > 0, like 60s, "
+        "500ms or 60 (seconds), got '5 min'"
+    )
+    assert not (tmp_path / "data").exists()
+
+
+def test_demo_seconds_take_a_unit(server: Any, tmp_path: Path) -> None:
+    for seconds in ("500ms", "0.5"):
+        out = jitdyn("demo", "--seconds", seconds, "--model", "pendulum_1", "--server", server.address)
+        assert out.returncode == 0, out.stderr
+        assert "answers received for 10 of the 10 ticks" in out.stdout, out.stdout
