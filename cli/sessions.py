@@ -54,7 +54,7 @@ def _where(location: str, data_root: Path) -> str:
 def _line(row: SessionRow) -> str:
     return (
         f"{row.session_id}  {row.started_at:%Y-%m-%d %H:%M:%S}  {row.status:<9}  {row.model_name} v{row.model_version}  "
-        f"{row.scenario.lower():<10} {row.clock.lower():<8} {format_counts(row.summary)}"
+        f"{row.scenario:<10} {row.clock:<8} {format_counts(row.summary)}"
     )
 
 
@@ -127,6 +127,9 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
         require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
     engine = _engine(settings)
     data_root: Path = settings.data
+    if args.sessions_command in ("show", "export", "plot"):
+        # The start of an id will do, as for a git commit, when only one session's id starts so.
+        args.session_id = SessionIndex(engine).complete_id(args.session_id, tenant="")
     if args.sessions_command == "list":
         index = SessionIndex(engine)
         rows, _ = index.list(tenant="", model_name=args.model, status=args.status, page_size=args.limit)
