@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
+import difflib
 import logging
 import os
 import sys
@@ -47,6 +48,7 @@ EXIT_ERROR = 1
 EXIT_USAGE = 2
 DEFAULT_SERVER = "127.0.0.1:50051"
 
+_LEAF = "_leaf_parser"
 _EPILOG = "exit codes: 0 done, 1 the command failed (one line on stderr says why), 2 usage error"
 
 
@@ -120,9 +122,12 @@ def build_parser() -> argparse.ArgumentParser:
         **kwargs: Any,
     ) -> argparse.ArgumentParser:
         """A command's parser, with the settings of `group` (default: the command itself)."""
-        return subparsers.add_parser(
+        command = subparsers.add_parser(
             name, parents=[common, _settings_parent(group or name)], epilog=_EPILOG, **kwargs
         )
+        # The innermost parser reached, so that an option it does not know shows its usage.
+        command.set_defaults(**{_LEAF: command})
+        return command
 
     serve = leaf(
         commands,
@@ -332,7 +337,13 @@ def _models(args: argparse.Namespace, settings: Settings) -> int:
             ) from None
     from google.protobuf import json_format
 
-    print(json_format.MessageToJson(message, indent=2))
+    # The proto's own field names, and every field, zeros included: a joint's range_lower of 0
+    # is a value a reader looks for, not an absence.
+    print(
+        json_format.MessageToJson(
+            message, indent=2, preserving_proto_field_name=True, always_print_fields_with_no_presence=True
+        )
+    )
     return 0
 
 
@@ -433,6 +444,16 @@ def _experiments(argv: list[str], *, verbose: bool) -> int:
     return int(experiments_main(argv, verbose=verbose) or 0)
 
 
+def _did_you_mean(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
+    """' (did you mean --latency?)' for a mistyped option the parser has one close to."""
+    known = [option for action in parser._actions for option in action.option_strings]
+    for word in unknown:
+        close = difflib.get_close_matches(word.partition("=")[0], known, n=1)
+        if word.startswith("--") and close:
+            return f" (did you mean {close[0]}?)"
+    return ""
+
+
 def _fail(command: str, message: str, code: int = EXIT_ERROR) -> NoReturn:
     print(f"jitdyn {command}: {message}", file=sys.stderr)
     raise SystemExit(code)
@@ -452,6 +473,8 @@ def _configure_logging(verbose: bool) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
+    # Alembic says which migrations it checked at every start of the index: noise for `-v`.
+    logging.getLogger("alembic").setLevel(logging.WARNING)
     route_mujoco_messages()
 
 
@@ -474,7 +497,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             _fail("experiments", f"{error.strerror or error}:{where}")
         except KeyboardInterrupt:
             return 130
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        leaf: argparse.ArgumentParser = getattr(args, _LEAF, parser)
+        leaf.error(f"unrecognized arguments: {' '.join(unknown)}{_did_you_mean(leaf, unknown)}")
     command = _command_name(args)
     try:
         settings = resolve(args, os.environ)

@@ -4,6 +4,7 @@ user runs the command (a separate process, a real server on a loopback port)."""
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import secrets
@@ -182,3 +183,106 @@ def test_demo_seconds_take_a_unit(server: Any, tmp_path: Path) -> None:
         out = jitdyn("demo", "--seconds", seconds, "--model", "pendulum_1", "--server", server.address)
         assert out.returncode == 0, out.stderr
         assert "answers received for 10 of the 10 ticks" in out.stdout, out.stdout
+
+
+# -- a mistyped option, -v, id prefixes, the scenario as stored, the limit flags, models show ---------
+
+
+def test_a_mistyped_option_shows_the_subcommands_usage() -> None:
+    result = jitdyn("demo", "--lattency", "35ms")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.startswith("usage: jitdyn demo "), result.stderr
+    assert result.stderr.splitlines()[-1] == (
+        "jitdyn demo: error: unrecognized arguments: --lattency 35ms (did you mean --latency?)"
+    )
+    nested = jitdyn("sessions", "list", "--limt", "3")
+    assert nested.stderr.startswith("usage: jitdyn sessions list "), nested.stderr
+    assert "did you mean --limit?" in nested.stderr
+
+
+@pytest.fixture(scope="module")
+def sessions_data(server: Any) -> tuple[Path, list[str]]:
+    """The server's data folder with LOCKSTEP sessions, until two ids start with the same digit
+    (at most 17: there are 16)."""
+    from jitdyn.client import Client, FrameData, SessionOptions
+
+    ids: list[str] = []
+    with Client(server.address, timeout=30) as client:
+        while len({i[0] for i in ids}) == len(ids):
+            options = SessionOptions(model_name="pendulum_1", dt=0.05, scenario="PASSIVE")
+            with client.open_session(options) as session:
+                session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0]))
+            ids.append(session.opened.session_id)
+    return server.services.data_root, ids
+
+
+def test_verbose_puts_no_migration_lines_before_a_listing(sessions_data: tuple[Path, list[str]]) -> None:
+    data, ids = sessions_data
+    result = jitdyn("-v", "sessions", "list", "--data", str(data))
+    assert result.returncode == 0, result.stderr
+    assert "alembic" not in result.stderr, result.stderr
+    assert ids[-1] in result.stdout
+
+
+def test_sessions_list_prints_the_scenario_as_stored(sessions_data: tuple[Path, list[str]]) -> None:
+    data, ids = sessions_data
+    listing = jitdyn("sessions", "list", "--data", str(data)).stdout
+    line = next(line for line in listing.splitlines() if line.startswith(ids[0]))
+    assert re.search(r" pendulum_1 v1  PASSIVE +LOCKSTEP +ticks", line), line
+
+
+def test_a_session_id_prefix_is_accepted(sessions_data: tuple[Path, list[str]], tmp_path: Path) -> None:
+    data, ids = sessions_data
+    full, prefix = ids[0], ids[0][:8]
+    shown = jitdyn("sessions", "show", prefix, "--data", str(data))
+    assert shown.returncode == 0 and shown.stdout.startswith(full), shown.stdout + shown.stderr
+    exported = jitdyn("sessions", "export", prefix, "--data", str(data), cwd=tmp_path)
+    assert exported.stdout.strip() == f"exported {full} as csv to {full}.csv", exported.stderr
+    assert (tmp_path / f"{full}.csv").is_file()
+    plotted = jitdyn("sessions", "plot", prefix, "--data", str(data), cwd=tmp_path)
+    assert plotted.stdout.strip() == f"plotted {full} to {full}.png", plotted.stderr
+    assert (tmp_path / f"{full}.png").stat().st_size > 0
+
+
+def test_an_ambiguous_prefix_lists_the_candidates(sessions_data: tuple[Path, list[str]]) -> None:
+    data, ids = sessions_data
+    digit = ids[-1][0]
+    candidates = sorted(i for i in ids if i.startswith(digit))
+    for action in ("show", "export", "plot"):
+        result = jitdyn("sessions", action, digit, "--data", str(data))
+        assert one_line_error(result, 1) == (
+            f"jitdyn sessions {action}: InvalidArgument: session id prefix {digit!r} is ambiguous: it starts "
+            f"{', '.join(candidates)}; give more of it"
+        )
+    unknown = jitdyn("sessions", "show", "zz", "--data", str(data))
+    assert one_line_error(unknown, 1) == (
+        "jitdyn sessions show: NotFound: session 'zz' not found: a session id is hexadecimal, like 0e0529f0"
+    )
+
+
+def test_the_limit_flags_show_a_metavar_and_their_variable() -> None:
+    from jitdyn.cli.limits import _LIMITS
+
+    help_text = " ".join(jitdyn("serve", "--help").stdout.split())
+    for limit in _LIMITS:
+        assert f"{limit.flag} {limit.unit.metavar} " in help_text, limit.flag
+        assert f"(env {limit.env}; default " in help_text, limit.flag
+    assert "--idle-timeout DURATION how long a session may send nothing" in help_text
+    assert "--max-history-bytes SIZE" in help_text and "IDLE_TIMEOUT (default" not in help_text
+
+
+def test_models_show_prints_the_protos_names_and_its_zeros(server: Any) -> None:
+    result = jitdyn("models", "show", "pendulum_1", "--server", server.address)
+    assert result.returncode == 0, result.stderr
+    shown = json.loads(result.stdout)
+    assert shown["joints"][0] == {
+        "name": "hinge_1",
+        "type": "JOINT_TYPE_HINGE",
+        "limited": False,
+        "range_lower": 0.0,
+        "range_upper": 0.0,
+        "qpos_address": 0,
+        "dof_address": 0,
+    }
+    assert shown["dimensions"]["na"] == 0 and shown["builtin"] is True
+    assert not re.search(r'"[a-z]+[A-Z]\w*":', result.stdout), result.stdout
