@@ -10,9 +10,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
-from jitdyn.settings import ENV_PREFIX, SettingError, argparse_type, checked, parse_seconds, positive_int
 from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
+from jitdyn.settings import ENV_PREFIX, SettingError, argparse_type, checked, parse_seconds, positive_int
 
 __all__ = ["add_limit_arguments", "limit_settings"]
 

@@ -143,23 +143,31 @@ def test_serve_takes_the_idle_timeout_with_a_unit(
     [
         (
             ["serve", "--idle-timeout", "2min"],
-            "jitdyn serve: error: argument --idle-timeout: expected a duration > 0, like 60s, 500ms or "
-            "60 (seconds), got '2min'",
+            (
+                "jitdyn serve: error: argument --idle-timeout: expected a duration > 0, like 60s, 500ms or "
+                "60 (seconds), got '2min'"
+            ),
         ),
         (
             ["serve", "--compile-timeout", "0s"],
-            "jitdyn serve: error: argument --compile-timeout: expected a duration > 0, like 60s, 500ms or "
-            "60 (seconds), got '0s'",
+            (
+                "jitdyn serve: error: argument --compile-timeout: expected a duration > 0, like 60s, 500ms or "
+                "60 (seconds), got '0s'"
+            ),
         ),
         (
             ["demo", "--seconds", "2 h"],
-            "jitdyn demo: error: argument --seconds: expected a duration > 0, like 10s, 2500ms or 10 "
-            "(seconds), got '2 h'",
+            (
+                "jitdyn demo: error: argument --seconds: expected a duration > 0, like 10s, 2500ms or 10 "
+                "(seconds), got '2 h'"
+            ),
         ),
         (
             ["demo", "--latency", "35"],
-            "jitdyn demo: error: argument --latency: a duration needs a unit (us, ms or s): write 35ms or "
-            "35s, got '35'",
+            (
+                "jitdyn demo: error: argument --latency: a duration needs a unit (us, ms or s): write 35ms or "
+                "35s, got '35'"
+            ),
         ),
     ],
 )
