@@ -226,7 +226,18 @@ def build_parser() -> argparse.ArgumentParser:
         description="The stored sessions, read from the data folder and the SQL index (no server needed).",
     )
     session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
-    slist = leaf(session_commands, "list", "sessions", help="list sessions, newest first")
+    slist = leaf(
+        session_commands,
+        "list",
+        "sessions",
+        help="list sessions, newest first",
+        description="List the stored sessions, newest first, one a line: id, start, status, model, "
+        "scenario, clock and the counts of its summary. ticks: distinct ticks answered; measured, "
+        "predicted, corrected: answers of each source (a tick answered PREDICTED and then CORRECTED "
+        "counts in both); rejected: frames refused, each stored with its reason (see `sessions "
+        "query`); late: ticks whose frame came after the tick was answered, so that it was corrected "
+        "(results with late_ticks > 0); a frame too late to be used at all is rejected TOO_OLD instead.",
+    )
     slist.add_argument("--model", help="only this model name")
     slist.add_argument("--status", choices=tuple(status.value for status in SessionStatus))
     slist.add_argument(
