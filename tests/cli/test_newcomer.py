@@ -364,3 +364,46 @@ def test_a_file_stored_before_those_columns_still_reads(tmp_path: Path) -> None:
     assert exported.returncode == 0, exported.stderr
     header = (tmp_path / f"{session_id}.csv").read_text(encoding="utf-8").splitlines()[0]
     assert '"reinitialised","late_compute","compute_us"' in header, header
+
+
+# -- the README's first SDK example does what a person expects ----------------------------------------
+
+
+def readme_blocks(section: str) -> list[tuple[str, str]]:
+    """The fenced blocks (language, code) of the README's `section`, in order."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    start = readme.index(f"\n## {section}\n")
+    end = readme.find("\n## ", start + 1)
+    return re.findall(r"```(\w+)\n(.*?)```", readme[start:end], re.DOTALL)
+
+
+def test_the_first_sdk_example_falls_as_mujoco_does(server: Any, tmp_path: Path) -> None:
+    import mujoco
+
+    from jitdyn.registry import builtin_model_path
+
+    blocks = readme_blocks("Python SDK")
+    (language, code), (output_language, output) = blocks[0], blocks[1]
+    assert (language, output_language) == ("python", "text")
+    assert code.count('"127.0.0.1:50051"') == 1
+    script = tmp_path / "example.py"
+    script.write_text(code.replace('"127.0.0.1:50051"', repr(server.address)), encoding="utf-8")
+    run = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout == output, (run.stdout, output)
+    # MuJoCo's own simulation of the pendulum let go at 0.3 rad, at the example's 50 ms ticks.
+    model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_1")))
+    data = mujoco.MjData(model)
+    data.qpos[0] = 0.3
+    truth = []
+    for _ in range(5):
+        for _ in range(round(0.05 / model.opt.timestep)):
+            mujoco.mj_step(model, data)
+        truth.append(float(data.qpos[0]))
+    predicted = [float(line.split()[2]) for line in run.stdout.splitlines()[1:]]
+    assert len(predicted) == 5 and all(b < a for a, b in zip([0.3, *predicted], predicted, strict=False))
+    assert max(abs(p - t) for p, t in zip(predicted, truth, strict=True)) < 0.012, (predicted, truth)
+    readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert f"({', '.join(f'{t:.3f}' for t in truth[:4])} and {truth[4]:.3f} rad)" in readme, truth
