@@ -93,13 +93,11 @@ def run_demo(
             f"grace {session.opened.grace * 1e3:g} ms",
             file=out,
         )
-        if settings.latency > session.opened.grace:
-            print(
-                f"frames take {settings.latency * 1e3:g} ms to arrive and the server answers each tick "
-                f"{session.opened.grace * 1e3:g} ms after it is due: expect most ticks PREDICTED by the "
-                "estimator, then CORRECTED when their frame arrives",
-                file=out,
-            )
+        expectation = _expectation(
+            settings, grace=session.opened.grace, history=session.opened.history, dt=dt
+        )
+        if expectation:
+            print(expectation, file=out)
         print(
             f"network: latency {settings.latency * 1e3:g} ms, jitter {settings.jitter * 1e3:g} ms, "
             f"loss {settings.loss:.0%} (seeded {settings.seed})",
@@ -144,9 +142,16 @@ def run_demo(
                     mujoco.mj_step(model, data)
                 collect(session.poll())
                 bar.update(min(len(results), ticks) - bar.n)
-        # Every tick is answered by its deadline; wait for the last ones, then close.
+        # Every tick is answered by its deadline, and every frame that arrived by a result or a
+        # rejection; wait for the last ones, then close (answers that come during `close` are not read).
         deadline = time.monotonic() + 2.0 + 4 * dt
-        while any(k not in results for k in range(ticks)) and time.monotonic() < deadline:
+
+        def waiting() -> bool:
+            from_frames = len(corrected) + len(rejections)
+            from_frames += sum(1 for r in results.values() if r.source == Source.MEASURED)
+            return from_frames < ticks - lost or any(k not in results for k in range(ticks))
+
+        while waiting() and time.monotonic() < deadline:
             collect(session.poll())
             time.sleep(dt / 4)
         summary = session.close()
@@ -212,6 +217,7 @@ def _report(
             f"frames sent {ticks}, lost on the emulated network {lost}, rejected {len(rejections)}; "
             f"answers received for {len(results)} of the {ticks} ticks"
         ),
+        *_rejection_reasons(rejections),
         f"server's summary, as `jitdyn sessions list` shows it: {format_counts(summary)}",
     ]
     if extra > 0:
@@ -263,6 +269,37 @@ def _report(
         "location": location,
         "predicted_errors": predicted_errors,
     }
+
+
+def _expectation(settings: DemoSettings, *, grace: float, history: int, dt: float) -> str:
+    """What the network's latency will make of the session, as the server's rules say."""
+    if settings.latency <= grace:
+        return ""
+    late = f"frames take {settings.latency * 1e3:g} ms to arrive and the server answers each tick {grace * 1e3:g} ms after it is due"
+    if settings.latency - settings.jitter > grace + history * dt:
+        return (
+            f"{late}, past the {history} ticks ({history * dt * 1e3:g} ms) the server keeps to correct: expect "
+            "every tick PREDICTED by the estimator and the frames rejected TOO_OLD"
+        )
+    return (
+        f"{late}: expect most ticks PREDICTED by the estimator, then CORRECTED when their frame arrives (a frame "
+        "whose replay the server has no time for is rejected TOO_OLD instead)"
+    )
+
+
+def _rejection_reasons(rejections: list[Rejection]) -> list[str]:
+    """'  rejected 3: 2 TOO_OLD, 1 DUPLICATE', then the server's words for the first of each reason."""
+    by_reason: dict[str, list[Rejection]] = {}
+    for rejection in rejections:
+        by_reason.setdefault(rejection.reason, []).append(rejection)
+    if not by_reason:
+        return []
+    ranked = sorted(by_reason.items(), key=lambda item: -len(item[1]))
+    lines = [
+        f"  rejected {len(rejections)}: {', '.join(f'{len(found)} {reason}' for reason, found in ranked)}"
+    ]
+    lines += [f"  {reason}, as the server said of the first: {found[0].message}" for reason, found in ranked]
+    return lines
 
 
 def default_data_root() -> Path:

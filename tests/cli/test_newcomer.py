@@ -407,3 +407,51 @@ def test_the_first_sdk_example_falls_as_mujoco_does(server: Any, tmp_path: Path)
     assert max(abs(p - t) for p, t in zip(predicted, truth, strict=True)) < 0.012, (predicted, truth)
     readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
     assert f"({', '.join(f'{t:.3f}' for t in truth[:4])} and {truth[4]:.3f} rad)" in readme, truth
+
+
+# -- the demo: what the README promises, and the reasons of what it counts ----------------------------
+
+
+def summary_counts(out: str) -> dict[str, int]:
+    line = re.search(r"server's summary, as `jitdyn sessions list` shows it: (.*)", out)
+    assert line, out
+    return {name: int(value) for name, value in re.findall(r"([a-z]+) +(\d+)", line.group(1))}
+
+
+def test_the_default_demo_shows_predictions_corrected(server: Any) -> None:
+    readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert (
+        "most ticks are answered PREDICTED by the estimator, then CORRECTED when their late frame arrives"
+        in readme
+    )
+    result = jitdyn("demo", "--seconds", "3s", "--server", server.address)
+    assert result.returncode == 0, result.stderr
+    assert (
+        "expect most ticks PREDICTED by the estimator, then CORRECTED when their frame arrives"
+        in result.stdout
+    )
+    counts = summary_counts(result.stdout)
+    assert counts["predicted"] > counts["measured"] and counts["corrected"] > 0, result.stdout
+    if counts["rejected"]:  # a loaded machine: each rejection is explained
+        assert re.search(r"^  rejected \d+: \d+ [A-Z_]+", result.stdout, re.MULTILINE), result.stdout
+
+
+def test_the_demo_says_why_it_rejected(server: Any) -> None:
+    # Frames 2.6 s late at 50 ms ticks are 52 ticks late, past the 50 the server keeps.
+    result = jitdyn(
+        "demo", "--model", "pendulum_1", "--latency", "2.6s", "--jitter", "0ms", "--loss", "0",
+        "--seconds", "3s", "--server", server.address,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert (
+        "past the 50 ticks (2500 ms) the server keeps to correct: expect every tick PREDICTED by the "
+        "estimator and the frames rejected TOO_OLD" in result.stdout
+    )
+    assert "\n  rejected 60: 60 TOO_OLD\n" in result.stdout, result.stdout
+    assert re.search(
+        r"^  TOO_OLD, as the server said of the first: frame 0: late frames are applied back to tick \d+ "
+        r"\(history 50 ticks\), got 0$",
+        result.stdout,
+        re.MULTILINE,
+    ), result.stdout
+    assert summary_counts(result.stdout)["rejected"] == 60
