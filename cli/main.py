@@ -26,7 +26,7 @@ from typing import Any, NoReturn
 
 from jitdyn.cli.extras import MissingExtra, require_extra
 from jitdyn.cli.limits import add_limit_arguments, limit_settings
-from jitdyn.errors import JitdynError, Unavailable
+from jitdyn.errors import FailedPrecondition, JitdynError, Unavailable
 from jitdyn.registry.builtins import BUILTIN_NAMES
 from jitdyn.settings import (
     SettingError,
@@ -36,6 +36,7 @@ from jitdyn.settings import (
     checked,
     default_workers,
     parse_duration,
+    parse_model_reference,
     parse_seconds,
     positive_int,
     resolve,
@@ -79,14 +80,8 @@ class ModelRef:
 
 
 def _model_ref(text: str) -> ModelRef:
-    if text.startswith("sha256:"):
-        return ModelRef(model_id=text)
-    name, colon, version = text.partition(":")
-    if not name or (colon and not (version.isdigit() and int(version) >= 1)):
-        raise ValueError(
-            f"expected a model id (sha256:...), NAME or NAME:VERSION with VERSION a whole number >= 1, got {text!r}"
-        )
-    return ModelRef(name=name, version=int(version or 0))
+    model_id, name, version = parse_model_reference(text)
+    return ModelRef(model_id=model_id, name=name, version=version)
 
 
 def _common() -> argparse.ArgumentParser:
@@ -187,13 +182,18 @@ def build_parser() -> argparse.ArgumentParser:
         "network against a local in-process server (or --server), show progress, and print a summary.",
     )
     demo.add_argument(
-        "--model", default="pendulum_3", choices=BUILTIN_NAMES, help="built-in model (default pendulum_3)"
+        "--model",
+        default="pendulum_3",
+        type=argparse_type(lambda text: _model_ref(text) and text, "model"),
+        metavar="MODEL",
+        help="a registered model: NAME, NAME:VERSION or sha256:ID; a built-in, or one registered in the "
+        "data folder (default pendulum_3)",
     )
     demo.add_argument(
         "--scenario",
-        default="passive",
         choices=tuple(scenario.lower() for scenario in Scenario),
-        help="default passive",
+        help="default passive for a built-in model, else the server's choice for the model (driven for "
+        "one with actuators)",
     )
     for flag, parse_text, kind, default, text in (
         (
@@ -409,7 +409,7 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
 
     demo = DemoSettings(
         model=args.model,
-        scenario=parse(Scenario, args.scenario, argument="--scenario"),
+        scenario=parse(Scenario, args.scenario, argument="--scenario") if args.scenario else None,
         seconds=args.seconds,
         latency=args.latency,
         jitter=args.jitter,
@@ -423,6 +423,13 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
         return 0
     from jitdyn.server.transport.background import BackgroundServer
 
+    data = settings.data.resolve()
+    if args.model.partition(":")[0] not in BUILTIN_NAMES and not settings.index_url and not data.is_dir():
+        raise FailedPrecondition(
+            f"no model {args.model!r} here: {data} does not exist, so only the built-in models "
+            f"({', '.join(BUILTIN_NAMES)}) are registered; register it first (jitdyn models register) or "
+            "give --data of the folder that holds it"
+        )
     config = _server_config(settings, address="127.0.0.1:0")
     print(f"starting a local jitdyn server (data in {settings.data.resolve()})", flush=True)
     with BackgroundServer(config) as server:

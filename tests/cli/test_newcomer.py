@@ -455,3 +455,59 @@ def test_the_demo_says_why_it_rejected(server: Any) -> None:
         re.MULTILINE,
     ), result.stdout
     assert summary_counts(result.stdout)["rejected"] == 60
+
+
+# -- the demo of any registered model -----------------------------------------------------------------
+
+SWING = """<mujoco model="swing">
+  <option timestep="0.005"/>
+  <worldbody><body pos="0 0 1"><joint name="rope" type="hinge" axis="0 1 0" limited="true" range="-1.2 1.2"/>
+    <geom type="capsule" fromto="0 0 0 0 0 -0.8" size="0.03" mass="2"/></body></worldbody>
+</mujoco>
+"""
+
+
+def test_demo_takes_a_registered_myosuite_model(server: Any) -> None:
+    registered = jitdyn("models", "register", "--myo", "myoelbow", "--server", server.address)
+    assert registered.returncode == 0, registered.stderr
+    model_id = re.search(r"(sha256:[0-9a-f]{64})  myoelbow v1", registered.stdout)
+    assert model_id, registered.stdout
+    for reference in ("myoelbow", model_id.group(1)):
+        result = jitdyn("demo", "--model", reference, "--seconds", "1s", "--server", server.address)
+        assert result.returncode == 0, result.stderr
+        # No --scenario: the server's choice for a model with actuators, with its reason.
+        assert re.search(r": myoelbow v1 \(1 dof\), driven \(.+\), dt 20 ms, 50 ticks", result.stdout), (
+            result.stdout
+        )
+        assert summary_counts(result.stdout)["ticks"] >= 50, result.stdout
+
+
+def test_demo_of_a_model_whose_mjcf_is_not_here_says_why(server: Any, tmp_path: Path) -> None:
+    (tmp_path / "swing.xml").write_text(SWING, encoding="utf-8")
+    registered = jitdyn("models", "register", str(tmp_path / "swing.xml"), "--server", server.address)
+    assert registered.returncode == 0, registered.stderr
+    result = jitdyn("demo", "--model", "swing", "--server", server.address)
+    assert one_line_error(result, 1) == (
+        f"jitdyn demo: FailedPrecondition: swing v1 is registered at {server.address}, but the demo simulates "
+        "its truth here and has no copy of its MJCF: run the demo without --server, on the data folder that "
+        "holds it (--data DIR)"
+    )
+    unknown = jitdyn("demo", "--model", "no_such_model:2", "--server", server.address)
+    assert one_line_error(unknown, 1).startswith("jitdyn demo: NotFound: ")
+
+
+def test_demo_of_a_model_registered_in_the_data_folder(tmp_path: Path) -> None:
+    (tmp_path / "swing.xml").write_text(SWING, encoding="utf-8")
+    data = tmp_path / "data"
+    with serving(data=data) as address:
+        registered = jitdyn("models", "register", str(tmp_path / "swing.xml"), "--server", address)
+        assert registered.returncode == 0, registered.stderr
+    result = jitdyn("demo", "--model", "swing:1", "--seconds", "1s", "--data", str(data), cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    # No actuators: the server's choice is PASSIVE, and the swing falls as it did here.
+    assert re.search(r": swing v1 \(1 dof\), passive \(.+\), dt 50 ms, 20 ticks", result.stdout), (
+        result.stdout
+    )
+    counts = summary_counts(result.stdout)
+    assert counts["ticks"] >= 20 and counts["predicted"] + counts["measured"] >= 20, result.stdout
+    assert re.search(r"predicted ticks after the first frame: \|q error\| vs truth median", result.stdout)
