@@ -213,7 +213,13 @@ def build_parser() -> argparse.ArgumentParser:
         ("--jitter", parse_duration, "duration", 0.010, "latency spread with a unit (default 10ms)"),
         ("--loss", _probability, "probability", 0.05, "frame loss probability: 0.05 or 5%% (default 0.05)"),
     ):
-        demo.add_argument(flag, type=argparse_type(parse_text, kind), default=default, help=text)
+        demo.add_argument(
+            flag,
+            type=argparse_type(parse_text, kind),
+            default=default,
+            metavar="P" if kind == "probability" else "DURATION",
+            help=text,
+        )
     demo.add_argument(
         "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
     )
@@ -241,7 +247,11 @@ def build_parser() -> argparse.ArgumentParser:
     slist.add_argument("--model", help="only this model name")
     slist.add_argument("--status", choices=tuple(status.value for status in SessionStatus))
     slist.add_argument(
-        "--limit", type=argparse_type(positive_int, "limit"), default=50, help="at most N (default 50)"
+        "--limit",
+        type=argparse_type(positive_int, "limit"),
+        default=50,
+        metavar="N",
+        help="at most N (default 50)",
     )
     sshow = leaf(session_commands, "show", "sessions", help="show one session")
     sshow.add_argument("session_id")
