@@ -255,17 +255,18 @@ def test_a_session_id_prefix_is_accepted(sessions_data: tuple[Path, list[str]], 
 def test_an_ambiguous_prefix_lists_the_candidates(sessions_data: tuple[Path, list[str]]) -> None:
     data, ids = sessions_data
     digit = ids[-1][0]
-    candidates = sorted(i for i in ids if i.startswith(digit))
+    listing = jitdyn("sessions", "list", "--limit", "500", "--data", str(data)).stdout
+    candidates = sorted(line.split()[0] for line in listing.splitlines() if line.startswith(digit))
+    assert len(candidates) >= 2, listing
+    shown = ", ".join(candidates[:5]) + (", ..." if len(candidates) > 5 else "")
     for action in ("show", "export", "plot"):
         result = jitdyn("sessions", action, digit, "--data", str(data))
         assert one_line_error(result, 1) == (
             f"jitdyn sessions {action}: InvalidArgument: session id prefix {digit!r} is ambiguous: it starts "
-            f"{', '.join(candidates)}; give more of it"
+            f"{shown}; give more of it"
         )
     unknown = jitdyn("sessions", "show", "zz", "--data", str(data))
-    assert one_line_error(unknown, 1) == (
-        "jitdyn sessions show: NotFound: session 'zz' not found: a session id is hexadecimal, like 0e0529f0"
-    )
+    assert one_line_error(unknown, 1) == "jitdyn sessions show: NotFound: session 'zz' not found"
 
 
 def test_the_limit_flags_show_a_metavar_and_their_variable() -> None:
