@@ -77,7 +77,7 @@ def parse_duration(text: str) -> float:
 
 def parse_seconds(text: str) -> float:
     """A duration of an option that has always taken seconds: '60s', '500ms', '200us' with a unit,
-    and a bare number as the seconds it always meant ('60' -> 60.0)."""
+    and a bare number as the seconds it always meant ('60' -> 60.0). Why: docs/decisions/0140."""
     match = _DURATION.match(text)
     if not match:
         raise ValueError(f"expected a duration like 60s, 500ms or 60 (seconds), got {text!r}")
