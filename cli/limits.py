@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import argparse
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
 from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
+from jitdyn.settings import ENV_PREFIX, SettingError, argparse_type, checked, parse_seconds, positive_int
 
 __all__ = ["add_limit_arguments", "limit_settings"]
 
@@ -26,23 +27,30 @@ def _bytes(text: str) -> int:
     match = _SIZE.match(text)
     value = int(float(match.group(1)) * 1024 ** " kmg".index(match.group(2).lower() or " ")) if match else 0
     if value < 1:
-        raise argparse.ArgumentTypeError(
-            f"expected a positive size like 64MiB, 2GiB or 1000000, got {text!r}"
-        )
+        raise ValueError(f"expected a positive size like 64MiB, 2GiB or 1000000, got {text!r}")
     return value
 
 
 @dataclass(frozen=True)
 class _Unit:
-    """How a limit's flag is parsed, and how its default is written in the help."""
+    """How a limit's flag is parsed (ValueError saying what was expected), named in the help
+    (metavar), and how its default is written there."""
 
     parse: Callable[[str], Any]
+    metavar: str
     show: Callable[[Any], str]
 
 
-_BYTES = _Unit(_bytes, lambda value: f"{value // _MIB}MiB")
-_NUMBER = _Unit(float, lambda value: f"{value:g}")
-_COUNT = _Unit(int, str)
+_BYTES = _Unit(_bytes, "SIZE", lambda value: f"{value // _MIB}MiB")
+_SECONDS = _Unit(
+    checked(parse_seconds, lambda value: value > 0, "a duration > 0, like 60s, 500ms or 60 (seconds)"),
+    "DURATION",
+    lambda value: f"{value:g}s",
+)
+_SHARE = _Unit(
+    checked(float, lambda value: value > 0, "a number > 0, like 0.5"), "F", lambda value: f"{value:g}"
+)
+_COUNT = _Unit(positive_int, "N", str)
 
 
 @dataclass(frozen=True)
@@ -58,6 +66,10 @@ class _Limit:
     @property
     def dest(self) -> str:
         return self.flag.removeprefix("--").replace("-", "_")
+
+    @property
+    def env(self) -> str:
+        return ENV_PREFIX + self.dest.upper()
 
     @property
     def default(self) -> Any:
@@ -81,25 +93,29 @@ _LIMITS: Final = (
         "--max-clock-offset",
         StreamLimits,
         "max_clock_offset",
-        _NUMBER,
-        "seconds a REALTIME client's clock may be from the session's",
+        _SECONDS,
+        "how far a REALTIME client's clock may be from the session's",
     ),
     _Limit(
         "--idle-timeout",
         StreamLimits,
         "idle_timeout",
-        _NUMBER,
-        "seconds a session may send nothing before it is ended",
+        _SECONDS,
+        "how long a session may send nothing before it is ended",
     ),
     _Limit(
         "--max-tick-share",
         StreamLimits,
         "max_tick_share",
-        _NUMBER,
+        _SHARE,
         "largest share of dt a REALTIME tick's estimated cost may take",
     ),
     _Limit(
-        "--compile-timeout", RegistryLimits, "compile_timeout", _NUMBER, "seconds a model may take to compile"
+        "--compile-timeout",
+        RegistryLimits,
+        "compile_timeout",
+        _SECONDS,
+        "how long a model may take to compile",
     ),
     _Limit(
         "--max-compiled-bytes", RegistryLimits, "max_compiled_bytes", _BYTES, "memory of one compiled model"
@@ -134,19 +150,38 @@ _LIMITS: Final = (
 def add_limit_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("limits per session, model and tenant")
     for limit in _LIMITS:
+        text = f"{limit.help} (env {limit.env}; default {limit.unit.show(limit.default)})"
         group.add_argument(
             limit.flag,
-            type=limit.unit.parse,
-            default=limit.default,
-            help=f"{limit.help} (default {limit.unit.show(limit.default)})",
+            dest=limit.dest,
+            type=argparse_type(limit.unit.parse, limit.dest),
+            default=argparse.SUPPRESS,
+            metavar=limit.unit.metavar,
+            help=text.replace("%", "%%"),
         )
 
 
-def limit_settings(args: argparse.Namespace) -> dict[str, Any]:
-    """The ServerConfig fields the limit flags set."""
+def limit_settings(args: argparse.Namespace, environ: Mapping[str, str]) -> dict[str, Any]:
+    """The ServerConfig fields the limit flags set: each from its flag, else its environment
+    variable, else its default.
+
+    Raises:
+      SettingError: an environment variable's value is not valid for its limit.
+    """
+
+    def value(limit: _Limit) -> Any:
+        if limit.dest in args:
+            return getattr(args, limit.dest)
+        text = environ.get(limit.env)
+        if text is None:
+            return limit.default
+        try:
+            return limit.unit.parse(text)
+        except ValueError as error:
+            raise SettingError(f"environment variable {limit.env}: {error}") from None
 
     def given(limits: type) -> dict[str, Any]:
-        return {limit.field: getattr(args, limit.dest) for limit in _LIMITS if limit.limits is limits}
+        return {limit.field: value(limit) for limit in _LIMITS if limit.limits is limits}
 
     return {
         "stream_limits": StreamLimits(**given(StreamLimits)),

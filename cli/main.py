@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import dataclasses
+import difflib
 import logging
 import os
 import sys
@@ -25,7 +26,7 @@ from typing import Any, NoReturn
 
 from jitdyn.cli.extras import MissingExtra, require_extra
 from jitdyn.cli.limits import add_limit_arguments, limit_settings
-from jitdyn.errors import JitdynError, Unavailable
+from jitdyn.errors import FailedPrecondition, JitdynError, Unavailable
 from jitdyn.registry.builtins import BUILTIN_NAMES
 from jitdyn.settings import (
     SettingError,
@@ -35,6 +36,8 @@ from jitdyn.settings import (
     checked,
     default_workers,
     parse_duration,
+    parse_model_reference,
+    parse_seconds,
     positive_int,
     resolve,
 )
@@ -46,6 +49,7 @@ EXIT_ERROR = 1
 EXIT_USAGE = 2
 DEFAULT_SERVER = "127.0.0.1:50051"
 
+_LEAF = "_leaf_parser"
 _EPILOG = "exit codes: 0 done, 1 the command failed (one line on stderr says why), 2 usage error"
 
 
@@ -60,10 +64,9 @@ _probability = checked(
     malformed="a probability like 0.05 or 5%",
 )
 _seconds = checked(
-    float,
+    parse_seconds,
     lambda value: value > 0,
-    "a number of seconds > 0",
-    malformed="a number of seconds > 0, like 10 or 2.5",
+    "a duration > 0, like 10s, 2500ms or 10 (seconds)",
 )
 
 
@@ -77,14 +80,8 @@ class ModelRef:
 
 
 def _model_ref(text: str) -> ModelRef:
-    if text.startswith("sha256:"):
-        return ModelRef(model_id=text)
-    name, colon, version = text.partition(":")
-    if not name or (colon and not (version.isdigit() and int(version) >= 1)):
-        raise ValueError(
-            f"expected a model id (sha256:...), NAME or NAME:VERSION with VERSION a whole number >= 1, got {text!r}"
-        )
-    return ModelRef(name=name, version=int(version or 0))
+    model_id, name, version = parse_model_reference(text)
+    return ModelRef(model_id=model_id, name=name, version=version)
 
 
 def _common() -> argparse.ArgumentParser:
@@ -120,9 +117,12 @@ def build_parser() -> argparse.ArgumentParser:
         **kwargs: Any,
     ) -> argparse.ArgumentParser:
         """A command's parser, with the settings of `group` (default: the command itself)."""
-        return subparsers.add_parser(
+        command = subparsers.add_parser(
             name, parents=[common, _settings_parent(group or name)], epilog=_EPILOG, **kwargs
         )
+        # The innermost parser reached, so that an option it does not know shows its usage.
+        command.set_defaults(**{_LEAF: command})
+        return command
 
     serve = leaf(
         commands,
@@ -182,16 +182,27 @@ def build_parser() -> argparse.ArgumentParser:
         "network against a local in-process server (or --server), show progress, and print a summary.",
     )
     demo.add_argument(
-        "--model", default="pendulum_3", choices=BUILTIN_NAMES, help="built-in model (default pendulum_3)"
+        "--model",
+        default="pendulum_3",
+        type=argparse_type(lambda text: _model_ref(text) and text, "model"),
+        metavar="MODEL",
+        help="a registered model: NAME, NAME:VERSION or sha256:ID; a built-in, or one registered in the "
+        "data folder (default pendulum_3)",
     )
     demo.add_argument(
         "--scenario",
-        default="passive",
         choices=tuple(scenario.lower() for scenario in Scenario),
-        help="default passive",
+        help="default passive for a built-in model, else the server's choice for the model (driven for "
+        "one with actuators)",
     )
     for flag, parse_text, kind, default, text in (
-        ("--seconds", _seconds, "seconds", 10.0, "session length, s (default 10)"),
+        (
+            "--seconds",
+            _seconds,
+            "seconds",
+            10.0,
+            "session length: 10s, 2500ms, or a bare number of seconds (default 10s)",
+        ),
         (
             "--latency",
             parse_duration,
@@ -202,7 +213,13 @@ def build_parser() -> argparse.ArgumentParser:
         ("--jitter", parse_duration, "duration", 0.010, "latency spread with a unit (default 10ms)"),
         ("--loss", _probability, "probability", 0.05, "frame loss probability: 0.05 or 5%% (default 0.05)"),
     ):
-        demo.add_argument(flag, type=argparse_type(parse_text, kind), default=default, help=text)
+        demo.add_argument(
+            flag,
+            type=argparse_type(parse_text, kind),
+            default=default,
+            metavar="P" if kind == "probability" else "DURATION",
+            help=text,
+        )
     demo.add_argument(
         "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
     )
@@ -215,11 +232,26 @@ def build_parser() -> argparse.ArgumentParser:
         description="The stored sessions, read from the data folder and the SQL index (no server needed).",
     )
     session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
-    slist = leaf(session_commands, "list", "sessions", help="list sessions, newest first")
+    slist = leaf(
+        session_commands,
+        "list",
+        "sessions",
+        help="list sessions, newest first",
+        description="List the stored sessions, newest first, one a line: id, start, status, model, "
+        "scenario, clock and the counts of its summary. ticks: distinct ticks answered; measured, "
+        "predicted, corrected: answers of each source (a tick answered PREDICTED and then CORRECTED "
+        "counts in both); rejected: frames refused, each stored with its reason (see `sessions "
+        "query`); late: ticks whose frame came after the tick was answered, so that it was corrected "
+        "(results with late_ticks > 0); a frame too late to be used at all is rejected TOO_OLD instead.",
+    )
     slist.add_argument("--model", help="only this model name")
     slist.add_argument("--status", choices=tuple(status.value for status in SessionStatus))
     slist.add_argument(
-        "--limit", type=argparse_type(positive_int, "limit"), default=50, help="at most N (default 50)"
+        "--limit",
+        type=argparse_type(positive_int, "limit"),
+        default=50,
+        metavar="N",
+        help="at most N (default 50)",
     )
     sshow = leaf(session_commands, "show", "sessions", help="show one session")
     sshow.add_argument("session_id")
@@ -325,7 +357,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
 
     if settings.workers is None:  # the CPUs shared among the processes (jitdyn.settings.default_workers)
         settings = dataclasses.replace(settings, workers=default_workers(settings.processes))
-    config = _server_config(settings, **limit_settings(args))
+    config = _server_config(settings, **limit_settings(args, os.environ))
     if settings.processes > 1:
         from jitdyn.server.transport.processes import run_processes
 
@@ -363,7 +395,13 @@ def _models(args: argparse.Namespace, settings: Settings) -> int:
             ) from None
     from google.protobuf import json_format
 
-    print(json_format.MessageToJson(message, indent=2))
+    # The proto's own field names, and every field, zeros included: a joint's range_lower of 0
+    # is a value a reader looks for, not an absence.
+    print(
+        json_format.MessageToJson(
+            message, indent=2, preserving_proto_field_name=True, always_print_fields_with_no_presence=True
+        )
+    )
     return 0
 
 
@@ -418,7 +456,7 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
 
     demo = DemoSettings(
         model=args.model,
-        scenario=parse(Scenario, args.scenario, argument="--scenario"),
+        scenario=parse(Scenario, args.scenario, argument="--scenario") if args.scenario else None,
         seconds=args.seconds,
         latency=args.latency,
         jitter=args.jitter,
@@ -432,6 +470,13 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
         return 0
     from jitdyn.server.transport.background import BackgroundServer
 
+    data = settings.data.resolve()
+    if args.model.partition(":")[0] not in BUILTIN_NAMES and not settings.index_url and not data.is_dir():
+        raise FailedPrecondition(
+            f"no model {args.model!r} here: {data} does not exist, so only the built-in models "
+            f"({', '.join(BUILTIN_NAMES)}) are registered; register it first (jitdyn models register) or "
+            "give --data of the folder that holds it"
+        )
     config = _server_config(settings, address="127.0.0.1:0")
     print(f"starting a local jitdyn server (data in {settings.data.resolve()})", flush=True)
     with BackgroundServer(config) as server:
@@ -454,11 +499,24 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace, Settings], int]] = {
 
 
 def _experiments(argv: list[str], *, verbose: bool) -> int:
+    from jitdyn.experiments.reproduce import main as experiments_main
+    from jitdyn.experiments.reproduce import parser
+
+    # Parsed first: `--help` and a usage error need none of the extras, running does.
+    parser().parse_args(argv)
     require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
     require_extra("myo_sim", what="myo-sim (the MyoSuite objects)", extra="experiments")
-    from jitdyn.experiments.reproduce import main as experiments_main
-
     return int(experiments_main(argv, verbose=verbose) or 0)
+
+
+def _did_you_mean(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
+    """' (did you mean --latency?)' for a mistyped option the parser has one close to."""
+    known = [option for action in parser._actions for option in action.option_strings]
+    for word in unknown:
+        close = difflib.get_close_matches(word.partition("=")[0], known, n=1)
+        if word.startswith("--") and close:
+            return f" (did you mean {close[0]}?)"
+    return ""
 
 
 def _fail(command: str, message: str, code: int = EXIT_ERROR) -> NoReturn:
@@ -480,6 +538,8 @@ def _configure_logging(verbose: bool) -> None:
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
     )
+    # Alembic says which migrations it checked at every start of the index: noise for `-v`.
+    logging.getLogger("alembic").setLevel(logging.WARNING)
     route_mujoco_messages()
 
 
@@ -502,7 +562,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             _fail("experiments", f"{error.strerror or error}:{where}")
         except KeyboardInterrupt:
             return 130
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        leaf: argparse.ArgumentParser = getattr(args, _LEAF, parser)
+        leaf.error(f"unrecognized arguments: {' '.join(unknown)}{_did_you_mean(leaf, unknown)}")
     command = _command_name(args)
     try:
         settings = resolve(args, os.environ)
@@ -511,6 +575,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     _configure_logging(getattr(args, "verbose", False))
     try:
         return _HANDLERS[args.command](args, settings)
+    except SettingError as error:
+        _fail(command, str(error), EXIT_USAGE)
     except MissingExtra as error:
         _fail(command, str(error))
     except JitdynError as error:

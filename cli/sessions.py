@@ -9,6 +9,7 @@ index (`--index`) and the root's settings (AWS_* for S3) sees every replica's se
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import datetime
 import json
@@ -21,7 +22,7 @@ from typing import Any, TextIO
 import sqlalchemy as sa
 
 from jitdyn.cli.extras import require_extra
-from jitdyn.errors import FailedPrecondition
+from jitdyn.errors import FailedPrecondition, NotFound
 from jitdyn.settings import Settings
 from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.index import SessionIndex, SessionRow
@@ -54,7 +55,7 @@ def _where(location: str, data_root: Path) -> str:
 def _line(row: SessionRow) -> str:
     return (
         f"{row.session_id}  {row.started_at:%Y-%m-%d %H:%M:%S}  {row.status:<9}  {row.model_name} v{row.model_version}  "
-        f"{row.scenario.lower():<10} {row.clock.lower():<8} {format_counts(row.summary)}"
+        f"{row.scenario:<10} {row.clock:<8} {format_counts(row.summary)}"
     )
 
 
@@ -148,6 +149,11 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
     if args.sessions_command == "render":
         return _render(args, settings)
     data_root: Path = settings.data
+    if args.sessions_command in ("show", "export", "plot"):
+        # The start of an id will do, as for a git commit, when only one session's id starts so;
+        # an id nobody's starts with is left to the command, which says it is not there.
+        with contextlib.suppress(NotFound):
+            args.session_id = SessionIndex(engine).complete_id(args.session_id, tenant="")
     if args.sessions_command == "list":
         index = SessionIndex(engine)
         rows, _ = index.list(tenant="", model_name=args.model, status=args.status, page_size=args.limit)

@@ -22,7 +22,7 @@ import numpy as np
 from jitdyn.client import Client, FrameData, Rejection, SessionOptions, Summary, SyncSample, TickResult
 from jitdyn.experiments.netem import DelayedSender, NetworkProfile
 from jitdyn.experiments.progress import progress_bar
-from jitdyn.registry import builtin_model_path
+from jitdyn.experiments.truth import truth_model
 from jitdyn.storage.summary import format_counts
 from jitdyn.vocabulary import Channel, Clock, EstimatorKind, Output, Scenario, Source
 
@@ -31,8 +31,10 @@ __all__ = ["DemoSettings", "run_demo"]
 
 @dataclass(frozen=True)
 class DemoSettings:
+    # A registered model: NAME, NAME:VERSION or its id (sha256:...).
     model: str = "pendulum_3"
-    scenario: Scenario = Scenario.PASSIVE
+    # None: PASSIVE for a built-in model, else the server's choice for the model.
+    scenario: Scenario | None = None
     seconds: float = 10.0
     dt: float | None = None  # None: 50 ms for pendulums, else 10 model timesteps
     latency: float = 0.035  # s, one way
@@ -42,9 +44,22 @@ class DemoSettings:
     estimator: EstimatorKind = EstimatorKind.UKF
 
 
-def _truth_model(name: str) -> mujoco.MjModel:
-    path = builtin_model_path(name)
-    return mujoco.MjModel.from_xml_path(str(path))
+def _start_pose(model: mujoco.MjModel, rng: np.random.Generator) -> np.ndarray:
+    """(nq,) a deterministic start away from rest, so that gravity moves the body: each dof moved
+    0.3 to 0.8 (rad or m) from qpos0, on the manifold of ball and free joints, inside the ranges of
+    limited joints."""
+    qpos = model.qpos0.copy()
+    delta = rng.uniform(0.3, 0.8, model.nv) * np.sign(rng.standard_normal(model.nv))
+    mujoco.mj_integratePos(model, qpos, delta, 1.0)
+    for j in range(model.njnt):
+        if model.jnt_limited[j] and model.jnt_type[j] in (
+            mujoco.mjtJoint.mjJNT_HINGE,
+            mujoco.mjtJoint.mjJNT_SLIDE,
+        ):
+            lo, hi = model.jnt_range[j]
+            adr = model.jnt_qposadr[j]
+            qpos[adr] = np.clip(qpos[adr], lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))
+    return np.asarray(qpos, dtype=np.float64)
 
 
 def run_demo(
@@ -59,26 +74,6 @@ def run_demo(
 
     `local_data`: the data folder of a server this process runs, so that the stored file is named
     by its path here; None for a remote server, whose data folder is its own."""
-    model = _truth_model(settings.model)
-    data = mujoco.MjData(model)
-    # A deterministic start away from rest, so that gravity moves the chain.
-    rng = np.random.default_rng(settings.seed)
-    data.qpos[:] = model.qpos0 + rng.uniform(0.3, 0.8, model.nq) * np.sign(rng.standard_normal(model.nq))
-    mujoco.mj_forward(model, data)
-    dt = settings.dt or (0.05 if settings.model.startswith("pendulum") else 10 * model.opt.timestep)
-    steps = max(1, round(dt / model.opt.timestep))
-    ticks = max(1, round(settings.seconds / dt))
-    profile = NetworkProfile(latency=settings.latency, jitter=settings.jitter, loss=settings.loss)
-    controlled = settings.scenario is Scenario.CONTROLLED
-    options = SessionOptions(
-        model_name=settings.model,
-        scenario=settings.scenario,
-        dt=dt,
-        clock=Clock.REALTIME,
-        estimator={"estimator": settings.estimator},
-        measured=(Channel.QPOS, Channel.QVEL, Channel.CTRL) if controlled else (Channel.QPOS, Channel.QVEL),
-        outputs=(Output.INVERSE_DYNAMICS,),
-    )
     truth: list[np.ndarray] = []
     results: dict[int, TickResult] = {}
     corrected: list[TickResult] = []
@@ -86,20 +81,41 @@ def run_demo(
     syncs: list[SyncSample] = []
     with Client(address) as client:
         client.wait_ready()
+        ref, model = truth_model(client, settings.model, data=local_data, address=address)
+        data = mujoco.MjData(model)
+        data.qpos[:] = _start_pose(model, np.random.default_rng(settings.seed))
+        mujoco.mj_forward(model, data)
+        pendulum = ref.builtin and ref.name.startswith("pendulum")
+        dt = settings.dt or (0.05 if pendulum else 10 * model.opt.timestep)
+        steps = max(1, round(dt / model.opt.timestep))
+        ticks = max(1, round(settings.seconds / dt))
+        profile = NetworkProfile(latency=settings.latency, jitter=settings.jitter, loss=settings.loss)
+        scenario = settings.scenario or (Scenario.PASSIVE if ref.builtin else None)
+        controlled = scenario is Scenario.CONTROLLED
+        options = SessionOptions(
+            model_id=ref.id,
+            scenario=scenario,
+            dt=dt,
+            clock=Clock.REALTIME,
+            estimator={"estimator": settings.estimator},
+            measured=(Channel.QPOS, Channel.QVEL, Channel.CTRL)
+            if controlled
+            else (Channel.QPOS, Channel.QVEL),
+            outputs=(Output.INVERSE_DYNAMICS,),
+        )
         session = client.open_session(options)
+        chosen = "" if scenario else f" ({session.opened.scenario_reason})"
         print(
-            f"session {session.opened.session_id}: {settings.model} ({session.opened.model.nq} dof), "
-            f"{settings.scenario.lower()}, dt {dt * 1e3:g} ms, {ticks} ticks, estimator {settings.estimator}, "
-            f"grace {session.opened.grace * 1e3:g} ms",
+            f"session {session.opened.session_id}: {ref.name} v{ref.version} ({model.nv} dof), "
+            f"{session.opened.scenario.lower()}{chosen}, dt {dt * 1e3:g} ms, {ticks} ticks, estimator "
+            f"{settings.estimator}, grace {session.opened.grace * 1e3:g} ms",
             file=out,
         )
-        if settings.latency > session.opened.grace:
-            print(
-                f"frames take {settings.latency * 1e3:g} ms to arrive and the server answers each tick "
-                f"{session.opened.grace * 1e3:g} ms after it is due: expect most ticks PREDICTED by the "
-                "estimator, then CORRECTED when their frame arrives",
-                file=out,
-            )
+        expectation = _expectation(
+            settings, grace=session.opened.grace, history=session.opened.history, dt=dt
+        )
+        if expectation:
+            print(expectation, file=out)
         print(
             f"network: latency {settings.latency * 1e3:g} ms, jitter {settings.jitter * 1e3:g} ms, "
             f"loss {settings.loss:.0%} (seeded {settings.seed})",
@@ -144,9 +160,16 @@ def run_demo(
                     mujoco.mj_step(model, data)
                 collect(session.poll())
                 bar.update(min(len(results), ticks) - bar.n)
-        # Every tick is answered by its deadline; wait for the last ones, then close.
+        # Every tick is answered by its deadline, and every frame that arrived by a result or a
+        # rejection; wait for the last ones, then close (answers that come during `close` are not read).
         deadline = time.monotonic() + 2.0 + 4 * dt
-        while any(k not in results for k in range(ticks)) and time.monotonic() < deadline:
+
+        def waiting() -> bool:
+            from_frames = len(corrected) + len(rejections)
+            from_frames += sum(1 for r in results.values() if r.source == Source.MEASURED)
+            return from_frames < ticks - lost or any(k not in results for k in range(ticks))
+
+        while waiting() and time.monotonic() < deadline:
             collect(session.poll())
             time.sleep(dt / 4)
         summary = session.close()
@@ -212,6 +235,7 @@ def _report(
             f"frames sent {ticks}, lost on the emulated network {lost}, rejected {len(rejections)}; "
             f"answers received for {len(results)} of the {ticks} ticks"
         ),
+        *_rejection_reasons(rejections),
         f"server's summary, as `jitdyn sessions list` shows it: {format_counts(summary)}",
     ]
     if extra > 0:
@@ -263,6 +287,37 @@ def _report(
         "location": location,
         "predicted_errors": predicted_errors,
     }
+
+
+def _expectation(settings: DemoSettings, *, grace: float, history: int, dt: float) -> str:
+    """What the network's latency will make of the session, as the server's rules say."""
+    if settings.latency <= grace:
+        return ""
+    late = f"frames take {settings.latency * 1e3:g} ms to arrive and the server answers each tick {grace * 1e3:g} ms after it is due"
+    if settings.latency - settings.jitter > grace + history * dt:
+        return (
+            f"{late}, past the {history} ticks ({history * dt * 1e3:g} ms) the server keeps to correct: expect "
+            "every tick PREDICTED by the estimator and the frames rejected TOO_OLD"
+        )
+    return (
+        f"{late}: expect most ticks PREDICTED by the estimator, then CORRECTED when their frame arrives (a frame "
+        "whose replay the server has no time for is rejected TOO_OLD instead)"
+    )
+
+
+def _rejection_reasons(rejections: list[Rejection]) -> list[str]:
+    """'  rejected 3: 2 TOO_OLD, 1 DUPLICATE', then the server's words for the first of each reason."""
+    by_reason: dict[str, list[Rejection]] = {}
+    for rejection in rejections:
+        by_reason.setdefault(rejection.reason, []).append(rejection)
+    if not by_reason:
+        return []
+    ranked = sorted(by_reason.items(), key=lambda item: -len(item[1]))
+    lines = [
+        f"  rejected {len(rejections)}: {', '.join(f'{len(found)} {reason}' for reason, found in ranked)}"
+    ]
+    lines += [f"  {reason}, as the server said of the first: {found[0].message}" for reason, found in ranked]
+    return lines
 
 
 def default_data_root() -> Path:

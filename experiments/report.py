@@ -12,18 +12,14 @@ import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
-import matplotlib
-
-matplotlib.use("Agg")  # no display: CI and servers
-
-import matplotlib.figure
-import matplotlib.pyplot as plt
 import numpy as np
-from PIL import Image
 
 from jitdyn.experiments.runner import Trace
+
+if TYPE_CHECKING:
+    import matplotlib.figure
 
 __all__ = [
     "Column",
@@ -166,11 +162,24 @@ def write_report(out: Path, sections: Sequence[Section], *, header: str) -> Path
     return path
 
 
+def _pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend (no display: CI and servers). Imported when a plot is
+    drawn, not with this module, so that `jitdyn experiments --help` works without the extra."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def _finish(fig: matplotlib.figure.Figure, path: Path) -> None:
+    from PIL import Image
+
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, dpi=_DPI, format="png")
-    plt.close(fig)
+    _pyplot().close(fig)
     # A 256-colour palette keeps line plots sharp at a third of the size: the docs commit them.
     with Image.open(buffer) as image:
         image.convert("RGB").quantize(colors=256).save(path, format="PNG", optimize=True)
@@ -187,7 +196,7 @@ def plot_estimates(
     first = next(iter(traces.values()))
     blocks = ("q", "qd", "qdd")[: first.nx // first.nv]
     rows = list(joints) if joints is not None else list(range(first.nv))
-    fig, axes = plt.subplots(
+    fig, axes = _pyplot().subplots(
         len(rows), len(blocks), figsize=(3.2 * len(blocks), 1.7 * len(rows) + 0.6), squeeze=False
     )
     styles = ("--", ":", "-.")
@@ -231,7 +240,7 @@ def plot_estimates(
 
 def plot_error_over_time(traces: Mapping[_Label, Trace], path: Path, *, title: str, joint: int) -> None:
     """|q error| of one joint over time, log scale (the thesis' figure 4.15 for myoHand's 23rd joint)."""
-    fig, ax = plt.subplots(figsize=(6, 2.8))
+    fig, ax = _pyplot().subplots(figsize=(6, 2.8))
     for label, trace in traces.items():
         truth, estimate = trace.component("q")
         err = np.abs(truth[:, joint] - estimate[:, joint])
@@ -253,7 +262,7 @@ def plot_gap_errors(
     marks: Sequence[float] = (),
 ) -> None:
     """RMS q error against the time since the last frame, one line per estimator (log scale)."""
-    fig, ax = plt.subplots(figsize=(5.5, 3.2))
+    fig, ax = _pyplot().subplots(figsize=(5.5, 3.2))
     for label, profile in profiles.items():
         hs = sorted(profile)
         ax.semilogy(
@@ -280,7 +289,7 @@ def plot_bars(
     log: bool = False,
 ) -> None:
     """Grouped bars: one group per model, one bar per series (e.g. per worker count)."""
-    fig, ax = plt.subplots(figsize=(max(4.5, 1.1 * len(groups) + 2), 3.2))
+    fig, ax = _pyplot().subplots(figsize=(max(4.5, 1.1 * len(groups) + 2), 3.2))
     width = 0.8 / max(1, len(series))
     x = np.arange(len(groups))
     for i, (label, values) in enumerate(series.items()):

@@ -26,7 +26,9 @@ __all__ = [
     "ID_COLUMNS",
     "LOG_SCHEMA",
     "SCALAR_FIELDS",
+    "STORED_SINCE",
     "check_lengths",
+    "conform",
     "expected_lengths",
     "list_matrix",
     "records_to_batch",
@@ -48,6 +50,9 @@ SCALAR_FIELDS: Final[tuple[pa.Field, ...]] = (
     pa.field("frame_delay", pa.float64()),
     pa.field("nis", pa.float64()),
     pa.field("reinitialised", pa.bool_(), nullable=False),
+    # Answered without the estimator (the server was overloaded); null in files written before it
+    # was stored.
+    pa.field("late_compute", pa.bool_()),
     pa.field("compute_us", pa.int64(), nullable=False),
     pa.field("receive_to_send_us", pa.int64(), nullable=False),
     pa.field("reject_reason", pa.string(), nullable=False),
@@ -69,6 +74,9 @@ ARRAY_FIELDS: Final[tuple[str, ...]] = (
     "sensordata",
     "covariance_diagonal",
     "filter_state",
+    # A PREDICTED tick answered by the forecast combination: each predictor's weight, in the order
+    # of Result.forecast_weights.
+    "forecast_weights",
 )
 
 LOG_SCHEMA: Final = pa.schema([*SCALAR_FIELDS, *(pa.field(name, FLOAT_LIST) for name in ARRAY_FIELDS)])
@@ -84,6 +92,20 @@ FRAME_SCHEMA: Final = pa.schema([*ID_COLUMNS, *LOG_SCHEMA])
 _GETTERS: Final = {f.name: operator.attrgetter(f.name) for f in SCALAR_FIELDS} | {
     name: operator.attrgetter(name) for name in ARRAY_FIELDS
 }
+
+
+# The columns added to LOG_SCHEMA since the first stored sessions; older logs and files lack them.
+STORED_SINCE: Final = frozenset({"late_compute", "forecast_weights"})
+
+
+def conform(batch: pa.RecordBatch) -> pa.RecordBatch:
+    """`batch` as LOG_SCHEMA: the columns it lacks (it was written before they were stored) added
+    as nulls, so that every reader sees one schema whatever wrote the file."""
+    columns = [
+        batch.column(f.name) if f.name in batch.schema.names else pa.nulls(batch.num_rows, f.type)
+        for f in LOG_SCHEMA
+    ]
+    return pa.RecordBatch.from_arrays(columns, schema=LOG_SCHEMA)
 
 
 def expected_lengths(header: SessionHeader) -> dict[str, int]:

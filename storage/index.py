@@ -17,6 +17,7 @@ import builtins
 import datetime as _dt
 import hashlib
 import json
+import re
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -155,6 +156,11 @@ def _decode_token(token: str, fingerprint: str) -> tuple[_dt.datetime, str]:
     return started_at.astimezone(_dt.UTC), session_id
 
 
+# A session id or the start of one (ids are UUIDs); how many candidates an ambiguous one lists.
+_ID_PREFIX: Final = re.compile(r"[0-9a-fA-F][0-9a-fA-F-]{0,35}")
+_CANDIDATES_SHOWN: Final = 5
+
+
 class SessionIndex:
     """The `sessions` table on an engine from `jitdyn.storage.db.open_index`. Thread-safe: each call
     takes its own connection from the engine's pool."""
@@ -242,6 +248,29 @@ class SessionIndex:
         if mapping is None:
             raise NotFound(f"session {session_id!r} not found")
         return _row(mapping)
+
+    def complete_id(self, prefix: str, *, tenant: str) -> str:
+        """The one session id of the tenant that is `prefix` or starts with it, as git completes a
+        commit. NotFound when none does; InvalidArgument naming the candidates when several do."""
+        if not _ID_PREFIX.fullmatch(prefix):
+            raise NotFound(f"session {prefix!r} not found: a session id is hexadecimal, like 0e0529f0")
+        c = sessions.c
+        query = (
+            sa.select(c.session_id)
+            .where(c.tenant == tenant, c.session_id.startswith(prefix.lower()))
+            .order_by(c.session_id)
+            .limit(_CANDIDATES_SHOWN + 1)
+        )
+        with self._engine.connect() as conn:
+            found = [str(value) for value in conn.execute(query).scalars()]
+        if prefix.lower() in found or len(found) == 1:
+            return prefix.lower() if prefix.lower() in found else found[0]
+        if not found:
+            raise NotFound(f"session {prefix!r} not found: no session id starts with it")
+        shown = ", ".join(found[:_CANDIDATES_SHOWN]) + (", ..." if len(found) > _CANDIDATES_SHOWN else "")
+        raise InvalidArgument(
+            f"session id prefix {prefix!r} is ambiguous: it starts {shown}; give more of it"
+        )
 
     def list(
         self,

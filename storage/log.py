@@ -19,7 +19,7 @@ from typing import Final
 import pyarrow as pa
 
 from jitdyn.lifecycle import Closeable
-from jitdyn.storage.columns import LOG_SCHEMA
+from jitdyn.storage.columns import LOG_SCHEMA, conform
 from jitdyn.storage.layout import fsync_dir
 
 __all__ = ["HEADER_KEY", "LogContents", "LogStream", "LogWriter", "read_log", "stream_log", "try_lock"]
@@ -142,7 +142,7 @@ def read_log(path: Path) -> LogContents:
                 break
         metadata = reader.schema.metadata or {}
         # The batches' buffers keep the mapping alive after the file object closes.
-        table = pa.Table.from_batches(batches, schema=LOG_SCHEMA) if batches else empty
+        table = pa.Table.from_batches([conform(b) for b in batches], schema=LOG_SCHEMA) if batches else empty
     raw = metadata.get(HEADER_KEY)
     return LogContents(table, raw.decode() if raw is not None else None, torn=torn)
 
@@ -185,7 +185,7 @@ class LogStream(Closeable):
                 self.torn = True
                 return
             if batch.num_rows:
-                yield pa.RecordBatch.from_arrays(batch.columns, schema=LOG_SCHEMA)
+                yield conform(batch)
 
     def close(self) -> None:
         if self._source is not None:

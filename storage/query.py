@@ -171,19 +171,22 @@ def _connect(*, sessions: pa.Table, files: list[str], dataset: Any = None) -> du
         # Otherwise a query could read any Python variable in scope by naming it.
         con.execute("SET python_enable_replacements = false")
         con.register("sessions", sessions)
+        empty = pa.schema([*FRAME_SCHEMA, *_PARTITIONS]).empty_table()
+        con.register("_empty_frames", empty)
         if dataset is not None:
             con.register("_root_frames", dataset)
             con.execute("CREATE VIEW frames AS SELECT * FROM _root_frames")
         elif files:
             listing = "[" + ", ".join(_sql_string(f) for f in files) + "]"
-            # Explicit partition types: a model named "123" stays a name, not a number.
+            # Explicit partition types: a model named "123" stays a name, not a number. The empty
+            # table in front gives every column, those of files written before a column was stored
+            # too (NULL there), in the schema's order.
             con.execute(
-                f"CREATE VIEW frames AS SELECT * FROM read_parquet({listing}, hive_partitioning = true, "
+                "CREATE VIEW frames AS SELECT * FROM _empty_frames UNION ALL BY NAME "
+                f"SELECT * FROM read_parquet({listing}, hive_partitioning = true, "
                 "union_by_name = true, hive_types = {'model': 'VARCHAR', 'date': 'DATE'})"
             )
         else:
-            empty = pa.schema([*FRAME_SCHEMA, *_PARTITIONS]).empty_table()
-            con.register("_empty_frames", empty)
             con.execute("CREATE VIEW frames AS SELECT * FROM _empty_frames")
         con.execute(f"SET allowed_paths = [{', '.join(_sql_string(f) for f in files)}]")
         con.execute("SET enable_external_access = false")

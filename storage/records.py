@@ -103,6 +103,10 @@ class TickRecord:
     filter_state: Vector | None = None
     nis: float | None = None
     reinitialised: bool = False
+    # Answered without the estimator, from what the server had (it was overloaded).
+    late_compute: bool = False
+    # A PREDICTED tick answered by the forecast combination: each predictor's weight.
+    forecast_weights: Vector | None = None
     compute_us: int = 0
     receive_to_send_us: int = 0
     # The RejectReason name without its prefix (BAD_CHECKSUM, ...); "" for results.

@@ -25,7 +25,7 @@ import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, NotFound
 from jitdyn.lifecycle import Closeable
-from jitdyn.storage.columns import LOG_SCHEMA
+from jitdyn.storage.columns import LOG_SCHEMA, STORED_SINCE, conform
 from jitdyn.storage.index import finish_session
 from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
 from jitdyn.storage.schema import session_leases, session_log, sessions
@@ -35,6 +35,16 @@ __all__ = ["Fenced", "Lease", "SharedLogStream", "SharedTier", "TakenOver", "Win
 
 # The log rows of one session read per query while compacting (bounded memory).
 _READ_PAGE: Final = 256
+
+
+def _read_batch(data: bytes) -> pa.RecordBatch:
+    """A row's batch as LOG_SCHEMA; one written before the newest columns were stored has the
+    schema without them (an IPC batch does not carry its schema)."""
+    try:
+        return pa.ipc.read_record_batch(pa.py_buffer(data), LOG_SCHEMA)
+    except (OSError, pa.ArrowInvalid):
+        older = pa.schema([f for f in LOG_SCHEMA if f.name not in STORED_SINCE])
+        return conform(pa.ipc.read_record_batch(pa.py_buffer(data), older))
 
 
 class Fenced(FailedPrecondition):
@@ -285,7 +295,7 @@ class SharedLogStream(Closeable):
                 return
             for row in page:
                 last = row.pk
-                batch = pa.ipc.read_record_batch(pa.py_buffer(row.data), LOG_SCHEMA)
+                batch = _read_batch(row.data)
                 if batch.num_rows:
                     yield batch
 

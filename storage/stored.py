@@ -49,8 +49,15 @@ def read_stored(
             where = row.location if is_uri(row.location) else path
             raise NotFound(f"the Parquet file of session {row.session_id} is missing: {where}")
         metadata = read_metadata(path, filesystem=filesystem)
-        table = pq.read_table(path, columns=list(columns), filesystem=filesystem)
+        present = set(pq.read_schema(path, filesystem=filesystem).names)
+        table = pq.read_table(path, columns=[c for c in columns if c in present], filesystem=filesystem)
     except OSError as error:
         reason = " ".join(str(error).split())
         raise Unavailable(f"the Parquet file of session {row.session_id} cannot be read: {reason}") from None
-    return metadata, table
+    # Columns stored since the file was written are read as nulls.
+    for name in columns:
+        if name not in table.column_names:
+            table = table.append_column(
+                LOG_SCHEMA.field(name), pa.nulls(table.num_rows, LOG_SCHEMA.field(name).type)
+            )
+    return metadata, table.select(list(columns))

@@ -93,6 +93,14 @@ def _frame_columns(frame: FrameIn | None) -> dict[str, Any]:
     return {f"frame_{name}": None if frame is None else getattr(frame, name) for name in _FRAME_FIELDS}
 
 
+def _forecast_weights(outcome: TickOutcome) -> np.ndarray | None:
+    """The weights of the forecast combination that answered a PREDICTED tick, as Result has them."""
+    estimate = outcome.estimate
+    if estimate is None or estimate.forecast_weights is None or outcome.source != Source.PREDICTED:
+        return None
+    return np.asarray(estimate.forecast_weights, dtype=np.float64)
+
+
 def tick_record(
     outcome: TickOutcome, *, server_time: float, frame_delay: float | None, receive_to_send_us: int
 ) -> TickRecord:
@@ -122,6 +130,8 @@ def tick_record(
         filter_state=estimate.state if estimate is not None else None,
         nis=estimate.nis if estimate is not None and outcome.source != Source.PREDICTED else None,
         reinitialised=bool(estimate.reinitialised) if estimate is not None else False,
+        late_compute=outcome.late_compute,
+        forecast_weights=_forecast_weights(outcome),
         compute_us=outcome.compute_us,
         receive_to_send_us=receive_to_send_us,
         reject_reason="",

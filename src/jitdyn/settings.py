@@ -36,6 +36,8 @@ __all__ = [
     "default_workers",
     "parse_address",
     "parse_duration",
+    "parse_model_reference",
+    "parse_seconds",
     "positive_int",
     "resolve",
     "settings_for",
@@ -71,6 +73,27 @@ def parse_duration(text: str) -> float:
             f"a duration needs a unit (us, ms or s): write {match.group(1)}ms or {match.group(1)}s, got {text!r}"
         )
     return float(match.group(1)) * _DURATION_UNITS[match.group(2)]
+
+
+def parse_seconds(text: str) -> float:
+    """A duration of an option that has always taken seconds: '60s', '500ms', '200us' with a unit,
+    and a bare number as the seconds it always meant ('60' -> 60.0). Why: docs/decisions/0140."""
+    match = _DURATION.match(text)
+    if not match:
+        raise ValueError(f"expected a duration like 60s, 500ms or 60 (seconds), got {text!r}")
+    return float(match.group(1)) * _DURATION_UNITS[match.group(2) or "s"]
+
+
+def parse_model_reference(text: str) -> tuple[str, str, int]:
+    """(model_id, name, version) of 'sha256:<hex>', 'NAME' (the newest version) or 'NAME:VERSION'."""
+    if re.fullmatch(r"sha256:[0-9a-f]{64}", text):
+        return text, "", 0
+    name, colon, version = text.partition(":")
+    if not name or (colon and not (version.isdigit() and int(version) >= 1)):
+        raise ValueError(
+            f"expected a model id (sha256:...), NAME or NAME:VERSION with VERSION a whole number >= 1, got {text!r}"
+        )
+    return "", name, int(version or 0)
 
 
 def parse_address(text: str) -> str:

@@ -101,7 +101,7 @@ def test_csv_line_by_line(data_root: Path, engine: sa.Engine, session: SessionHe
     with open(out, newline="") as f:
         rows = list(csv.reader(f))
     header = rows[0]
-    assert header[:15] == [
+    assert header[:16] == [
         "kind",
         "seq",
         "source",
@@ -113,12 +113,13 @@ def test_csv_line_by_line(data_root: Path, engine: sa.Engine, session: SessionHe
         "frame_delay",
         "nis",
         "reinitialised",
+        "late_compute",
         "compute_us",
         "receive_to_send_us",
         "reject_reason",
         "reject_message",
     ]
-    assert header[15:] == [
+    assert header[16:] == [
         "frame_qpos_hinge_1",
         "frame_qpos_hinge_2",
         "frame_qpos_hinge_3",
