@@ -328,9 +328,13 @@ class SessionRuntime:
         return estimate
 
     def _stall_room(self) -> int:
-        """How many ticks may wait for their frames through a stall: none for a session that does
-        not wait, else _MAX_WAIT (fewer when the history is shorter)."""
-        return min(_MAX_WAIT, self._retained - 1) if self._waits and self._initialised else 0
+        """How many ticks may wait for their frames through a stall: twice the wait, at most
+        _MAX_WAIT (and less than the history); none while frames come on time, so that a server
+        behind sheds the ticks it skipped instead of running them later (an overloaded loop that
+        deferred them fell further behind: benchmarks/RESULTS.md Round 8)."""
+        if not (self._waits and self._initialised):
+            return 0
+        return min(2 * self._wait, _MAX_WAIT, self._retained - 1)
 
     def _add_waiting(self) -> _Tick:
         """The next tick, without a frame, left for the estimator to run when its wait ends."""
