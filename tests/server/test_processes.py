@@ -17,6 +17,7 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import _serve
 import numpy as np
 import pytest
 
@@ -28,43 +29,13 @@ INLINE = """<mujoco model="slider"><worldbody><body><joint name="s" type="slide"
 <geom type="box" size="0.1 0.1 0.1" mass="2"/></body></worldbody></mujoco>"""
 
 
-class Serve:
+class Serve(_serve.Serve):
     """`jitdyn serve --processes N` as a user runs it."""
 
     def __init__(self, data: Path, *, processes: int, extra: tuple[str, ...] = ()) -> None:
-        env = dict(os.environ, JITDYN_SECRET=secrets.token_hex(32))
-        env.pop("JITDYN_INDEX_URL", None)
-        self.process = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "jitdyn.cli",
-                "serve",
-                "--address",
-                "127.0.0.1:0",
-                "--data",
-                str(data),
-                "--workers",
-                "1",
-                "--processes",
-                str(processes),
-                *extra,
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            env=env,
-        )
-        assert self.process.stdout is not None
-        self.lines: list[str] = []
-        for line in self.process.stdout:
-            self.lines.append(line)
-            match = re.search(r"listening on (127\.0\.0\.1:\d+) \(plaintext(?:, (\d+) processes)?\)", line)
-            if match:
-                self.address = match.group(1)
-                assert int(match.group(2) or 1) == processes
-                return
-        raise RuntimeError("the server did not start:\n" + "".join(self.lines))
+        super().__init__(data, "--processes", str(processes), *extra)
+        match = re.search(r"listening on \S+ \(plaintext(?:, (\d+) processes)?\)", "".join(self.lines))
+        assert match is not None and int(match.group(1) or 1) == processes, "".join(self.lines)
 
     def children(self) -> list[int]:
         found = []
@@ -78,10 +49,9 @@ class Serve:
                     found.append(int(entry))
         return found
 
-    def stop(self) -> str:
-        self.process.send_signal(signal.SIGTERM)
-        out, _ = self.process.communicate(timeout=120)
-        return "".join(self.lines) + out
+    def stop(self) -> str:  # type: ignore[override]  # the whole output, for the tests to read
+        super().stop()
+        return "".join(self.lines)
 
 
 @pytest.fixture()
@@ -311,15 +281,12 @@ def test_metrics_on_port_0_announce_the_port_and_show_an_idle_server(tmp_path: P
     open-sessions gauge is there at 0 (a dashboard sees an idle server, not a missing one)."""
     server = Serve(tmp_path / "data", processes=processes, extra=("--metrics-address", "127.0.0.1:0"))
     try:
-        assert server.process.stdout is not None
-        for line in server.process.stdout:
-            server.lines.append(line)
-            if "metrics on" in line:
-                break
-        announced = re.search(r"metrics on http://(127\.0\.0\.1:(\d+))/metrics", server.lines[-1])
+        deadline = time.monotonic() + 60
+        while not any("metrics on" in line for line in server.lines) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        announced = re.search(r"metrics on http://(127\.0\.0\.1:(\d+))/metrics", "".join(server.lines))
         assert announced and int(announced.group(2)) != 0, server.lines
         scraped = urllib.request.urlopen(f"http://{announced.group(1)}/metrics", timeout=10).read().decode()
         assert re.search(r"^jitdyn_open_sessions\{.*\} 0\.0$", scraped, re.MULTILINE), scraped[:2000]
     finally:
-        server.process.send_signal(signal.SIGTERM)
-        server.process.communicate(timeout=60)
+        server.stop()
