@@ -16,28 +16,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _cli import jitdyn
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def jitdyn(
-    *args: str, cwd: Path | None = None, env: dict[str, str] | None = None, preamble: str = ""
-) -> subprocess.CompletedProcess[str]:
-    """`jitdyn ARGS` in a fresh process; `preamble` runs first (to hide an installed extra)."""
-    environ = dict(os.environ, JITDYN_SECRET=secrets.token_hex(32))
-    for name in [n for n in environ if n.startswith("JITDYN_") and n != "JITDYN_SECRET"]:
-        del environ[name]
-    environ.update(env or {})
-    code = f"import sys\n{preamble}\nfrom jitdyn.cli import main\nsys.exit(main(sys.argv[1:]))"
-    return subprocess.run(
-        [sys.executable, "-c", code, *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env=environ,
-        timeout=300,
-        check=False,
-    )
 
 
 def ok(result: subprocess.CompletedProcess[str]) -> str:

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _cli import jitdyn
 
 from jitdyn.errors import JitdynError
 
@@ -26,24 +27,6 @@ ROOT = Path(__file__).resolve().parents[2]
 BASE_INSTALL = "\n".join(
     f"sys.modules[{name!r}] = None" for name in ("matplotlib", "PIL", "tqdm", "myo_sim", "biomdp", "duckdb")
 )
-
-
-def jitdyn(
-    *args: str, cwd: Path | None = None, env: dict[str, str] | None = None, preamble: str = ""
-) -> subprocess.CompletedProcess[str]:
-    """`jitdyn ARGS` in a fresh process, no JITDYN_* setting but a secret; `preamble` runs first."""
-    environ = {k: v for k, v in os.environ.items() if not k.startswith("JITDYN_")}
-    environ.update(JITDYN_SECRET=secrets.token_hex(32), **(env or {}))
-    code = f"import sys\n{preamble}\nfrom jitdyn.cli import main\nsys.exit(main(sys.argv[1:]))"
-    return subprocess.run(
-        [sys.executable, "-c", code, *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env=environ,
-        timeout=300,
-        check=False,
-    )
 
 
 def one_line_error(result: subprocess.CompletedProcess[str], code: int) -> str:

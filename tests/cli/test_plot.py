@@ -8,10 +8,8 @@ from __future__ import annotations
 import io
 import os
 import re
-import secrets
 import struct
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -24,6 +22,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 import sqlalchemy as sa
+from _cli import jitdyn
 
 from jitdyn.client import Client, FrameData, Rejection, SessionOptions
 from jitdyn.registry import builtin_model_path
@@ -31,22 +30,6 @@ from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.schema import sessions
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-
-
-def jitdyn(*args: str, cwd: Path | None = None, preamble: str = "") -> subprocess.CompletedProcess[str]:
-    """`jitdyn ARGS` in a fresh process; `preamble` runs first (to hide an installed extra)."""
-    environ = {k: v for k, v in os.environ.items() if not k.startswith("JITDYN_")}
-    environ["JITDYN_SECRET"] = secrets.token_hex(32)
-    code = f"import sys\n{preamble}\nfrom jitdyn.cli import main\nsys.exit(main(sys.argv[1:]))"
-    return subprocess.run(
-        [sys.executable, "-c", code, *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env=environ,
-        timeout=120,
-        check=False,
-    )
 
 
 def one_line_error(result: subprocess.CompletedProcess[str]) -> str:
