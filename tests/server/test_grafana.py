@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import re
+import time
 import urllib.request
 from pathlib import Path
 
@@ -41,12 +42,11 @@ def test_every_metric_a_panel_names_is_in_a_servers_scrape(tmp_path: Path) -> No
     assert len(names) >= 10, names
     server = Serve(tmp_path / "data", processes=1, extra=("--metrics-address", "127.0.0.1:0"))
     try:
-        assert server.process.stdout is not None
-        for line in server.process.stdout:
-            if "metrics on" in line:
-                break
-        address = re.search(r"metrics on http://(\S+)/metrics", line)
-        assert address, line
+        deadline = time.monotonic() + 60
+        while not any("metrics on" in line for line in server.lines) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        address = re.search(r"metrics on http://(\S+)/metrics", "".join(server.lines))
+        assert address, server.lines
         with Client(server.address, timeout=30) as client:
             session = client.open_session(
                 SessionOptions(model_name="pendulum_1", dt=0.05, scenario="PASSIVE")
@@ -56,8 +56,7 @@ def test_every_metric_a_panel_names_is_in_a_servers_scrape(tmp_path: Path) -> No
             session.close()
         scraped = urllib.request.urlopen(f"http://{address.group(1)}/metrics", timeout=10).read().decode()
     finally:
-        server.process.terminate()
-        server.process.communicate(timeout=60)
+        server.stop()
     exported = {_family(n) for n in re.findall(r"^# TYPE (jitdyn_[a-z0-9_]+) ", scraped, re.MULTILINE)}
     missing = sorted(names - exported)
     assert not missing, f"panels name metrics the server does not export: {missing}"
