@@ -39,8 +39,8 @@ _RESIZE_EVERY = 64  # ticks between two measures of the snapshots' size (it cree
 # of the last _LATENESS_KEPT), and at most _MAX_WAIT.
 _LATENESS_KEPT: Final = 64
 _MAX_WAIT: Final = 8
-# A stall (ticks skipped or shed) leaves at most _MAX_WAIT ticks waiting for their frames, and the
-# ticks past the wait are run at most _CATCH_UP a tick, so a stall's work is spread, not queued.
+# A stall (ticks skipped or shed) leaves at most `_stall_room()` ticks waiting for their frames, and
+# the ticks past the wait are run at most _CATCH_UP a tick, so a stall's work is spread, not queued.
 _CATCH_UP: Final = 2
 
 
@@ -243,7 +243,7 @@ class SessionRuntime:
         a late frame for it or an earlier tick replays it properly and repairs the estimate.
 
         A session that waits for late frames keeps a shed tick without a frame waiting for it, as
-        it keeps any tick answered before its frame, while fewer than _MAX_WAIT ticks wait: the
+        it keeps any tick answered before its frame, while fewer than `_stall_room()` wait: the
         estimator is not behind, only later."""
         started = time.perf_counter_ns()
         if frame is None and self._stale_since is None and self._next - self._frontier < self._stall_room():
@@ -362,8 +362,8 @@ class SessionRuntime:
         """Leave the next `count` ticks unanswered: a server far behind answers a tick by its
         deadline or not at all. The history goes (no late frame replays across the gap) and the
         estimator, now behind, restarts from the next frame. A session that waits for late frames
-        keeps the ticks of a stall that leaves at most _MAX_WAIT ticks waiting, waiting for their
-        frames: a frame that comes for one of them (`classify` says LATE) is applied as a late frame."""
+        keeps the ticks of a stall that leaves at most `_stall_room()` ticks waiting, waiting for
+        their frames: a frame that comes for one of them (`classify` says LATE) is applied as a late frame."""
         if count <= 0:
             return
         if self._stale_since is None and self._next + count - self._frontier <= self._stall_room():
@@ -447,7 +447,7 @@ class SessionRuntime:
     def _restarts_from(self, seq: int) -> bool:
         """Whether a late frame for `seq` restarts the estimator: it is behind (a stall outlasted
         the wait) since a tick at or before `seq`, so the frame is the best state there is, and
-        at most _MAX_WAIT ticks after it wait to be run from it."""
+        at most `_stall_room()` ticks after it wait to be run from it."""
         stale = self._stale_since
         return stale is not None and seq >= stale and self._next - seq <= self._stall_room()
 
