@@ -8,17 +8,21 @@ collector's reach (gc.freeze), so later full collections walk only what sessions
 docs/decisions/0006-freeze-the-startup-heap.md.
 
     freeze_startup_heap()                 # once, when the server is up
-    watch_collections(observe)            # observe(generation, seconds) after every collection
+    pauses = watch_collections()          # every collection's pause, kept
+    pauses.drain(observe)                 # observe(generation, seconds) each, from the loop
 """
 
 from __future__ import annotations
 
 import gc
 import time
+from collections import deque
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Final
 
-__all__ = ["freeze_startup_heap", "watch_collections"]
+__all__ = ["CollectionPauses", "freeze_startup_heap", "watch_collections"]
+
+_KEPT: Final = 4096  # pauses kept between two drains; older ones are dropped
 
 
 def freeze_startup_heap() -> int:
@@ -29,14 +33,37 @@ def freeze_startup_heap() -> int:
     return gc.get_freeze_count()
 
 
-def watch_collections(observe: Callable[[int, float], None]) -> None:
-    """Call `observe(generation, seconds)` after every garbage collection of this process."""
-    started = [0.0]
+class CollectionPauses:
+    """The garbage collector's pauses, (generation, seconds), kept until `drain`.
 
-    def callback(phase: str, info: dict[str, Any]) -> None:
+    A collection starts wherever an allocation crosses a threshold: in any thread, inside any code,
+    also code that holds a lock. prometheus-client holds its (non-reentrant) lock while it makes a
+    labelled series, which allocates; a callback that observed a metric there waited for that lock
+    forever, and the process with it (a server hung with its sessions opening). So the callback
+    only appends to a deque (atomic, lock-free), and the pauses reach the metrics from the loop.
+    """
+
+    def __init__(self) -> None:
+        self._pauses: deque[tuple[int, float]] = deque(maxlen=_KEPT)
+        self._started = 0.0
+
+    def callback(self, phase: str, info: dict[str, Any]) -> None:
         if phase == "start":
-            started[0] = time.perf_counter()
+            self._started = time.perf_counter()
         else:
-            observe(int(info["generation"]), time.perf_counter() - started[0])
+            self._pauses.append((int(info["generation"]), time.perf_counter() - self._started))
 
-    gc.callbacks.append(callback)
+    def drain(self, observe: Callable[[int, float], None]) -> int:
+        """Call `observe(generation, seconds)` for every pause kept before this call; how many.
+        (Observing allocates, and so may collect: those pauses wait for the next drain.)"""
+        count = len(self._pauses)
+        for _ in range(count):
+            observe(*self._pauses.popleft())
+        return count
+
+
+def watch_collections() -> CollectionPauses:
+    """Keep the pause of every garbage collection of this process from now on."""
+    pauses = CollectionPauses()
+    gc.callbacks.append(pauses.callback)
+    return pauses

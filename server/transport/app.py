@@ -27,7 +27,7 @@ from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
-from jitdyn.server.runtime.heap import freeze_startup_heap, watch_collections
+from jitdyn.server.runtime.heap import CollectionPauses, freeze_startup_heap, watch_collections
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.orphans import finish_orphans
 from jitdyn.server.runtime.publishing import publish_pending_loop
@@ -336,6 +336,18 @@ async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float 
     services.index.engine.dispose()
 
 
+async def observe_collections(pauses: CollectionPauses, every: float = 1.0) -> None:
+    """Move the garbage collector's pauses into `jitdyn_gc_pause_seconds`, every `every` seconds,
+    from the loop: never from the collector's callback (server/runtime/heap.py says why)."""
+
+    def observe(generation: int, seconds: float) -> None:
+        metrics().gc_pause.labels(metrics().process, str(generation)).observe(seconds)
+
+    while True:
+        pauses.drain(observe)
+        await asyncio.sleep(every)
+
+
 async def serve(
     config: ServerConfig, *, announce: Callable[[str], None] = print, process_index: int | None = None
 ) -> None:
@@ -353,11 +365,7 @@ async def serve(
     # After its startup the process's heap is frozen: a full collection of it stops the loop
     # for longer than a tick (server/runtime/heap.py).
     freeze_startup_heap()
-    watch_collections(
-        lambda generation, seconds: (
-            metrics().gc_pause.labels(metrics().process, str(generation)).observe(seconds)
-        )
-    )
+    gc_pauses = asyncio.create_task(observe_collections(watch_collections()))
     services.admission.start_window()
     host = config.address.rsplit(":", 1)[0]
     announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")
@@ -381,7 +389,7 @@ async def serve(
     )
     publisher = asyncio.create_task(publish_pending_loop(services)) if services.root is not None else None
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
-    for task in (orphans, publisher):
+    for task in (orphans, publisher, gc_pauses):
         if task is not None:
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)
