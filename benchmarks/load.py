@@ -41,6 +41,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
@@ -363,8 +364,10 @@ def cpu_seconds(pid: int) -> float:
 
 
 @contextlib.contextmanager
-def local_server(extra: Sequence[str] = ()) -> Iterator[tuple[str, int]]:
-    """`jitdyn serve` on a free port and a temporary data folder: (address, pid)."""
+def local_server(extra: Sequence[str] = (), log: list[str] | None = None) -> Iterator[tuple[str, int]]:
+    """`jitdyn serve` on a free port and a temporary data folder: (address, pid). What it prints goes
+    to `log` line by line, read all along: a pipe nobody reads fills, and a server writing to it
+    stops (its warnings, a stall's report, would hang it)."""
     with tempfile.TemporaryDirectory(prefix="jitdyn-load-") as data:
         env = dict(os.environ, JITDYN_SECRET="ab" * 32)
         process = subprocess.Popen(
@@ -383,6 +386,9 @@ def local_server(extra: Sequence[str] = ()) -> Iterator[tuple[str, int]]:
         if address is None:
             process.wait()
             raise SystemExit("jitdyn serve did not start")
+        lines = log if log is not None else []
+        reader = threading.Thread(target=lambda: lines.extend(process.stdout or ()), daemon=True)
+        reader.start()
         try:
             yield address, process.pid
         finally:
@@ -391,6 +397,18 @@ def local_server(extra: Sequence[str] = ()) -> Iterator[tuple[str, int]]:
                 process.wait(timeout=60)
             except subprocess.TimeoutExpired:
                 process.kill()
+            reader.join(timeout=5)
+
+
+def stall_reports(log: Sequence[str]) -> list[str]:
+    """The server's reports of event-loop stalls (`jitdyn serve --stall-report`), each its lines."""
+    reports: list[str] = []
+    for line in log:
+        if "the event loop stalled" in line:
+            reports.append(line)
+        elif reports and line.startswith("  "):
+            reports[-1] += line
+    return reports
 
 
 def _server_pid(address: str) -> int | None:
@@ -572,6 +590,7 @@ class RunReport:
     frame_delay_p50_ms: float = 0.0  # a frame's arrival on the server's loop after its tick time
     frame_delay_p99_ms: float = 0.0
     server_late_p99_ms: float = 0.0  # deadline to send on the server's clock (Result.receive_to_send_us)
+    stalls: list[str] = field(default_factory=list)  # the server's stall reports (a local server only)
 
     def meets(self) -> bool:
         return (
@@ -619,6 +638,9 @@ class RunReport:
             f"{self.frame_delay_p99_ms:.2f} ms (p99) after their tick time; grace "
             f"{1e3 * GRACE_FRACTION / self.rate:g} ms"
         )
+        if self.stalls:
+            longest = max(self.stalls, key=lambda r: float(r.split("stalled ")[1].split(" ms")[0]))
+            text += f"\n      the server logged {len(self.stalls)} stalls of its loop; the longest:\n{longest.rstrip()}"
         if not self.reject_reasons:
             return text
         reasons = ", ".join(f"{reason} {count}" for reason, count in sorted(self.reject_reasons.items()))
@@ -733,9 +755,10 @@ def run(
         states = trajectory(model, scenario, rate, ticks)
     if ukf_us is None:
         ukf_us = ukf_cycle_us(model, scenario, rate, states)
+    server_log: list[str] = []
     with contextlib.ExitStack() as stack:
         if server is None:
-            address, pid = stack.enter_context(local_server(serve_args))
+            address, pid = stack.enter_context(local_server(serve_args, server_log))
         else:
             address, found = server, _server_pid(server)
             if found is None:
@@ -872,6 +895,7 @@ def run(
         physics_us=physics,
         frame_bytes=frame_bytes,
         result_bytes=result_bytes,
+        stalls=stall_reports(server_log),
     )
 
 

@@ -130,6 +130,8 @@ class Admission:
     _answers: int = 0
     _late_answers: int = 0
     late_share: float = 0.0  # of the answers of the last window more than LATE_ANSWER late
+    _lag_late: float = 0.0  # s of the window the loop ran more than LATE_ANSWER late
+    lag_share: float = 0.0  # of the last window's time the loop ran more than LATE_ANSWER late
 
     def __post_init__(self) -> None:
         if not 0.0 < self.budget <= 1.0:
@@ -168,6 +170,8 @@ class Admission:
             enough = self._answers >= _LATE_EVIDENCE
             self.late_share = self._late_answers / self._answers if enough else 0.0
             self._answers, self._late_answers = 0, 0
+            self.lag_share = self._lag_late / (wall - since)
+            self._lag_late = 0.0
         return self._cpu_load if self.count_process_cpu else 0.0
 
     def _sample_machine(self) -> None:
@@ -190,15 +194,37 @@ class Admission:
             self._answers += 1
             self._late_answers += seconds > LATE_ANSWER
 
+    def observe_loop_lag(self, seconds: float) -> None:
+        """Something due on the process's event loop ran `seconds` late (server/runtime/stalls.py):
+        every deadline due in that moment was as late."""
+        if seconds > LATE_ANSWER:
+            with self._lock:
+                self._lag_late += seconds - LATE_ANSWER
+
+    def _behind(self) -> str | None:
+        """Why the process's answers are late now (its answers or its loop, over the last window),
+        or None. Under the lock."""
+        if self.late_share > LATE_SHARE:
+            return (
+                f"answered {100 * self.late_share:.1f} % of its ticks more than {1e3 * LATE_ANSWER:g} ms "
+                f"past their deadlines in the last {_CPU_WINDOW:g} s"
+            )
+        if self.lag_share > LATE_SHARE:
+            return (
+                f"ran its deadlines more than {1e3 * LATE_ANSWER:g} ms late for {100 * self.lag_share:.1f} % "
+                f"of the last {_CPU_WINDOW:g} s"
+            )
+        return None
+
     def unaffordable(self, ticket: Ticket) -> str | None:
         """Why `ticket`'s session cannot count on being answered on time here, or None. When the
         process's answers go late or its CPU passes its budget, the sessions admitted last, as many
         as carry the excess (at least one), are told, so that they can move before they go late."""
         with self._lock:
             measured = self._sample_cpu()
-            late = self.late_share > LATE_SHARE
+            behind = self._behind()
             need = measured - self.budget
-            if not late and need <= 0:
+            if behind is None and need <= 0:
                 return None
             covered = 0.0
             for other in sorted(self._by_id.values(), key=lambda t: t.admitted_at, reverse=True):
@@ -207,10 +233,10 @@ class Admission:
                 if other is ticket:
                     return (
                         f"this server process is past what it serves on time ({100 * measured:.0f} % of "
-                        f"a core against its tick budget of {100 * self.budget:.0f} %; "
-                        f"{100 * self.late_share:.1f} % of its answers more than {1e3 * LATE_ANSWER:g} ms "
-                        "late) and this session is among the last admitted: its answers may go late. "
-                        "Resume it on another server or lower its rate"
+                        f"a core against its tick budget of {100 * self.budget:.0f} %"
+                        f"{'' if behind is None else '; it ' + behind}) and this session is among the "
+                        "last admitted: its answers may go late. Resume it on another server or lower "
+                        "its rate"
                     )
                 covered += other.load
             return None
@@ -279,14 +305,13 @@ class Admission:
     def _check_room(self, ticket: Ticket, *, current: float, what: str) -> None:
         """ResourceExhausted, saying why, when `ticket` does not fit the process's budget or the
         machine's idle CPU, or while the process's answers go late. Under the lock."""
-        if self.late_share > LATE_SHARE:
+        behind = self._behind()
+        if behind is not None:
             self.refused += 1
             raise ResourceExhausted(
-                f"this server process answered {100 * self.late_share:.1f} % of its ticks more than "
-                f"{1e3 * LATE_ANSWER:g} ms past their deadlines in the last {_CPU_WINDOW:g} s (at "
-                f"{100 * current:.0f} % of a core, tick budget {100 * self.budget:.0f} %): the CPU its "
-                f"sessions get is short, so a session of {what} is not admitted. Try again later, on "
-                "another server, or at a lower rate"
+                f"this server process {behind} (at {100 * current:.0f} % of a core, tick budget "
+                f"{100 * self.budget:.0f} %): the CPU its sessions get is short, so a session of {what} "
+                "is not admitted. Try again later, on another server, or at a lower rate"
             )
         if current + ticket.load > self.budget:
             self.refused += 1

@@ -31,6 +31,7 @@ from jitdyn.server.runtime.heap import CollectionPauses, freeze_startup_heap, wa
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.orphans import finish_orphans
 from jitdyn.server.runtime.publishing import publish_pending_loop
+from jitdyn.server.runtime.stalls import LoopWatch, Stall
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
@@ -118,6 +119,7 @@ class ServerConfig:
     lease_ttl: float = _DEFAULTS.lease_ttl
     resume_timeout: float = _DEFAULTS.resume_timeout
     drain_grace: float = _DEFAULTS.drain_grace
+    stall_report: float = _DEFAULTS.stall_report  # s without a beat of the loop that is logged; 0: none
 
     @classmethod
     def from_settings(cls, settings: Settings, **overrides: object) -> ServerConfig:
@@ -137,6 +139,7 @@ class ServerConfig:
             "lease_ttl": settings.lease_ttl,
             "resume_timeout": settings.resume_timeout,
             "drain_grace": settings.drain_grace,
+            "stall_report": settings.stall_report,
             "session_limits": SessionLimits(
                 max_sessions=settings.max_sessions,
                 max_sessions_per_tenant=settings.max_sessions_per_tenant,
@@ -336,6 +339,23 @@ async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float 
     services.index.engine.dispose()
 
 
+def watch_loop(admission: Admission, *, stall: float) -> LoopWatch:
+    """Watch the running loop: its lag goes to admission and to `jitdyn_loop_lag_seconds`, and a
+    stall longer than `stall` seconds (0: none) is logged with what the loop was running."""
+    lag = metrics().loop_lag.labels(metrics().process)
+
+    def on_lag(seconds: float) -> None:
+        admission.observe_loop_lag(seconds)
+        lag.observe(seconds)
+
+    def report(stall: Stall) -> None:
+        _log.warning("%s", stall.describe())
+
+    watch = LoopWatch(asyncio.get_running_loop(), on_lag=on_lag, stall=stall or None, report=report)
+    watch.start()
+    return watch
+
+
 async def observe_collections(pauses: CollectionPauses, every: float = 1.0) -> None:
     """Move the garbage collector's pauses into `jitdyn_gc_pause_seconds`, every `every` seconds,
     from the loop: never from the collector's callback (server/runtime/heap.py says why)."""
@@ -366,6 +386,7 @@ async def serve(
     # for longer than a tick (server/runtime/heap.py).
     freeze_startup_heap()
     gc_pauses = asyncio.create_task(observe_collections(watch_collections()))
+    loop_watch = watch_loop(services.admission, stall=config.stall_report)
     services.admission.start_window()
     host = config.address.rsplit(":", 1)[0]
     announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")
@@ -389,6 +410,7 @@ async def serve(
     )
     publisher = asyncio.create_task(publish_pending_loop(services)) if services.root is not None else None
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
+    loop_watch.stop()
     for task in (orphans, publisher, gc_pauses):
         if task is not None:
             task.cancel()

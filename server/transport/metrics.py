@@ -14,6 +14,7 @@ start) and the parent serves them all from one endpoint.
     jitdyn_tick_compute_seconds{process,model}             estimator and dynamics time per tick
     jitdyn_durable_lag_ticks{process}                      ticks between a result and the newest durable one
     jitdyn_process_load_cores{process}                     the admission's view of the process's load
+    jitdyn_loop_lag_seconds{process}                       how late the event loop ran what fell due
 """
 
 from __future__ import annotations
@@ -74,6 +75,12 @@ class Metrics:
             "Ticks between a result and the newest durable one when it was sent.",
             ["process"],
             buckets=_LAG_BUCKETS,
+        )
+        self.loop_lag = Histogram(
+            "jitdyn_loop_lag_seconds",
+            "How late the event loop ran what fell due (a beat every 5 ms): the lag of every deadline then.",
+            ["process"],
+            buckets=_LATENESS_BUCKETS,
         )
         self.gc_pause = Histogram(
             "jitdyn_gc_pause_seconds",

@@ -355,6 +355,16 @@ class Settings:
         help="on SIGTERM: how long the server waits for its open sessions to move to other replicas "
         "(they are told to) before it stops",
     )
+    stall_report: float = setting(
+        0.1,
+        parse=checked(parse_duration, lambda value: value >= 0, "a duration >= 0, like 100ms"),
+        commands=("serve",),
+        metavar="DURATION",
+        default_text="100ms",
+        help="log every stall of a process's event loop longer than this, with the code it was running "
+        "and what its other threads were doing (0: none); the loop's lag is also the metric "
+        "jitdyn_loop_lag_seconds",
+    )
 
 
 def _setting(f: dataclasses.Field[Any]) -> Setting:

@@ -180,8 +180,9 @@ def test_a_process_whose_answers_go_late_refuses_new_sessions_and_warns_its_newe
     assert warned[:2] == [None, None]
     assert warned[2] is not None and re.fullmatch(
         r"this server process is past what it serves on time \(0 % of a core against its tick budget of "
-        r"75 %; 4\.0 % of its answers more than 5 ms late\) and this session is among the last admitted: "
-        r"its answers may go late\. Resume it on another server or lower its rate",
+        r"75 %; it answered 4\.0 % of its ticks more than 5 ms past their deadlines in the last 0\.2 s\) and "
+        r"this session is among the last admitted: its answers may go late\. Resume it on another server "
+        r"or lower its rate",
         warned[2],
     ), warned[2]
     with pytest.raises(
@@ -193,4 +194,45 @@ def test_a_process_whose_answers_go_late_refuses_new_sessions_and_warns_its_newe
         admission.observe_lateness(0.05)
     time.sleep(0.25)
     assert admission.unaffordable(third) is None
+    admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+
+
+def test_a_loop_that_runs_its_deadlines_late_admits_no_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The loop's lag is evidence before any answer is late: a window in which what fell due on the
+    loop ran more than 5 ms late for more than 1 % of the time admits no one and tells the session
+    admitted last; lags under 5 ms, however many, are not counted."""
+    import time
+
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.2)
+    admission = Admission(budget=0.75, count_process_cpu=False)
+    first, second = (
+        admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz") for _ in range(2)
+    )
+    for _ in range(40):
+        admission.observe_loop_lag(0.0049)
+    time.sleep(0.25)
+    assert [admission.unaffordable(t) for t in (first, second)] == [None, None]
+    assert admission.lag_share == 0.0
+    # One stall of 45 ms: 40 ms of the window's 0.25 s more than 5 ms late, 16 %.
+    admission.observe_loop_lag(0.045)
+    time.sleep(0.25)
+    assert admission.unaffordable(first) is None
+    warning = admission.unaffordable(second)
+    assert warning is not None and re.fullmatch(
+        r"this server process is past what it serves on time \(0 % of a core against its tick budget of "
+        r"75 %; it ran its deadlines more than 5 ms late for 1\d\.\d % of the last 0\.2 s\) and this session "
+        r"is among the last admitted: its answers may go late\. Resume it on another server or lower its "
+        r"rate",
+        warning,
+    ), warning
+    with pytest.raises(
+        ResourceExhausted,
+        match=r"^this server process ran its deadlines more than 5 ms late for 1\d\.\d % of the last 0\.2 s \(at ",
+    ):
+        admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+    # A window without a stall: admission opens again.
+    time.sleep(0.25)
+    assert admission.unaffordable(second) is None
     admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
