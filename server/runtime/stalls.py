@@ -13,6 +13,8 @@ it shows among the others).
     watch = LoopWatch(loop, on_lag=admission.observe_loop_lag, stall=0.1, report=log_stall)
     watch.start()               # on the loop's thread
     watch.stop()
+
+What it found, and why it is built so: docs/decisions/0009-the-loop-watched.md.
 """
 
 from __future__ import annotations

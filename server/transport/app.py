@@ -333,6 +333,9 @@ async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float 
     if health_servicer is not None:
         await health_servicer.enter_graceful_shutdown()
     await server.stop(grace)
+    dynamics = getattr(server, "dynamics", None)
+    if dynamics is not None:
+        await asyncio.to_thread(dynamics.close)
     await asyncio.to_thread(services.committer.close)
     services.pool.close()
     services.registry.close()

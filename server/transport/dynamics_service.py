@@ -11,12 +11,14 @@ ending it, and `drain` (SIGTERM) tells every open session to move to another rep
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import functools
 import logging
 import math
 import traceback
 from collections.abc import AsyncIterator, Callable
-from typing import Any, TypeVar
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any, Final, TypeVar
 
 import grpc
 
@@ -51,6 +53,9 @@ from jitdyn.vocabulary import Clock, Horizon, RejectReason, SessionStatus, Sourc
 __all__ = ["DynamicsServicer"]
 
 _log = logging.getLogger(__name__)
+# While a session's slow step runs beside the loop, the GIL changes hands as for a REALTIME session
+# of this grace: every 0.5 ms (a fifth, docs/decisions/0003), not CPython's 5 ms.
+_SLOW_STEP_GRACE: Final = 2.5e-3  # s
 
 Response = dynamics_pb2.StreamSessionResponse
 _Context = grpc.aio.ServicerContext[dynamics_pb2.StreamSessionRequest, Response]
@@ -486,6 +491,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         self._services = services
         self._limits = limits
         self._opener = SessionOpener(services, limits=limits, on_admission=self._count_admission)
+        self._slow_steps = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jitdyn-slow-steps")
         self._streams: dict[_Stream, _Context] = {}
         self._draining = False
         self._all_moved = asyncio.Event()
@@ -615,7 +621,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     async def _open(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
         services, tenant = self._services, request.tenant
         services.admit(tenant)
-        opening = asyncio.ensure_future(asyncio.to_thread(self._open_sync, request))
+        opening = asyncio.ensure_future(self._slow(self._open_sync, request))
         try:
             return await asyncio.shield(opening)
         except JitdynError as error:
@@ -640,11 +646,39 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     ) -> None:
         try:
             stream, _ = await opening
-            await asyncio.to_thread(stream.opened.discard)
+            await self._slow(stream.opened.discard)
         except Exception:  # noqa: BLE001 (the open failed anyway, or the discard did: both only logged)
             _log.debug("an abandoned open ended with an error", exc_info=True)
         finally:
             self._services.release(tenant)
+
+    def close(self) -> None:
+        """Wait for the slow steps under way and queued (stores of sessions that ended), then stop
+        their thread. Once the server has stopped; blocks."""
+        self._slow_steps.shutdown(wait=True)
+
+    async def _slow(self, call: Callable[..., _R], *args: Any, **kwargs: Any) -> _R:
+        """`call(*args, **kwargs)` on the thread of the sessions' slow steps (opening one, storing
+        one), one step at a time, the GIL changing hands meanwhile as for a session of
+        _SLOW_STEP_GRACE. Such a step runs Python for tens of milliseconds (the registry's query, the
+        estimator and its cost probe; a log's columns into Parquet): four of them at once in the
+        loop's default executor held the GIL in turns with the loop, and each of the loop's waits
+        for it in a tick (after a frame's read, a rollout, a write) cost up to the switch interval
+        (stall reports: 79 ms with four opens beside the loop, 115 ms with four stores;
+        docs/decisions/0009-the-loop-watched.md)."""
+        switch = self._services.admission.switch
+
+        def step() -> _R:
+            if switch is not None:
+                switch.add(_SLOW_STEP_GRACE)
+            try:
+                return call(*args, **kwargs)
+            finally:
+                if switch is not None:
+                    switch.remove(_SLOW_STEP_GRACE)
+
+        context = contextvars.copy_context()
+        return await asyncio.get_running_loop().run_in_executor(self._slow_steps, context.run, step)
 
     def _open_sync(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
         opened = self._opener.open_session(request)
@@ -792,10 +826,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         stream.pending.clear()
         try:
             if status == SessionStatus.ABANDONED and stream.recorder.resumable:
-                await asyncio.to_thread(stream.recorder.park)
+                await self._slow(stream.recorder.park)
                 location = ""
             else:
-                location = await asyncio.to_thread(stream.recorder.close, summary, status=status)
+                location = await self._slow(stream.recorder.close, summary, status=status)
                 summary = stream.recorder.stored_summary or summary
         except STORAGE_ERRORS as error:
             raise storage_failure(
