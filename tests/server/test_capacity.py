@@ -13,8 +13,9 @@ from pathlib import Path
 import pytest
 from _serve import Serve, free_port, realtime_session
 
-# Run on its own, on a quiet machine (pytest -m timing): a loop stall just over a tick, or an open
-# that went unanswered for 30 s, fails it now and then on a shared machine.
+# Run on its own, on a quiet machine (pytest -m timing): a loop stall just over a tick fails it now
+# and then on a shared machine. (The open unanswered for 30 s that it also saw was a server
+# deadlocked in its collector callback, docs/decisions/0009-the-loop-watched.md.)
 pytestmark = pytest.mark.timing
 
 DT = 0.05
