@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import gc
 import json
 import math
 import multiprocessing as mp
@@ -51,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from jitdyn.server.runtime.alarm import Alarm
+from jitdyn.server.runtime.stalls import LoopWatch
 from jitdyn.vocabulary import Clock, Preset, Scenario
 
 GRACE_FRACTION = 0.5  # the server's default grace, dt / 2
@@ -162,6 +164,9 @@ class WorkerResult:
     frame_delay_ms: list[float] = field(default_factory=list)
     frame_bytes: int = 0  # a serialised frame request, as sent
     result_bytes: int = 0  # a serialised result response, as received (the largest seen)
+    # How late the load generator's own loop ran what fell due, ms: an answer it read late by
+    # this much was not late at the server (a stall of the generator, not of the server).
+    generator_lag_ms: list[float] = field(default_factory=list)
 
 
 def _frames(spec: WorkerSpec, measured: Sequence[str]) -> list[bytes]:
@@ -303,6 +308,12 @@ async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResul
     # every session of a client process went over one connection to one server process.
     options = [("grpc.max_receive_message_length", 64 * 1024 * 1024), ("grpc.use_local_subchannel_pool", 1)]
     channels = [grpc.aio.insecure_channel(spec.address, options=options) for _ in range(spec.sessions)]
+    # The generator's heap frozen, as the server's is (docs/decisions/0006), and its own loop
+    # watched, so that its stalls are told apart from the server's.
+    gc.collect()
+    gc.freeze()
+    watch = LoopWatch(asyncio.get_running_loop(), on_lag=lambda s: result.generator_lag_ms.append(1e3 * s))
+    watch.start()
     try:
         tasks = [
             _session(
@@ -320,6 +331,7 @@ async def _worker_main(spec: WorkerSpec, measured: Sequence[str]) -> WorkerResul
         ]
         await asyncio.gather(*tasks)
     finally:
+        watch.stop()
         for channel in channels:
             await channel.close()
     result.cpu_seconds = time.process_time() - cpu_started
@@ -591,6 +603,8 @@ class RunReport:
     frame_delay_p99_ms: float = 0.0
     server_late_p99_ms: float = 0.0  # deadline to send on the server's clock (Result.receive_to_send_us)
     stalls: list[str] = field(default_factory=list)  # the server's stall reports (a local server only)
+    generator_lag_p99_ms: float = 0.0  # the load generator's own loop lag
+    generator_lag_max_ms: float = 0.0
 
     def meets(self) -> bool:
         return (
@@ -636,7 +650,8 @@ class RunReport:
         text = (
             f"\n      frames reached the server's loop {self.frame_delay_p50_ms:.2f} ms (p50), "
             f"{self.frame_delay_p99_ms:.2f} ms (p99) after their tick time; grace "
-            f"{1e3 * GRACE_FRACTION / self.rate:g} ms"
+            f"{1e3 * GRACE_FRACTION / self.rate:g} ms; the load generator's own loop lag "
+            f"{self.generator_lag_p99_ms:.2f} (p99) / {self.generator_lag_max_ms:.1f} ms (max)"
         )
         if self.stalls:
             longest = max(self.stalls, key=lambda r: float(r.split("stalled ")[1].split(" ms")[0]))
@@ -850,6 +865,7 @@ def run(
         merged.refused.extend(r["refused"])
         merged.errors.extend(r["errors"])
         merged.cpu_seconds += r["cpu_seconds"]
+        merged.generator_lag_ms.extend(r["generator_lag_ms"])
     expected = sessions * ticks
     floor_grpc = physics = math.nan
     frame_bytes = max((r["frame_bytes"] for r in results), default=0)
@@ -896,6 +912,8 @@ def run(
         frame_bytes=frame_bytes,
         result_bytes=result_bytes,
         stalls=stall_reports(server_log),
+        generator_lag_p99_ms=percentile(merged.generator_lag_ms, 99),
+        generator_lag_max_ms=max(merged.generator_lag_ms, default=0.0),
     )
 
 
