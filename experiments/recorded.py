@@ -5,7 +5,7 @@ parameters::
     truth = obj.reset(seed=0)            # frame 0 of the replay (100 Hz)
     truth = obj.step()                   # the next one
 
-Four recordings, of two people and three measuring systems, read at run time from two packages'
+Four motions from three recordings by three measuring systems, read at run time from two packages'
 data (nothing of them is copied into this repository). From biomdp 0.11.2's (MIT licence, by its
 authors; `pip install --no-deps biomdp==0.11.2`):
 - "cmj", a countermovement jump (Vicon, 200 Hz), below;
