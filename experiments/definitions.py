@@ -55,6 +55,7 @@ _SECONDS = {
     "cmj": (7.9, 0.3),  # the recording lasts 7.985 s
     "isen_gait": (10.25, 4.0),  # 10.29 s
     "isen_tasks": (17.95, 4.0),  # 17.99 s
+    "xsens_gait": (24.2, 4.0),  # 24.24 s
 }
 
 
@@ -441,6 +442,7 @@ def _gap_objects(ctx: Context) -> list[_GapObject]:
             _GapObject("pendulum_1", Scenario.EXTERNAL, True),
             _GapObject("isen_gait", Scenario.EXTERNAL, True),
             _GapObject("isen_tasks", Scenario.EXTERNAL, True),
+            _GapObject("xsens_gait", Scenario.EXTERNAL, True),
         ]
     return [
         _GapObject("pendulum_3", Scenario.PASSIVE, False),
@@ -452,6 +454,7 @@ def _gap_objects(ctx: Context) -> list[_GapObject]:
         _GapObject("cmj", Scenario.EXTERNAL, True),
         _GapObject("isen_gait", Scenario.EXTERNAL, True),
         _GapObject("isen_tasks", Scenario.EXTERNAL, True),
+        _GapObject("xsens_gait", Scenario.EXTERNAL, True),
     ]
 
 
@@ -702,7 +705,7 @@ def gaps(ctx: Context) -> Section:
         "on qd, seeded, the same noise for every estimator. 'UKF, defaults' sends no scenario and no "
         "settings: the server picks DRIVEN for every model here (they all have actuators). "
         "NEES is over [q, qd] (a DRIVEN filter's force has no truth to compare with). The recorded "
-        "motions (cmj, isen_gait, isen_tasks) lose 500 ms of frames every 1.25 s instead, for the "
+        "motions (cmj, isen_gait, isen_tasks, xsens_gait) lose 500 ms of frames every 1.25 s instead, for the "
         "horizons of foresight; the others have no 500 ms column."
     )
     return Section(
@@ -1156,7 +1159,7 @@ EXPERIMENTS: dict[str, Experiment] = {
             "Beyond the thesis: the q error after 35, 100 and 200 ms without frames "
             "for the UKF (both presets) and the static, constant-velocity and constant-acceleration "
             "dead reckoning of IEEE 1278; on recorded human motion (a jump, steady stepping, "
-            "movements that do not repeat) also after 500 ms, the defaults as a multiple of the best "
+            "movements that do not repeat, walking) also after 500 ms, the defaults as a multiple of the best "
             "extrapolator, and the learned predictor's cost per tick.",
             gaps,
         ),

@@ -5,8 +5,9 @@ parameters::
     truth = obj.reset(seed=0)            # frame 0 of the replay (100 Hz)
     truth = obj.step()                   # the next one
 
-Three recordings, all read at run time from biomdp 0.11.2's package data (MIT licence, by its
-authors; `pip install --no-deps biomdp==0.11.2`; nothing of them is copied into this repository):
+Four motions from three recordings by three measuring systems, read at run time from two packages'
+data (nothing of them is copied into this repository). From biomdp 0.11.2's (MIT licence, by its
+authors; `pip install --no-deps biomdp==0.11.2`):
 - "cmj", a countermovement jump (Vicon, 200 Hz), below;
 - "isen_gait" and "isen_tasks", from tests/datasets/iSen_angles.csv: the sagittal hip and knee
   angles of both legs measured by iSen inertial sensors at 100 Hz over 36 s. From 26 s to the end
@@ -17,6 +18,19 @@ authors; `pip install --no-deps biomdp==0.11.2`; nothing of them is copied into 
   their first occurrence (the angle block; later blocks are their velocities and accelerations),
   degrees. Replayed on both legs hanging from a fixed pelvis (hip and knee hinges, the foot fixed
   to the shank), de Leva's segments as below.
+
+From scikit-kinematics 0.10.4's (BSD-3-Clause, Thomas Haslwanter; its wheel installs them as
+tests/data of site-packages):
+- "xsens_gait", from walking_xsens_upperLeg.txt and walking_xsens_lowerLeg.txt: two Xsens inertial
+  sensors, one on a thigh and one on the shank below it, sampled together at 120 Hz for 29 s; the
+  subject stands for 3.5 s, then walks steadily (a stride of about 1.3 s). The sagittal axis is
+  each sensor's z (its gyroscope's largest swing). Each segment's sagittal angle is its z rate
+  integrated from the standing pose (zero), less the rate's mean while standing (0.5-3 s) and a
+  constant drift fitted over the walk (what a gyroscope bias that changes after the standing leaves:
+  1.4 and 0.6 degrees a second); hip flexion is the thigh's angle (the pelvis taken as upright),
+  knee flexion the thigh's less the shank's. The walk, from 5 s to the end (24 s), resampled to
+  100 Hz (cubic spline), is replayed on one leg from a fixed pelvis (hip and knee hinges, the foot
+  fixed to the shank), de Leva's segments as below.
 
 The jump:
 
@@ -38,12 +52,14 @@ for a 75 kg subject (the recording does not give the subject's mass).
 from __future__ import annotations
 
 import csv
+import importlib.metadata
 import importlib.util
 import math
 from pathlib import Path
 from typing import Final
 
 import numpy as np
+from scipy.interpolate import CubicSpline
 
 from jitdyn.experiments.objects import ModelSource, ResearchObject, Scenario, TrueState, make_object
 
@@ -56,8 +72,10 @@ __all__ = [
     "RecordedMotion",
     "load_isen",
     "load_recording",
+    "load_xsens",
     "recorded_isen",
     "recording_path",
+    "xsens_path",
     "research_object",
 ]
 
@@ -74,6 +92,11 @@ ISEN_COLUMNS: Final = (
 _ISEN_RATE: Final = 100.0  # Hz (its time column steps by 0.0099973 s: read as 100 Hz)
 # The parts of the iSen recording replayed (s): steady stepping, and movements not repeated.
 _ISEN_PARTS: Final = {"isen_gait": (26.0, 36.3), "isen_tasks": (7.0, 25.0)}
+
+_XSENS_FILES: Final = ("walking_xsens_upperLeg.txt", "walking_xsens_lowerLeg.txt")  # thigh, shank
+_XSENS_RATE: Final = 120.0  # Hz, the files' "Sample rate"
+_XSENS_STILL: Final = (0.5, 3.0)  # s: the subject stands
+_XSENS_WALK: Final = 5.0  # s: steady walking from here to the end
 
 # de Leva 1996, table 4, males: mass (fraction of body mass), length (m), centre of mass from the
 # proximal joint (fraction of length), sagittal radius of gyration about it (fraction of length).
@@ -97,6 +120,60 @@ def recording_path(name: str = "vicon_CMJ_kinem_kinet_emg.csv") -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"biomdp is installed but has no {path.name}; biomdp 0.11.2 ships it")
     return path
+
+
+def xsens_path(name: str) -> Path:
+    """A file of scikit-kinematics' test data, which its wheel installs as tests/data beside the
+    package (FileNotFoundError saying how to install it)."""
+    try:
+        dist = importlib.metadata.distribution("scikit-kinematics")
+    except importlib.metadata.PackageNotFoundError:
+        raise FileNotFoundError(
+            "the recorded walk needs scikit-kinematics 0.10.4: pip install scikit-kinematics==0.10.4 "
+            "(or the 'experiments' extra of jitdyn)"
+        ) from None
+    path = Path(str(dist.locate_file(f"tests/data/{name}")))
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"scikit-kinematics {dist.version} is installed but has no tests/data/{name}; 0.10.4 ships it"
+        )
+    return path
+
+
+def load_xsens(paths: tuple[Path, Path] | None = None) -> np.ndarray:
+    """(T, 2) hip and knee flexion in radians at 100 Hz of the walk the Xsens thigh and shank
+    sensors recorded (see the module docstring for how the angles follow from the sensors)."""
+    thigh, shank = paths or tuple(xsens_path(n) for n in _XSENS_FILES)
+    segments = [_sagittal_angle(p) for p in (thigh, shank)]
+    if segments[0].shape != segments[1].shape:
+        raise ValueError(f"the two sensors must have as many samples, got {[a.shape[0] for a in segments]}")
+    t = np.arange(segments[0].shape[0]) / _XSENS_RATE
+    walk = t >= _XSENS_WALK
+    angles = np.column_stack([segments[0], segments[0] - segments[1]])[walk]
+    grid = np.arange(0.0, t[walk][-1] - _XSENS_WALK, 1.0 / _ISEN_RATE)
+    return np.asarray(CubicSpline(t[walk] - _XSENS_WALK, angles)(grid))
+
+
+def _sagittal_angle(path: Path) -> np.ndarray:
+    """(T,) one sensor's sagittal angle (rad): its z rate integrated, the standing mean and a
+    constant drift over the walk taken out."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    header = next((i for i, line in enumerate(lines) if line.startswith("Counter")), None)
+    if header is None:
+        raise ValueError(f"{path.name} has no 'Counter' header line")
+    names = lines[header].split()
+    if "Gyr_Z" not in names:
+        raise ValueError(f"{path.name} has no column Gyr_Z")
+    column = names.index("Gyr_Z")
+    rate = np.array([float(line.split()[column]) for line in lines[header + 1 :] if line.strip()])
+    t = np.arange(rate.shape[0]) / _XSENS_RATE
+    if t[-1] < _XSENS_WALK + 10.0 or not np.all(np.isfinite(rate)):
+        raise ValueError(f"{path.name} must hold a finite walk of 10 s or more, got {t[-1]:.1f} s")
+    still = (t >= _XSENS_STILL[0]) & (t < _XSENS_STILL[1])
+    angle = np.cumsum(rate - rate[still].mean()) / _XSENS_RATE
+    walk = t >= _XSENS_WALK
+    drift = np.polyfit(t[walk], angle[walk], 1)[0]
+    return np.asarray(angle - drift * t)
 
 
 def load_isen(part: str, path: Path | None = None) -> np.ndarray:
@@ -190,12 +267,16 @@ def _inertial(segment: str, axis: tuple[float, float, float], body_mass: float) 
     return f'<inertial pos="{pos}" mass="{mass:.6f}" diaginertia="{inertia:.6e} {inertia:.6e} {inertia * 0.1:.6e}"/>'
 
 
-def legs_mjcf(body_mass: float = BODY_MASS) -> str:
-    """Both legs from a fixed pelvis: hip and knee hinges (sagittal), the foot fixed to the shank
-    at a right angle; de Leva's segments (see the module docstring); timestep 2 ms."""
+def legs_mjcf(
+    body_mass: float = BODY_MASS, *, sides: tuple[str, ...] = ("r", "l"), name: str = "isen_legs"
+) -> str:
+    """Legs ("r", "l") from a fixed pelvis: hip and knee hinges (sagittal), the foot fixed to the
+    shank at a right angle; de Leva's segments (see the module docstring); timestep 2 ms."""
     thigh, shank, foot = (_SEGMENTS[s][1] for s in ("thigh", "shank", "foot"))
     legs = []
     for side, y in (("r", -0.09), ("l", 0.09)):
+        if side not in sides:
+            continue
         legs.append(
             f"""    <body name="thigh_{side}" pos="0 {y} 1">
       <joint name="hip_flexion_{side}" type="hinge" axis="0 -1 0"/>
@@ -212,9 +293,9 @@ def legs_mjcf(body_mass: float = BODY_MASS) -> str:
       </body>
     </body>"""
         )
-    motors = "".join(f'<motor joint="{j}_flexion_{side}"/>' for side in ("r", "l") for j in ("hip", "knee"))
+    motors = "".join(f'<motor joint="{j}_flexion_{side}"/>' for side in sides for j in ("hip", "knee"))
     body = "\n".join(legs)
-    return f"""<mujoco model="isen_legs">
+    return f"""<mujoco model="{name}">
   <option timestep="0.002" gravity="0 0 -9.81"/>
   <worldbody>
 {body}
@@ -323,8 +404,20 @@ def recorded_isen(part: str, scenario: Scenario = Scenario.EXTERNAL) -> Recorded
     return obj
 
 
+def recorded_xsens(scenario: Scenario = Scenario.EXTERNAL) -> RecordedMotion:
+    """The walk the Xsens sensors recorded (see the module docstring) on one leg, 100 Hz frames."""
+    source = ModelSource(name="xsens_leg", mjcf=legs_mjcf(sides=("r",), name="xsens_leg"), builtin=False)
+    obj = RecordedMotion(source, load_xsens(), rate=_ISEN_RATE, scenario=scenario)
+    obj.description = (
+        f"steady walking: hip and knee flexion of one leg (scikit-kinematics 0.10.4, Xsens inertial "
+        f"sensors on the thigh and shank, {_XSENS_RATE:g} Hz, {obj.seconds:.2f} s) on a de Leva (1996) "
+        f"leg of a {BODY_MASS:g} kg male, pelvis fixed"
+    )
+    return obj
+
+
 # The recorded motions by name, and whether each is repetitive (what a learned predictor can learn).
-RECORDINGS: Final = {"cmj": False, "isen_gait": True, "isen_tasks": False}
+RECORDINGS: Final = {"cmj": False, "isen_gait": True, "isen_tasks": False, "xsens_gait": True}
 
 
 def research_object(name: str, scenario: Scenario) -> ResearchObject:
@@ -334,4 +427,6 @@ def research_object(name: str, scenario: Scenario) -> ResearchObject:
         return RecordedJump(scenario)
     if name in _ISEN_PARTS:
         return recorded_isen(name, scenario)
+    if name == "xsens_gait":
+        return recorded_xsens(scenario)
     return make_object(name, scenario)

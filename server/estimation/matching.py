@@ -72,7 +72,7 @@ class MotionMatcher:
         self._capacity = self._window + horizon + round(REWIND_MARGIN / dt) + 1
         self._every = max(1, round(CANDIDATE_EVERY / dt))
         lag = max(_LAGS - 1, round(LAG / dt))
-        self._lags = np.array([round(i * lag / (_LAGS - 1)) for i in range(_LAGS)], dtype=np.int64)
+        self._lags = [round(i * lag / (_LAGS - 1)) for i in range(_LAGS)]
         self._slots = -(-self._capacity // self._every)
         self._stamp = np.full(self._capacity, -1, dtype=np.int64)
         self._q = np.zeros((self._capacity, self._nv))
@@ -81,6 +81,7 @@ class MotionMatcher:
         # Candidates: one slot every `every` ticks, stamped with its tick; (LAGS + 1) nv features.
         self._cstamp = np.full(self._slots, -1, dtype=np.int64)
         self._features = np.zeros((self._slots, (_LAGS + 1) * self._nv))
+        self._scratch = np.empty_like(self._features)  # a match's differences, written in place
         self._last: tuple[int, np.ndarray | None] = (-1, None)  # the last candidate tick's feature
         self._moments = np.zeros((2, (_LAGS + 1) * self._nv))  # fading mean and variance
 
@@ -130,17 +131,18 @@ class MotionMatcher:
         if query is None:
             return None
         stamps = self._cstamp
-        ok = (stamps > tick - self._window) & (stamps <= tick - self._horizon)
-        if np.count_nonzero(ok) < K:
+        out = (stamps <= tick - self._window) | (stamps > tick - self._horizon)
+        if stamps.size - np.count_nonzero(out) < K:
             return None
         # Each feature by its spread.
         inverse = 1.0 / np.maximum(self._moments[1], 1e-18)
-        distance = np.square(self._features - query) @ inverse
-        distance[~ok] = np.inf
-        nearest = np.argpartition(distance, K - 1)[:K]
+        squares = np.subtract(self._features, query, out=self._scratch)
+        distance = np.square(squares, out=squares) @ inverse
+        distance[out] = np.inf
+        nearest = distance.argpartition(K - 1)[:K]
         d = distance[nearest]
         weights = 1.0 / (d + 1e-3 * float(d.min()) + 1e-12)
-        return Match(ticks=stamps[nearest].copy(), weights=weights / weights.sum())
+        return Match(ticks=stamps[nearest], weights=weights / weights.sum())
 
     def follow(
         self,
@@ -187,8 +189,10 @@ class MotionMatcher:
     def _feature(self, tick: int) -> np.ndarray | None:
         """The feature of the frame of `tick`: its q at the lags and its qd, or None when a row is
         a hole."""
-        ticks = tick - self._lags
-        rows = ticks % self._capacity
-        if not (self._stamp[rows] == ticks).all():
-            return None
+        stamp, capacity, rows = self._stamp, self._capacity, []
+        for lag in self._lags:  # a few scalars: cheaper than arrays of them
+            row = (tick - lag) % capacity
+            if stamp[row] != tick - lag:
+                return None
+            rows.append(row)
         return np.concatenate([self._q[rows].ravel(), self._v[rows[0]]])

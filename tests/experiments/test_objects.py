@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from jitdyn.experiments.objects import Biped, Pendulum, Scenario, UnstableSimulation, load_source, make_object
-from jitdyn.experiments.recorded import load_isen, research_object
+from jitdyn.experiments.recorded import load_isen, load_xsens, research_object, xsens_path
 
 
 def _run(obj, seed, ticks):
@@ -170,3 +172,32 @@ def test_a_part_of_the_isen_recording_must_be_one_of_its_parts() -> None:
         ValueError, match=r"part must be one of \['isen_gait', 'isen_tasks'\], got 'isen_run'"
     ):
         load_isen("isen_run")
+
+
+def test_the_xsens_walk_replays_one_leg_at_100_hz() -> None:
+    """scikit-kinematics' Xsens thigh and shank sensors: hip and knee flexion of one leg while
+    walking, 100 Hz, in radians; the two hinges take them, and the replay ends with the walk."""
+    obj = research_object("xsens_gait", Scenario.EXTERNAL)
+    assert (obj.nv, obj.dt, obj.name) == (2, 0.01, "xsens_leg")
+    assert abs(obj.seconds - 24.24) < 1e-9
+    obj.reset(0)
+    q = np.degrees([obj.step().qpos for _ in range(round(obj.seconds / obj.dt))])
+    # A walk: the hip swings between about -12 and 29 degrees, the knee between about -6 and 53.
+    assert np.allclose(q.min(axis=0), (-12.2, -6.3), atol=0.5)
+    assert np.allclose(q.max(axis=0), (28.5, 52.8), atol=0.5)
+    # Steady strides of about 1.3 s: the knee's flexion a stride later is nearly the same.
+    knee = q[:, 1] - q[:, 1].mean()
+    lags = np.arange(80, 150)
+    correlation = [np.corrcoef(knee[:-lag], knee[lag:])[0, 1] for lag in lags]
+    assert 1.2 < lags[int(np.argmax(correlation))] * obj.dt < 1.35
+    assert max(correlation) > 0.9
+    with pytest.raises(IndexError, match="the recording ends at"):
+        obj.step()
+
+
+def test_the_xsens_sensors_must_hold_a_walk(tmp_path: Path) -> None:
+    short = tmp_path / "short.txt"
+    lines = xsens_path("walking_xsens_upperLeg.txt").read_text(encoding="utf-8").splitlines()
+    short.write_text("\n".join(lines[:1000]), encoding="utf-8")
+    with pytest.raises(ValueError, match=r"short.txt must hold a finite walk of 10 s or more, got 8.3 s"):
+        load_xsens((short, short))

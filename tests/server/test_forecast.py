@@ -517,6 +517,39 @@ def test_the_combination_replays_exactly_after_a_snapshot() -> None:
         assert w1 == w2 and w1 is not None
 
 
+def test_scores_that_wait_to_be_reckoned_give_what_reckoning_each_frame_gives() -> None:
+    """With the learned predictor the scores of several frames wait and are reckoned together: a
+    combiner asked for a forecast every tick (which reckons what waits) and one asked only over
+    gaps answer the gaps bit for bit alike, and so does one restored from a snapshot taken while
+    scores wait."""
+    model = _pendulum(2)
+    process = process_model(model, scenario="DRIVEN")
+    frames = _driven_frames(model, 240)
+    combiners = [
+        ForecastCombiner(process, dt=0.05, steps_per_tick=10, horizon=10, learner=True) for _ in range(3)
+    ]
+    force = np.zeros(model.nv)
+    answers: list[list[np.ndarray]] = [[], [], []]
+    for k, (q, v) in enumerate(frames):
+        gap = k > 60 and k % 25 >= 17
+        for i, combiner in enumerate(combiners):
+            combiner.advance()
+            if i == 0 or gap:
+                answer = combiner.forecast()
+                if gap and answer is not None:
+                    answers[i].append(np.concatenate([answer.weights, answer.qpos, answer.qvel, answer.qacc]))
+            if not gap:
+                combiner.observe(q, v, mean_qpos=q, mean_qvel=v, act=np.zeros(0), force=force, rate=None)
+        if k == 150:  # not a gap: scores wait in the third combiner
+            snap = combiners[2].snapshot()
+            assert snap.pending
+            combiners[2].restore(snap)
+    assert len(answers[0]) > 50 and any(a[4] > 0.0 for a in answers[0])  # LEARNED took weight
+    for a, b, c in zip(*answers, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+
+
 def _chain(links: int) -> mujoco.MjModel:
     """A chain of `links` hinged, motor-driven links."""
     body = ""
