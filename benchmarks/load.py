@@ -452,7 +452,10 @@ def _serve_root(pid: int) -> int:
             command = Path(f"/proc/{parent}/cmdline").read_bytes().split(b"\0")
         except (OSError, ValueError, IndexError):
             return pid
-        if b"jitdyn.cli" not in command or b"serve" not in command:
+        # `python -m jitdyn.cli serve`, or the `jitdyn serve` console script: a parent that is
+        # neither (a shell, the console script's caller) is not the server's.
+        names = {os.path.basename(arg) for arg in command}
+        if b"serve" not in command or not names & {b"jitdyn.cli", b"jitdyn"}:
             return pid
         pid = parent
 
