@@ -75,8 +75,8 @@ __all__ = [
     "load_xsens",
     "recorded_isen",
     "recording_path",
-    "xsens_path",
     "research_object",
+    "xsens_path",
 ]
 
 COLUMNS: Final = ("AngArtHip_R", "AngArtKnee_R", "AngArtAnkle_R")

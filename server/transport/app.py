@@ -31,8 +31,8 @@ from jitdyn.server.runtime.heap import CollectionPauses, freeze_startup_heap, wa
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.orphans import finish_orphans
 from jitdyn.server.runtime.publishing import publish_pending_loop
-from jitdyn.server.runtime.stalls import LoopWatch, Stall
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
+from jitdyn.server.runtime.stalls import LoopWatch, Stall
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
