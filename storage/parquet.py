@@ -35,6 +35,7 @@ __all__ = [
     "header_to_json",
     "read_metadata",
     "to_frame_table",
+    "warm_up",
     "write_parquet",
     "write_parquet_stream",
 ]
@@ -54,6 +55,14 @@ _COLUMN_ENCODING: Final = (
     # seq counts up and the timings are small: deltas pack them into a few bits each.
     | {name: "DELTA_BINARY_PACKED" for name in _INT_SCALARS}
 )
+
+
+def warm_up() -> None:
+    """Do now what pyarrow does at its first conversion of Python values: where pandas is installed
+    it imports it then (0.37-0.44 s of Python here, holding the GIL). A server calls this before it
+    serves: in its first session's commit it stalled the loop and held back the session's first
+    durable acknowledgement (tests/cluster/test_durable.py waited 40 frames for one in vain)."""
+    pa.array([0.0])
 
 
 def file_metadata(header: SessionHeader) -> dict[str, Any]:

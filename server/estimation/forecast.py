@@ -53,13 +53,14 @@ from __future__ import annotations
 import functools
 import itertools
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Final
 
 import mujoco
 import mujoco.batch
 import numpy as np
 
+from jitdyn.server.estimation.interface import SHARED_WITH_EARLIER
 from jitdyn.server.estimation.matching import K, MotionMatcher
 
 __all__ = [
@@ -174,7 +175,9 @@ class CombinerSnapshot:
     # replay rewrites it (estimation/matching.py), so a snapshot does not copy it.
     learner: np.ndarray | None
     learned_count: np.ndarray
-    pending: tuple[_Scores, ...] = ()
+    # The scorings still waiting; each is shared with the snapshots taken after it came, so a
+    # snapshot's own memory is its newest one (SHARED_WITH_EARLIER, server/runtime/limits.py).
+    pending: tuple[_Scores, ...] = field(default=(), metadata={SHARED_WITH_EARLIER: True})
 
 
 class ForecastCombiner:

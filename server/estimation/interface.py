@@ -14,7 +14,7 @@ estimator are estimation/config.py's, and estimation/factory.py makes one from t
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Final, Protocol, runtime_checkable
 
 import mujoco
 import numpy as np
@@ -23,6 +23,7 @@ from jitdyn.errors import InvalidArgument
 from jitdyn.vocabulary import Channel
 
 __all__ = [
+    "SHARED_WITH_EARLIER",
     "Estimate",
     "Estimator",
     "Measurement",
@@ -30,6 +31,12 @@ __all__ = [
     "check_vector",
     "read_only",
 ]
+
+
+# Metadata of a snapshot's field (a tuple) whose items are shared with the snapshots taken before
+# it, as a tuple that only grows by its end is: the memory a snapshot adds to a history is its
+# newest item (server/runtime/limits.py snapshot_bytes counts that alone).
+SHARED_WITH_EARLIER: Final = "jitdyn_shared_with_earlier"
 
 
 @dataclass(frozen=True)

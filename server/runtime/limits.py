@@ -19,6 +19,7 @@ import mujoco
 import numpy as np
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
+from jitdyn.server.estimation.interface import SHARED_WITH_EARLIER
 from jitdyn.server.estimation.propagate import step_seconds
 
 __all__ = [
@@ -117,10 +118,21 @@ def snapshot_bytes(snapshot: object) -> int:
     if isinstance(snapshot, np.ndarray):
         return int(snapshot.nbytes)
     if dataclasses.is_dataclass(snapshot) and not isinstance(snapshot, type):
-        return sum(snapshot_bytes(getattr(snapshot, f.name)) for f in dataclasses.fields(snapshot))
+        return sum(
+            snapshot_bytes(_own(getattr(snapshot, f.name), shared=f.metadata.get(SHARED_WITH_EARLIER, False)))
+            for f in dataclasses.fields(snapshot)
+        )
     if isinstance(snapshot, (tuple, list)):
         return sum(snapshot_bytes(item) for item in snapshot)
     return 0
+
+
+def _own(value: object, *, shared: bool) -> object:
+    """What of a snapshot's field is its own: of a tuple shared with earlier snapshots, its newest
+    item (server/estimation/interface.py SHARED_WITH_EARLIER)."""
+    if shared and isinstance(value, tuple):
+        return value[-1:]
+    return value
 
 
 def tick_cost(model: mujoco.MjModel, *, nsigma: int, steps_per_tick: int, state_dimension: int) -> float:

@@ -45,6 +45,7 @@ from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.db import default_index_url, open_index
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.layout import prepare_data_root
+from jitdyn.storage.parquet import warm_up as warm_up_storage
 from jitdyn.storage.recorder import recover_unfinished
 from jitdyn.storage.root import DataRoot, open_data_root
 from jitdyn.storage.shared import SharedTier, new_owner_id
@@ -254,6 +255,7 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
     Checks what it can before touching the data folder: the address, TLS and key files, and the
     port (bound first)."""
     route_mujoco_messages()
+    warm_up_storage()
     _check_security(config)
     if config.api_keys:
         load_api_keys(config.api_keys)  # refuse a bad key file before touching any data
