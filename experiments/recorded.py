@@ -129,8 +129,8 @@ def xsens_path(name: str) -> Path:
         dist = importlib.metadata.distribution("scikit-kinematics")
     except importlib.metadata.PackageNotFoundError:
         raise FileNotFoundError(
-            "the recorded walk needs scikit-kinematics 0.10.4: pip install scikit-kinematics==0.10.4 "
-            "(or the 'experiments' extra of jitdyn)"
+            "the recorded walk needs scikit-kinematics 0.10.4's data: pip install --no-deps "
+            "scikit-kinematics==0.10.4"
         ) from None
     path = Path(str(dist.locate_file(f"tests/data/{name}")))
     if not path.is_file():
