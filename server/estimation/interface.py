@@ -35,7 +35,7 @@ __all__ = [
 
 # Metadata of a snapshot's field (a tuple) whose items are shared with the snapshots taken before
 # it, as a tuple that only grows by its end is: the memory a snapshot adds to a history is its
-# newest item (server/runtime/limits.py snapshot_bytes counts that alone).
+# newest item (server/runtime/costs.py snapshot_bytes counts that alone).
 SHARED_WITH_EARLIER: Final = "jitdyn_shared_with_earlier"
 
 

@@ -31,7 +31,8 @@ from jitdyn.server.estimation.dynamics import Dynamics
 from jitdyn.server.estimation.factory import make_estimator, measure_cycle
 from jitdyn.server.estimation.interface import Estimator
 from jitdyn.server.runtime.admission import Ticket
-from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits, snapshot_bytes, tick_cost
+from jitdyn.server.runtime.costs import snapshot_bytes, tick_cost
+from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.plan import OpenRequest, SessionPlan, plan_session
 from jitdyn.server.runtime.resume import check_resume_token, resume_token
 from jitdyn.server.runtime.services import Services

@@ -28,8 +28,8 @@ import numpy as np
 from jitdyn.mujoco_log import WarningCounter
 from jitdyn.server.estimation.dynamics import Dynamics, DynamicsResult
 from jitdyn.server.estimation.interface import Estimate, Estimator, Measurement
+from jitdyn.server.runtime.costs import snapshot_bytes
 from jitdyn.server.runtime.frames import FrameIn, Rejection
-from jitdyn.server.runtime.limits import snapshot_bytes
 from jitdyn.vocabulary import Scenario, Source
 
 __all__ = ["Place", "SessionCounts", "SessionRuntime", "TickOutcome"]

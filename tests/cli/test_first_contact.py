@@ -102,6 +102,16 @@ def test_verbose_before_experiments() -> None:
     assert "unknown experiment(s) ['table_9_9']" in result.stderr
 
 
+def test_the_command_line_parses_without_loading_the_engine() -> None:
+    """`jitdyn --help` and a flag's usage error answered in about 0.3 s, not 2 s: parsing the
+    arguments imports neither MuJoCo nor the SQL, Parquet and SciPy stacks; only a command that
+    runs does."""
+    heavy = ("mujoco", "numpy", "scipy", "sqlalchemy", "pyarrow", "filterpy")
+    code = f"import sys, jitdyn.cli; print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert loaded.stdout.strip() == "[]", loaded.stdout + loaded.stderr
+
+
 def test_an_output_folder_that_cannot_be_made_is_named_before_anything_runs(tmp_path: Path) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("not a folder", encoding="utf-8")
