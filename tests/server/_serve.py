@@ -4,6 +4,8 @@ address read from what it prints, stopped with SIGTERM."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import gc
 import os
 import re
 import secrets
@@ -12,10 +14,48 @@ import socket
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 from jitdyn.client import AsyncClient, FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.errors import ResourceExhausted
+
+# Why a pendulum_3 PASSIVE session at 20 Hz is refused: the process's budget, the machine's idle
+# CPU, or answers (or the loop) already late.
+REFUSALS = (
+    (
+        r"this server process is at \d+ % of a core and its tick budget is \d+ % \(--tick-budget [\d.]+\); "
+        r"a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us per tick, [\d.]+ % more\. "
+        r"Try again later, on another server, or at a lower rate"
+    ),
+    (
+        r"this machine has [\d.]+ of its \d+ cores free \(other programs, this server's other processes or "
+        r"its clients use the rest\); a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us "
+        r"per tick, [\d.]+ of a core, and 0\.1 of a core is kept free\. Try again later, on another server, "
+        r"or at a lower rate"
+    ),
+    (
+        r"this server process (answered [\d.]+ % of its ticks more than 5 ms past their deadlines in|ran its "
+        r"deadlines more than 5 ms late for [\d.]+ % of) the last 2 s \(at \d+ % of a core, tick budget \d+ %\): "
+        r"the CPU its sessions get is short, so a session of pendulum_3 \(passive\) at 20 Hz is not "
+        r"admitted\. Try again later, on another server, or at a lower rate"
+    ),
+)
+
+
+@contextlib.contextmanager
+def heap_frozen() -> Iterator[None]:
+    """This test process as a client program is while it measures an answer's lateness: what the
+    suite left on its heap frozen (benchmarks/load.py freezes its load generator the same way). A
+    full collection of it took 127-270 ms in a pytest process that had run tests/server, and
+    stalled the clients' loop: their frames went out late and their answers were read late, which
+    counted as the server's lateness."""
+    gc.collect()
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 def free_port() -> int:

@@ -11,7 +11,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-from _serve import Serve, free_port, realtime_session
+from _serve import REFUSALS, Serve, free_port, heap_frozen, realtime_session
 
 # Run on its own, on a quiet machine (pytest -m timing): a loop stall just over a tick fails it now
 # and then on a shared machine. (The open unanswered for 30 s that it also saw was a server
@@ -48,7 +48,8 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
             results = await asyncio.gather(*tasks)
             return results
 
-        outcomes = asyncio.run(everyone())
+        with heap_frozen():
+            outcomes = asyncio.run(everyone())
         scraped = (
             urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10).read().decode()
         )
@@ -58,20 +59,9 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
     refused = [o[0] for o in outcomes if o[0] != "ran"]
     assert ran and refused, outcomes
     for message in refused:
-        # Refused for the process's budget, or (on a machine that other work keeps busy) for the
-        # machine's idle CPU; either way the message says why.
-        assert re.fullmatch(
-            r"this server process is at \d+ % of a core and its tick budget is 12 % \(--tick-budget 0\.12\); "
-            r"a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us per tick, [\d.]+ % more\. "
-            r"Try again later, on another server, or at a lower rate",
-            message,
-        ) or re.fullmatch(
-            r"this machine has [\d.]+ of its \d+ cores free \(other programs, this server's other processes or "
-            r"its clients use the rest\); a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us "
-            r"per tick, [\d.]+ of a core, and 0\.1 of a core is kept free\. Try again later, on another server, "
-            r"or at a lower rate",
-            message,
-        ), message
+        # Refused for the process's budget, (on a machine that other work keeps busy) for the
+        # machine's idle CPU, or for answers or a loop already late; either way the message says why.
+        assert any(re.fullmatch(pattern, message) for pattern in REFUSALS), message
     # Every tick of every admitted session answered (inf: a tick the server skipped, its frame
     # answered TOO_OLD), and none late by a tick but for at most one in the whole run: a stall of
     # the loop just over a tick still happens now and then; before the heap was frozen

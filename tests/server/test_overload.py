@@ -14,39 +14,21 @@ import time
 from pathlib import Path
 
 import pytest
-from _serve import Serve, realtime_session
+from _serve import REFUSALS, Serve, heap_frozen, realtime_session
 
 from jitdyn.client import Client, FrameData, SessionOptions
 
 DT = 0.05
 TICKS = 60  # 3 s
 
-# Why a session is refused: the process's budget, the machine's idle CPU, or answers already late.
-REFUSALS = (
-    (
-        r"this server process is at \d+ % of a core and its tick budget is \d+ % \(--tick-budget [\d.]+\); "
-        r"a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us per tick, [\d.]+ % more\. "
-        r"Try again later, on another server, or at a lower rate"
-    ),
-    (
-        r"this machine has [\d.]+ of its \d+ cores free \(other programs, this server's other processes or "
-        r"its clients use the rest\); a session of pendulum_3 \(passive\) at 20 Hz is estimated at \d+ us "
-        r"per tick, [\d.]+ of a core, and 0\.1 of a core is kept free\. Try again later, on another server, "
-        r"or at a lower rate"
-    ),
-    (
-        r"this server process (answered [\d.]+ % of its ticks more than 5 ms past their deadlines in|ran its "
-        r"deadlines more than 5 ms late for [\d.]+ % of) the last 2 s \(at \d+ % of a core, tick budget \d+ %\): the CPU its sessions get is short, so a session of "
-        r"pendulum_3 \(passive\) at 20 Hz is not admitted\. Try again later, on another server, or at a "
-        r"lower rate"
-    ),
-)
-
 
 # A wall-clock promise, run on its own on a quiet machine (pytest -m timing), as test_capacity is:
 # on 2026-11-27 it passed 3 of 3 alone, and failed 2 of 2 at the end of the whole suite in a
-# fresh-clone CI run (4-5 sessions admitted, p99 39 and 56 ms late), on a machine whose floors
-# measured 1.5-2x slower than the week before. Why inside the suite is not yet found.
+# fresh-clone CI run (4-5 sessions admitted, p99 39 and 56 ms late). Inside the suite the client
+# is a pytest process with a large heap: heap_frozen now keeps its full collections out of the
+# measurement. Whether that was the whole cause is not yet shown: the one in-suite run since
+# (after tests/client, storage and server, another experiment beside it) had p99 on time, but
+# 95.7 % MEASURED.
 @pytest.mark.timing
 def test_beside_a_cpu_hog_the_admitted_sessions_are_on_time_and_the_surplus_refused(tmp_path: Path) -> None:
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # one core of the two
@@ -61,7 +43,8 @@ def test_beside_a_cpu_hog_the_admitted_sessions_are_on_time_and_the_surplus_refu
                 await asyncio.sleep(0.15)
             return list(await asyncio.gather(*tasks))
 
-        outcomes = asyncio.run(offer())
+        with heap_frozen():
+            outcomes = asyncio.run(offer())
     finally:
         server.stop()
         hog.kill()
