@@ -419,8 +419,8 @@ class ForecastCombiner:
         novelty guard's factors on the predictors' errors, which the answer's variances take too."""
         if scale is not None:
             S = scale[:, None] * scale[None, :]
-            scored = (float(w @ (S * self._cov[h]) @ w), float(w @ (S * self._cov_v[h]) @ w))
-            return _net_of_noise(scored[0], noise_q, self._nv), _net_of_noise(scored[1], noise_qd, self._nv)
+            guarded = (float(w @ (S * self._cov[h]) @ w), float(w @ (S * self._cov_v[h]) @ w))
+            return _net_of_noise(guarded[0], noise_q, self._nv), _net_of_noise(guarded[1], noise_qd, self._nv)
         scored = self._variances.get(h)
         if scored is None:
             scored = self._variances[h] = (float(w @ self._cov[h] @ w), float(w @ self._cov_v[h] @ w))
