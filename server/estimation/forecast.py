@@ -27,6 +27,17 @@ over w >= 0, sum w = 1 (exact: every subset of the P = 4 predictors is tried). U
 MIN_SAMPLES samples the filter answers alone. A measurement's noise adds the same variance to every
 predictor's error (its covariance is R 11'), which moves no weight.
 
+Novelty guard: the scores describe the motion before the gap, and a predictor far out of its
+scored regime (constant acceleration over the take-off of a jump, the model's rollout of it) is
+not described by them. Over a gap, a predictor whose departure from STATIC now, the RMS over dofs
+of q_p - q_STATIC, exceeds NOVELTY times the RMS departure of its scored past at that horizon
+(e_p - e_STATIC is q_p - q_STATIC, the frame cancels, so its mean square is C_pp + C_ss - 2 C_ps
+of C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row and column p
+times s_p (and D_h's, for the answer's variances), and the weights are solved again on that. The
+answer falls back on the predictors still in their regime, STATIC at least. It costs a gap tick
+O(P nv), and a solve of the weights on the ticks where it acts
+(docs/decisions/0027-forecast-novelty-guard.md).
+
 The answer's own error variances: the variance of the combined error at horizon h, w' C_h w
 per dof for q, and the same with D_h, the fading covariance of the predictors' qd errors (scored
 against the frame's qvel, pooled over dofs as C_h is), for qd; less the noise of the frames they
@@ -94,6 +105,14 @@ PENDING: Final = 16
 # m^2, (rad/s)^2, (m/s)^2) below which no answer claims to know a dof.
 MAX_NOISE_SHARE: Final = 0.9
 VARIANCE_FLOOR: Final = 1e-12
+# The novelty guard over a gap: a predictor departing from STATIC by more than NOVELTY times the RMS
+# departure of its scored past at that horizon has its errors taken as larger by the ratio over
+# NOVELTY, at most MAX_NOVELTY times (its variance 1e6 times: all but dropped; far larger factors
+# would let the solver's ridge, 1e-9 of the mean variance, swamp the others' variances). NOVELTY
+# measured on the recordings at 1.5, 2 and 3 (docs/decisions/0027-forecast-novelty-guard.md).
+NOVELTY: Final = 2.0
+MAX_NOVELTY: Final = 1e3
+_STATIC: Final = 1
 
 # Columns of the probes' integer marks.
 _ORIGIN: Final = 0  # tick of the frame the probe starts from
@@ -374,7 +393,10 @@ class ForecastCombiner:
             weights = self._weights[h] = self._solve_weights(h)
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
-        var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd)
+        scale = _novelty(q, self._cov[h])
+        if scale is not None:
+            weights = self._solve_weights(h, scale)
+        var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd, scale)
         return CombinedForecast(
             weights=weights,
             qpos=weights @ q,
@@ -390,9 +412,15 @@ class ForecastCombiner:
         w: np.ndarray,
         noise_q: np.ndarray | None,
         noise_qd: np.ndarray | None,
+        scale: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """(nv,) each: the combination's error variances of q and qd at horizon h (O(nv); the
-        scored variances are kept with the weights until a score changes them)."""
+        scored variances are kept with the weights until a score changes them); scale (P,): the
+        novelty guard's factors on the predictors' errors, which the answer's variances take too."""
+        if scale is not None:
+            S = scale[:, None] * scale[None, :]
+            guarded = (float(w @ (S * self._cov[h]) @ w), float(w @ (S * self._cov_v[h]) @ w))
+            return _net_of_noise(guarded[0], noise_q, self._nv), _net_of_noise(guarded[1], noise_qd, self._nv)
         scored = self._variances.get(h)
         if scored is None:
             scored = self._variances[h] = (float(w @ self._cov[h] @ w), float(w @ self._cov_v[h] @ w))
@@ -454,10 +482,12 @@ class ForecastCombiner:
     def _last_origin(self) -> int:
         return -1 if self._anchor is None else self._anchor[2]
 
-    def _solve_weights(self, h: int) -> np.ndarray:
+    def _solve_weights(self, h: int, scale: np.ndarray | None = None) -> np.ndarray:
         """The weights of horizon h; LEARNED's 0 until it has LEARNED_SAMPLES scores from real
-        matches there."""
+        matches there. scale (P,): the novelty guard's factors on the predictors' errors."""
         C = self._cov[h]
+        if scale is not None:
+            C = scale[:, None] * C * scale[None, :]
         if self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES:
             return _min_variance_weights(C)
         k = len(PREDICTORS)
@@ -620,6 +650,24 @@ _FADING: Final = np.array(
     list(itertools.takewhile(lambda d: d != 1.0 - FORGETTING, map(_fading, itertools.count(0.0))))
     + [1.0 - FORGETTING]
 )
+
+
+def _novelty(q: np.ndarray, C: np.ndarray) -> np.ndarray | None:
+    """(P,) the novelty guard's factors on the predictors' errors at a gap, or None where none is
+    novel: a predictor whose departure from STATIC now (the RMS over dofs of q_p - q_STATIC)
+    exceeds NOVELTY times the RMS departure of its scored past at this horizon (e_p - e_STATIC,
+    from the pooled covariance: C_pp + C_ss - 2 C_ps) has its errors taken as larger by the ratio
+    of the two over NOVELTY, at most MAX_NOVELTY (STATIC never departs)."""
+    now = np.mean(np.square(q - q[_STATIC]), axis=1)
+    limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) + C[_STATIC, _STATIC] - 2.0 * C[:, _STATIC], 0.0)
+    novel = now > limit
+    novel[_STATIC] = False
+    if not novel.any():
+        return None
+    scale = np.ones(q.shape[0])
+    with np.errstate(divide="ignore"):
+        scale[novel] = np.minimum(np.sqrt(now[novel] / limit[novel]), MAX_NOVELTY)
+    return scale
 
 
 def _net_of_noise(scored: float, noise: np.ndarray | None, nv: int) -> np.ndarray:

@@ -20,7 +20,9 @@ from jitdyn.client import FrameData, SessionOptions, TickResult
 from jitdyn.server.estimation.config import resolve_config
 from jitdyn.server.estimation.forecast import (
     FORGETTING,
+    MAX_NOVELTY,
     MIN_SAMPLES,
+    NOVELTY,
     PREDICTORS,
     PROBES,
     ForecastCombiner,
@@ -168,12 +170,24 @@ class _ReferenceCombiner:
         h = min(latest.age, self.horizon)
         if self.count[h] < MIN_SAMPLES:
             return None
-        w = _reference_weights(self.cov[h])
         t = latest.age * self.dt
         p, zero = latest, np.zeros(self.nv)
         q = np.stack([p.qpos, p.q0, p.q0 + p.v0 * t, p.q0 + p.v0 * t + 0.5 * p.a0 * t * t])
         v = np.stack([p.qvel, p.v0, p.v0, p.v0 + p.a0 * t])
         a = np.stack([p.qacc, zero, zero, p.a0])
+        C = self.cov[h]
+        # The novelty guard: a predictor departing from STATIC (row 1) by more than NOVELTY times
+        # the RMS departure of its scored past has its errors scaled by the ratio over NOVELTY.
+        now = np.mean(np.square(q - q[1]), axis=1)
+        limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) + C[1, 1] - 2.0 * C[:, 1], 0.0)
+        novel = now > limit
+        novel[1] = False
+        if novel.any():
+            scale = np.ones(len(PREDICTORS))
+            with np.errstate(divide="ignore"):
+                scale[novel] = np.minimum(np.sqrt(now[novel] / limit[novel]), MAX_NOVELTY)
+            C = scale[:, None] * C * scale[None, :]
+        w = _reference_weights(C)
         return w, w @ q, w @ v, w @ a
 
     def _positions(self, p: _Probe) -> np.ndarray:
@@ -346,6 +360,40 @@ def test_a_motion_of_constant_acceleration_is_answered_by_constant_acceleration(
         # between predictors than qpos does over one tick).
         np.testing.assert_allclose(answer.qpos, q, atol=1e-8)
         np.testing.assert_allclose(answer.qvel, v, atol=1e-5)
+
+
+def test_a_predictor_departing_far_beyond_its_scored_past_weighs_less_over_a_gap() -> None:
+    """A swing (0.2 sin 4t rad) scored for 2 s: CONSTANT_ACCELERATION forecasts it best at every
+    horizon and the scored weights are mostly its own. The last frame before the gap has the
+    motion jolted (qd 8 rad/s above the swing's, so qdd 160 rad/s^2 from the frame before): it now
+    extrapolates 4.8 rad in 200 ms, far beyond any departure from STATIC its scores have seen, and
+    the novelty guard weighs it by that. Measured without the guard: STATIC's weight 0.10 at
+    200 ms, the answer 4.26 rad from the last frame (0.89 of CONSTANT_ACCELERATION's departure);
+    with it, 0.67 and 1.58 rad (0.33)."""
+    model = _pendulum(1)
+    dt, frames = 0.05, 40
+    combiner = ForecastCombiner(model, dt=dt, steps_per_tick=10, horizon=4)
+    static = PREDICTORS.index("STATIC")
+    jolt = 8.0
+    for k in range(frames):
+        if k:
+            combiner.advance()
+        t = k * dt
+        q = np.array([0.1 + 0.2 * np.sin(4 * t)])
+        v = np.array([0.8 * np.cos(4 * t) + (jolt if k == frames - 1 else 0.0)])
+        combiner.observe(q, v, mean_qpos=q, mean_qvel=v, act=np.zeros(0), force=np.zeros(1), rate=None)
+    a0 = (v[0] - 0.8 * np.cos(4 * (frames - 2) * dt)) / dt
+    for _ in range(4):
+        combiner.advance()
+        answer = combiner.forecast()
+        assert answer is not None
+    t = 4 * dt
+    constant_acceleration = abs(v[0] * t + 0.5 * a0 * t * t)
+    assert answer.weights[static] > 0.5, answer.weights
+    assert abs(float(answer.qpos[0] - q[0])) < 0.5 * constant_acceleration, (
+        answer.qpos,
+        constant_acceleration,
+    )
 
 
 def test_the_combination_is_not_used_before_it_has_scores() -> None:
