@@ -150,6 +150,9 @@ class WorkerResult:
     lateness_ms: list[float] = field(default_factory=list)
     opened: int = 0
     refused: list[str] = field(default_factory=list)
+    # Sessions the server ended while they ran (RESOURCE_EXHAUSTED: still late --late-timeout after
+    # it told them they may go late), each its status details.
+    ended: list[str] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
     cpu_seconds: float = 0.0
     shed: int = 0  # answers flagged late_compute
@@ -267,17 +270,29 @@ async def _session(
         alarm = Alarm.of(asyncio.get_running_loop())
         for k, frame in enumerate(frames):
             await alarm.sleep_until(start + k * spec.dt)
-            await call.write(frame)
+            try:
+                await call.write(frame)
+            except asyncio.InvalidStateError:  # the server ended the call
+                reader.cancel()
+                await asyncio.gather(reader, return_exceptions=True)
+                text = f"{(await call.code()).name}: {await call.details()}"
+                ended = await call.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+                (result.ended if ended else result.errors).append(text)
+                frames = frames[:k]  # the ticks sent
+                break
             if k * spec.dt >= next_sync:
                 await ping()
                 next_sync += 1.0
-        # Let the last tick's deadline pass before closing (close answers pending ticks at once).
-        await asyncio.sleep(max(0.0, start + (len(frames) - 1) * spec.dt + grace + 0.05 - time.monotonic()))
-        await call.write(
-            dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()).SerializeToString()
-        )
-        await call.done_writing()
-        await asyncio.wait_for(reader, timeout=30)
+        else:
+            # Let the last tick's deadline pass before closing (close answers pending ticks at once).
+            await asyncio.sleep(
+                max(0.0, start + (len(frames) - 1) * spec.dt + grace + 0.05 - time.monotonic())
+            )
+            await call.write(
+                dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()).SerializeToString()
+            )
+            await call.done_writing()
+            await asyncio.wait_for(reader, timeout=30)
     except (grpc.aio.AioRpcError, TimeoutError) as error:
         result.errors.append(repr(error)[:200])
         reader.cancel()
@@ -587,6 +602,7 @@ class RunReport:
     cpu_per_tick_us: float
     ukf_cycle_us: float
     client_cpu_per_tick_us: float
+    ended: int = 0  # sessions the server ended while they ran, still late after --late-timeout
     floor_grpc_us: float = math.nan  # bare grpc.aio server CPU per tick, same sizes, after the run
     physics_us: float = math.nan  # the rollout of the tick's sigma points alone, CPU
     frame_bytes: int = 0
@@ -629,7 +645,7 @@ class RunReport:
         return (
             (
                 f"{self.sessions:4d} x {self.model:10s} {self.scenario:10s} {self.rate:5.0f} Hz | "
-                f"opened {self.opened:4d} refused {self.refused:3d} | answered {100 * self.answered:6.2f} % "
+                f"opened {self.opened:4d} refused {self.refused:3d} ended {self.ended:2d} | answered {100 * self.answered:6.2f} % "
                 f"measured {100 * self.measured:6.2f} % shed {100 * self.shed:5.2f} % late frames "
                 f"{100 * self.late_frames:5.2f} % rejected {self.rejected} | late p50 {self.late_p50_ms:6.2f} p99 {self.late_p99_ms:7.2f} "
                 f"max {self.late_max_ms:8.2f} ms (server {self.server_late_p99_ms:5.2f}) | cpu/tick {self.cpu_per_tick_us:6.0f} us "
@@ -866,6 +882,7 @@ def run(
         merged.lateness_ms.extend(r["lateness_ms"])
         merged.opened += r["opened"]
         merged.refused.extend(r["refused"])
+        merged.ended.extend(r["ended"])
         merged.errors.extend(r["errors"])
         merged.cpu_seconds += r["cpu_seconds"]
         merged.generator_lag_ms.extend(r["generator_lag_ms"])
@@ -892,7 +909,8 @@ def run(
         sessions=sessions,
         opened=merged.opened,
         refused=len(merged.refused),
-        errors=merged.errors[:5] + merged.refused[:2],
+        ended=len(merged.ended),
+        errors=merged.errors[:5] + merged.refused[:2] + merged.ended[:1],
         ticks_sent=merged.ticks_sent,
         answered=merged.answered / expected,
         measured=merged.measured / expected,

@@ -111,6 +111,13 @@ _LIMITS: Final = (
         "largest share of dt a REALTIME tick's estimated cost may take",
     ),
     _Limit(
+        "--late-timeout",
+        StreamLimits,
+        "late_timeout",
+        _SECONDS,
+        "how long a REALTIME session told it may go late may stay so before it is ended",
+    ),
+    _Limit(
         "--compile-timeout",
         RegistryLimits,
         "compile_timeout",

@@ -20,6 +20,7 @@ cannot carry it (Linux: /proc/stat; elsewhere the process budget alone).
 from __future__ import annotations
 
 import logging
+import math
 import os
 import threading
 import time
@@ -132,6 +133,7 @@ class Admission:
     late_share: float = 0.0  # of the answers of the last window more than LATE_ANSWER late
     _lag_late: float = 0.0  # s of the window the loop ran more than LATE_ANSWER late
     lag_share: float = 0.0  # of the last window's time the loop ran more than LATE_ANSWER late
+    _ended_late_at: float = -math.inf  # monotonic s: when a session was last ended for going late
 
     def __post_init__(self) -> None:
         if not 0.0 < self.budget <= 1.0:
@@ -240,6 +242,24 @@ class Admission:
                     )
                 covered += other.load
             return None
+
+    def admitted_before(self, ticket: Ticket) -> int:
+        """How many of the process's sessions were admitted before `ticket`'s: those that ending
+        it would keep on time (none: ending it would help no one)."""
+        with self._lock:
+            return sum(other.admitted_at < ticket.admitted_at for other in self._by_id.values())
+
+    def ended_late(self) -> None:
+        """A session was ended for staying unaffordable (dynamics_service, --late-timeout)."""
+        with self._lock:
+            self._ended_late_at = time.monotonic()
+
+    def late_evidence_from(self) -> float:
+        """Monotonic s from which the process's lateness counts against its sessions: one window
+        after it last ended one, whose late answers that window still holds (without this, ending
+        the newest session made the next newest look unaffordable too)."""
+        with self._lock:
+            return self._ended_late_at + _CPU_WINDOW
 
     def load(self) -> float:
         """The process's load in cores: the larger of its sessions' estimates and its measured CPU."""

@@ -19,11 +19,16 @@ from dataclasses import dataclass
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
 
-__all__ = ["DEFAULT_STREAM_LIMITS", "IdleTimeout", "StreamLimits"]
+__all__ = ["DEFAULT_STREAM_LIMITS", "IdleTimeout", "LateTimeout", "StreamLimits"]
 
 
 class IdleTimeout(ResourceExhausted):
     """A session sent nothing (no frame, no sync, no skip) for longer than the idle timeout."""
+
+
+class LateTimeout(ResourceExhausted):
+    """A REALTIME session told that its answers may go late stayed among those its server process
+    could not serve on time for longer than the late timeout."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -39,15 +44,27 @@ class StreamLimits:
       idle_timeout: seconds a session may go with no request at all (--idle-timeout).
       max_tick_share: the largest share of dt a REALTIME tick's estimated cost may take
         (--max-tick-share).
+      late_timeout: seconds a REALTIME session told in band that its answers may go late (its
+        process is past what it serves on time and it is among the last admitted) may stay so
+        before it is ended, stored, so that the sessions admitted before it are on time again
+        (--late-timeout). Long enough that a passing overload (a collection, a compaction, a burst
+        of opens) ends no one; the session admitted first is never ended.
     """
 
     max_history_bytes: int = 256 * 1024 * 1024
     max_clock_offset: float = 5.0
     idle_timeout: float = 60.0
     max_tick_share: float = 0.5
+    late_timeout: float = 10.0
 
     def __post_init__(self) -> None:
-        for name in ("max_history_bytes", "max_clock_offset", "idle_timeout", "max_tick_share"):
+        for name in (
+            "max_history_bytes",
+            "max_clock_offset",
+            "idle_timeout",
+            "max_tick_share",
+            "late_timeout",
+        ):
             value = getattr(self, name)
             if (
                 isinstance(value, bool)
@@ -80,6 +97,13 @@ class StreamLimits:
         return IdleTimeout(
             f"the session sent no frame, sync or skip for {self.idle_timeout:g} s, the limit "
             f"(--idle-timeout); it was stored and its slot given back"
+        )
+
+    def late(self, told: float) -> LateTimeout:
+        return LateTimeout(
+            f"the session was ended: {told:.1f} s after it was told its answers may go late, this "
+            f"server process still could not serve it on time (the limit, --late-timeout "
+            f"{self.late_timeout:g} s); it was stored. Resume it on another server or at a lower rate"
         )
 
     def check_tick_cost(

@@ -15,6 +15,7 @@ import contextvars
 import functools
 import logging
 import math
+import time
 import traceback
 from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -96,8 +97,9 @@ def _counting_warnings(method: Callable[..., _R]) -> Callable[..., _R]:
 class _Stream:
     """One open session on one stream: the runtime, the recorder, the clock."""
 
-    def __init__(self, opened: OpenedSession) -> None:
+    def __init__(self, opened: OpenedSession, limits: StreamLimits = DEFAULT_STREAM_LIMITS) -> None:
         self.ticket = opened.ticket  # REALTIME: this session's share of the process's tick budget
+        self.limits = limits
         m, process, model = metrics(), metrics().process, opened.info.name
         self._m_ticks = {s: m.ticks.labels(process, model, s) for s in Source}
         self._m_shed = m.shed.labels(process, model)
@@ -123,6 +125,7 @@ class _Stream:
         # Responses come from the request loop, the REALTIME clock and a drain's `moving`.
         self._write_lock = asyncio.Lock()
         self._overload_checked = self._overload_told = -math.inf
+        self._late_since: float | None = None  # monotonic s since every check found it unaffordable
 
     async def write(self, context: _Context, *responses: Response) -> None:
         """Send `responses` in order, as one batch: the request loop and the REALTIME clock each
@@ -139,7 +142,10 @@ class _Stream:
     def overload_notice(self) -> Response | None:
         """REALTIME: the in-band warning that this session's answers may go late
         (Admission.unaffordable), asked at most every OVERLOAD_CHECK s and repeated every
-        OVERLOAD_REPEAT s while it holds."""
+        OVERLOAD_REPEAT s while it holds. Raises LateTimeout once it has held at every check for
+        the late timeout: the session is ended (and stored), so that those admitted before it are
+        on time again, instead of every session of the process going late together. The session
+        admitted first is never ended: ending it would keep no one on time."""
         if self.ticket is None:
             return None
         now = self.clock.now()
@@ -148,7 +154,22 @@ class _Stream:
         self._overload_checked = now
         admission = self.ticket.admission
         reason = admission.unaffordable(self.ticket)
-        if reason is None or now - self._overload_told < OVERLOAD_REPEAT:
+        if reason is None:
+            self._late_since = None
+            return None
+        mono, start = time.monotonic(), admission.late_evidence_from()
+        if self._late_since is None or self._late_since < start:
+            self._late_since = max(mono, start)
+        elif mono - self._late_since >= self.limits.late_timeout and admission.admitted_before(self.ticket):
+            _log.warning(
+                "session %s: ended, %.1f s after it was told it may go late: %s",
+                self.recorder.header.session_id,
+                mono - self._late_since,
+                reason,
+            )
+            admission.ended_late()
+            raise self.limits.late(mono - self._late_since)
+        if now - self._overload_told < OVERLOAD_REPEAT:
             return None
         self._overload_told = now
         _log.warning("session %s: told it may go late: %s", self.recorder.header.session_id, reason)
@@ -683,7 +704,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     def _open_sync(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
         opened = self._opener.open_session(request)
         try:
-            return _Stream(opened), opened_message(opened)
+            return _Stream(opened, self._limits), opened_message(opened)
         except BaseException:
             opened.discard()
             raise

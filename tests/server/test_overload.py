@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 from _serve import REFUSALS, Serve, heap_frozen, realtime_session
 
-from jitdyn.client import Client, FrameData, SessionOptions
+from jitdyn.client import Client, FrameData, SessionOptions, TickResult
+from jitdyn.errors import ResourceExhausted
 
 DT = 0.05
 TICKS = 60  # 3 s
@@ -92,3 +93,61 @@ def test_a_session_the_server_cannot_serve_on_time_is_told_in_band_and_goes_on(t
     ), warning
     assert answered > 100  # the session went on after the warning
     assert any("told it may go late" in line for line in server.lines), "".join(server.lines[-20:])
+
+
+def test_a_session_still_unaffordable_after_the_late_timeout_is_ended_and_the_first_recovers(
+    tmp_path: Path,
+) -> None:
+    """The process goes late (stopped 0.1 s in every 0.25 s) with two sessions: the one admitted last
+    is told, and ended with RESOURCE_EXHAUSTED naming --late-timeout once that passed, stored; the
+    first one goes on (the first admitted is never ended, and the late answers the ended one left
+    in the window are not held against it), and is on time again once the machine gives the CPU
+    back."""
+    server = Serve(tmp_path / "data", "--processes", "1", "--late-timeout", "2s")
+    dt = 0.025
+    options = SessionOptions(model_name="pendulum_1", dt=dt, clock="REALTIME", scenario="PASSIVE")
+    ended: ResourceExhausted | None = None
+    try:
+        with Client(server.address, timeout=30) as client, client.open_session(options) as first:
+            second = client.open_session(options)
+            sent_second, ended_at, late_after = -1, -1, []
+            for k in range(800):  # 20 s at most
+                time.sleep(max(0.0, k * dt - first.now()))
+                if ended is None and k >= 40 and k % 10 == 0:
+                    os.kill(server.process.pid, signal.SIGSTOP)
+                    time.sleep(0.1)
+                    os.kill(server.process.pid, signal.SIGCONT)
+                first.send(FrameData(seq=k, t=k * dt, qpos=[0.3], qvel=[0.0]))
+                for answer in first.poll():
+                    if (
+                        isinstance(answer, TickResult)
+                        and ended_at is not None
+                        and answer.seq > ended_at + 80
+                        and ended is not None
+                    ):
+                        late_after.append(answer.received_at - first.clock_start - answer.seq * dt)
+                if ended is None:
+                    j = int(second.now() / dt)
+                    if j > sent_second:
+                        second.send(FrameData(seq=j, t=j * dt, qpos=[0.3], qvel=[0.0]))
+                        sent_second = j
+                    try:
+                        second.poll()
+                    except ResourceExhausted as error:
+                        ended, ended_at = error, k
+                if ended is not None and k >= ended_at + 160:
+                    break
+            summary = first.close()  # raises if the first session was ended too
+    finally:
+        server.stop()
+    assert ended is not None, "".join(server.lines[-20:])
+    assert re.fullmatch(
+        r"the session was ended: [\d.]+ s after it was told its answers may go late, this server process "
+        r"still could not serve it on time \(the limit, --late-timeout 2 s\); it was stored\. Resume it on "
+        r"another server or at a lower rate",
+        str(ended),
+    ), str(ended)
+    assert summary.frames > ended_at + 160  # the first session went on to the end, every frame stored
+    # Once the CPU came back, the first session's answers came by their deadlines (grace dt/2).
+    assert late_after and sorted(late_after)[int(0.9 * (len(late_after) - 1))] <= dt / 2 + 0.010, late_after
+    assert any("ended, " in line and "after it was told it may go late" in line for line in server.lines)
