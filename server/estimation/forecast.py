@@ -38,6 +38,11 @@ answer falls back on the predictors still in their regime, STATIC at least. It c
 O(P nv), and a solve of the weights on the ticks where it acts
 (docs/decisions/0027-forecast-novelty-guard.md).
 
+Regime change: a score at which every one of PREDICTORS erred by more than SURPRISE times the RMS
+error of its scored past at that horizon is a change of the motion none of them foresaw (a
+landing's impact); the scores before it describe a motion that has ended, and it replaces C_h and
+D_h (fading weight 1) instead of weighing 1 - FORGETTING (docs/decisions/0028-forecast-regime-change.md).
+
 The answer's own error variances: the variance of the combined error at horizon h, w' C_h w
 per dof for q, and the same with D_h, the fading covariance of the predictors' qd errors (scored
 against the frame's qvel, pooled over dofs as C_h is), for qd; less the noise of the frames they
@@ -651,7 +656,10 @@ class ForecastCombiner:
         k = len(PREDICTORS)
         now = np.diagonal(cov, axis1=1, axis2=2)[:, :k]
         past = np.diagonal(self._cov[ages], axis1=1, axis2=2)[:, :k]
-        return (self._count[ages] >= MIN_SAMPLES) & np.all(now > SURPRISE * SURPRISE * past, axis=1)
+        surprised: np.ndarray = (self._count[ages] >= MIN_SAMPLES) & np.all(
+            now > SURPRISE * SURPRISE * past, axis=1
+        )
+        return surprised
 
 
 def _fading(count: float) -> float:

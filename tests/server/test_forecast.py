@@ -149,7 +149,9 @@ class _ReferenceCombiner:
                     # A regime change: every predictor's error variance above SURPRISE^2 times its
                     # scored past's replaces the past.
                     past = np.diagonal(self.cov[h])
-                    if self.count[h] >= MIN_SAMPLES and np.all(np.diagonal(sample) > SURPRISE * SURPRISE * past):
+                    if self.count[h] >= MIN_SAMPLES and np.all(
+                        np.diagonal(sample) > SURPRISE * SURPRISE * past
+                    ):
                         d = 1.0
                     self.cov[h] = (1.0 - d) * self.cov[h] + d * sample
                     self.count[h] += 1
