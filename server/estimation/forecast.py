@@ -38,6 +38,11 @@ answer falls back on the predictors still in their regime, STATIC at least. It c
 O(P nv), and a solve of the weights on the ticks where it acts
 (docs/decisions/0027-forecast-novelty-guard.md).
 
+Regime change: a score at which every one of PREDICTORS erred by more than SURPRISE times the RMS
+error of its scored past at that horizon is a change of the motion none of them foresaw (a
+landing's impact); the scores before it describe a motion that has ended, and it replaces C_h and
+D_h (fading weight 1) instead of weighing 1 - FORGETTING (docs/decisions/0028-forecast-regime-change.md).
+
 The answer's own error variances: the variance of the combined error at horizon h, w' C_h w
 per dof for q, and the same with D_h, the fading covariance of the predictors' qd errors (scored
 against the frame's qvel, pooled over dofs as C_h is), for qd; less the noise of the frames they
@@ -112,6 +117,12 @@ VARIANCE_FLOOR: Final = 1e-12
 # measured on the recordings at 1.5, 2 and 3 (docs/decisions/0027-forecast-novelty-guard.md).
 NOVELTY: Final = 2.0
 MAX_NOVELTY: Final = 1e3
+# A regime change: a score at which every one of PREDICTORS erred by more than SURPRISE times the
+# RMS error of its scored past at that horizon (its error variance over SURPRISE^2 C_pp) describes
+# a motion the past scores do not (a landing's impact); it replaces the horizon's covariances
+# (fading weight 1) instead of weighing 1 - FORGETTING. Measured at 1.5, 2, 2.5 and 3
+# (docs/decisions/0028-forecast-regime-change.md).
+SURPRISE: Final = 2.0
 _STATIC: Final = 1
 
 # Columns of the probes' integer marks.
@@ -621,20 +632,34 @@ class ForecastCombiner:
         # Rows are oldest first, so ages fall along them; only probes that waited at the horizon
         # through a gap share one, the horizon, at the front.
         if ages.size < 2 or ages[0] != ages[1]:
-            d = _FADING[np.minimum(self._count[ages], _FADING.size - 1).astype(np.intp)][:, None, None]
+            d = _FADING[np.minimum(self._count[ages], _FADING.size - 1).astype(np.intp)]
+            d = np.where(self._surprised(ages, cov), 1.0, d)[:, None, None]
             self._cov[ages] = (1.0 - d) * self._cov[ages] + d * cov
             self._cov_v[ages] = (1.0 - d) * self._cov_v[ages] + d * cov_v
             self._count[ages] += 1
         else:
             # One sample after the other at the shared age, oldest first.
             for h, c, cv in zip(ages.tolist(), cov, cov_v, strict=True):
-                d1 = _fading(float(self._count[h]))
+                d1 = 1.0 if self._surprised(np.array([h]), c[None])[0] else _fading(float(self._count[h]))
                 self._cov[h] = (1.0 - d1) * self._cov[h] + d1 * c
                 self._cov_v[h] = (1.0 - d1) * self._cov_v[h] + d1 * cv
                 self._count[h] += 1
         for h in ages.tolist():
             self._weights.pop(h, None)
             self._variances.pop(h, None)
+
+    def _surprised(self, ages: np.ndarray, cov: np.ndarray) -> np.ndarray:
+        """(S,) which scores, their pooled covariances (S, P, P) at ages (S,), mark a regime change:
+        every one of PREDICTORS' error variances above SURPRISE^2 times its scored past's at that
+        age, once the age has MIN_SAMPLES scores (a predictor scored exact, past 0, is surprised by
+        any error)."""
+        k = len(PREDICTORS)
+        now = np.diagonal(cov, axis1=1, axis2=2)[:, :k]
+        past = np.diagonal(self._cov[ages], axis1=1, axis2=2)[:, :k]
+        surprised: np.ndarray = (self._count[ages] >= MIN_SAMPLES) & np.all(
+            now > SURPRISE * SURPRISE * past, axis=1
+        )
+        return surprised
 
 
 def _fading(count: float) -> float:

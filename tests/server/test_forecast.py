@@ -25,6 +25,7 @@ from jitdyn.server.estimation.forecast import (
     NOVELTY,
     PREDICTORS,
     PROBES,
+    SURPRISE,
     ForecastCombiner,
     _min_variance_weights,
 )
@@ -143,9 +144,16 @@ class _ReferenceCombiner:
             if p.keep and 1 <= p.age <= self.horizon:
                 errors = self._positions(p) - qpos[None, :]
                 if np.all(np.isfinite(errors)):
-                    h = p.age
+                    h, sample = p.age, errors @ errors.T / self.nv
                     d = (1.0 - FORGETTING) / (1.0 - FORGETTING ** (self.count[h] + 1))
-                    self.cov[h] = (1.0 - d) * self.cov[h] + d * (errors @ errors.T / self.nv)
+                    # A regime change: every predictor's error variance above SURPRISE^2 times its
+                    # scored past's replaces the past.
+                    past = np.diagonal(self.cov[h])
+                    if self.count[h] >= MIN_SAMPLES and np.all(
+                        np.diagonal(sample) > SURPRISE * SURPRISE * past
+                    ):
+                        d = 1.0
+                    self.cov[h] = (1.0 - d) * self.cov[h] + d * sample
                     self.count[h] += 1
             if p.keep and p.age < self.horizon:
                 survivors.append(p)
@@ -394,6 +402,33 @@ def test_a_predictor_departing_far_beyond_its_scored_past_weighs_less_over_a_gap
         answer.qpos,
         constant_acceleration,
     )
+
+
+def _scored_covariances(earlier: float, jolt: float) -> np.ndarray:
+    """The pooled covariances C_h (h = 1..4) after a swing (0.2 sin 4t rad) scored for 2 s whose
+    frames before the last 7 carry `earlier` more (earlier sin 7t: another scored past, the same
+    last frames), and whose last frame is displaced by `jolt` rad."""
+    model = _pendulum(1)
+    dt, frames = 0.05, 40
+    combiner = ForecastCombiner(model, dt=dt, steps_per_tick=10, horizon=4)
+    for k in range(frames + 1):
+        if k:
+            combiner.advance()
+        t, other = k * dt, earlier if k < frames - 6 else 0.0
+        q = np.array([0.1 + 0.2 * np.sin(4 * t) + other * np.sin(7 * t) + (jolt if k == frames else 0.0)])
+        v = np.array([0.8 * np.cos(4 * t) + 7 * other * np.cos(7 * t)])
+        combiner.observe(q, v, mean_qpos=q, mean_qvel=v, act=np.zeros(0), force=np.zeros(1), rate=None)
+    return combiner.snapshot().cov[1:]
+
+
+def test_a_score_that_surprises_every_predictor_replaces_the_scored_past() -> None:
+    """A last frame 0.5 rad off the swing (a landing's impact: a motion none of the predictors
+    foresaw) errs every predictor by more than SURPRISE times the RMS of its scored past at every
+    horizon: its score replaces the covariances, and two sessions with different pasts but the same
+    last frames hold the same ones (without the rule they differ by up to 0.012 rad^2, the past
+    weighing FORGETTING). The same frame not displaced surprises none, and the pasts still count."""
+    np.testing.assert_array_equal(_scored_covariances(0.0, jolt=0.5), _scored_covariances(0.05, jolt=0.5))
+    assert np.abs(_scored_covariances(0.0, jolt=0.0) - _scored_covariances(0.05, jolt=0.0)).max() > 1e-4
 
 
 def test_the_combination_is_not_used_before_it_has_scores() -> None:
