@@ -533,7 +533,16 @@ def _command_name(args: argparse.Namespace) -> str:
 
 
 def _configure_logging(verbose: bool) -> None:
-    from jitdyn.mujoco_log import route_mujoco_messages
+    try:
+        from jitdyn.mujoco_log import route_mujoco_messages
+    except Exception as error:  # MuJoCo's import reads MUJOCO_GL and loads its renderer
+        gl = os.environ.get("MUJOCO_GL")
+        if gl is None:
+            raise
+        raise SettingError(
+            f"environment variable MUJOCO_GL={gl}: MuJoCo does not start with it ({error}); install "
+            "its library (libosmesa6 for osmesa, libegl1 for egl) or unset MUJOCO_GL"
+        ) from None
 
     logging.basicConfig(
         level=logging.INFO if verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
@@ -550,7 +559,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     while leading < len(argv) and argv[leading] in ("-v", "--verbose"):
         leading += 1
     if argv[leading : leading + 1] == ["experiments"]:
-        _configure_logging(leading > 0)
+        try:
+            _configure_logging(leading > 0)
+        except SettingError as error:
+            _fail("experiments", str(error), EXIT_USAGE)
         try:
             return _experiments(argv[leading + 1 :], verbose=leading > 0)
         except MissingExtra as error:
@@ -570,9 +582,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = _command_name(args)
     try:
         settings = resolve(args, os.environ)
+        _configure_logging(getattr(args, "verbose", False))
     except SettingError as error:
         _fail(command, str(error), EXIT_USAGE)
-    _configure_logging(getattr(args, "verbose", False))
     try:
         return _HANDLERS[args.command](args, settings)
     except SettingError as error:

@@ -112,6 +112,16 @@ def test_the_command_line_parses_without_loading_the_engine() -> None:
     assert loaded.stdout.strip() == "[]", loaded.stdout + loaded.stderr
 
 
+def test_a_mujoco_gl_that_mujoco_cannot_start_with_is_named() -> None:
+    """MUJOCO_GL (osmesa, egl or glfw, for rendering) is read by MuJoCo's import; a value it cannot
+    start with is one line naming the variable, not a traceback from every command."""
+    result = jitdyn("sessions", "list", env={"MUJOCO_GL": "bogus"})
+    assert one_line_error(result, 2).startswith(
+        "jitdyn sessions list: environment variable MUJOCO_GL=bogus: MuJoCo does not start with it ("
+    ), result.stderr
+    assert "or unset MUJOCO_GL" in result.stderr
+
+
 def test_an_output_folder_that_cannot_be_made_is_named_before_anything_runs(tmp_path: Path) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("not a folder", encoding="utf-8")
