@@ -289,7 +289,9 @@ class Session(SessionCore):
         self._send(self._frame_request(frame), frame.seq)
 
     def results(self, *, timeout: float | None = None) -> Iterator[TickResult | Rejection | SyncSample]:
-        """Answers as they arrive, until the session is closed or `timeout` passes with none."""
+        """Answers as they arrive, until the session is closed or `timeout` passes with none
+        (after `close`: those that arrived while it waited for the summary)."""
+        yield from self._take_unread()
         while True:
             try:
                 item = self._get(timeout)
@@ -303,8 +305,9 @@ class Session(SessionCore):
             yield answer
 
     def poll(self) -> list[TickResult | Rejection | SyncSample]:
-        """Every answer that has arrived, without waiting."""
-        answers: list[TickResult | Rejection | SyncSample] = []
+        """Every answer that has arrived, without waiting (after `close`: those that arrived while
+        it waited for the summary)."""
+        answers = self._take_unread()
         while True:
             try:
                 item = self._get(0)
@@ -336,7 +339,7 @@ class Session(SessionCore):
             if item is None:
                 self._finish()
                 raise FailedPrecondition("the session stream ended without a summary")
-            self._convert(item)
+            self._read_while_closing(item)
         if self._reader is not None:
             self._reader.join(timeout=5)
         self._finish()

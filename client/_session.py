@@ -4,6 +4,7 @@ ledger's counts). Each transport subclasses `SessionCore` and adds its own reads
 
 from __future__ import annotations
 
+import collections
 import time
 from collections.abc import Callable, Sequence
 from typing import NotRequired, TypedDict
@@ -75,6 +76,9 @@ class SessionCore:
         self._closed = False
         self._finished = False
         self.summary: Summary | None = None
+        # Answers that arrived while `close` waited for the summary (the server answers the ticks
+        # still pending as it closes): kept for `poll` and `results`, not dropped.
+        self._unread: collections.deque[TickResult | Rejection | SyncSample] = collections.deque()
         self._open_message = options.to_message()
         self._ledger = ResumeLedger(resume if resume is not None else ResumePolicy(), self._open_message)
 
@@ -121,6 +125,17 @@ class SessionCore:
             answer = self._ledger.summarised(answer)
             self.summary = answer
         return answer
+
+    def _read_while_closing(self, item: Received) -> None:
+        """An item `close` read while it waited for the summary: the summary, or an answer kept."""
+        answer = self._convert(item)
+        if not isinstance(answer, Summary):
+            self._unread.append(answer)
+
+    def _take_unread(self) -> list[TickResult | Rejection | SyncSample]:
+        answers = list(self._unread)
+        self._unread.clear()
+        return answers
 
     @property
     def clock_start(self) -> float:

@@ -356,7 +356,10 @@ class AsyncSession(SessionCore):
     async def results(
         self, *, timeout: float | None = None
     ) -> AsyncIterator[TickResult | Rejection | SyncSample]:
-        """Answers as they arrive, until the session is closed or `timeout` passes with none."""
+        """Answers as they arrive, until the session is closed or `timeout` passes with none
+        (after `close`: those that arrived while it waited for the summary)."""
+        for kept in self._take_unread():
+            yield kept
         while True:
             try:
                 item = await self._get(timeout)
@@ -370,8 +373,9 @@ class AsyncSession(SessionCore):
             yield answer
 
     def poll(self) -> list[TickResult | Rejection | SyncSample]:
-        """Every answer that has arrived, without waiting."""
-        answers: list[TickResult | Rejection | SyncSample] = []
+        """Every answer that has arrived, without waiting (after `close`: those that arrived while
+        it waited for the summary)."""
+        answers = self._take_unread()
         while not self._responses.empty():
             item = self._responses.get_nowait()
             if item is END or isinstance(item, JitdynError):
@@ -415,7 +419,7 @@ class AsyncSession(SessionCore):
                         self._finish()
                         raise FailedPrecondition("the session stream ended without a summary")
                     break
-                self._convert(item)
+                self._read_while_closing(item)
             await self._reader_done()
             self._finish()
             return self.summary

@@ -172,3 +172,18 @@ def test_an_exception_inside_the_session_cancels_it(server: Any) -> None:
             assert session._reader.done()
 
     asyncio.run(run())
+
+
+def test_answers_that_arrive_while_close_waits_are_kept(server: Any) -> None:
+    """As the sync client: the ticks the server answers as it closes come out of `results`."""
+
+    async def run() -> list[int]:
+        async with AsyncClient(server.address, timeout=30) as client:
+            options = SessionOptions(model_name="pendulum_1", dt=0.05, clock="REALTIME")
+            session = await client.open_session(options)
+            for k in range(10):
+                await session.send(FrameData(seq=k, t=k * 0.05, qpos=[0.3], qvel=[0.0]))
+            await session.close()
+            return sorted({a.seq async for a in session.results(timeout=1) if isinstance(a, TickResult)})
+
+    assert asyncio.run(run()) == list(range(10))

@@ -81,3 +81,18 @@ def test_results_end_with_no_answer_and_reading_goes_on(server: Any) -> None:
             session._answer()  # nothing was sent, so nothing comes
         assert time.monotonic() - started >= 0.2
         assert isinstance(session.skip(1), TickResult)
+
+
+def test_answers_that_arrive_while_close_waits_are_kept(server: Any) -> None:
+    """REALTIME frames sent ahead of their ticks, then close: the server answers the pending ticks
+    as it closes, before the summary; those answers are read by `poll` after `close`."""
+    options = SessionOptions(model_name="pendulum_1", dt=0.05, clock="REALTIME")
+    with Client(server.address, timeout=30) as client:
+        session = client.open_session(options)
+        for k in range(10):
+            session.send(FrameData(seq=k, t=k * 0.05, qpos=[0.3], qvel=[0.0]))
+        summary = session.close()
+        answered = sorted({a.seq for a in session.poll() if isinstance(a, TickResult)})
+    assert summary.frames == 10
+    assert answered == list(range(10))
+    assert session.poll() == []  # handed out once
