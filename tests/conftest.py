@@ -21,6 +21,13 @@ from jitdyn.mujoco_log import route_mujoco_messages
 route_mujoco_messages()
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The `timing` tests (wall-clock promises of a real server under load) run first: on the
+    machine as CI finds it and in a test process whose heap the suite has not yet grown
+    (docs/decisions/0010-timing-tests-first.md)."""
+    items.sort(key=lambda item: item.get_closest_marker("timing") is None)  # stable: order kept
+
+
 @pytest.fixture(scope="session")
 def make_config() -> Callable[..., Any]:
     """Builds a server config for tests: port 0, its own data folder, a secret in its environment."""

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 from _serve import REFUSALS, Serve, free_port, heap_frozen, realtime_session
 
-# Run on its own, on a quiet machine (pytest -m timing): a loop stall just over a tick fails it now
-# and then on a shared machine. (The open unanswered for 30 s that it also saw was a server
-# deadlocked in its collector callback, docs/decisions/0009-the-loop-watched.md.)
+# A wall-clock promise: it runs first in the suite (docs/decisions/0010-timing-tests-first.md).
+# (The open unanswered for 30 s it once saw was a server deadlocked in its collector callback,
+# docs/decisions/0009-the-loop-watched.md.)
 pytestmark = pytest.mark.timing
 
 DT = 0.05

@@ -23,13 +23,7 @@ DT = 0.05
 TICKS = 60  # 3 s
 
 
-# A wall-clock promise, run on its own on a quiet machine (pytest -m timing), as test_capacity is:
-# on 2026-11-27 it passed 3 of 3 alone, and failed 2 of 2 at the end of the whole suite in a
-# fresh-clone CI run (4-5 sessions admitted, p99 39 and 56 ms late). Inside the suite the client
-# is a pytest process with a large heap: heap_frozen now keeps its full collections out of the
-# measurement. Whether that was the whole cause is not yet shown: the one in-suite run since
-# (after tests/client, storage and server, another experiment beside it) had p99 on time, but
-# 95.7 % MEASURED.
+# A wall-clock promise: it runs first in the suite (docs/decisions/0010-timing-tests-first.md).
 @pytest.mark.timing
 def test_beside_a_cpu_hog_the_admitted_sessions_are_on_time_and_the_surplus_refused(tmp_path: Path) -> None:
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # one core of the two
