@@ -30,6 +30,7 @@ from jitdyn.server.runtime.admission import Admission
 from jitdyn.server.runtime.heap import CollectionPauses, freeze_startup_heap, watch_collections
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.orphans import finish_orphans
+from jitdyn.server.runtime.priority import prioritise
 from jitdyn.server.runtime.publishing import publish_pending_loop
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.runtime.stalls import LoopWatch, Stall
@@ -121,6 +122,8 @@ class ServerConfig:
     resume_timeout: float = _DEFAULTS.resume_timeout
     drain_grace: float = _DEFAULTS.drain_grace
     stall_report: float = _DEFAULTS.stall_report  # s without a beat of the loop that is logged; 0: none
+    # The serving processes' CPU priority, a nice value (server/runtime/priority.py); None: left as is.
+    nice: int | None = None
 
     @classmethod
     def from_settings(cls, settings: Settings, **overrides: object) -> ServerConfig:
@@ -141,6 +144,7 @@ class ServerConfig:
             "resume_timeout": settings.resume_timeout,
             "drain_grace": settings.drain_grace,
             "stall_report": settings.stall_report,
+            "nice": settings.nice,
             "session_limits": SessionLimits(
                 max_sessions=settings.max_sessions,
                 max_sessions_per_tenant=settings.max_sessions_per_tenant,
@@ -387,6 +391,8 @@ async def serve(
         metrics_served = serve_metrics(config.metrics_address)
     server, port, services = await create_server(config)
     await server.start()
+    if config.nice is not None:  # once listening: a server that cannot start says only why
+        prioritise(config.nice)
     # After its startup the process's heap is frozen: a full collection of it stops the loop
     # for longer than a tick (server/runtime/heap.py).
     freeze_startup_heap()

@@ -35,6 +35,7 @@ from typing import Any
 from prometheus_client import multiprocess as prometheus_multiprocess
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.server.runtime.priority import prioritise
 from jitdyn.server.transport.app import ServerConfig, prepare_data, serve
 from jitdyn.server.transport.metrics import MULTIPROCESS_ENV, serve_metrics
 from jitdyn.storage.root import normalise_root_uri
@@ -198,8 +199,15 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
         os.environ[MULTIPROCESS_ENV] = metrics_dir  # inherited by the children, before they import metrics
         metrics_served = serve_metrics(config.metrics_address) if config.metrics_address else None
         host = config.address.rpartition(":")[0]
+        if config.nice is not None:  # the children inherit it
+            prioritise(config.nice)
         child_config = dataclasses.replace(
-            config, address=f"{host}:{port}", data_root=data_root, startup_tasks=False, reuse_port=True
+            config,
+            address=f"{host}:{port}",
+            data_root=data_root,
+            startup_tasks=False,
+            reuse_port=True,
+            nice=None,
         )
         children = _Children(child_config, metrics_dir=metrics_dir)
         previous = {s: signal.signal(s, children.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}

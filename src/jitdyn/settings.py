@@ -355,6 +355,21 @@ class Settings:
         help="on SIGTERM: how long the server waits for its open sessions to move to other replicas "
         "(they are told to) before it stops",
     )
+    nice: int = setting(
+        -10,
+        parse=checked(
+            int,
+            lambda value: -20 <= value <= 19,
+            "a nice value from -20 to 19, like -10",
+            malformed="a whole number from -20 to 19, like -10",
+        ),
+        commands=("serve",),
+        metavar="N",
+        help="CPU priority of the serving processes as nice(1) counts it (lower runs first): ahead of "
+        "the batch work started beside the server, which would otherwise take the CPU from admitted "
+        "sessions' ticks. Lowering it needs CAP_SYS_NICE (root); without it the server says so and "
+        "runs at the priority it was started with",
+    )
     stall_report: float = setting(
         0.1,
         parse=checked(parse_duration, lambda value: value >= 0, "a duration >= 0, like 100ms"),

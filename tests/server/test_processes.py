@@ -5,6 +5,7 @@ starting together do not race, and models that open on a server whose data folde
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import secrets
@@ -290,3 +291,75 @@ def test_metrics_on_port_0_announce_the_port_and_show_an_idle_server(tmp_path: P
         assert re.search(r"^jitdyn_open_sessions\{.*\} 0\.0$", scraped, re.MULTILINE), scraped[:2000]
     finally:
         server.stop()
+
+
+def _thread_nices(pid: int) -> set[int]:
+    """The nice value of every thread of process `pid` (field 19 of /proc/PID/task/TID/stat)."""
+    nices = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError):
+            nices.add(int(Path(f"/proc/{pid}/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()[16]))
+    return nices
+
+
+@pytest.mark.parametrize("processes", [1, 2])
+def test_every_thread_of_the_serving_processes_runs_at_the_priority_asked_for(
+    tmp_path: Path, processes: int
+) -> None:
+    """--nice 7 (raising it needs no privilege): every thread of every serving process, those
+    started once it serves included."""
+    server = Serve(tmp_path / "data", processes=processes, extra=("--nice", "7"))
+    try:
+        with Client(server.address, timeout=30) as client:  # a session starts the threads of work
+            options = SessionOptions(model_name="pendulum_1", dt=0.025, clock="LOCKSTEP", scenario="PASSIVE")
+            with client.open_session(options) as session:
+                assert isinstance(
+                    session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0])), TickResult
+                )
+                serving = [server.process.pid] if processes == 1 else _serving_children(server, processes)
+                assert [_thread_nices(pid) for pid in serving] == [{7}] * processes
+    finally:
+        server.stop()
+
+
+def test_without_the_right_to_lower_its_priority_the_server_says_so_and_serves(tmp_path: Path) -> None:
+    """The default --nice -10 needs CAP_SYS_NICE; a server without it (setpriv drops it when the test
+    runs as root) warns in one line and serves at the priority it was started with."""
+    drop = ["setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice"] if os.geteuid() == 0 else []
+    process = subprocess.Popen(
+        [
+            *drop,
+            sys.executable,
+            "-m",
+            "jitdyn.cli",
+            "serve",
+            "--address",
+            "127.0.0.1:0",
+            "--data",
+            str(tmp_path / "data"),
+            "--processes",
+            "1",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=dict(os.environ, JITDYN_SECRET=secrets.token_hex(32)),
+    )
+    assert process.stdout is not None
+    lines = []
+    try:
+        for line in process.stdout:
+            lines.append(line)
+            if "listening on" in line:
+                break
+        assert _thread_nices(process.pid) == {os.getpriority(os.PRIO_PROCESS, 0)}, lines
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.wait(timeout=60)
+        process.stdout.close()
+    warnings = [line for line in lines if "CAP_SYS_NICE" in line]
+    assert len(warnings) == 1 and re.search(
+        r"the serving processes run at nice -?\d+, not --nice -10: lowering it needs CAP_SYS_NICE",
+        warnings[0],
+    ), lines
+    assert any("listening on" in line for line in lines), lines
