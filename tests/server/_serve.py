@@ -65,11 +65,15 @@ def free_port() -> int:
 
 
 class Serve:
-    def __init__(self, data: Path, *args: str) -> None:
+    """`jitdyn serve ARGS` on a free loopback port, started under `prefix` (a command that runs
+    another, such as setpriv) if given."""
+
+    def __init__(self, data: Path, *args: str, prefix: tuple[str, ...] = ()) -> None:
         env = dict(os.environ, JITDYN_SECRET=secrets.token_hex(32))
         env.pop("JITDYN_INDEX_URL", None)
         self.process = subprocess.Popen(
             [
+                *prefix,
                 sys.executable,
                 "-m",
                 "jitdyn.cli",

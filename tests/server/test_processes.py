@@ -325,41 +325,14 @@ def test_every_thread_of_the_serving_processes_runs_at_the_priority_asked_for(
 def test_without_the_right_to_lower_its_priority_the_server_says_so_and_serves(tmp_path: Path) -> None:
     """The default --nice -10 needs CAP_SYS_NICE; a server without it (setpriv drops it when the test
     runs as root) warns in one line and serves at the priority it was started with."""
-    drop = ["setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice"] if os.geteuid() == 0 else []
-    process = subprocess.Popen(
-        [
-            *drop,
-            sys.executable,
-            "-m",
-            "jitdyn.cli",
-            "serve",
-            "--address",
-            "127.0.0.1:0",
-            "--data",
-            str(tmp_path / "data"),
-            "--processes",
-            "1",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env=dict(os.environ, JITDYN_SECRET=secrets.token_hex(32)),
-    )
-    assert process.stdout is not None
-    lines = []
+    drop = ("setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice") if os.geteuid() == 0 else ()
+    server = _serve.Serve(tmp_path / "data", "--processes", "1", prefix=drop)
     try:
-        for line in process.stdout:
-            lines.append(line)
-            if "listening on" in line:
-                break
-        assert _thread_nices(process.pid) == {os.getpriority(os.PRIO_PROCESS, 0)}, lines
+        assert _thread_nices(server.process.pid) == {os.getpriority(os.PRIO_PROCESS, 0)}, server.lines
     finally:
-        process.send_signal(signal.SIGTERM)
-        process.wait(timeout=60)
-        process.stdout.close()
-    warnings = [line for line in lines if "CAP_SYS_NICE" in line]
+        server.stop()
+    warnings = [line for line in server.lines if "CAP_SYS_NICE" in line]
     assert len(warnings) == 1 and re.search(
         r"the serving processes run at nice -?\d+, not --nice -10: lowering it needs CAP_SYS_NICE",
         warnings[0],
-    ), lines
-    assert any("listening on" in line for line in lines), lines
+    ), server.lines
