@@ -3,6 +3,7 @@ long session to Parquet, with bytes per frame in each.
 
     python -m benchmarks.storage                 # 200k frames for throughput, 1e6 for compaction
     python -m benchmarks.storage --frames 500000 --compact-frames 1000000
+    python -m benchmarks.storage --close         # only: the cost of closing a 20 Hz session
 
 Frames are pendulum_3-sized results (nq = nv = nu = 3) as the session runtime records them: the
 frame's qpos and qvel, the estimate, qacc, qfrc_inverse, the covariance diagonal and the filter
@@ -10,6 +11,8 @@ state (6 values each), NIS and timings, on a smooth trajectory so that compressi
 data. "append" is what the event loop pays per frame; "durable" counts until the last frame is
 fsynced. Target: >= 100k frames/s. The many-sessions case compares one group committer for all the
 sessions of a process (DESIGN.md, Scale: one fsync per commit window) against one per session.
+`--close` measures what the server pays when a slow session ends: the compaction of a log of many
+tiny group commits, on a thread beside a thread that wakes every millisecond as the event loop does.
 """
 
 from __future__ import annotations
@@ -18,7 +21,9 @@ import argparse
 import datetime as dt
 import os
 import statistics
+import sys
 import tempfile
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -236,6 +241,68 @@ def compaction(root: Path, index: SessionIndex, frames: int) -> dict[str, float]
     }
 
 
+def close_cost(root: Path, index: SessionIndex, *, ticks: int, per_commit: int) -> dict[str, float]:
+    """Close a `ticks`-tick session whose log holds group commits of `per_commit` records (a 20 Hz
+    session's hold one or two) on a thread, as the server does, while this thread sleeps 1 ms at a
+    time as an event loop waits for its next tick: the close's wall and CPU time, and how late this
+    thread woke (it waits for the GIL while the close holds it), at the 0.5 ms switch interval of a
+    server serving a 400 Hz session."""
+    trajectory = Trajectory(ticks, seed=4)
+    recorder = SessionRecorder(data_root=root, index=index, header=header())
+    for i in range(ticks):
+        recorder.append(trajectory.record(i))
+        if (i + 1) % per_commit == 0:
+            recorder.flush()
+    recorder.flush()
+    batches = recorder.commits
+    cpu: list[float] = []
+
+    def close() -> None:
+        started = time.thread_time()
+        recorder.close()
+        cpu.append(time.thread_time() - started)
+
+    lags: list[float] = []
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(5e-4)
+    try:
+        closer = threading.Thread(target=close)
+        started = time.perf_counter()
+        closer.start()
+        while closer.is_alive():
+            t0 = time.perf_counter()
+            time.sleep(0.001)
+            lags.append(time.perf_counter() - t0 - 0.001)
+        wall = time.perf_counter() - started
+        closer.join()
+    finally:
+        sys.setswitchinterval(interval)
+    return {
+        "batches": batches,
+        "wall_ms": wall * 1e3,
+        "cpu_ms": cpu[0] * 1e3,
+        "lag_p50_ms": statistics.median(lags) * 1e3,
+        "lag_max_ms": max(lags) * 1e3,
+    }
+
+
+def print_close(args: argparse.Namespace) -> None:
+    with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
+        root = Path(tmp)
+        engine = open_index(f"sqlite:///{root / 'index.sqlite'}")
+        index = SessionIndex(engine)
+        close_cost(root, index, ticks=args.close_ticks, per_commit=2)  # warm-up: imports, first writes
+        for _ in range(args.close_rounds):
+            c = close_cost(root, index, ticks=args.close_ticks, per_commit=2)
+            print(
+                f"close of {args.close_ticks} ticks in {c['batches']:.0f} batches: wall {c['wall_ms']:.1f} ms, "
+                f"CPU {c['cpu_ms']:.1f} ms ({c['cpu_ms'] * 1e3 / args.close_ticks:.0f} us/tick); "
+                f"loop wake-up lag p50 {c['lag_p50_ms']:.2f} max {c['lag_max_ms']:.2f} ms",
+                flush=True,
+            )
+        engine.dispose()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -247,7 +314,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sessions", type=int, default=200, help="many-sessions run: sessions (200)")
     parser.add_argument("--session-rate", type=float, default=20.0, help="many-sessions run: Hz each (20)")
     parser.add_argument("--dir", type=Path, default=None, help="data root (default: a temporary folder)")
+    parser.add_argument("--close", action="store_true", help="only the close of a 20 Hz session")
+    parser.add_argument("--close-ticks", type=int, default=600, help="close: ticks, two a commit (600)")
+    parser.add_argument("--close-rounds", type=int, default=3, help="close: sessions closed (3)")
     args = parser.parse_args(argv)
+    if args.close:
+        print_close(args)
+        return 0
 
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         root = Path(tmp)

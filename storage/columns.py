@@ -100,10 +100,14 @@ STORED_SINCE: Final = frozenset({"late_compute", "forecast_weights"})
 
 def conform(batch: pa.RecordBatch) -> pa.RecordBatch:
     """`batch` as LOG_SCHEMA: the columns it lacks (it was written before they were stored) added
-    as nulls, so that every reader sees one schema whatever wrote the file."""
+    as nulls, so that every reader sees one schema whatever wrote the file. A batch of LOG_SCHEMA is
+    returned as it is (its schema's metadata kept)."""
+    schema = batch.schema
+    if schema.equals(LOG_SCHEMA):
+        return batch
+    names = set(schema.names)
     columns = [
-        batch.column(f.name) if f.name in batch.schema.names else pa.nulls(batch.num_rows, f.type)
-        for f in LOG_SCHEMA
+        batch.column(f.name) if f.name in names else pa.nulls(batch.num_rows, f.type) for f in LOG_SCHEMA
     ]
     return pa.RecordBatch.from_arrays(columns, schema=LOG_SCHEMA)
 

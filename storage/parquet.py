@@ -1,4 +1,5 @@
-"""A session's Parquet file: its encodings, its self-describing metadata, and its atomic write.
+"""A session's Parquet file: its encodings, its self-describing metadata, and its atomic write
+from the session's log (`write_frames`), a row group at a time.
 
 Floats are stored with BYTE_STREAM_SPLIT under zstd (the bytes of a float column compress far
 better split by significance); dictionary encoding is kept for the id and category columns only,
@@ -8,11 +9,13 @@ where it pays. The key-value metadata "jitdyn" holds the JSON of `file_metadata`
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import dataclasses
 import datetime as _dt
 import json
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, Final
 
@@ -21,7 +24,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from jitdyn.errors import InvalidArgument
-from jitdyn.storage.columns import ARRAY_FIELDS, FRAME_SCHEMA, LOG_SCHEMA
+from jitdyn.storage.columns import ARRAY_FIELDS, FRAME_SCHEMA, ID_COLUMNS, LOG_SCHEMA
 from jitdyn.storage.layout import fsync_dir
 from jitdyn.storage.records import SessionHeader
 
@@ -36,8 +39,7 @@ __all__ = [
     "read_metadata",
     "to_frame_table",
     "warm_up",
-    "write_parquet",
-    "write_parquet_stream",
+    "write_frames",
 ]
 
 # Bumped when a column is added, removed or changes meaning.
@@ -129,34 +131,31 @@ def header_from_json(text: str) -> SessionHeader:
 
 
 def to_frame_table(log: pa.Table, *, session_id: str, model_name: str) -> pa.Table:
-    """The log's rows with the constant id columns in front: FRAME_SCHEMA."""
-    n = log.num_rows
-    zeros = pa.array(np.zeros(n, dtype=np.int32))
+    """The log's rows with the constant id columns in front: FRAME_SCHEMA (the log's columns as they
+    are chunked, not copied)."""
+    zeros = pa.array(np.zeros(log.num_rows, dtype=np.int32))
     ids = [
         pa.DictionaryArray.from_arrays(zeros, pa.array([value], pa.string()))
         for value in (session_id, model_name)
     ]
-    columns = ids + [log.column(name).combine_chunks() for name in LOG_SCHEMA.names]
-    return pa.Table.from_arrays(columns, schema=FRAME_SCHEMA)
-
-
-def write_parquet(table: pa.Table, *, path: Path, metadata: dict[str, Any]) -> None:
-    """Write `table` to `path` atomically: a temporary file beside it, fsync, rename, fsync of the
-    folder. A reader sees the old file or the whole new one, never a part."""
-    write_parquet_stream([table], schema=table.schema, path=path, metadata=metadata)
+    return pa.Table.from_arrays(ids + [log.column(name) for name in LOG_SCHEMA.names], schema=FRAME_SCHEMA)
 
 
 # A row group is written once this much of it is buffered (or ROW_GROUP_SIZE rows are): what
 # compaction holds in memory at most, whatever the session's length.
 ROW_GROUP_BYTES: Final = 32 * 1024 * 1024
 
+# Runs of small log batches are copied into one chunk of up to this many bytes before a row group is
+# converted and written: pyarrow's cost is per chunk and column (~30 us a compute call, a column
+# written), and a 20 Hz session's group commits hold a tick or two each.
+_CHUNK_BYTES: Final = 4 * 1024 * 1024
 
-def write_parquet_stream(
-    tables: Iterable[pa.Table], *, schema: pa.Schema, path: Path, metadata: dict[str, Any]
-) -> None:
-    """`write_parquet` of the concatenation of `tables` (each of `schema`), holding at most one row
-    group (ROW_GROUP_SIZE rows or ROW_GROUP_BYTES) in memory."""
-    schema = schema.with_metadata({METADATA_KEY: json.dumps(metadata, allow_nan=False)})
+
+@contextlib.contextmanager
+def _atomic_writer(path: Path, schema: pa.Schema) -> Iterator[pq.ParquetWriter]:
+    """A ParquetWriter of `schema` with the file's encodings, writing a temporary file beside `path`
+    that replaces `path` (fsync, rename, fsync of the folder) once the block ends without error. A
+    reader sees the old file or the whole new one, never a part."""
     tmp = path.with_name(f".{path.name}.tmp")
     # Readable by the server's user only, whatever the umask (DESIGN: Security and limits).
     with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "wb") as f:
@@ -167,40 +166,132 @@ def write_parquet_stream(
             use_dictionary=_DICTIONARY_COLUMNS,
             column_encoding=_COLUMN_ENCODING,
         ) as writer:
-            pending: list[pa.Table] = []
-            rows = size = 0
-
-            def flush(*, whole: bool) -> None:
-                # Full row groups of ROW_GROUP_SIZE rows; the rest waits for more rows unless
-                # `whole` (the end, or ROW_GROUP_BYTES buffered).
-                nonlocal rows, size
-                if not pending:
-                    return
-                table = pa.concat_tables(pending)
-                pending.clear()
-                start = 0
-                while table.num_rows - start >= ROW_GROUP_SIZE:
-                    writer.write_table(table.slice(start, ROW_GROUP_SIZE))
-                    start += ROW_GROUP_SIZE
-                rest = table.slice(start)
-                if whole and rest.num_rows:
-                    writer.write_table(rest)
-                elif rest.num_rows:
-                    pending.append(rest)
-                rows = sum(t.num_rows for t in pending)
-                size = sum(t.nbytes for t in pending)
-
-            for table in tables:
-                pending.append(table.replace_schema_metadata(schema.metadata))
-                rows += table.num_rows
-                size += table.nbytes
-                if rows >= ROW_GROUP_SIZE or size >= ROW_GROUP_BYTES:
-                    flush(whole=size >= ROW_GROUP_BYTES)
-            flush(whole=True)
+            yield writer
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
     fsync_dir(path.parent)
+
+
+def write_frames(
+    batches: Iterable[pa.RecordBatch],
+    *,
+    header: SessionHeader,
+    path: Path,
+    on_rows: Callable[[pa.Table], None] | None = None,
+    group_rows: int = ROW_GROUP_SIZE,
+    group_bytes: int = ROW_GROUP_BYTES,
+) -> None:
+    """Write a session's log, `batches` of LOG_SCHEMA as a log stream yields them, to `path`
+    atomically as FRAME_SCHEMA with `file_metadata(header)`, holding at most one row group in
+    memory; every row is given once to `on_rows` (a row group's rows at a time, LOG_SCHEMA) before
+    it is written.
+
+    Row groups hold `group_rows` rows, except that once `group_bytes` of frames are buffered, what is
+    buffered is written as a shorter one. The frames of a batch count pyarrow's `nbytes` of its rows
+    with their id columns."""
+    schema = FRAME_SCHEMA.with_metadata({METADATA_KEY: json.dumps(file_metadata(header), allow_nan=False)})
+    buffered = _RowGroupBuffer(header, group_bytes=group_bytes)
+    with _atomic_writer(path, schema) as writer:
+
+        def write_groups(table: pa.Table, *, whole: bool) -> int:
+            # Full row groups of `group_rows` rows, then the rest if `whole`; the rows left unwritten.
+            start = 0
+            while table.num_rows - start >= group_rows or (whole and start < table.num_rows):
+                rows = table.slice(start, group_rows)
+                if on_rows is not None:
+                    on_rows(rows)
+                writer.write_table(
+                    to_frame_table(rows, session_id=header.session_id, model_name=header.model_name)
+                )
+                start += rows.num_rows
+            return int(table.num_rows) - start
+
+        for batch in batches:
+            buffered.add(batch)
+            whole = buffered.full
+            if whole or buffered.rows >= group_rows:
+                left = write_groups(buffered.take(), whole=whole)
+                if left:
+                    # Fewer than `group_rows` rows were buffered before this batch: the rows left are
+                    # its tail, and wait for more.
+                    buffered.add(batch.slice(batch.num_rows - left), exact=True)
+        write_groups(buffered.take(), whole=True)
+
+
+class _RowGroupBuffer:
+    """The log batches of the row group being gathered: their rows, and whether their frames reach
+    `group_bytes` (why the count is kept and how it is made cheap:
+    docs/decisions/0142-compaction-a-row-group-at-a-time.md).
+
+    pyarrow's `nbytes` costs ~150 us a batch here, more than the rest of the compaction of a batch of
+    a tick or two, so it is only counted once the batches' IPC sizes reach `group_bytes`. A batch
+    decoded from a log references no byte its IPC message does not hold (buffers written whole, a
+    validity bitmap only where there are nulls), nor does a column `conform` added."""
+
+    def __init__(self, header: SessionHeader, *, group_bytes: int) -> None:
+        self._group_bytes = group_bytes
+        # What the id columns add to a batch's frames: the two one-value dictionaries, and an index
+        # per row in each.
+        empty = to_frame_table(
+            LOG_SCHEMA.empty_table(), session_id=header.session_id, model_name=header.model_name
+        )
+        self._ids_bytes = int(empty.nbytes)
+        self._id_row_bytes = sum(int(f.type.index_type.bit_width) // 8 for f in ID_COLUMNS)
+        self._batches: collections.deque[tuple[pa.RecordBatch, int]] = collections.deque()  # and bytes
+        self.rows = 0
+        self._bound = 0  # at least the frames' bytes
+        self._bytes: int | None = None  # the frames' bytes, once counted
+
+    @property
+    def full(self) -> bool:
+        """Whether the frames buffered reach `group_bytes`."""
+        return self._bytes is not None and self._bytes >= self._group_bytes
+
+    def _ids(self, batch: pa.RecordBatch) -> int:
+        return self._ids_bytes + self._id_row_bytes * int(batch.num_rows)
+
+    def add(self, batch: pa.RecordBatch, *, exact: bool = False) -> None:
+        """Gather `batch` (`exact`: count its bytes now; a slice's IPC size may fall short of its
+        nbytes by the alignment of its bitmaps)."""
+        self.rows += batch.num_rows
+        if self._bytes is not None:
+            size = int(batch.nbytes)
+            self._bytes += size + self._ids(batch)
+        else:
+            size = int(batch.nbytes) if exact else pa.ipc.get_record_batch_size(batch)
+            self._bound += size + self._ids(batch)
+        self._batches.append((batch, size))
+        if self._bytes is None and self._bound >= self._group_bytes:
+            self._bytes = sum(int(b.nbytes) + self._ids(b) for b, _ in self._batches)
+
+    def take(self) -> pa.Table:
+        """The buffered rows as one table (LOG_SCHEMA), each run of small batches copied into one
+        chunk and freed as soon as it is; nothing is left buffered."""
+        pieces: list[pa.Table] = []
+        run: list[pa.RecordBatch] = []
+        run_bytes = 0
+        while self._batches:
+            batch, size = self._batches.popleft()
+            if run and run_bytes + size > _CHUNK_BYTES:
+                pieces.append(_copied(run))
+                run_bytes = 0
+            run.append(batch)
+            run_bytes += size
+        if run:
+            pieces.append(_copied(run))
+        self.rows = self._bound = 0
+        self._bytes = None
+        return pa.concat_tables(pieces) if pieces else LOG_SCHEMA.empty_table()
+
+
+def _copied(run: list[pa.RecordBatch]) -> pa.Table:
+    """The batches of `run` as one chunk, emptying `run` a batch at a time: freeing hundreds of
+    batches in one statement holds the GIL for milliseconds."""
+    table = pa.Table.from_batches(run, schema=LOG_SCHEMA).combine_chunks()
+    while run:
+        run.pop()
+    return table
 
 
 def read_metadata(path: Path | str, *, filesystem: Any = None) -> dict[str, Any]:

@@ -29,28 +29,20 @@ import enum
 import logging
 import os
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
 from types import TracebackType
 from typing import Self
 
-import pyarrow as pa
-
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
-from jitdyn.storage.columns import FRAME_SCHEMA, expected_lengths
+from jitdyn.storage.columns import expected_lengths
 from jitdyn.storage.commit import GroupCommitter, default_committer
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.layout import frames_location, fsync_dir, log_location, make_dirs
 from jitdyn.storage.log import LogStream, LogWriter, stream_log, try_lock
-from jitdyn.storage.parquet import (
-    file_metadata,
-    header_from_json,
-    header_to_json,
-    to_frame_table,
-    write_parquet_stream,
-)
+from jitdyn.storage.parquet import header_from_json, header_to_json, write_frames
 from jitdyn.storage.publish import drop_local_copy, publish_frames
 from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, TickRecord, stored_word
 from jitdyn.storage.root import DataRoot
@@ -76,19 +68,14 @@ def _compact(
     summariser: Summariser | None = None,
 ) -> str:
     """Write the log's rows, read batch by batch in bounded memory, as the session's Parquet file
-    (adding each to `summariser`); its location relative to the data root."""
+    (adding them to `summariser`); its location relative to the data root."""
     location = frames_location(model_name=header.model_name, date=header.date, session_id=header.session_id)
     folder = make_dirs(data_root, str(Path(location).parent))
-
-    def tables() -> Iterator[pa.Table]:
-        for batch in log.batches():
-            rows = pa.Table.from_batches([batch])
-            if summariser is not None:
-                summariser.add(rows)
-            yield to_frame_table(rows, session_id=header.session_id, model_name=header.model_name)
-
-    write_parquet_stream(
-        tables(), schema=FRAME_SCHEMA, path=folder / Path(location).name, metadata=file_metadata(header)
+    write_frames(
+        log.batches(),
+        header=header,
+        path=folder / Path(location).name,
+        on_rows=summariser.add if summariser is not None else None,
     )
     return location
 
