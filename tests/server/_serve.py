@@ -19,6 +19,7 @@ from pathlib import Path
 
 from jitdyn.client import AsyncClient, FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.errors import ResourceExhausted
+from jitdyn.server.runtime.priority import set_priority
 
 # Why a pendulum_3 PASSIVE session at 20 Hz is refused: the process's budget, the machine's idle
 # CPU, or answers (or the loop) already late.
@@ -56,6 +57,20 @@ def heap_frozen() -> Iterator[None]:
         yield
     finally:
         gc.unfreeze()
+
+
+@contextlib.contextmanager
+def client_first() -> Iterator[None]:
+    """This test process as a client program on another machine would be: not behind the CPU hogs
+    of the machine it shares with the server. Its threads run at the server's own priority (nice
+    -10, server/runtime/priority.py) while it measures, where that is permitted; else as they
+    were. A frame this client sent late, or an answer it read late, is not the server's."""
+    before = os.getpriority(os.PRIO_PROCESS, 0)
+    set_priority(-10)
+    try:
+        yield
+    finally:
+        set_priority(before)
 
 
 def free_port() -> int:

@@ -11,7 +11,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-from _serve import REFUSALS, Serve, free_port, heap_frozen, realtime_session
+from _serve import REFUSALS, Serve, client_first, free_port, heap_frozen, realtime_session
 
 # A wall-clock promise: it runs first in the suite (docs/decisions/0010-timing-tests-first.md).
 # (The open unanswered for 30 s it once saw was a server deadlocked in its collector callback,
@@ -48,7 +48,7 @@ def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
             results = await asyncio.gather(*tasks)
             return results
 
-        with heap_frozen():
+        with heap_frozen(), client_first():
             outcomes = asyncio.run(everyone())
         scraped = (
             urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10).read().decode()

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from _serve import REFUSALS, Serve, heap_frozen, realtime_session
+from _serve import REFUSALS, Serve, client_first, heap_frozen, realtime_session
 
 from jitdyn.client import Client, FrameData, SessionOptions, TickResult
 from jitdyn.errors import ResourceExhausted
@@ -38,7 +38,7 @@ def test_beside_a_cpu_hog_the_admitted_sessions_are_on_time_and_the_surplus_refu
                 await asyncio.sleep(0.15)
             return list(await asyncio.gather(*tasks))
 
-        with heap_frozen():
+        with heap_frozen(), client_first():
             outcomes = asyncio.run(offer())
     finally:
         server.stop()
