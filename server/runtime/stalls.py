@@ -8,7 +8,10 @@ late). Admission takes the lag as evidence (server/runtime/admission.py), and so
 for `stall` seconds, it samples the loop thread's stack until the loop beats again, and `report`
 gets the stall, its stacks by how often they were seen, and what the other threads were doing when
 it began (a loop waiting for the GIL shows in the call that gave it away, and the thread that has
-it shows among the others).
+it shows among the others). It also gets the kernel's account of the stall (Linux's schedstat):
+how much of it the loop's thread ran, how much it was runnable but waiting for a CPU, the rest
+(waiting for the GIL, a lock or I/O), what the process's other threads ran, and how idle the
+machine's CPUs were meanwhile.
 
     watch = LoopWatch(loop, on_lag=admission.observe_loop_lag, stall=0.1, report=log_stall)
     watch.start()               # on the loop's thread
@@ -20,11 +23,12 @@ What it found, and why it is built so: docs/decisions/0009-the-loop-watched.md.
 from __future__ import annotations
 
 import asyncio
+import os
 import sys
 import threading
 import time
 import traceback
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,18 +42,45 @@ _OURS: Final = str(Path(__file__).resolve().parents[2])  # frames of jitdyn's ow
 _SHOWN: Final = 14  # innermost frames of a stack shown
 
 
+@dataclass(frozen=True)
+class Account:
+    """The kernel's account of a stretch of a stall (s): the loop thread on a CPU, the loop thread
+    runnable and waiting for one, the process's other threads on a CPU, and the machine's CPUs
+    idle (summed over CPUs) out of `wall`."""
+
+    wall: float
+    ran: float
+    waited_for_cpu: float
+    others_ran: float
+    idle: float
+
+    def describe(self) -> str:
+        neither = max(0.0, self.wall - self.ran - self.waited_for_cpu)
+        cpus = os.cpu_count() or 1
+        return (
+            f"  of its last {1e3 * self.wall:.0f} ms the loop's thread ran {1e3 * self.ran:.0f}, waited "
+            f"{1e3 * self.waited_for_cpu:.0f} for a CPU and {1e3 * neither:.0f} for the GIL, a lock or I/O; "
+            f"the process's other threads ran {1e3 * self.others_ran:.0f}; the machine's {cpus} CPUs were "
+            f"{100 * self.idle / (self.wall * cpus) if self.wall > 0 else 0:.0f} % idle"
+        )
+
+
 @dataclass
 class Stall:
     """A stall: `seconds` without a beat; the loop thread's stacks sampled meanwhile, with how
-    often; every other thread's stack when it was first seen."""
+    often; every other thread's stack when it was first seen; the kernel's account of it, from
+    the last look before it was seen to its end (None where Linux's schedstat is not there)."""
 
     seconds: float
     loop_stacks: Counter[str] = field(default_factory=Counter)
     others: dict[str, str] = field(default_factory=dict)
+    account: Account | None = None
 
     def describe(self) -> str:
         samples = sum(self.loop_stacks.values())
         lines = [f"the event loop stalled {1e3 * self.seconds:.0f} ms; what it ran ({samples} samples):"]
+        if self.account is not None:
+            lines.append(self.account.describe())
         for stack, count in self.loop_stacks.most_common(3):
             lines.append(f"  {count} of {samples}:\n{stack}")
         busy = {name: stack for name, stack in self.others.items() if stack}
@@ -71,6 +102,60 @@ def _stack(frame: object, *, ours_only: bool = False) -> str:
     return "".join(f"    {Path(e.filename).name}:{e.lineno} {e.name}\n" for e in kept[-_SHOWN:])
 
 
+@dataclass(frozen=True)
+class _Reading:
+    """What the kernel had counted at one moment (s): the loop thread's time on a CPU and waiting
+    for one, every thread's of the process on a CPU, the machine's idle time summed over CPUs."""
+
+    at: float
+    ran: float
+    waited: float
+    all_ran: float
+    idle: float
+
+    def until(self, later: _Reading) -> Account:
+        ran = later.ran - self.ran
+        return Account(
+            wall=later.at - self.at,
+            ran=ran,
+            waited_for_cpu=later.waited - self.waited,
+            others_ran=max(0.0, later.all_ran - self.all_ran - ran),
+            idle=later.idle - self.idle,
+        )
+
+
+class _Kernel:
+    """Reads the kernel's counts for `_Reading`s through files kept open (a look costs ~10 us);
+    `read` gives None where /proc has no schedstat (not Linux, or a kernel without
+    CONFIG_SCHEDSTATS)."""
+
+    def __init__(self, loop_tid: int) -> None:
+        try:
+            self._thread: int | None = os.open(f"/proc/self/task/{loop_tid}/schedstat", os.O_RDONLY)
+            self._machine: int | None = os.open("/proc/stat", os.O_RDONLY)
+        except OSError:
+            self._thread = self._machine = None
+        self._tick = os.sysconf("SC_CLK_TCK")
+
+    def read(self) -> _Reading | None:
+        if self._thread is None or self._machine is None:
+            return None
+        try:
+            at = time.monotonic()
+            ran, waited, _ = os.pread(self._thread, 128, 0).split()
+            all_ran = time.process_time()
+            fields = os.pread(self._machine, 256, 0).split(b"\n", 1)[0].split()
+            idle = (int(fields[4]) + int(fields[5])) / self._tick  # idle and iowait, summed over CPUs
+            return _Reading(at=at, ran=int(ran) / 1e9, waited=int(waited) / 1e9, all_ran=all_ran, idle=idle)
+        except (OSError, ValueError, IndexError):
+            return None
+
+    def close(self) -> None:
+        for fd in (self._thread, self._machine):
+            if fd is not None:
+                os.close(fd)
+
+
 class LoopWatch:
     """Beats on `loop` every BEAT, handing each beat's lag (s) to `on_lag`; with `stall` (s), a
     thread reports through `report` every stall longer than it."""
@@ -90,6 +175,7 @@ class LoopWatch:
         self._due = 0.0
         self._beat = time.monotonic()  # when the loop last beat, on the watchdog's clock
         self._loop_thread = 0
+        self._loop_tid = 0  # the loop thread's id for the kernel
         self._stopped = threading.Event()
         self._handle: asyncio.TimerHandle | None = None
         self._thread: threading.Thread | None = None
@@ -97,6 +183,7 @@ class LoopWatch:
     def start(self) -> None:
         """Call on the loop's thread."""
         self._loop_thread = threading.get_ident()
+        self._loop_tid = threading.get_native_id()
         self._due = self._loop.time() + BEAT
         self._handle = self._loop.call_at(self._due, self._on_beat)
         if self._stall is not None and self._report is not None:
@@ -120,18 +207,29 @@ class LoopWatch:
         assert self._stall is not None and self._report is not None
         stall: Stall | None = None
         began = 0.0
+        kernel = _Kernel(self._loop_tid)
+        readings: deque[_Reading] = deque(maxlen=int(self._stall / LOOK) + 4)  # the last looks'
+        before: _Reading | None = None  # the kernel's counts at the last look before the stall began
         while not self._stopped.wait(LOOK):
             beat = self._beat
             silent = time.monotonic() - beat
             if stall is not None and beat != began:  # the loop beat again: the stall is over
                 stall.seconds = beat - began
+                after = kernel.read()
+                if before is not None and after is not None:
+                    stall.account = before.until(after)
                 self._report(stall)
                 stall = None
             if silent <= self._stall:
+                if (reading := kernel.read()) is not None:
+                    readings.append(reading)
                 continue
             frames = sys._current_frames()
             if stall is None:
                 stall, began = Stall(seconds=silent), beat
+                before = next(
+                    (r for r in reversed(readings) if r.at <= began), readings[0] if readings else None
+                )
                 names = {t.ident: t.name for t in threading.enumerate()}
                 stall.others = {
                     names.get(ident, str(ident)): _stack(frame, ours_only=True)
@@ -141,3 +239,4 @@ class LoopWatch:
             frame = frames.get(self._loop_thread)
             if frame is not None:
                 stall.loop_stacks[_stack(frame)] += 1
+        kernel.close()

@@ -38,6 +38,38 @@ def test_a_stall_is_reported_with_the_code_that_held_the_loop() -> None:
     assert "test_stalls.py" in top and top.rstrip().endswith("_holds_the_loop")
     text = stall.describe()
     assert text.startswith("the event loop stalled 2") and "_holds_the_loop" in text, text
+    # The kernel's account: a loop asleep ran nothing and waited for no CPU.
+    account = stall.account
+    assert account is not None, "Linux's schedstat is on this kind of machine"
+    assert 0.15 < account.wall < 0.45 and account.ran < 0.03 and account.waited_for_cpu < 0.05, account
+    assert "for the GIL, a lock or I/O" in text
+
+
+def _computes(seconds: float) -> None:
+    end = time.thread_time() + seconds
+    while time.thread_time() < end:
+        pass
+
+
+def test_a_stall_of_computation_is_accounted_as_the_loop_running_or_waiting_for_a_cpu() -> None:
+    stalls: list[Stall] = []
+
+    async def main() -> None:
+        watch = LoopWatch(
+            asyncio.get_running_loop(), on_lag=lambda lag: None, stall=0.05, report=stalls.append
+        )
+        watch.start()
+        await asyncio.sleep(0.1)
+        _computes(0.2)
+        await asyncio.sleep(0.1)
+        watch.stop()
+
+    asyncio.run(main())
+    assert len(stalls) == 1 and stalls[0].account is not None
+    account = stalls[0].account
+    # 0.2 s of the thread's own CPU time, all inside the stall; on a busy machine some of the wall
+    # is spent runnable, waiting for a CPU, which the kernel counts apart.
+    assert 0.15 < account.ran < 0.3 and account.ran + account.waited_for_cpu > 0.8 * account.wall, account
 
 
 def test_a_busy_loop_without_a_stall_reports_none() -> None:
