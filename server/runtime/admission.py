@@ -198,10 +198,15 @@ class Admission:
 
     def observe_loop_lag(self, seconds: float) -> None:
         """Something due on the process's event loop ran `seconds` late (server/runtime/stalls.py):
-        every deadline due in that moment was as late."""
-        if seconds > LATE_ANSWER:
-            with self._lock:
+        every deadline due in that moment was as late. Called at every beat of the loop, it also
+        closes each window on time: the evidence an admission reads is then always of the last
+        window, not of everything since the last admission (a server idle for a minute, then
+        beside a CPU hog for two seconds, saw half a minute's idle CPU as free)."""
+        with self._lock:
+            if seconds > LATE_ANSWER:
                 self._lag_late += seconds - LATE_ANSWER
+            if time.monotonic() - self._cpu_mark[0] >= _CPU_WINDOW:
+                self._sample_cpu()
 
     def _behind(self) -> str | None:
         """Why the process's answers are late now (its answers or its loop, over the last window),
