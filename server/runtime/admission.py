@@ -327,6 +327,46 @@ class Admission:
             self.switch.add(grace)
         return ticket
 
+    def full(self) -> str | None:
+        """Why this process admits no new REALTIME session now, whatever its cost, or None: its
+        answers or its loop go late, its load is at its budget, or the machine has no more than
+        its headroom idle. Asked at the door, before the model is looked up and priced: 370 opens
+        refused the long way (two registry queries and a price each, about 1.5 ms of the
+        process's CPU) left the sessions already admitted 2-3.5 % of their ticks PREDICTED
+        in the seconds they took (benchmarks/RESULTS.md, Round 12)."""
+        with self._lock:
+            current = max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
+            behind = self._behind()
+            if behind is not None:
+                return (
+                    f"this server process {behind} (at {100 * current:.0f} % of a core, tick budget "
+                    f"{100 * self.budget:.0f} %): the CPU its sessions get is short, so it takes no new "
+                    "REALTIME session now. Try again later, on another server, or at a lower rate"
+                )
+            if current >= self.budget and self._by_id:
+                return (
+                    f"this server process is at {100 * current:.0f} % of a core and its tick budget is "
+                    f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}): it takes no new REALTIME "
+                    "session now. Try again later, on another server, or at a lower rate"
+                )
+            free = self._machine_left()
+            if free is not None and free <= MACHINE_HEADROOM:
+                return (
+                    f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
+                    f"programs, this server's other processes or its clients use the rest) and "
+                    f"{MACHINE_HEADROOM:g} of a core is kept free: it takes no new REALTIME session now. "
+                    "Try again later, on another server, or at a lower rate"
+                )
+            return None
+
+    def _machine_left(self) -> float | None:
+        """Cores the machine left idle in the last window, less what was admitted since; None
+        where the machine is not counted. Under the lock."""
+        if self.machine_free is None:
+            return None
+        since = self._cpu_mark[0]
+        return self.machine_free - sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
+
     def _check_room(self, ticket: Ticket, *, current: float, what: str) -> None:
         """ResourceExhausted, saying why, when `ticket` does not fit the process's budget or the
         machine's idle CPU, or while the process's answers go late. Under the lock."""
@@ -351,19 +391,16 @@ class Admission:
     def _check_machine(self, ticket: Ticket, *, load: float, what: str) -> None:
         """ResourceExhausted when `load` (cores) does not fit the CPU the machine left idle in the
         last window, less what was admitted since. Under the lock."""
-        if self.machine_free is not None:
-            since = self._cpu_mark[0]
-            recent = sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
-            free = self.machine_free - recent
-            if load > free - MACHINE_HEADROOM:
-                self.refused += 1
-                raise ResourceExhausted(
-                    f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
-                    f"programs, this server's other processes or its clients use the rest); a session "
-                    f"of {what} is estimated at {1e6 * load * ticket.dt:.0f} us per tick, "
-                    f"{load:.2f} of a core, and {MACHINE_HEADROOM:g} of a core is kept free. "
-                    "Try again later, on another server, or at a lower rate"
-                )
+        free = self._machine_left()
+        if free is not None and load > free - MACHINE_HEADROOM:
+            self.refused += 1
+            raise ResourceExhausted(
+                f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
+                f"programs, this server's other processes or its clients use the rest); a session "
+                f"of {what} is estimated at {1e6 * load * ticket.dt:.0f} us per tick, "
+                f"{load:.2f} of a core, and {MACHINE_HEADROOM:g} of a core is kept free. "
+                "Try again later, on another server, or at a lower rate"
+            )
 
     def _release(self, ticket: Ticket) -> None:
         with self._lock:

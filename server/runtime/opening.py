@@ -129,6 +129,19 @@ class SessionOpener:
     def limits(self) -> StreamLimits:
         return self._limits
 
+    def check_door(self, request: OpenRequest) -> None:
+        """ResourceExhausted, saying why, when `request` opens a new REALTIME session and the process
+        admits none now whatever it costs (Admission.full). Cheap and non-blocking: asked on the
+        event loop before the open queues for the slow steps' thread, so that the surplus of a
+        burst of opens is refused without looking up, loading and pricing its model."""
+        if request.clock != Clock.REALTIME or request.resume is not None:
+            return
+        reason = self._services.admission.full()
+        if reason is not None:
+            if self._on_admission is not None:
+                self._on_admission(True)
+            raise ResourceExhausted(reason)
+
     def open_session(self, request: OpenRequest) -> OpenedSession:
         """Open `request`'s session, or continue the one it resumes. Blocking (the model, the
         estimator, the log's first write)."""

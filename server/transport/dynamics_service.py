@@ -642,6 +642,11 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
     async def _open(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
         services, tenant = self._services, request.tenant
         services.admit(tenant)
+        try:
+            self._opener.check_door(request)
+        except JitdynError:
+            services.release(tenant)
+            raise
         opening = asyncio.ensure_future(self._slow(self._open_sync, request))
         try:
             return await asyncio.shield(opening)

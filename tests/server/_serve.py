@@ -22,7 +22,7 @@ from jitdyn.errors import ResourceExhausted
 from jitdyn.server.runtime.priority import set_priority
 
 # Why a pendulum_3 PASSIVE session at 20 Hz is refused: the process's budget, the machine's idle
-# CPU, or answers (or the loop) already late.
+# CPU, or answers (or the loop) already late; priced, or at the door when no session would fit.
 REFUSALS = (
     (
         r"this server process is at \d+ % of a core and its tick budget is \d+ % \(--tick-budget [\d.]+\); "
@@ -40,6 +40,22 @@ REFUSALS = (
         r"deadlines more than 5 ms late for [\d.]+ % of) the last 2 s \(at \d+ % of a core, tick budget \d+ %\): "
         r"the CPU its sessions get is short, so a session of pendulum_3 \(passive\) at 20 Hz is not "
         r"admitted\. Try again later, on another server, or at a lower rate"
+    ),
+    # The same three, asked at the door before the model is priced (Admission.full): no session fits.
+    (
+        r"this server process is at \d+ % of a core and its tick budget is \d+ % \(--tick-budget [\d.]+\): "
+        r"it takes no new REALTIME session now\. Try again later, on another server, or at a lower rate"
+    ),
+    (
+        r"this machine has [\d.]+ of its \d+ cores free \(other programs, this server's other processes or "
+        r"its clients use the rest\) and 0\.1 of a core is kept free: it takes no new REALTIME session now\. "
+        r"Try again later, on another server, or at a lower rate"
+    ),
+    (
+        r"this server process (answered [\d.]+ % of its ticks more than 5 ms past their deadlines in|ran its "
+        r"deadlines more than 5 ms late for [\d.]+ % of) the last 2 s \(at \d+ % of a core, tick budget \d+ %\): "
+        r"the CPU its sessions get is short, so it takes no new REALTIME session now\. Try again later, on "
+        r"another server, or at a lower rate"
     ),
 )
 

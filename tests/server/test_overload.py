@@ -145,3 +145,35 @@ def test_a_session_still_unaffordable_after_the_late_timeout_is_ended_and_the_fi
     # Once the CPU came back, the first session's answers came by their deadlines (grace dt/2).
     assert late_after and sorted(late_after)[int(0.9 * (len(late_after) - 1))] <= dt / 2 + 0.010, late_after
     assert any("ended, " in line and "after it was told it may go late" in line for line in server.lines)
+
+
+def test_a_full_process_refuses_a_realtime_open_at_the_door_before_looking_up_its_model(
+    tmp_path: Path,
+) -> None:
+    """A burst of opens past capacity is refused without the registry: a process with no room for
+    any REALTIME session refuses one naming a model that does not exist with RESOURCE_EXHAUSTED,
+    not NOT_FOUND (the lookup never ran), while a LOCKSTEP open of it still finds it missing."""
+    from jitdyn.errors import NotFound
+
+    # pendulum_3 at 20 Hz is admitted on the idle process (its filter fits 2 % of a core); with
+    # its transport it is priced at ~2.3 ms a tick, past the budget: no room is left for anyone.
+    server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "0.02")
+    try:
+        with Client(server.address, timeout=30) as client:
+            options = SessionOptions(model_name="pendulum_3", dt=DT, clock="REALTIME", scenario="PASSIVE")
+            with client.open_session(options):
+                missing = SessionOptions(
+                    model_name="no_such_model", dt=DT, clock="REALTIME", scenario="PASSIVE"
+                )
+                with pytest.raises(ResourceExhausted) as door:
+                    client.open_session(missing)
+                with pytest.raises(NotFound, match="no model is named 'no_such_model'"):
+                    client.open_session(SessionOptions(model_name="no_such_model", dt=DT, scenario="PASSIVE"))
+    finally:
+        server.stop()
+    message = str(door.value)
+    assert re.fullmatch(
+        r"this server process is at \d+ % of a core and its tick budget is 2 % \(--tick-budget 0\.02\): it "
+        r"takes no new REALTIME session now\. Try again later, on another server, or at a lower rate",
+        message,
+    ), message
