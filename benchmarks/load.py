@@ -24,6 +24,12 @@ reports:
 
 Without --server it starts `jitdyn serve` with default settings on a free port and a temporary
 data folder, and stops it after each run (a fresh server per trial in a sweep).
+
+The generator stands for clients on other machines, so it runs at the server's priority (`--nice`,
+default -10 as `jitdyn serve`'s): below it, the server's own work on a burst of opens took the CPU
+from the generator's admitted sessions, whose frames then reached the server late (400 offered:
+94.9-96.8 % of the admitted ticks MEASURED with the generator at nice 0, 99.9-100 % at -10;
+benchmarks/RESULTS.md, Round 12).
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -52,7 +59,9 @@ from typing import Any
 import numpy as np
 
 from jitdyn.server.runtime.alarm import Alarm
+from jitdyn.server.runtime.priority import set_priority
 from jitdyn.server.runtime.stalls import LoopWatch
+from jitdyn.settings import Settings
 from jitdyn.vocabulary import Clock, Preset, Scenario
 
 GRACE_FRACTION = 0.5  # the server's default grace, dt / 2
@@ -161,6 +170,9 @@ class WorkerResult:
     reject_reasons: dict[str, int] = field(default_factory=dict)  # reason -> count
     reject_example: str = ""  # one rejection's message, to say why
     arrivals: list[float] = field(default_factory=list)  # monotonic time of each first answer
+    # Monotonic tick time of each answered tick whose first answer was not MEASURED: when in the
+    # run the misses came (the opens of the surplus, a stall, the end).
+    unmeasured_at: list[float] = field(default_factory=list)
     server_late_ms: list[float] = field(default_factory=list)  # deadline to send, server clock
     # When each frame reached the server's loop after its tick time (Result.frame_delay), ms:
     # past the grace, its tick was answered PREDICTED.
@@ -306,6 +318,8 @@ async def _session(
         arrived, source, shed, server_late_us = answer
         result.server_late_ms.append(server_late_us / 1e3)
         result.measured += source == measured_source
+        if source != measured_source:
+            result.unmeasured_at.append(start + k * spec.dt)
         result.shed += shed
         result.lateness_ms.append(max(0.0, (arrived - (k * spec.dt + grace)) * 1e3))
         result.arrivals.append(start + arrived)
@@ -618,6 +632,8 @@ class RunReport:
     rejected: int = 0
     reject_reasons: dict[str, int] = field(default_factory=dict)
     reject_example: str = ""
+    measured_of_answered: float = 0.0  # of the admitted sessions' answered ticks
+    unmeasured_by_second: dict[str, int] = field(default_factory=dict)  # second of the run -> ticks
     frame_delay_p50_ms: float = 0.0  # a frame's arrival on the server's loop after its tick time
     frame_delay_p99_ms: float = 0.0
     server_late_p99_ms: float = 0.0  # deadline to send on the server's clock (Result.receive_to_send_us)
@@ -672,6 +688,12 @@ class RunReport:
             f"{1e3 * GRACE_FRACTION / self.rate:g} ms; the load generator's own loop lag "
             f"{self.generator_lag_p99_ms:.2f} (p99) / {self.generator_lag_max_ms:.1f} ms (max)"
         )
+        if self.unmeasured_by_second:
+            seconds = ", ".join(f"{s} s: {n}" for s, n in self.unmeasured_by_second.items())
+            text += (
+                f"\n      {100 * self.measured_of_answered:.2f} % of the answered ticks MEASURED; the others "
+                f"by second of the run: {seconds}"
+            )
         if self.stalls:
             longest = max(self.stalls, key=lambda r: float(r.split("stalled ")[1].split(" ms")[0]))
             text += f"\n      the server logged {len(self.stalls)} stalls of its loop; the longest:\n{longest.rstrip()}"
@@ -874,6 +896,7 @@ def run(
             merged.reject_reasons[reason] = merged.reject_reasons.get(reason, 0) + count
         merged.reject_example = merged.reject_example or r["reject_example"]
         merged.arrivals.extend(r["arrivals"])
+        merged.unmeasured_at.extend(r["unmeasured_at"])
         merged.server_late_ms.extend(r["server_late_ms"])
         merged.frame_delay_ms.extend(r["frame_delay_ms"])
         merged.ticks_sent += r["ticks_sent"]
@@ -914,6 +937,11 @@ def run(
         ticks_sent=merged.ticks_sent,
         answered=merged.answered / expected,
         measured=merged.measured / expected,
+        measured_of_answered=merged.measured / max(1, merged.answered),
+        unmeasured_by_second={
+            str(second): count
+            for second, count in sorted(Counter(int(at - started) for at in merged.unmeasured_at).items())
+        },
         late_p50_ms=percentile(merged.lateness_ms, 50),
         late_p99_ms=percentile(merged.lateness_ms, 99),
         late_max_ms=float(late.max()),
@@ -1025,15 +1053,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--json", type=Path, help="also write every report here")
     parser.add_argument(
+        "--nice",
+        type=int,
+        default=Settings().nice,
+        metavar="N",
+        help="the load generator's CPU priority, as nice(1) counts it (default: the server's default, "
+        "%(default)s): it stands for clients on other machines, not behind the server or batch work here",
+    )
+    parser.add_argument(
         "--floor",
         action="store_true",
         help="also measure bare grpc.aio's server CPU per tick at the same load",
     )
     args = parser.parse_args(argv)
     serve_args = args.serve_args.split()
+    problem = set_priority(args.nice)
     print(
         f"# {os.cpu_count()} CPUs; server {'at ' + args.server if args.server else 'started per run'} "
-        f"{' '.join(serve_args)}; {args.clients} client processes",
+        f"{' '.join(serve_args)}; {args.clients} client processes at nice {os.getpriority(os.PRIO_PROCESS, 0)}"
+        + (f" ({problem})" if problem else ""),
         flush=True,
     )
     if args.sweep and args.estimator:
