@@ -76,6 +76,8 @@ def _usable_cpus() -> int:
 
 
 _CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
+# s of the machine's CPU looked at before the first admission, when no window has ended yet
+_FIRST_LOOK: Final = 0.1
 
 
 @dataclass
@@ -175,6 +177,23 @@ class Admission:
             self.lag_share = self._lag_late / (wall - since)
             self._lag_late = 0.0
         return self._cpu_load if self.count_process_cpu else 0.0
+
+    def _first_look(self) -> None:
+        """The machine's idle CPU over a short look, when no window has ended since the process
+        began serving: else the opens of its first 2 s were admitted without it (a server started
+        beside two CPU hogs admitted 28 sessions, all within its first window). Outside the lock,
+        which the loop's beats take: it waits _FIRST_LOOK on the opening thread, once."""
+        if not self.count_machine_cpu or self.machine_free is not None:
+            return
+        before = _machine_times()
+        time.sleep(_FIRST_LOOK)
+        after = _machine_times()
+        if before is None or after is None or after[1] <= before[1]:
+            return
+        free = _usable_cpus() * max(0.0, 1.0 - (after[0] - before[0]) / (after[1] - before[1]))
+        with self._lock:
+            if self.machine_free is None:  # a window that ended meanwhile knows better
+                self.machine_free = free
 
     def _sample_machine(self) -> None:
         if not self.count_machine_cpu:
@@ -298,6 +317,7 @@ class Admission:
             filter_seconds = cost_per_tick
         if not dt > 0:
             raise InvalidArgument(f"dt must be > 0, got {dt}")
+        self._first_look()
         ticket = Ticket(
             self, dt=dt, cost_per_tick=cost_per_tick, compute_per_tick=filter_seconds, grace=grace
         )
@@ -327,8 +347,9 @@ class Admission:
             self.switch.add(grace)
         return ticket
 
-    def full(self) -> str | None:
-        """Why this process admits no new REALTIME session now, whatever its cost, or None: its
+    def full(self, what: str) -> str | None:
+        """Why this process admits no new REALTIME session now, whatever its cost, or None (`what`:
+        the session asked for, as "pendulum_3 at 20 Hz"): its
         answers or its loop go late, its load is at its budget, or the machine has no more than
         its headroom idle. Asked at the door, before the model is looked up and priced: 370 opens
         refused the long way (two registry queries and a price each, about 1.5 ms of the
@@ -340,22 +361,22 @@ class Admission:
             if behind is not None:
                 return (
                     f"this server process {behind} (at {100 * current:.0f} % of a core, tick budget "
-                    f"{100 * self.budget:.0f} %): the CPU its sessions get is short, so it takes no new "
-                    "REALTIME session now. Try again later, on another server, or at a lower rate"
+                    f"{100 * self.budget:.0f} %): the CPU its sessions get is short, so a session of {what} "
+                    "is not admitted. Try again later, on another server, or at a lower rate"
                 )
             if current >= self.budget and self._by_id:
                 return (
                     f"this server process is at {100 * current:.0f} % of a core and its tick budget is "
-                    f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}): it takes no new REALTIME "
-                    "session now. Try again later, on another server, or at a lower rate"
+                    f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}): no session fits, so a "
+                    f"session of {what} is not admitted. Try again later, on another server, or at a lower rate"
                 )
             free = self._machine_left()
             if free is not None and free <= MACHINE_HEADROOM:
                 return (
                     f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
                     f"programs, this server's other processes or its clients use the rest) and "
-                    f"{MACHINE_HEADROOM:g} of a core is kept free: it takes no new REALTIME session now. "
-                    "Try again later, on another server, or at a lower rate"
+                    f"{MACHINE_HEADROOM:g} of a core is kept free: no session fits, so a session of {what} "
+                    "is not admitted. Try again later, on another server, or at a lower rate"
                 )
             return None
 

@@ -15,6 +15,7 @@ FailedPrecondition where the server shares no index with other replicas.
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 import uuid
 from collections.abc import Callable
@@ -136,7 +137,11 @@ class SessionOpener:
         burst of opens is refused without looking up, loading and pricing its model."""
         if request.clock != Clock.REALTIME or request.resume is not None:
             return
-        reason = self._services.admission.full()
+        if not (math.isfinite(request.dt) and request.dt > 0):
+            return  # refused as invalid on the slow path, which says why
+        choice = request.model
+        named = choice.name or choice.model_id or (choice.inline.name if choice.inline else "") or "a model"
+        reason = self._services.admission.full(f"{named} at {1 / request.dt:g} Hz")
         if reason is not None:
             if self._on_admission is not None:
                 self._on_admission(True)

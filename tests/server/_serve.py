@@ -44,18 +44,19 @@ REFUSALS = (
     # The same three, asked at the door before the model is priced (Admission.full): no session fits.
     (
         r"this server process is at \d+ % of a core and its tick budget is \d+ % \(--tick-budget [\d.]+\): "
-        r"it takes no new REALTIME session now\. Try again later, on another server, or at a lower rate"
+        r"no session fits, so a session of pendulum_3 at 20 Hz is not admitted\. Try again later, on another "
+        r"server, or at a lower rate"
     ),
     (
         r"this machine has [\d.]+ of its \d+ cores free \(other programs, this server's other processes or "
-        r"its clients use the rest\) and 0\.1 of a core is kept free: it takes no new REALTIME session now\. "
-        r"Try again later, on another server, or at a lower rate"
+        r"its clients use the rest\) and 0\.1 of a core is kept free: no session fits, so a session of "
+        r"pendulum_3 at 20 Hz is not admitted\. Try again later, on another server, or at a lower rate"
     ),
     (
         r"this server process (answered [\d.]+ % of its ticks more than 5 ms past their deadlines in|ran its "
         r"deadlines more than 5 ms late for [\d.]+ % of) the last 2 s \(at \d+ % of a core, tick budget \d+ %\): "
-        r"the CPU its sessions get is short, so it takes no new REALTIME session now\. Try again later, on "
-        r"another server, or at a lower rate"
+        r"the CPU its sessions get is short, so a session of pendulum_3 at 20 Hz is not admitted\. Try again "
+        r"later, on another server, or at a lower rate"
     ),
 )
 

@@ -75,17 +75,22 @@ def test_a_machine_that_others_keep_busy_refuses_the_sessions_it_cannot_carry() 
         for _ in range(len(os.sched_getaffinity(0)))
     ]
     try:
+        time.sleep(0.3)  # the hogs running
         machine = Admission(budget=0.75)
         alone = Admission(budget=0.75, count_machine_cpu=False)
-        for admission in (machine, alone):  # the first session of an idle process is admitted
-            admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+        # Even the first session of an idle process is refused: before any window has ended, a
+        # short look at the machine finds no core free.
+        with pytest.raises(ResourceExhausted, match=r"^this machine has 0\.\d\d of its \d+ cores free"):
+            machine.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz", filter_seconds=0.5e-3)
+        assert machine.machine_free is not None and machine.machine_free < 0.2
         time.sleep(2.2)  # a window of the machine's CPU, all of it taken by the hogs
         with pytest.raises(ResourceExhausted, match=r"^this machine has 0\.\d\d of its \d+ cores free"):
             machine.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
         assert machine.machine_free is not None and machine.machine_free < 0.2
-        # The process budget alone would have taken it: the machine's CPU is what refused it.
-        alone.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
-        assert alone.sessions == 2
+        # The process budget alone would have taken both: the machine's CPU is what refused them.
+        for _ in range(2):
+            alone.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+        assert alone.sessions == 2 and machine.sessions == 0
     finally:
         for hog in hogs:
             hog.kill()

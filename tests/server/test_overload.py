@@ -173,7 +173,8 @@ def test_a_full_process_refuses_a_realtime_open_at_the_door_before_looking_up_it
         server.stop()
     message = str(door.value)
     assert re.fullmatch(
-        r"this server process is at \d+ % of a core and its tick budget is 2 % \(--tick-budget 0\.02\): it "
-        r"takes no new REALTIME session now\. Try again later, on another server, or at a lower rate",
+        r"this server process is at \d+ % of a core and its tick budget is 2 % \(--tick-budget 0\.02\): no "
+        r"session fits, so a session of no_such_model at 20 Hz is not admitted\. Try again later, on another "
+        r"server, or at a lower rate",
         message,
     ), message
