@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 
 from jitdyn.server.runtime.stalls import BEAT, LoopWatch, Stall
 
@@ -13,7 +14,8 @@ def _holds_the_loop(seconds: float) -> None:
     time.sleep(seconds)  # as a long computation on the loop would
 
 
-def test_a_stall_is_reported_with_the_code_that_held_the_loop() -> None:
+def _watched(hold: Callable[[float], None]) -> tuple[list[float], list[Stall]]:
+    """The lags and stalls a watch (stall: 50 ms) saw of a loop that `hold` kept for 0.2 s."""
     lags: list[float] = []
     stalls: list[Stall] = []
 
@@ -21,11 +23,16 @@ def test_a_stall_is_reported_with_the_code_that_held_the_loop() -> None:
         watch = LoopWatch(asyncio.get_running_loop(), on_lag=lags.append, stall=0.05, report=stalls.append)
         watch.start()
         await asyncio.sleep(0.1)
-        _holds_the_loop(0.2)
+        hold(0.2)
         await asyncio.sleep(0.1)
         watch.stop()
 
     asyncio.run(main())
+    return lags, stalls
+
+
+def test_a_stall_is_reported_with_the_code_that_held_the_loop() -> None:
+    lags, stalls = _watched(_holds_the_loop)
     # Beats on an idle loop are on time; the stall is one beat 0.2 s late.
     assert len(lags) > 20
     assert sorted(lags)[len(lags) // 2] < 5 * BEAT
@@ -52,19 +59,7 @@ def _computes(seconds: float) -> None:
 
 
 def test_a_stall_of_computation_is_accounted_as_the_loop_running_or_waiting_for_a_cpu() -> None:
-    stalls: list[Stall] = []
-
-    async def main() -> None:
-        watch = LoopWatch(
-            asyncio.get_running_loop(), on_lag=lambda lag: None, stall=0.05, report=stalls.append
-        )
-        watch.start()
-        await asyncio.sleep(0.1)
-        _computes(0.2)
-        await asyncio.sleep(0.1)
-        watch.stop()
-
-    asyncio.run(main())
+    _, stalls = _watched(_computes)
     assert len(stalls) == 1 and stalls[0].account is not None
     account = stalls[0].account
     # 0.2 s of the thread's own CPU time, all inside the stall; on a busy machine some of the wall
