@@ -183,7 +183,8 @@ class Admission:
         began serving: else the opens of its first 2 s were admitted without it (a server started
         beside two CPU hogs admitted 28 sessions, all within its first window). Outside the lock,
         which the loop's beats take: it waits _FIRST_LOOK on the opening thread, once."""
-        if not self.count_machine_cpu or self.machine_free is not None:
+        # A server inside a client program counts neither its process nor the machine (_sample_cpu).
+        if not (self.count_machine_cpu and self.count_process_cpu) or self.machine_free is not None:
             return
         before = _machine_times()
         time.sleep(_FIRST_LOOK)
@@ -351,13 +352,14 @@ class Admission:
         """Why this process admits no new REALTIME session now, whatever its cost, or None (`what`:
         the session asked for, as "pendulum_3 at 20 Hz"): its
         answers or its loop go late, its load is at its budget, or the machine has no more than
-        its headroom idle. Asked at the door, before the model is looked up and priced: 370 opens
-        refused the long way (two registry queries and a price each, about 1.5 ms of the
-        process's CPU) left the sessions already admitted 2-3.5 % of their ticks PREDICTED
-        in the seconds they took (benchmarks/RESULTS.md, Round 12)."""
+        its headroom idle. Asked at the door, before the model is looked up and priced (three
+        quarters of a refused open's Python was the lookup: benchmarks/RESULTS.md, Round 12); it
+        refuses only what admit would."""
         with self._lock:
             current = max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
-            behind = self._behind()
+            # A process with no session may still take one (admit's first rule): only the machine
+            # can say no before its price is known. Its lateness was its last sessions'.
+            behind = self._behind() if self._by_id else None
             if behind is not None:
                 return (
                     f"this server process {behind} (at {100 * current:.0f} % of a core, tick budget "

@@ -275,3 +275,30 @@ def test_a_loop_that_runs_its_deadlines_late_admits_no_one(monkeypatch: pytest.M
     time.sleep(0.25)
     assert admission.unaffordable(second) is None
     admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+
+
+def test_the_door_refuses_only_what_admit_would(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Admission.full, asked before a session is priced: a process whose last sessions went late
+    but that has none now may still take one (admit's first rule), so the door lets it through;
+    with a session open, the same lateness closes the door, in admit's words."""
+    import time
+
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.2)
+    admission = Admission(budget=0.75, count_process_cpu=False)
+    ticket = admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+    for _ in range(30):
+        admission.observe_lateness(0.02)  # every answer of the window 20 ms late
+    time.sleep(0.25)
+    message = admission.full("pendulum_3 at 20 Hz")
+    assert message is not None and re.fullmatch(
+        r"this server process answered 100\.0 % of its ticks more than 5 ms past their deadlines in the "
+        r"last 0\.2 s \(at \d+ % of a core, tick budget 75 %\): the CPU its sessions get is short, so a "
+        r"session of pendulum_3 at 20 Hz is not admitted\. Try again later, on another server, or at a "
+        r"lower rate",
+        message,
+    ), message
+    ticket.release()
+    assert admission.full("pendulum_3 at 20 Hz") is None
+    admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz", filter_seconds=0.5e-3)
