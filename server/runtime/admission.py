@@ -130,6 +130,7 @@ class Admission:
     _window_compute: float = 0.0
     _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
     machine_free: float | None = None  # cores the machine left idle over the last window
+    _looked: bool = False  # the first admission's look at the machine was taken
     _answers: int = 0
     _late_answers: int = 0
     late_share: float = 0.0  # of the answers of the last window more than LATE_ANSWER late
@@ -184,7 +185,10 @@ class Admission:
         beside two CPU hogs admitted 28 sessions, all within its first window). Outside the lock,
         which the loop's beats take: it waits _FIRST_LOOK on the opening thread, once."""
         # A server inside a client program counts neither its process nor the machine (_sample_cpu).
-        if not (self.count_machine_cpu and self.count_process_cpu) or self.machine_free is not None:
+        if not (self.count_machine_cpu and self.count_process_cpu) or self._looked:
+            return
+        self._looked = True  # once, even where /proc/stat is not there to read
+        if self.machine_free is not None:
             return
         before = _machine_times()
         time.sleep(_FIRST_LOOK)

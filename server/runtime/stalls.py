@@ -130,12 +130,14 @@ class _Kernel:
     CONFIG_SCHEDSTATS)."""
 
     def __init__(self, loop_tid: int) -> None:
+        self._thread: int | None = None
+        self._machine: int | None = None
         try:
-            self._thread: int | None = os.open(f"/proc/self/task/{loop_tid}/schedstat", os.O_RDONLY)
-            self._machine: int | None = os.open("/proc/stat", os.O_RDONLY)
-        except OSError:
-            self._thread = self._machine = None
-        self._tick = os.sysconf("SC_CLK_TCK")
+            self._tick = os.sysconf("SC_CLK_TCK")
+            self._thread = os.open(f"/proc/self/task/{loop_tid}/schedstat", os.O_RDONLY)
+            self._machine = os.open("/proc/stat", os.O_RDONLY)
+        except (AttributeError, ValueError, OSError):  # no sysconf (Windows), no /proc
+            self.close()
 
     def read(self) -> _Reading | None:
         if self._thread is None or self._machine is None:
@@ -154,6 +156,7 @@ class _Kernel:
         for fd in (self._thread, self._machine):
             if fd is not None:
                 os.close(fd)
+        self._thread = self._machine = None
 
 
 class LoopWatch:
