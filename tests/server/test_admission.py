@@ -97,7 +97,9 @@ def test_a_machine_that_others_keep_busy_refuses_the_sessions_it_cannot_carry() 
             hog.wait()
 
 
-def test_the_machine_s_cpu_is_read_over_the_last_window_not_since_the_last_admission() -> None:
+def test_the_machine_s_cpu_is_read_over_the_last_window_not_since_the_last_admission(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """A server idle for a while, then beside hogs that take every core: its loop's beats close
     each window on time, so the next session is refused for the hogs, not admitted on the
     idle time before them."""
@@ -106,8 +108,10 @@ def test_the_machine_s_cpu_is_read_over_the_last_window_not_since_the_last_admis
     import sys
     import time
 
-    from jitdyn.server.runtime.admission import _CPU_WINDOW
+    from jitdyn.server.runtime import admission as module
 
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.5)
+    window = module._CPU_WINDOW
     admission = Admission(budget=0.75)
 
     def beat_for(seconds: float) -> None:  # the loop's watch beats every 5 ms (stalls.BEAT)
@@ -116,13 +120,13 @@ def test_the_machine_s_cpu_is_read_over_the_last_window_not_since_the_last_admis
             admission.observe_loop_lag(0.0)
             time.sleep(0.005)
 
-    beat_for(2 * _CPU_WINDOW + 0.2)  # idle
+    beat_for(2 * window + 0.2)  # idle
     hogs = [
         subprocess.Popen([sys.executable, "-c", "while True: pass"])
         for _ in range(len(os.sched_getaffinity(0)))
     ]
     try:
-        beat_for(2 * _CPU_WINDOW + 0.3)  # a whole window with the hogs in it
+        beat_for(2 * window + 0.3)  # a whole window with the hogs in it
         with pytest.raises(ResourceExhausted, match=r"^this machine has 0\.\d\d of its \d+ cores free"):
             admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz", filter_seconds=0.5e-3)
     finally:
