@@ -1066,6 +1066,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="also measure bare grpc.aio's server CPU per tick at the same load",
     )
     args = parser.parse_args(argv)
+    if not -20 <= args.nice <= 19:
+        parser.error(f"--nice must be a nice value from -20 to 19, got {args.nice}")
     serve_args = args.serve_args.split()
     problem = set_priority(args.nice)
     print(

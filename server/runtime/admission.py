@@ -75,6 +75,9 @@ def _usable_cpus() -> int:
         return os.cpu_count() or 1
 
 
+# Every refusal ends so: what the client can do about it.
+_TRY_ELSEWHERE: Final = "Try again later, on another server, or at a lower rate"
+
 _CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
 # s of the machine's CPU looked at before the first admission, when no window has ended yet
 _FIRST_LOOK: Final = 0.1
@@ -365,16 +368,12 @@ class Admission:
             # can say no before its price is known. Its lateness was its last sessions'.
             behind = self._behind() if self._by_id else None
             if behind is not None:
-                return (
-                    f"this server process {behind} (at {100 * current:.0f} % of a core, tick budget "
-                    f"{100 * self.budget:.0f} %): the CPU its sessions get is short, so a session of {what} "
-                    "is not admitted. Try again later, on another server, or at a lower rate"
-                )
+                return self._late_refusal(behind, current, what)
             if current >= self.budget and self._by_id:
                 return (
                     f"this server process is at {100 * current:.0f} % of a core and its tick budget is "
                     f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}): no session fits, so a "
-                    f"session of {what} is not admitted. Try again later, on another server, or at a lower rate"
+                    f"session of {what} is not admitted. {_TRY_ELSEWHERE}"
                 )
             free = self._machine_left()
             if free is not None and free <= MACHINE_HEADROOM:
@@ -382,9 +381,17 @@ class Admission:
                     f"this machine has {max(0.0, free):.2f} of its {_usable_cpus()} cores free (other "
                     f"programs, this server's other processes or its clients use the rest) and "
                     f"{MACHINE_HEADROOM:g} of a core is kept free: no session fits, so a session of {what} "
-                    "is not admitted. Try again later, on another server, or at a lower rate"
+                    f"is not admitted. {_TRY_ELSEWHERE}"
                 )
             return None
+
+    def _late_refusal(self, behind: str, current: float, what: str) -> str:
+        """Why a session of `what` is refused while the process's answers or loop go late."""
+        return (
+            f"this server process {behind} (at {100 * current:.0f} % of a core, tick budget "
+            f"{100 * self.budget:.0f} %): the CPU its sessions get is short, so a session of {what} "
+            f"is not admitted. {_TRY_ELSEWHERE}"
+        )
 
     def _machine_left(self) -> float | None:
         """Cores the machine left idle in the last window, less what was admitted since; None
@@ -400,18 +407,14 @@ class Admission:
         behind = self._behind()
         if behind is not None:
             self.refused += 1
-            raise ResourceExhausted(
-                f"this server process {behind} (at {100 * current:.0f} % of a core, tick budget "
-                f"{100 * self.budget:.0f} %): the CPU its sessions get is short, so a session of {what} "
-                "is not admitted. Try again later, on another server, or at a lower rate"
-            )
+            raise ResourceExhausted(self._late_refusal(behind, current, what))
         if current + ticket.load > self.budget:
             self.refused += 1
             raise ResourceExhausted(
                 f"this server process is at {100 * current:.0f} % of a core and its tick budget is "
                 f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}); a session of {what} is "
                 f"estimated at {1e6 * ticket.cost_per_tick:.0f} us per tick, {100 * ticket.load:.1f} % more. "
-                "Try again later, on another server, or at a lower rate"
+                f"{_TRY_ELSEWHERE}"
             )
         self._check_machine(ticket, load=ticket.load, what=what)
 
@@ -426,7 +429,7 @@ class Admission:
                 f"programs, this server's other processes or its clients use the rest); a session "
                 f"of {what} is estimated at {1e6 * load * ticket.dt:.0f} us per tick, "
                 f"{load:.2f} of a core, and {MACHINE_HEADROOM:g} of a core is kept free. "
-                "Try again later, on another server, or at a lower rate"
+                f"{_TRY_ELSEWHERE}"
             )
 
     def _release(self, ticket: Ticket) -> None:
