@@ -330,13 +330,8 @@ class Admission:
             self, dt=dt, cost_per_tick=cost_per_tick, compute_per_tick=filter_seconds, grace=grace
         )
         with self._lock:
-            estimated = sum(t.load for t in self._by_id.values())
-            current = max(estimated, self._sample_cpu())
-            # A process with nothing to serve takes a session whose own filter fits the budget,
-            # whatever the guess of the transport's cost: its ticks then measure what they cost
-            # (with the starting guess alone, no 500 Hz session, at 2 ms a tick, could ever open).
-            first = not self._by_id and current < self.budget / 2 and filter_seconds / dt <= self.budget
             if resumed:
+                current = max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
                 if current + ticket.load > self.budget:
                     _log.warning(
                         "a resumed session of %s is admitted over the tick budget (%.0f %% of a core "
@@ -345,15 +340,41 @@ class Admission:
                         100 * (current + ticket.load),
                         100 * self.budget,
                     )
-            elif first:
-                # Its own filter must still find the machine's CPU free.
-                self._check_machine(ticket, load=filter_seconds / dt, what=what)
             else:
-                self._check_room(ticket, current=current, what=what)
+                self._check(ticket, filter_seconds=filter_seconds, what=what)
             self._by_id[id(ticket)] = ticket
         if grace is not None and self.switch is not None:
             self.switch.add(grace)
         return ticket
+
+    def _check(self, ticket: Ticket, *, filter_seconds: float, what: str) -> None:
+        """ResourceExhausted, saying why, when a new session of `ticket` is not admitted now. Under
+        the lock."""
+        current = max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
+        # A process with nothing to serve takes a session whose own filter fits the budget,
+        # whatever the guess of the transport's cost: its ticks then measure what they cost
+        # (with the starting guess alone, no 500 Hz session, at 2 ms a tick, could ever open).
+        if not self._by_id and current < self.budget / 2 and filter_seconds / ticket.dt <= self.budget:
+            # Its own filter must still find the machine's CPU free.
+            self._check_machine(ticket, load=filter_seconds / ticket.dt, what=what)
+        else:
+            self._check_room(ticket, current=current, what=what)
+
+    def refusal(self, *, cost_per_tick: float, filter_seconds: float, dt: float, what: str) -> str | None:
+        """Why `admit` would refuse a new session of this price now, or None; nothing is admitted.
+        For the door, which prices a request from an identical open a moment ago, without its
+        model (a burst of 375 surplus opens, priced one by one, cost the server 3.4 ms of CPU each
+        against 1.3 ms for gRPC's part: benchmarks/RESULTS.md, Round 13). None before the first
+        admission's look at the machine, which `admit` takes and which waits."""
+        if not self._looked and self.count_machine_cpu and self.count_process_cpu:
+            return None
+        ticket = Ticket(self, dt=dt, cost_per_tick=cost_per_tick, compute_per_tick=filter_seconds)
+        with self._lock:
+            try:
+                self._check(ticket, filter_seconds=filter_seconds, what=what)
+            except ResourceExhausted as error:
+                return str(error)
+        return None
 
     def full(self, what: str) -> str | None:
         """Why this process admits no new REALTIME session now, whatever its cost, or None (`what`:

@@ -306,3 +306,18 @@ def test_the_door_refuses_only_what_admit_would(monkeypatch: pytest.MonkeyPatch)
     ticket.release()
     assert admission.full("pendulum_3 at 20 Hz") is None
     admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz", filter_seconds=0.5e-3)
+
+
+def test_a_refusal_asked_from_a_price_is_admit_s_own_and_admits_nothing() -> None:
+    admission = Admission(budget=0.5, count_process_cpu=False)
+    price = {"cost_per_tick": 10e-3, "filter_seconds": 1e-3, "dt": 0.05, "what": "pendulum_3 at 20 Hz"}
+    assert admission.refusal(**price) is None  # the first would be taken (its filter fits)
+    assert admission.sessions == 0
+    tickets = [admission.admit(**price) for _ in range(2)]  # 0.2 + 0.2 of the 0.5
+    reason = admission.refusal(**price)
+    assert reason is not None and admission.sessions == 2
+    with pytest.raises(ResourceExhausted) as refused:
+        admission.admit(**price)
+    assert str(refused.value) == reason
+    tickets[0].release()
+    assert admission.refusal(**price) is None

@@ -178,3 +178,34 @@ def test_a_full_process_refuses_a_realtime_open_at_the_door_before_looking_up_it
         r"server, or at a lower rate",
         message,
     ), message
+
+
+def test_the_door_refuses_an_open_priced_a_moment_ago_without_looking_up_its_model(tmp_path: Path) -> None:
+    """The surplus of a burst asks for the same session again and again: once one such open has been
+    priced and refused, the next is refused at the door from that price, without the registry. The
+    model is deleted from the index after the first refusal: the second is still refused for its
+    cost (the old door let it through to NOT_FOUND), while a LOCKSTEP open finds it gone."""
+    import sqlite3
+
+    from jitdyn.errors import NotFound
+
+    server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "0.3")
+    biped = SessionOptions(model_name="biped", dt=0.005, clock="REALTIME", scenario="CONTROLLED")
+    try:
+        with Client(server.address, timeout=30) as client:
+            pendulum = SessionOptions(model_name="pendulum_3", dt=DT, clock="REALTIME", scenario="PASSIVE")
+            with client.open_session(pendulum):
+                refusals = []
+                for _ in range(2):
+                    with pytest.raises(ResourceExhausted) as refused:
+                        client.open_session(biped)
+                    refusals.append(str(refused.value))
+                    if len(refusals) == 1:
+                        with sqlite3.connect(tmp_path / "data" / "index.sqlite") as index:
+                            assert index.execute("DELETE FROM models WHERE name = 'biped'").rowcount >= 1
+                with pytest.raises(NotFound, match="no model is named 'biped'"):
+                    client.open_session(SessionOptions(model_name="biped", dt=0.005, scenario="CONTROLLED"))
+    finally:
+        server.stop()
+    for message in refusals:
+        assert "a session of biped (controlled) at 200 Hz is estimated at" in message, message
