@@ -14,9 +14,9 @@ then the mean ratio jitdyn / bare.
     python -m benchmarks.refusals                       # 300 opens at 200 a second, 2 rounds
     python -m benchmarks.refusals --opens 500 --rate 300 --rounds 3
 
-The jitdyn server is `jitdyn serve --processes 1 --tick-budget 0.2` with one pendulum_3 session
-held open in it (and a few refused around it, as admission finds the budget): the burst's opens ask
-for pendulum_3 at 20 Hz, and are refused at the door or, priced, on the slow path.
+The jitdyn server is `jitdyn serve --processes 1 --tick-budget 0.2` with pendulum_3 sessions held
+open in it until admission refuses more: the burst's opens ask for pendulum_3 at 20 Hz, and are
+refused at the door (from its price, or with no room for any session) or, priced, on the slow path.
 """
 
 from __future__ import annotations
@@ -116,8 +116,8 @@ def _jitdyn() -> Iterator[tuple[str, int]]:
 async def _measure(
     address: str, pid: int, opens: int, rate: float, *, hold: bool
 ) -> tuple[float, float, Counter[str]]:
-    """Server and client CPU per open of a burst; with `hold`, first one pendulum_3 session held open
-    (and a few refused around it, as admission finds the budget full), so that the burst has no room."""
+    """Server and client CPU per open of a burst; with `hold`, first pendulum_3 sessions held open
+    until admission refuses more (10 asked for), so that the burst has no room."""
     keep: list[object] = []
     if hold:
         held = await _burst(address, 10, 5, keep)

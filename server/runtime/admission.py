@@ -235,6 +235,12 @@ class Admission:
             if time.monotonic() - self._cpu_mark[0] >= _CPU_WINDOW:
                 self._sample_cpu()
 
+    def behind(self) -> str | None:
+        """Why the process's answers are late now (its answers or its loop, over the last window),
+        or None."""
+        with self._lock:
+            return self._behind()
+
     def _behind(self) -> str | None:
         """Why the process's answers are late now (its answers or its loop, over the last window),
         or None. Under the lock."""

@@ -286,14 +286,24 @@ class _Stream:
         """REALTIME: why a late frame's timewarp is not applied, or None when it fits.
 
         The timewarp replays every tick the estimator ran since the late one, on the event loop; it
-        is applied only when it fits, with the session's own next tick, in half a tick, because
-        replays on a server that is already behind make it fall further behind
-        (docs/decisions/0001-timewarp-budget.md). A frame whose tick waited for it adds no work
+        is applied only when it fits, with the session's own next tick, in half a tick, and while
+        the process's answers and loop are on time (Admission.behind), because replays on a server
+        that is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md). A frame whose tick waited for it adds no work
         (docs/decisions/0007-wait-for-late-frames.md): it is always applied.
         """
         runs = self.runtime.replay_cost(seq)
         if self.ticket is None or runs == 0:
             return None
+        # Each session's replays fit its own half tick, yet a process behind with a dozen sessions
+        # replaying spiralled: 53 % of its answers late for 10 s after a burst of opens, its loop
+        # busy replaying (benchmarks/RESULTS.md, Round 13). Until it catches up, none are applied.
+        behind = self.ticket.admission.behind()
+        if behind is not None:
+            return (
+                f"frame {seq}: {self.runtime.next_tick - seq} ticks late; applying it means running "
+                f"{runs} ticks of the filter again, and this server process {behind}: late frames "
+                "are not applied until it catches up"
+            )
         cost = runs * self.ticket.compute_per_tick
         free = max(0.0, self.plan.dt / 2 - self.ticket.cost_per_tick)
         if cost <= free:
