@@ -13,8 +13,9 @@ also counts what no estimate sees: the gRPC transport of LOCKSTEP sessions, comp
 
 A process's budget is only worth what the machine can give it: on a machine whose cores other
 programs (or the server's other processes, or the clients beside it) keep busy, a session is also
-refused when the CPU the machine left idle over the last window, less what was admitted since,
-cannot carry it (Linux: /proc/stat; elsewhere the process budget alone).
+refused when the CPU the machine left idle over the last window, or over its latest quarter second
+(a burst the window has not seen yet), less what was admitted since, cannot carry it (Linux:
+/proc/stat; elsewhere the process budget alone; docs/decisions/0008).
 """
 
 from __future__ import annotations
@@ -47,6 +48,9 @@ MACHINE_HEADROOM: Final = 0.1
 # window's answers are, the process admits no one and tells its newest sessions, in band.
 LATE_ANSWER: Final = 5e-3  # s (docs/decisions/0008-admission-learns-from-lateness.md)
 LATE_SHARE: Final = 0.01
+# While the process is behind, late frames are not replayed if replaying them took more than this
+# share of the last window (of one core): the replays are then what keeps it behind.
+REPLAY_SHARE: Final = 0.1
 _LATE_EVIDENCE: Final = 20  # answers a window needs before its share of late ones counts
 
 
@@ -79,6 +83,9 @@ def _usable_cpus() -> int:
 _TRY_ELSEWHERE: Final = "Try again later, on another server, or at a lower rate"
 
 _CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
+# s: the machine's idle CPU is also read over this much of the latest time, so that a burst the
+# last window did not see (the surplus of 400 opens, refused while admitted ones open) counts
+_RECENT: Final = 0.25
 # s of the machine's CPU looked at before the first admission, when no window has ended yet
 _FIRST_LOOK: Final = 0.1
 
@@ -133,12 +140,18 @@ class Admission:
     _window_compute: float = 0.0
     _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
     machine_free: float | None = None  # cores the machine left idle over the last window
+    _recent_mark: tuple[float, tuple[int, int] | None] = field(
+        default_factory=lambda: (time.monotonic(), _machine_times())
+    )
+    recent_free: float | None = None  # cores the machine left idle over the last _RECENT s
     _looked: bool = False  # the first admission's look at the machine was taken
     _answers: int = 0
     _late_answers: int = 0
     late_share: float = 0.0  # of the answers of the last window more than LATE_ANSWER late
     _lag_late: float = 0.0  # s of the window the loop ran more than LATE_ANSWER late
     lag_share: float = 0.0  # of the last window's time the loop ran more than LATE_ANSWER late
+    _replaying: float = 0.0  # s of the window the loop spent replaying late frames
+    replay_share: float = 0.0  # of the last window's time spent replaying late frames
     _ended_late_at: float = -math.inf  # monotonic s: when a session was last ended for going late
 
     def __post_init__(self) -> None:
@@ -154,6 +167,7 @@ class Admission:
             self._cpu_load = 0.0
             self._window_ticks, self._window_compute = 0, 0.0
             self._machine_mark = _machine_times()
+            self._recent_mark, self.recent_free = (time.monotonic(), self._machine_mark), None
 
     def measured_load(self) -> float:
         """This process's CPU use over about the last `_CPU_WINDOW` seconds, in cores."""
@@ -180,6 +194,8 @@ class Admission:
             self._answers, self._late_answers = 0, 0
             self.lag_share = self._lag_late / (wall - since)
             self._lag_late = 0.0
+            self.replay_share = self._replaying / (wall - since)
+            self._replaying = 0.0
         return self._cpu_load if self.count_process_cpu else 0.0
 
     def _first_look(self) -> None:
@@ -232,14 +248,37 @@ class Admission:
         with self._lock:
             if seconds > LATE_ANSWER:
                 self._lag_late += seconds - LATE_ANSWER
-            if time.monotonic() - self._cpu_mark[0] >= _CPU_WINDOW:
+            now = time.monotonic()
+            if now - self._cpu_mark[0] >= _CPU_WINDOW:
                 self._sample_cpu()
+            if now - self._recent_mark[0] >= _RECENT:
+                self._sample_recent(now)
 
-    def behind(self) -> str | None:
-        """Why the process's answers are late now (its answers or its loop, over the last window),
-        or None."""
+    def _sample_recent(self, now: float) -> None:
+        """The machine's idle CPU since the last recent mark. Under the lock."""
+        if not self.count_machine_cpu:
+            return
+        times, (_, mark) = _machine_times(), self._recent_mark
+        if times is not None and mark is not None and times[1] > mark[1]:
+            busy, total = times[0] - mark[0], times[1] - mark[1]
+            self.recent_free = _usable_cpus() * max(0.0, 1.0 - busy / total)
+        self._recent_mark = (now, times)
+
+    def observe_replay(self, seconds: float) -> None:
+        """A late frame's replay (the timewarp) took `seconds` on the loop."""
         with self._lock:
-            return self._behind()
+            self._replaying += seconds
+
+    def replays_behind(self) -> str | None:
+        """Why late frames are not replayed now, or None: the process went late in the last window
+        while replays took more than REPLAY_SHARE of it. Each session's replays fit its own half
+        tick; a dozen sessions' together kept a process 53.8 % late for 10 s, its late answers
+        making more frames late (benchmarks/RESULTS.md, Round 13)."""
+        with self._lock:
+            behind = self._behind()
+            if behind is None or self.replay_share <= REPLAY_SHARE:
+                return None
+            return f"{behind}, and replaying late frames took {100 * self.replay_share:.0f} % of that time"
 
     def _behind(self) -> str | None:
         """Why the process's answers are late now (its answers or its loop, over the last window),
@@ -421,12 +460,17 @@ class Admission:
         )
 
     def _machine_left(self) -> float | None:
-        """Cores the machine left idle in the last window, less what was admitted since; None
-        where the machine is not counted. Under the lock."""
-        if self.machine_free is None:
-            return None
-        since = self._cpu_mark[0]
-        return self.machine_free - sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
+        """Cores the machine left idle, less what was admitted since, in the last window or in the
+        last _RECENT s, whichever is fewer; None where the machine is not counted. Under the lock."""
+        left = [
+            free - sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
+            for free, since in (
+                (self.machine_free, self._cpu_mark[0]),
+                (self.recent_free, self._recent_mark[0]),
+            )
+            if free is not None
+        ]
+        return min(left, default=None)
 
     def _check_room(self, ticket: Ticket, *, current: float, what: str) -> None:
         """ResourceExhausted, saying why, when `ticket` does not fit the process's budget or the

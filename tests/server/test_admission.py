@@ -135,6 +135,40 @@ def test_the_machine_s_cpu_is_read_over_the_last_window_not_since_the_last_admis
             hog.wait()
 
 
+def test_a_burst_the_last_window_did_not_see_is_counted_from_the_latest_quarter_second() -> None:
+    """Hogs started after a whole idle window: before the next window ends, the machine's idle CPU
+    over the latest quarter second refuses the next session (the window alone still saw two cores
+    free: the surplus of a burst of opens came in the same way, while admitted ones opened)."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    admission = Admission(budget=0.75)
+
+    def beat_for(seconds: float) -> None:  # the loop's watch beats every 5 ms (stalls.BEAT)
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            admission.observe_loop_lag(0.0)
+            time.sleep(0.005)
+
+    beat_for(2.2)  # a whole window, idle
+    assert admission.machine_free is not None and admission.machine_free > 0.5
+    hogs = [
+        subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        for _ in range(len(os.sched_getaffinity(0)))
+    ]
+    try:
+        beat_for(0.6)
+        with pytest.raises(ResourceExhausted, match=r"^this machine has 0\.\d\d of its \d+ cores free"):
+            admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz", filter_seconds=0.5e-3)
+        assert admission.machine_free > 0.5  # the last window's figure, which alone would have admitted
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+
+
 def test_starting_up_is_not_taken_for_load(monkeypatch: pytest.MonkeyPatch) -> None:
     import time
 
@@ -321,3 +355,32 @@ def test_a_refusal_asked_from_a_price_is_admit_s_own_and_admits_nothing() -> Non
     assert str(refused.value) == reason
     tickets[0].release()
     assert admission.refusal(**price) is None
+
+
+def test_late_frames_wait_while_their_replays_keep_the_process_late(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A late frame's replay is refused only when the process went late in the last window and
+    replays took more than a tenth of it: late answers alone, or replays on time, do not stop them."""
+    import time
+
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.2)
+    admission = Admission(budget=0.75, count_process_cpu=False)
+
+    def window(*, late: bool, replaying: float) -> str | None:
+        for _ in range(30):
+            admission.observe_lateness(0.02 if late else 0.0)
+        admission.observe_replay(replaying)
+        time.sleep(0.25)
+        admission.observe_loop_lag(0.0)  # the beat that closes the window
+        return admission.replays_behind()
+
+    assert window(late=True, replaying=0.01) is None  # late, but replays took 4 % of it
+    assert window(late=False, replaying=0.1) is None  # replays took 40 %, all answers on time
+    reason = window(late=True, replaying=0.1)
+    assert reason is not None and re.fullmatch(
+        r"answered 100\.0 % of its ticks more than 5 ms past their deadlines in the last 0\.2 s, and "
+        r"replaying late frames took \d\d % of that time",
+        reason,
+    ), reason
+    assert window(late=False, replaying=0.0) is None  # caught up: replays again
