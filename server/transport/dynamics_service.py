@@ -259,7 +259,10 @@ class _Stream:
         if unaffordable is not None:
             self.runtime.note_late(frame.seq)  # refused, it still says how late frames come
             return self.reject(frame.seq, RejectReason.TOO_OLD, unaffordable, frame=frame)
+        started = time.perf_counter()
         outcome = self.runtime.apply_late(frame)
+        if self.ticket is not None:
+            self.ticket.admission.observe_replay(time.perf_counter() - started)
         return [Response(result=self.record_result(outcome, arrived=arrived))]
 
     def _wait_for_tick(self, frame: FrameIn) -> list[Response]:
@@ -286,18 +289,15 @@ class _Stream:
         """REALTIME: why a late frame's timewarp is not applied, or None when it fits.
 
         The timewarp replays every tick the estimator ran since the late one, on the event loop; it
-        is applied only when it fits, with the session's own next tick, in half a tick, and while
-        the process's answers and loop are on time (Admission.behind), because replays on a server
-        that is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md). A frame whose tick waited for it adds no work
+        is applied only when it fits, with the session's own next tick, in half a tick, and not while
+        replays keep the process late (Admission.replays_behind), because replays on a server that
+        is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md). A frame whose tick waited for it adds no work
         (docs/decisions/0007-wait-for-late-frames.md): it is always applied.
         """
         runs = self.runtime.replay_cost(seq)
         if self.ticket is None or runs == 0:
             return None
-        # Each session's replays fit its own half tick, yet a process behind with a dozen sessions
-        # replaying spiralled: 53 % of its answers late for 10 s after a burst of opens, its loop
-        # busy replaying (benchmarks/RESULTS.md, Round 13). Until it catches up, none are applied.
-        behind = self.ticket.admission.behind()
+        behind = self.ticket.admission.replays_behind()
         if behind is not None:
             return (
                 f"frame {seq}: {self.runtime.next_tick - seq} ticks late; applying it means running "
