@@ -3,11 +3,20 @@
 from __future__ import annotations
 
 import re
+import time
 
 import pytest
 
 from jitdyn.errors import ResourceExhausted
 from jitdyn.server.runtime.admission import TRANSPORT_COST, Admission
+
+
+def _beat_for(admission: Admission, seconds: float) -> None:
+    """The loop's watch, beating every 5 ms (stalls.BEAT) for `seconds`, as a server's loop would."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        admission.observe_loop_lag(0.0)
+        time.sleep(0.005)
 
 
 def test_an_idle_process_takes_a_fast_session_whose_guessed_transport_would_not_fit() -> None:
@@ -106,7 +115,6 @@ def test_the_machine_s_cpu_is_read_over_the_last_window_not_since_the_last_admis
     import os
     import subprocess
     import sys
-    import time
 
     from jitdyn.server.runtime import admission as module
 
@@ -114,19 +122,13 @@ def test_the_machine_s_cpu_is_read_over_the_last_window_not_since_the_last_admis
     window = module._CPU_WINDOW
     admission = Admission(budget=0.75)
 
-    def beat_for(seconds: float) -> None:  # the loop's watch beats every 5 ms (stalls.BEAT)
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            admission.observe_loop_lag(0.0)
-            time.sleep(0.005)
-
-    beat_for(2 * window + 0.2)  # idle
+    _beat_for(admission, 2 * window + 0.2)  # idle
     hogs = [
         subprocess.Popen([sys.executable, "-c", "while True: pass"])
         for _ in range(len(os.sched_getaffinity(0)))
     ]
     try:
-        beat_for(2 * window + 0.3)  # a whole window with the hogs in it
+        _beat_for(admission, 2 * window + 0.3)  # a whole window with the hogs in it
         with pytest.raises(ResourceExhausted, match=r"^this machine has 0\.\d\d of its \d+ cores free"):
             admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz", filter_seconds=0.5e-3)
     finally:
@@ -142,24 +144,17 @@ def test_a_burst_the_last_window_did_not_see_is_counted_from_the_latest_quarter_
     import os
     import subprocess
     import sys
-    import time
 
     admission = Admission(budget=0.75)
 
-    def beat_for(seconds: float) -> None:  # the loop's watch beats every 5 ms (stalls.BEAT)
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            admission.observe_loop_lag(0.0)
-            time.sleep(0.005)
-
-    beat_for(2.2)  # a whole window, idle
+    _beat_for(admission, 2.2)  # a whole window, idle
     assert admission.machine_free is not None and admission.machine_free > 0.5
     hogs = [
         subprocess.Popen([sys.executable, "-c", "while True: pass"])
         for _ in range(len(os.sched_getaffinity(0)))
     ]
     try:
-        beat_for(0.6)
+        _beat_for(admission, 0.6)
         with pytest.raises(ResourceExhausted, match=r"^this machine has 0\.\d\d of its \d+ cores free"):
             admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz", filter_seconds=0.5e-3)
         assert admission.machine_free > 0.5  # the last window's figure, which alone would have admitted
