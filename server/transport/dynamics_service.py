@@ -291,8 +291,9 @@ class _Stream:
         The timewarp replays every tick the estimator ran since the late one, on the event loop; it
         is applied only when it fits, with the session's own next tick, in half a tick, and not while
         replays keep the process late (Admission.replays_behind), because replays on a server that
-        is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md). A frame whose tick waited for it adds no work
-        (docs/decisions/0007-wait-for-late-frames.md): it is always applied.
+        is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md). A
+        frame whose tick waited for it adds no work (docs/decisions/0007-wait-for-late-frames.md):
+        it is always applied.
         """
         runs = self.runtime.replay_cost(seq)
         if self.ticket is None or runs == 0:
