@@ -209,3 +209,49 @@ def test_the_door_refuses_an_open_priced_a_moment_ago_without_looking_up_its_mod
         server.stop()
     for message in refusals:
         assert "a session of biped (controlled) at 200 Hz is estimated at" in message, message
+
+
+def test_late_frames_wait_while_their_replays_keep_a_late_process_behind(tmp_path: Path) -> None:
+    """Two biped sessions whose every frame comes 12 ticks late, past the longest wait (8 ticks):
+    each is replayed (the timewarp), within its session's half-tick budget. While the process is
+    stopped for 100 ms every second (the machine taking its CPU), its answers go late with its
+    replays taking a fifth of its time, and late frames are refused until it catches up; on the old
+    rule every replay fitted its own session and was applied."""
+    from jitdyn.client import Rejection
+
+    server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "1.0")
+    dt, late = 0.02, 12
+    replayed, waiting = 0, []
+    try:
+        with Client(server.address, timeout=30) as client:
+            options = SessionOptions(model_name="biped", dt=dt, clock="REALTIME", scenario="CONTROLLED")
+            with client.open_session(options) as first, client.open_session(options) as second:
+                for k in range(400):  # 8 s
+                    time.sleep(max(0.0, (k + late) * dt - first.now()))
+                    if k >= 100 and k % 50 == 0:
+                        os.kill(server.process.pid, signal.SIGSTOP)
+                        time.sleep(0.1)
+                        os.kill(server.process.pid, signal.SIGCONT)
+                    for session in (first, second):
+                        session.send(
+                            FrameData(seq=k, t=k * dt, qpos=[0.0] * 6, qvel=[0.0] * 6, ctrl=[0.0] * 4)
+                        )
+                        for answer in session.poll():
+                            replayed += isinstance(answer, TickResult) and answer.source == "CORRECTED"
+                            if (
+                                isinstance(answer, Rejection)
+                                and "not applied until it catches up" in answer.message
+                            ):
+                                waiting.append(answer.message)
+                    if waiting and k >= 150:
+                        break
+    finally:
+        server.stop()
+    assert replayed > 0  # late frames were replayed while the process kept up
+    assert waiting, "".join(server.lines[-20:])
+    assert re.fullmatch(
+        r"frame \d+: \d+ ticks late; applying it means running \d+ ticks of the filter again, and this "
+        r"server process (answered|ran) .+, and replaying late frames took \d+ % of that time: late "
+        r"frames are not applied until it catches up",
+        waiting[0],
+    ), waiting[0]
