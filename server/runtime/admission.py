@@ -13,8 +13,9 @@ also counts what no estimate sees: the gRPC transport of LOCKSTEP sessions, comp
 
 A process's budget is only worth what the machine can give it: on a machine whose cores other
 programs (or the server's other processes, or the clients beside it) keep busy, a session is also
-refused when the CPU the machine left idle over the last window, or over its latest quarter second
-(a burst the window has not seen yet), less what was admitted since, cannot carry it (Linux:
+refused when the CPU the machine left idle over the last window, or during a burst of opens over
+its latest quarter second (a burst the window has not seen yet), less what was admitted since,
+cannot carry it (Linux:
 /proc/stat; elsewhere the process budget alone; docs/decisions/0008).
 """
 
@@ -83,9 +84,12 @@ def _usable_cpus() -> int:
 _TRY_ELSEWHERE: Final = "Try again later, on another server, or at a lower rate"
 
 _CPU_WINDOW: Final = 2.0  # s over which the process's own CPU use is measured
-# s: the machine's idle CPU is also read over this much of the latest time, so that a burst the
-# last window did not see (the surplus of 400 opens, refused while admitted ones open) counts
+# s: during a burst of opens the machine's idle CPU is also read over this much of the latest time:
+# the last window did not see the burst (the surplus of 400 opens, refused while admitted ones
+# open). Outside a burst the window stands alone, as it was measured for (a quarter second is a few
+# ticks of each session: docs/decisions/0008).
 _RECENT: Final = 0.25
+_BURST: Final = 20  # REALTIME opens asked of the process within two _RECENT periods that make a burst
 # s of the machine's CPU looked at before the first admission, when no window has ended yet
 _FIRST_LOOK: Final = 0.1
 
@@ -144,6 +148,7 @@ class Admission:
         default_factory=lambda: (time.monotonic(), _machine_times())
     )
     recent_free: float | None = None  # cores the machine left idle over the last _RECENT s
+    _opens: tuple[int, int] = (0, 0)  # REALTIME opens asked in the last _RECENT period, this one
     _looked: bool = False  # the first admission's look at the machine was taken
     _answers: int = 0
     _late_answers: int = 0
@@ -263,6 +268,12 @@ class Admission:
             busy, total = times[0] - mark[0], times[1] - mark[1]
             self.recent_free = _usable_cpus() * max(0.0, 1.0 - busy / total)
         self._recent_mark = (now, times)
+        self._opens = (self._opens[1], 0)
+
+    def observe_open(self) -> None:
+        """A REALTIME open was asked of this process (at the door, before any decision)."""
+        with self._lock:
+            self._opens = (self._opens[0], self._opens[1] + 1)
 
     def observe_replay(self, seconds: float) -> None:
         """A late frame's replay (the timewarp) took `seconds` on the loop."""
@@ -460,14 +471,15 @@ class Admission:
         )
 
     def _machine_left(self) -> float | None:
-        """Cores the machine left idle, less what was admitted since, in the last window or in the
-        last _RECENT s, whichever is fewer; None where the machine is not counted. Under the lock."""
+        """Cores the machine left idle, less what was admitted since, in the last window or, during
+        a burst of opens, in the last _RECENT s, whichever is fewer; None where the machine is not
+        counted. Under the lock."""
+        figures = [(self.machine_free, self._cpu_mark[0])]
+        if sum(self._opens) >= _BURST:
+            figures.append((self.recent_free, self._recent_mark[0]))
         left = [
             free - sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
-            for free, since in (
-                (self.machine_free, self._cpu_mark[0]),
-                (self.recent_free, self._recent_mark[0]),
-            )
+            for free, since in figures
             if free is not None
         ]
         return min(left, default=None)

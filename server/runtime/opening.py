@@ -186,6 +186,7 @@ class SessionOpener:
         choice = request.model
         named = choice.name or choice.model_id or (choice.inline.name if choice.inline else "") or "a model"
         admission = self._services.admission
+        admission.observe_open()
         reason = admission.full(f"{named} at {1 / request.dt:g} Hz")
         known = None if reason is not None else self._door_price(request)
         if known is not None:
