@@ -89,14 +89,15 @@ def _die_with_parent() -> None:
     libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
 
 
-def _child(config: ServerConfig, index: int, ready: Any, parent: int) -> None:
-    """One serving process (spawned): serve until SIGTERM, reporting readiness to the parent."""
+def _child(config: ServerConfig, index: int, ready: Any, parent: int, log_level: int) -> None:
+    """One serving process (spawned): serve until SIGTERM, reporting readiness to the parent, logging
+    at `log_level` as the parent does (`jitdyn -v serve`: INFO, every refused open among it)."""
     _die_with_parent()
     if os.getppid() != parent:  # the parent died before the line above took effect
         return
-    logging.basicConfig(
-        level=logging.WARNING, format=f"%(levelname)s [process {index}] %(name)s: %(message)s"
-    )
+    logging.basicConfig(level=log_level, format=f"%(levelname)s [process {index}] %(name)s: %(message)s")
+    # Alembic says which migrations it checked at every start of the index: noise for `-v`.
+    logging.getLogger("alembic").setLevel(logging.WARNING)
 
     def announce(line: str) -> None:
         if line.startswith("jitdyn listening"):
@@ -119,6 +120,9 @@ class _Children:
         self._ready = self._context.Queue()
         self._children: dict[int, BaseProcess] = {}
         self.stopping = False
+        # The serving processes log as `jitdyn serve` was told to: before, they logged at WARNING
+        # whatever -v said, so no refused open was logged with the default two processes.
+        self._log_level = logging.getLogger().getEffectiveLevel()
 
     def on_signal(self, signum: int, _frame: object) -> None:
         self.stopping = True
@@ -126,7 +130,7 @@ class _Children:
     def start(self, index: int) -> None:
         child = self._context.Process(
             target=_child,
-            args=(self._config, index, self._ready, os.getpid()),
+            args=(self._config, index, self._ready, os.getpid(), self._log_level),
             name=f"jitdyn-serve-{index}",
             daemon=False,
         )

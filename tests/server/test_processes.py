@@ -336,3 +336,26 @@ def test_without_the_right_to_lower_its_priority_the_server_says_so_and_serves(t
         r"the serving processes run at nice -?\d+, not --nice -10: lowering it needs CAP_SYS_NICE",
         warnings[0],
     ), server.lines
+
+
+def test_verbose_serving_processes_log_every_refused_open(tmp_path: Path) -> None:
+    """`jitdyn serve --verbose --processes 2` logs each refused open, as the SDK's message for a
+    refusal a balancer hid tells its user to look for: the serving processes used to log at WARNING
+    whatever the flag, so nothing was logged (4 opens of a missing model, 0 lines)."""
+    from jitdyn.errors import NotFound
+
+    server = Serve(tmp_path / "data", processes=2, extra=("--verbose",))
+    try:
+        for _ in range(4):  # the kernel spreads connections over both processes
+            with Client(server.address, timeout=30) as client, pytest.raises(NotFound):
+                client.open_session(SessionOptions(model_name="no_such_model", dt=0.05))
+        deadline = time.monotonic() + 5
+        while "".join(server.lines).count("an open was refused") < 4 and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        output = server.stop()
+    refused = re.findall(
+        r"INFO \[process \d\] \S+: an open was refused: NOT_FOUND: no model is named", output
+    )
+    assert len(refused) == 4, output
+    assert "alembic" not in output  # its per-start migration notes stay out of -v
