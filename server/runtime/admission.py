@@ -15,8 +15,7 @@ A process's budget is only worth what the machine can give it: on a machine whos
 programs (or the server's other processes, or the clients beside it) keep busy, a session is also
 refused when the CPU the machine left idle over the last window, or during a burst of opens over
 its latest quarter second (a burst the window has not seen yet), less what was admitted since,
-cannot carry it (Linux:
-/proc/stat; elsewhere the process budget alone; docs/decisions/0008).
+cannot carry it (Linux: /proc/stat; elsewhere the process budget alone; docs/decisions/0008).
 """
 
 from __future__ import annotations
