@@ -89,7 +89,10 @@ def installed_modules() -> dict[str, Path]:
 
 
 def imports_of(module: str, path: Path) -> Iterator[tuple[str, int]]:
-    """(imported module, line) for every import in `path`, relative ones resolved."""
+    """(imported module, line) for every import in `path`, relative ones resolved. A compiled
+    module (the native engine) has no Python source to read: it imports nothing of ours."""
+    if path.suffix != ".py":
+        return
     is_package = path.name == "__init__.py"
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):

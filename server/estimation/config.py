@@ -73,7 +73,8 @@ class Engine(enum.Enum):
     the preset chooses it, and both give the same numbers (tests/server/test_fast.py)."""
 
     FILTERPY = "FILTERPY"  # filterpy's UnscentedKalmanFilter: the THESIS preset's, as the thesis ran
-    FAST = "FAST"  # estimation/fast.py: array operations over the sigma set, the JITDYN preset's
+    FAST = "FAST"  # estimation/fast.py: array operations over the sigma set, in Python
+    NATIVE = "NATIVE"  # estimation/native/: the same filter compiled, the JITDYN preset's
 
 
 # Settings a request or a model's metadata may set: every row of the table but the preset, which
@@ -329,7 +330,9 @@ def resolve_config(
         dt=dt,
         steps_per_tick=steps_per_tick(model, dt),
         measured=frozenset(measured),
-        engine=Engine.FILTERPY if parse(Preset, preset, argument="preset") == Preset.THESIS else Engine.FAST,
+        engine=Engine.FILTERPY
+        if parse(Preset, preset, argument="preset") == Preset.THESIS
+        else Engine.NATIVE,
     )
     check_for_scenario(config.scenario, {"wrong_model": config.wrong_model}, argument="settings")
     check_against_model(model, config)

@@ -61,6 +61,7 @@ from jitdyn.server.estimation.interface import (
 from jitdyn.server.estimation.layout import derivative_order, force_blocks, linear_force_applies
 from jitdyn.server.estimation.linear_force import LinearForceUKF, force_response
 from jitdyn.server.estimation.manifold import SplitManifold, has_manifold
+from jitdyn.server.estimation.native.filter import NativeUKF
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
 from jitdyn.server.estimation.sigma import (
@@ -218,7 +219,7 @@ class UnscentedFilter:
             add=self._x_manifold.add if self._x_manifold is not None else None,
         )
 
-    def _filter(self, z_size: int) -> BatchedUKF:
+    def _filter(self, z_size: int) -> BatchedUKF | NativeUKF:
         """filterpy's filter over this state and measurement, its process model ours."""
         x_manifold = self._x_manifold
         z_manifold = SplitManifold(self._model, rest=z_size - self._nq) if self._manifold else None
@@ -246,7 +247,17 @@ class UnscentedFilter:
                 vector=True,
                 **kwargs,
             )
-        if self._config.engine == Engine.FAST:
+        if self._config.engine == Engine.NATIVE and not self._manifold:
+            return NativeUKF(
+                self._model,
+                points=self._points,
+                z_index=self._z_index,
+                nstep=self._config.steps_per_tick,
+                inputs=_INPUTS[self._scenario],
+                fblocks=self._fblocks,
+                controlled=self._controlled,
+            )
+        if self._config.engine in (Engine.FAST, Engine.NATIVE):
             return FastUKF(
                 propagate=self._propagate_sigmas, vector=not self._manifold, z_index=self._z_index, **kwargs
             )
@@ -277,8 +288,9 @@ class UnscentedFilter:
     def _clear(self) -> None:
         """The mutable state of a filter not yet initialised; snapshot() copies all of it."""
         self._initialised = False
-        self._kf.x = np.zeros(self._size)
-        self._kf.x[: self._nq] = self._model.qpos0
+        x = np.zeros(self._size)
+        x[: self._nq] = self._model.qpos0
+        self._kf.x = x
         self._kf.P = self._P0.copy()
         self._act = np.zeros(self._na)
         self._propagated_act = np.zeros(self._na)
@@ -315,7 +327,8 @@ class UnscentedFilter:
     @property
     def covariance_repairs(self) -> int:
         """How often an indefinite covariance had to be repaired, since construction."""
-        return self._sqrt.repairs
+        native = self._kf.repairs if isinstance(self._kf, NativeUKF) else 0
+        return self._sqrt.repairs + native
 
     def forget(self) -> None:
         """Back to the uninitialised filter: the next initialise() keeps nothing of this one (a
@@ -358,7 +371,12 @@ class UnscentedFilter:
             self._kf.Q = self._adapter.Q if self._ticks_since_update == 0 else self._adapter.Q_gap
         if self._forecasts is not None:
             self._forecasts.advance()
-        self._kf.predict(UT=self._ut)
+        if isinstance(self._kf, NativeUKF):
+            self._kf.set_inputs(act=self._act, ctrl=self._ctrl, qfrc=self._qfrc)
+            self._kf.predict()
+            self._propagated_act = self._kf.propagated_act
+        else:
+            self._kf.predict(UT=self._ut)
         self._act = self._clip_act(self._propagated_act)
         self._ticks_since_update += 1
         reinitialised = False
@@ -466,7 +484,9 @@ class UnscentedFilter:
             # the corrections the filter has to make. Only q and qd widen: a force spread as wide
             # as P0 throws the sigma points of a pendulum over (measured, docs/experiments.md).
             k = self._order * self._nv
-            kf.P[:k, :k] += self._P0[:k, :k]
+            P = np.array(kf.P)
+            P[:k, :k] += self._P0[:k, :k]
+            kf.P = P
             self._adapter.absorbed()
         return verdict.adapted, True
 

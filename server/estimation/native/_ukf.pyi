@@ -1,0 +1,48 @@
+# The compiled module's interface (bindings.cc), for mypy; arrays are float64 copies both ways.
+
+import numpy as np
+
+MUJOCO_HEADER_VERSION: int
+
+def mujoco_version() -> int: ...
+
+class SingularMatrix(Exception): ...
+
+class Ukf:
+    def __init__(
+        self,
+        model_address: int,
+        *,
+        n: int,
+        size: int,
+        fblocks: int,
+        controlled: bool,
+        scheme: int,
+        scale: float,
+        unit: np.ndarray,
+        wm: np.ndarray,
+        wc: np.ndarray,
+        z_index: list[int],
+        nstep: int,
+        inputs: int,
+    ) -> None: ...
+    def predict(self) -> None: ...
+    def update(self, z: np.ndarray) -> None: ...
+    def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray: ...
+    def propagate(self, sigmas: np.ndarray, nstep: int) -> np.ndarray: ...
+    nsigma: int
+    nstep: int
+    repairs: int
+    sigmas_f: np.ndarray
+    x: np.ndarray
+    P: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    act: np.ndarray
+    ctrl: np.ndarray
+    qfrc: np.ndarray
+    y: np.ndarray
+    K: np.ndarray
+    S: np.ndarray
+    SI: np.ndarray
+    propagated_act: np.ndarray

@@ -1,0 +1,91 @@
+// The Python face of ukf.h: jitdyn.server.estimation.native._ukf. Only binds; the work is ukf.cc.
+// Every call that computes releases the GIL, so the event loop reads frames while a tick runs.
+#include <pybind11/eigen.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <cstdint>
+#include <string>
+
+#include "ukf.h"
+
+namespace py = pybind11;
+using jitdyn::Matrix;
+using jitdyn::Ukf;
+using jitdyn::UkfSpec;
+using jitdyn::Vector;
+
+namespace {
+
+std::unique_ptr<Ukf> MakeUkf(std::uintptr_t model_address, int n, int size, int fblocks, bool controlled,
+                             int scheme, double scale, const Matrix& unit, const Vector& wm,
+                             const Vector& wc, const std::vector<int>& z_index, int nstep, int inputs) {
+  if (scheme < 0 || scheme > 2) throw std::invalid_argument("scheme must be 0, 1 or 2, got " + std::to_string(scheme));
+  if (inputs < 0 || inputs > 2) throw std::invalid_argument("inputs must be 0, 1 or 2, got " + std::to_string(inputs));
+  UkfSpec spec;
+  spec.n = n;
+  spec.size = size;
+  spec.fblocks = fblocks;
+  spec.controlled = controlled;
+  spec.scheme = static_cast<jitdyn::Scheme>(scheme);
+  spec.scale = scale;
+  spec.unit = unit;
+  spec.wm = wm;
+  spec.wc = wc;
+  spec.z_index = z_index;
+  spec.nstep = nstep;
+  spec.inputs = static_cast<jitdyn::Inputs>(inputs);
+  return std::make_unique<Ukf>(reinterpret_cast<const mjModel*>(model_address), std::move(spec));
+}
+
+template <typename T>
+void Assign(T& target, const T& value, const char* name) {
+  if (value.rows() != target.rows() || value.cols() != target.cols()) {
+    throw std::invalid_argument(std::string(name) + " must have shape (" + std::to_string(target.rows()) +
+                                (T::ColsAtCompileTime == 1 ? ",)" : ", " + std::to_string(target.cols()) + ")") +
+                                ", got " + std::to_string(value.rows()) + " x " + std::to_string(value.cols()));
+  }
+  target = value;
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_ukf, module) {
+  module.doc() = "jitdyn's unscented Kalman filter on MuJoCo's C API (server/estimation/native/ukf.h)";
+  module.attr("MUJOCO_HEADER_VERSION") = mjVERSION_HEADER;
+  module.def("mujoco_version", [] { return mj_version(); }, "The version of the libmujoco loaded.");
+  py::register_exception<jitdyn::SingularMatrix>(module, "SingularMatrix");
+
+  py::class_<Ukf>(module, "Ukf")
+      .def(py::init(&MakeUkf), py::arg("model_address"), py::kw_only(), py::arg("n"), py::arg("size"),
+           py::arg("fblocks"), py::arg("controlled"), py::arg("scheme"), py::arg("scale"), py::arg("unit"),
+           py::arg("wm"), py::arg("wc"), py::arg("z_index"), py::arg("nstep"), py::arg("inputs"))
+      .def("predict", &Ukf::Predict, py::call_guard<py::gil_scoped_release>())
+      .def("update", &Ukf::Update, py::arg("z"), py::call_guard<py::gil_scoped_release>())
+      .def("sigma_points", &Ukf::SigmaPoints, py::arg("x"), py::arg("P"), py::call_guard<py::gil_scoped_release>())
+      .def("propagate", &Ukf::Propagate, py::arg("sigmas"), py::arg("nstep"),
+           py::call_guard<py::gil_scoped_release>())
+      .def_property("sigmas_f", &Ukf::sigmas_f, &Ukf::set_sigmas_f)
+      .def_property_readonly("nsigma", &Ukf::nsigma)
+      .def_property_readonly("nstep", [](const Ukf& u) { return u.spec().nstep; })
+      .def_property("repairs", &Ukf::repairs, &Ukf::set_repairs)
+      .def_property(
+          "x", [](const Ukf& u) { return u.x; }, [](Ukf& u, const Vector& v) { Assign(u.x, v, "x"); })
+      .def_property(
+          "P", [](const Ukf& u) { return u.P; }, [](Ukf& u, const Matrix& v) { Assign(u.P, v, "P"); })
+      .def_property(
+          "Q", [](const Ukf& u) { return u.Q; }, [](Ukf& u, const Matrix& v) { Assign(u.Q, v, "Q"); })
+      .def_property(
+          "R", [](const Ukf& u) { return u.R; }, [](Ukf& u, const Matrix& v) { Assign(u.R, v, "R"); })
+      .def_property(
+          "act", [](const Ukf& u) { return u.act; }, [](Ukf& u, const Vector& v) { Assign(u.act, v, "act"); })
+      .def_property(
+          "ctrl", [](const Ukf& u) { return u.ctrl; }, [](Ukf& u, const Vector& v) { Assign(u.ctrl, v, "ctrl"); })
+      .def_property(
+          "qfrc", [](const Ukf& u) { return u.qfrc; }, [](Ukf& u, const Vector& v) { Assign(u.qfrc, v, "qfrc"); })
+      .def_property_readonly("y", [](const Ukf& u) { return u.y; })
+      .def_property_readonly("K", [](const Ukf& u) { return u.K; })
+      .def_property_readonly("S", [](const Ukf& u) { return u.S; })
+      .def_property_readonly("SI", [](const Ukf& u) { return u.SI; })
+      .def_property_readonly("propagated_act", [](const Ukf& u) { return u.propagated_act; });
+}
