@@ -187,6 +187,7 @@ class UnscentedFilter:
         self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
         self._act_bounds = self._activation_bounds()
         self._forecasts = self._forecast_combiner()
+        self._no_ctrl, self._no_force = np.zeros(self._nu), np.zeros(self._nv)
         self._clear()
 
     def _measurement_layout(self) -> tuple[slice | np.ndarray, int, int]:
@@ -455,6 +456,8 @@ class UnscentedFilter:
     def _tidy_covariance(self) -> bool:
         """P symmetrised, and repaired when indefinite, while the filter is finite; whether it is
         (the tidying keeps a finite P finite: one check serves the whole step)."""
+        if isinstance(self._kf, NativeUKF):
+            return self._kf.tidy()
         finite = self._finite()
         if finite:
             self._kf.P = _symmetric(self._kf.P)
@@ -510,8 +513,11 @@ class UnscentedFilter:
         """The filter's update with measurement z; its NIS, None when not finite."""
         try:
             self._kf.update(z, UT=self._ut)
-            y, SI = self._kf.y, self._kf.SI
-            nis = float(y @ SI @ y)
+            if isinstance(self._kf, NativeUKF):
+                nis = self._kf.nis
+            else:
+                y, SI = self._kf.y, self._kf.SI
+                nis = float(y @ SI @ y)
         except np.linalg.LinAlgError:
             # An innovation covariance that cannot be inverted: nothing of this update is usable.
             self._kf.x = np.full(self._size, np.nan)
@@ -644,6 +650,8 @@ class UnscentedFilter:
         return bool(np.isfinite(self._kf.x).all() and np.isfinite(self._kf.P).all())
 
     def _largest_variance(self) -> float:
+        if isinstance(self._kf, NativeUKF):
+            return self._kf.largest_variance()
         return float(self._kf.P.diagonal().max())
 
     def _repair_if_indefinite(self) -> None:
@@ -974,13 +982,15 @@ class UnscentedFilter:
     ) -> np.ndarray:
         """qacc at a state under the scenario's inputs (warm start is off: no hidden state);
         DRIVEN: under `force`, the estimated unknown force."""
+        ctrl = self._ctrl if self._controlled else self._no_ctrl
+        if force is None:
+            force = self._qfrc if self._scenario == Scenario.EXTERNAL else self._no_force
+        if isinstance(self._kf, NativeUKF):
+            return self._kf.forward(qpos, qvel, act=act, ctrl=ctrl, qfrc=force)
         d = self._data
         d.qpos[:], d.qvel[:], d.act[:] = qpos, qvel, act
-        d.ctrl[:] = self._ctrl if self._controlled else 0.0
-        if force is not None:
-            d.qfrc_applied[:] = force
-        else:
-            d.qfrc_applied[:] = self._qfrc if self._scenario == Scenario.EXTERNAL else 0.0
+        d.ctrl[:] = ctrl
+        d.qfrc_applied[:] = force
         mujoco.mj_forward(self._model, d)
         return np.array(d.qacc)
 

@@ -65,6 +65,11 @@ PYBIND11_MODULE(_ukf, module) {
       .def("sigma_points", &Ukf::SigmaPoints, py::arg("x"), py::arg("P"), py::call_guard<py::gil_scoped_release>())
       .def("propagate", &Ukf::Propagate, py::arg("sigmas"), py::arg("nstep"),
            py::call_guard<py::gil_scoped_release>())
+      .def("tidy", &Ukf::Tidy, py::call_guard<py::gil_scoped_release>())
+      .def("largest_variance", &Ukf::LargestVariance)
+      .def("forward", &Ukf::Forward, py::arg("qpos"), py::arg("qvel"), py::arg("act"), py::arg("ctrl"),
+           py::arg("qfrc"), py::call_guard<py::gil_scoped_release>())
+      .def_property_readonly("nis", [](const Ukf& u) { return u.nis; })
       .def_property("sigmas_f", &Ukf::sigmas_f, &Ukf::set_sigmas_f)
       .def_property_readonly("nsigma", &Ukf::nsigma)
       .def_property_readonly("nstep", [](const Ukf& u) { return u.spec().nstep; })

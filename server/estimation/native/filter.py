@@ -69,6 +69,7 @@ class NativeUKF:
         else:
             z = [int(i) for i in z_index]
         self._model = model  # the compiled filter holds its pointer: keep it alive
+        self._inputs: tuple[np.ndarray | None, ...] = (None, None, None)
         self.Wm, self.Wc = points.Wm, points.Wc
         self._ukf = Ukf(
             model._address,
@@ -87,9 +88,35 @@ class NativeUKF:
         )
 
     def set_inputs(self, *, act: np.ndarray, ctrl: np.ndarray, qfrc: np.ndarray) -> None:
-        """What acts on the points over the next predict: act (na,), ctrl (nu,), qfrc (nv,)."""
+        """What acts on the points over the next predict: act (na,), ctrl (nu,), qfrc (nv,).
+        Arrays handed over before are not copied again: callers replace their inputs, never
+        write into them."""
         u = self._ukf
-        u.act, u.ctrl, u.qfrc = act, ctrl, qfrc
+        if act is not self._inputs[0]:
+            u.act = act
+        if ctrl is not self._inputs[1]:
+            u.ctrl = ctrl
+        if qfrc is not self._inputs[2]:
+            u.qfrc = qfrc
+        self._inputs = (act, ctrl, qfrc)
+
+    def tidy(self) -> bool:
+        """Whether x and P are finite; if so P symmetrised, and repaired when indefinite."""
+        return bool(self._ukf.tidy())
+
+    def largest_variance(self) -> float:
+        return float(self._ukf.largest_variance())
+
+    @property
+    def nis(self) -> float:
+        """y' S^-1 y of the last update."""
+        return float(self._ukf.nis)
+
+    def forward(
+        self, qpos: np.ndarray, qvel: np.ndarray, *, act: np.ndarray, ctrl: np.ndarray, qfrc: np.ndarray
+    ) -> np.ndarray:
+        """qacc (nv,) by mj_forward at (qpos, qvel, act) under ctrl and qfrc_applied."""
+        return np.asarray(self._ukf.forward(qpos, qvel, act, ctrl, qfrc))
 
     @property
     def propagated_act(self) -> np.ndarray:

@@ -246,10 +246,38 @@ void Ukf::Update(const Vector& z) {
   Vector innovation = z - zp;
   x = x + gain * innovation;
   P = P - gain * (innovation_cov * gain.transpose());
+  nis = (innovation.transpose() * inverse).dot(innovation);
   S = std::move(innovation_cov);
   SI = std::move(inverse);
   K = std::move(gain);
   y = std::move(innovation);
+}
+
+bool Ukf::Tidy() {
+  if (!x.allFinite() || !P.allFinite()) return false;
+  Matrix symmetric = 0.5 * (P + P.transpose());
+  Eigen::LLT<Eigen::MatrixXd, Eigen::Upper> llt(symmetric);
+  if (llt.info() == Eigen::Success) {
+    P = std::move(symmetric);
+  } else {
+    ++repairs_;
+    P = NearestPositiveDefinite(symmetric);
+  }
+  return true;
+}
+
+Vector Ukf::Forward(const Vector& qpos, const Vector& qvel, const Vector& act_at, const Vector& ctrl_at,
+                    const Vector& qfrc_at) {
+  Require(qpos.size() == nq_ && qvel.size() == nv_ && act_at.size() == na_ && ctrl_at.size() == nu_ &&
+              qfrc_at.size() == nv_,
+          "forward needs qpos (nq,), qvel (nv,), act (na,), ctrl (nu,) and qfrc (nv,)");
+  mju_copy(d_->qpos, qpos.data(), nq_);
+  mju_copy(d_->qvel, qvel.data(), nv_);
+  if (na_) mju_copy(d_->act, act_at.data(), na_);
+  if (nu_) mju_copy(d_->ctrl, ctrl_at.data(), nu_);
+  mju_copy(d_->qfrc_applied, qfrc_at.data(), nv_);
+  mj_forward(m_, d_);
+  return Eigen::Map<const Vector>(d_->qacc, nv_);
 }
 
 }  // namespace jitdyn

@@ -57,6 +57,14 @@ class Ukf {
   // propagated_act to the weighted mean of the points' activations.
   Matrix Propagate(const Matrix& sigmas, int nstep);
 
+  // x and P finite? Then P symmetrised, and repaired when indefinite (counted in repairs()).
+  bool Tidy();
+  // The largest diagonal entry of P.
+  double LargestVariance() const { return P.diagonal().maxCoeff(); }
+  // qacc (nv,) at (qpos, qvel, act) under ctrl and qfrc_applied: mj_forward on this filter's mjData.
+  Vector Forward(const Vector& qpos, const Vector& qvel, const Vector& act_at, const Vector& ctrl_at,
+                 const Vector& qfrc_at);
+
   // The update's points: drawn from the prior when first asked for after a predict.
   const Matrix& sigmas_f();
   void set_sigmas_f(const Matrix& sigmas);
@@ -73,6 +81,7 @@ class Ukf {
   // What the last update computed (filterpy's names).
   Vector y;
   Matrix K, S, SI;
+  double nis = 0.0;  // y' SI y of the last update
   Vector propagated_act;
 
  private:
