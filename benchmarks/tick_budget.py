@@ -544,8 +544,11 @@ def progress(text: str) -> None:
     print(f"# {text}", file=sys.stderr, flush=True)
 
 
-def one_run(options: Options, states: dict[str, np.ndarray], ukf_us: float, *, index: int = 1) -> Budget:
-    """A fresh `jitdyn serve --processes 1`, the load, the sampler over its steady part, the floor."""
+def one_run(
+    options: Options, states: dict[str, np.ndarray], ukf_us: float, *, index: int = 1
+) -> Budget | None:
+    """A fresh `jitdyn serve --processes 1`, the load, the sampler over its steady part, the floor;
+    None when admission refused every session (a busy machine): there was no tick to attribute."""
     with local_server(("--processes", "1", *options.serve_args)) as (address, pid):
         begin, end = window(options.seconds)
         progress(
@@ -571,6 +574,8 @@ def one_run(options: Options, states: dict[str, np.ndarray], ukf_us: float, *, i
     if report.opened < options.sessions:
         refusal = report.errors[0] if report.errors else "no reason given"
         progress(f"only {report.opened} of {options.sessions} sessions were admitted: {refusal}")
+    if report.opened == 0 or report.answered == 0:
+        return None
     return budget_of(
         report, sampler.profile, inverse=inverse_us(options.model, options.scenario, options.rate, states)
     )
@@ -835,11 +840,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     for i in range(args.runs):
         progress(f"run {i + 1} of {args.runs}")
         budget = one_run(options, states, ukf_us, index=i + 1)
+        if budget is None:
+            progress(f"run {i + 1}: no tick was answered; the run is not counted")
+            continue
         progress(
             f"run {i + 1}: cpu/tick {budget.cpu_per_tick_us:.0f} us, floor {budget.floor_us:.0f} us, "
             f"{budget.over_floor:.2f}x; MEASURED {100 * budget.measured:.2f} %"
         )
         budgets.append(budget)
+    if not budgets:
+        raise SystemExit(
+            "tick_budget: no run answered a tick (every session refused); try when the machine is quieter"
+        )
     median = median_budget(budgets)
     print(summary(options, median, budgets))
     if args.json:
