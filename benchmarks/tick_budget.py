@@ -6,7 +6,7 @@ with `py-spy record --nonblocking` while reading every thread's CPU from /proc. 
 CPU is spread over the stages its samples fall in (STAGES: the first stage whose test a sample's
 stack passes); the CPU of threads without Python (gRPC core's event engine and timers) is a stage of
 its own. A busy sample whose stack is a wait (select, a lock) is a stack read after its thread's
-burst ended (py-spy --nonblocking reads the state, then the stack): it is left out and counted.
+burst ended (py-spy --nonblocking reads state and stack at two moments): it is left out, counted.
 Scaled to the server's CPU per answered tick:
 
     stage       what the tick spends in it, us of server CPU per answered tick, and its share
@@ -188,10 +188,10 @@ _CLOCK_METHODS = (
 # forecast steps the physics; the record and the metrics are called from the result's lines) come
 # before what they contain.
 #
-# With --nonblocking, py-spy reads a thread's state and then its stack, the thread running on: a
-# thread busy at the first read and back in a wait at the second (the event loop runs a burst of
-# about half a millisecond several hundred times a second) gives a busy sample whose stack is the
-# wait. Those samples are not spent: each thread's CPU goes to its other samples.
+# With --nonblocking, py-spy reads a thread's state and its stack at two moments, the thread
+# running on: a thread busy at one read and back in a wait at the other (the event loop runs a
+# burst of about half a millisecond several hundred times a second) gives a busy sample whose
+# stack is the wait. Those samples are not spent: each thread's CPU goes to its other samples.
 STAGES: tuple[Stage, ...] = (
     Stage(
         WAITING,
