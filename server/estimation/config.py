@@ -302,11 +302,13 @@ def resolve_config(
     model_defaults: Mapping[str, object] = _NONE_SET,
     preset: Preset | str = Preset.JITDYN,
     measured: Iterable[str],
+    engine: Engine = Engine.NATIVE,
 ) -> EstimatorConfig:
     """The complete settings of a session: each field from the request if set there, else from the
     model's defaults for the scenario, else from the preset (`preset_values`).
 
-    requested, model_defaults: some of SETTING_FIELDS (default: none set).
+    requested, model_defaults: some of SETTING_FIELDS (default: none set). engine: what computes
+    the JITDYN preset's filter (NATIVE or its reference FAST); THESIS always runs FILTERPY.
     Raises InvalidArgument naming the first bad field.
     """
     _check_names(requested, "requested")

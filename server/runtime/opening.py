@@ -276,6 +276,7 @@ class SessionOpener:
             model_defaults=info.defaults.get(scenario, {}),
             preset=plan.preset,
             measured=plan.measured,
+            engine=self._services.engine,
         )
         # REALTIME: admitted (or refused) before anything is built for the session, from a price
         # measured once per model and settings, so that a burst of opens past capacity costs the

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from jitdyn.errors import ResourceExhausted
 from jitdyn.registry import ModelRegistry
+from jitdyn.server.estimation.config import Engine
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
 from jitdyn.settings import Settings
@@ -50,6 +51,8 @@ class Services:
     anonymiser: Anonymiser
     pool: WorkerPool
     data_root: Path
+    # What computes the JITDYN preset's UKF (--engine): NATIVE, or FAST, its Python reference.
+    engine: Engine = Engine.NATIVE
     # Where finished sessions' Parquet is published (storage/root.py); None: the data folder only.
     root: DataRoot | None = None
     limits: SessionLimits = DEFAULT_SESSION_LIMITS

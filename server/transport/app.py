@@ -25,6 +25,7 @@ from grpc_reflection.v1alpha import reflection
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
+from jitdyn.server.estimation.config import Engine
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
 from jitdyn.server.runtime.heap import CollectionPauses, freeze_startup_heap, watch_collections
@@ -96,6 +97,8 @@ class ServerConfig:
     # Where finished sessions' Parquet is published (storage/root.py); None: the data folder only.
     data_root_uri: str | None = _DEFAULTS.data_root_uri
     workers: int = field(default_factory=default_workers)
+    # What computes the UKF of the JITDYN preset (--engine): NATIVE, or FAST, its Python reference.
+    engine: Engine = Engine.NATIVE
     secret_file: Path | None = None
     allowed_attributes: frozenset[str] = DEFAULT_ALLOWED_ATTRIBUTES
     registry_limits: RegistryLimits = DEFAULT_LIMITS
@@ -134,6 +137,7 @@ class ServerConfig:
             "index_url": settings.index_url,
             "data_root_uri": settings.data_root_uri,
             "workers": settings.workers if settings.workers is not None else default_workers(),
+            "engine": Engine.FAST if settings.engine == "python" else Engine.NATIVE,
             "secret_file": settings.secret_file,
             "tls_cert": settings.tls_cert,
             "tls_key": settings.tls_key,
@@ -304,6 +308,7 @@ async def _services(
         index=index,
         anonymiser=Anonymiser(secret, allowed_attributes=config.allowed_attributes),
         pool=WorkerPool(config.workers),
+        engine=config.engine,
         data_root=data_root,
         root=root,
         limits=config.session_limits,

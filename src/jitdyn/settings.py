@@ -156,6 +156,16 @@ def _boolean(text: str) -> bool:
     raise ValueError(f"expected 1/0, true/false, yes/no or on/off, got {text!r}")
 
 
+ENGINES: Final = ("native", "python")
+
+
+def _engine(text: str) -> str:
+    name = text.strip().lower()
+    if name not in ENGINES:
+        raise ValueError(f"expected one of {', '.join(ENGINES)}, got {text!r}")
+    return name
+
+
 def default_workers(processes: int = 1) -> int:
     """Threads propagating sigma points by default: the CPUs, shared among the server's processes
     (one each at one process per CPU). Why: docs/decisions/0060-one-worker-per-process.md."""
@@ -279,6 +289,15 @@ class Settings:
         commands=("serve", "demo"),
         metavar="N",
         help="threads propagating sigma points, shared by all sessions",
+    )
+    engine: str = setting(
+        "native",
+        parse=_engine,
+        commands=("serve", "demo"),
+        metavar="NAME",
+        help="what computes the UKF: native (compiled, on MuJoCo's C API) or python (the numpy "
+        "engine it is tested against, for comparison and debugging: 1.3-3.5x the CPU of a filter "
+        "cycle, benchmarks/RESULTS.md); the THESIS preset always runs filterpy",
     )
     secret_file: Path | None = setting(
         None,
