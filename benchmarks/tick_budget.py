@@ -17,6 +17,7 @@ Scaled to the server's CPU per answered tick:
 
     python -m benchmarks.tick_budget                                  # 8 pendulum_3 PASSIVE at 20 Hz
     python -m benchmarks.tick_budget --runs 3 --json budget.json     # medians of 3 fresh servers
+    python -m benchmarks.tick_budget --runs 3 --engines native python  # both engines, alternated
     python -m benchmarks.tick_budget --model biped --scenario CONTROLLED --rate 200 --sessions 2
 
 Sessions admission refuses (a busy machine) are said on stderr; the budget is then of those it
@@ -26,6 +27,7 @@ admitted. Needs py-spy (in the `dev` extra). Progress goes to stderr, the table 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import contextlib
 import json
 import math
@@ -55,6 +57,7 @@ from benchmarks.load import (
     trajectory,
     ukf_cycle_us,
 )
+from jitdyn.settings import ENGINES
 from jitdyn.vocabulary import Scenario
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -712,6 +715,32 @@ def summary(options: Options, median: Budget, budgets: Sequence[Budget]) -> str:
     return "\n".join([head, "", table(rows(median, budgets)), "", waits, cpu, floor, ratio])
 
 
+def side_by_side(medians: dict[str, Budget], budgets: dict[str, list[Budget]]) -> str:
+    """Each stage's median us/tick on every engine, and the runs' cpu/tick over the floor."""
+    engines = list(medians)
+    stages = sorted(
+        {stage for m in medians.values() for stage in m.stages_us},
+        key=lambda stage: -max(m.stages_us.get(stage, 0.0) for m in medians.values()),
+    )
+    head = "| stage | " + " | ".join(f"{e} us/tick" for e in engines) + " |"
+    lines = [head, "|" + "---|" * (len(engines) + 1)]
+    for stage in stages:
+        lines.append(
+            f"| {stage} | "
+            + " | ".join(f"{medians[e].stages_us.get(stage, 0.0):.0f}" for e in engines)
+            + " |"
+        )
+    lines.append(
+        "| **server CPU per tick** | "
+        + " | ".join(f"**{medians[e].cpu_per_tick_us:.0f}**" for e in engines)
+        + " |"
+    )
+    lines.append("| floor | " + " | ".join(f"{medians[e].floor_us:.0f}" for e in engines) + " |")
+    ratios = " | ".join(f"{statistics.median(b.over_floor for b in budgets[e]):.2f}" for e in engines)
+    lines.append(f"| cpu/tick / floor (median of runs) | {ratios} |")
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------------------------------------
 # The command.
 
@@ -800,6 +829,15 @@ def parser() -> argparse.ArgumentParser:
         help="more `jitdyn serve` flags, after --processes 1, e.g. '--workers 2'",
     )
     p.add_argument(
+        "--engines",
+        nargs="+",
+        choices=ENGINES,
+        default=["native"],
+        metavar="ENGINE",
+        help="the server's --engine for each run, alternated run by run so that a noisy machine "
+        "hits each alike: native, python or both (default native)",
+    )
+    p.add_argument(
         "--raw",
         type=Path,
         metavar="FOLDER",
@@ -836,34 +874,50 @@ def main(argv: Sequence[str] | None = None) -> int:
     ticks = max(2, round(options.seconds * options.rate))
     states = trajectory(options.model, options.scenario, options.rate, ticks)
     ukf_us = ukf_cycle_us(options.model, options.scenario, options.rate, states)
-    budgets = []
+    budgets: dict[str, list[Budget]] = {engine: [] for engine in args.engines}
     for i in range(args.runs):
-        progress(f"run {i + 1} of {args.runs}")
-        budget = one_run(options, states, ukf_us, index=i + 1)
-        if budget is None:
-            progress(f"run {i + 1}: no tick was answered; the run is not counted")
-            continue
-        progress(
-            f"run {i + 1}: cpu/tick {budget.cpu_per_tick_us:.0f} us, floor {budget.floor_us:.0f} us, "
-            f"{budget.over_floor:.2f}x; MEASURED {100 * budget.measured:.2f} %"
-        )
-        budgets.append(budget)
-    if not budgets:
+        for engine in args.engines:
+            progress(f"run {i + 1} of {args.runs}, --engine {engine}")
+            on_engine = dataclasses.replace(options, serve_args=(*options.serve_args, "--engine", engine))
+            budget = one_run(on_engine, states, ukf_us, index=i + 1)
+            if budget is None:
+                progress(f"run {i + 1}, --engine {engine}: no tick was answered; the run is not counted")
+                continue
+            progress(
+                f"run {i + 1}, --engine {engine}: cpu/tick {budget.cpu_per_tick_us:.0f} us, floor "
+                f"{budget.floor_us:.0f} us, {budget.over_floor:.2f}x; MEASURED {100 * budget.measured:.2f} %"
+            )
+            budgets[engine].append(budget)
+    empty = [engine for engine, found in budgets.items() if not found]
+    if empty:
         raise SystemExit(
-            "tick_budget: no run answered a tick (every session refused); try when the machine is quieter"
+            f"tick_budget: no run on --engine {', '.join(empty)} answered a tick (every session refused); "
+            "try when the machine is quieter"
         )
-    median = median_budget(budgets)
-    print(summary(options, median, budgets))
+    medians = {engine: median_budget(found) for engine, found in budgets.items()}
+    for engine, found in budgets.items():
+        print(f"## --engine {engine}\n")
+        print(summary(options, medians[engine], found), end="\n\n")
+    if len(budgets) > 1:
+        print(side_by_side(medians, budgets))
     if args.json:
         document = {
             "options": {**asdict(options), "scenario": str(options.scenario), "raw": str(options.raw)},
             # over_floor: the median of the runs' ratios, not the ratio of the medians.
-            "median": {
-                **asdict(median),
-                "floor_us": median.floor_us,
-                "over_floor": statistics.median(b.over_floor for b in budgets),
+            "engines": {
+                engine: {
+                    # over_floor: the median of the runs' ratios, not the ratio of the medians.
+                    "median": {
+                        **asdict(medians[engine]),
+                        "floor_us": medians[engine].floor_us,
+                        "over_floor": statistics.median(b.over_floor for b in found),
+                    },
+                    "runs": [
+                        {**asdict(b), "floor_us": b.floor_us, "over_floor": b.over_floor} for b in found
+                    ],
+                }
+                for engine, found in budgets.items()
             },
-            "runs": [{**asdict(b), "floor_us": b.floor_us, "over_floor": b.over_floor} for b in budgets],
         }
         args.json.write_text(json.dumps(document, indent=1))
     return 0
