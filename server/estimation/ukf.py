@@ -248,7 +248,7 @@ class UnscentedFilter:
                 vector=True,
                 **kwargs,
             )
-        if self._config.engine == Engine.NATIVE and not self._manifold:
+        if self._config.engine == Engine.NATIVE:
             return NativeUKF(
                 self._model,
                 points=self._points,
@@ -257,6 +257,7 @@ class UnscentedFilter:
                 inputs=_INPUTS[self._scenario],
                 fblocks=self._fblocks,
                 controlled=self._controlled,
+                manifold=x_manifold,
             )
         if self._config.engine in (Engine.FAST, Engine.NATIVE):
             return FastUKF(

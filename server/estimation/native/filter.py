@@ -1,5 +1,5 @@
 """The compiled filter (ukf.cc) behind the surface estimation/fast.py's FastUKF gives
-UnscentedFilter: x, P, Q and R read and written as arrays, predict() and update(z), and what an
+UnscentedFilter, for plain vector states and states on a manifold alike: x, P, Q and R read and written as arrays, predict() and update(z), and what an
 update leaves for the adaptive noise (y, K, S, SI). The process model's inputs (activations,
 control, the restored force) are handed over before each predict.
 
@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 
 from jitdyn.errors import InvalidArgument
+from jitdyn.server.estimation.manifold import SplitManifold
 from jitdyn.server.estimation.native import SingularMatrix, Ukf
 from jitdyn.server.estimation.propagate import Inputs
 from jitdyn.server.estimation.sigma import MerweScaled, Simplex, UniformSpherical
@@ -41,7 +42,8 @@ def _native_array(name: str, *, writable: bool = True) -> Any:
 
 
 class NativeUKF:
-    """FastUKF's surface over ukf.cc's filter (module docstring); plain vector states only."""
+    """FastUKF's surface over ukf.cc's filter (module docstring). manifold: the state's
+    (ball and free joints), whose mean and residual an extrapolation in Python uses."""
 
     # filterpy's unscented_transform takes these for states on a manifold; a vector state has none.
     x_mean: Any = None
@@ -57,6 +59,7 @@ class NativeUKF:
         inputs: Inputs,
         fblocks: int,
         controlled: bool,
+        manifold: SplitManifold | None = None,
     ) -> None:
         scheme = _SCHEMES.get(type(points))
         if scheme is None:
@@ -64,17 +67,20 @@ class NativeUKF:
                 f"points must be one of {[s.__name__ for s in _SCHEMES]}, got {type(points)}"
             )
         n = int(points.n)
+        size = int(model.nq) + n - int(model.nv)  # len(x): qpos, then the tangent's rest
         if isinstance(z_index, slice):
-            z = list(range(*z_index.indices(n)))
+            z = list(range(*z_index.indices(size)))
         else:
             z = [int(i) for i in z_index]
         self._model = model  # the compiled filter holds its pointer: keep it alive
         self._inputs: tuple[np.ndarray | None, ...] = (None, None, None)
         self.Wm, self.Wc = points.Wm, points.Wc
+        if manifold is not None:  # for the tangent unscented transform of an extrapolation
+            self.x_mean, self.residual_x = manifold.mean, manifold.residual
         self._ukf = Ukf(
             model._address,
             n=n,
-            size=n,
+            size=size,
             fblocks=fblocks,
             controlled=controlled,
             scheme=scheme,

@@ -55,15 +55,18 @@ Ukf::Ukf(const mjModel* model, UkfSpec spec) : m_(model), d_(nullptr), spec_(std
   na_ = m_->na;
   nu_ = m_->nu;
   const UkfSpec& s = spec_;
-  Require(nq_ == nv_, "the native engine takes plain vector states (nq == nv), got nq = " +
-                          std::to_string(nq_) + ", nv = " + std::to_string(nv_));
+  manifold_ = nq_ != nv_;
   int order = s.controlled ? 3 : 2;
   Require(s.n == (order + s.fblocks) * nv_,
           "n must be " + std::to_string((order + s.fblocks) * nv_) + ", got " + std::to_string(s.n));
-  Require(s.size == s.n, "size must equal n, got " + std::to_string(s.size));
+  Require(s.size == nq_ + s.n - nv_,
+          "size must be " + std::to_string(nq_ + s.n - nv_) + ", got " + std::to_string(s.size));
   Require(s.wm.size() == s.wc.size() && s.wm.size() > 0, "wm and wc must be of one positive length");
   Require(s.nstep >= 1, "nstep must be >= 1, got " + std::to_string(s.nstep));
   for (int i : s.z_index) Require(0 <= i && i < s.size, "z_index out of range: " + std::to_string(i));
+  for (int i = 0; i < nq_; ++i) {
+    Require(static_cast<int>(s.z_index.size()) > i && s.z_index[i] == i, "z_index must start with qpos");
+  }
   if (s.scheme == Scheme::kSimplex) {
     Require(s.unit.rows() == s.n && s.unit.cols() == s.n + 1, "unit must have shape (n, n + 1)");
   }
@@ -77,7 +80,8 @@ Ukf::Ukf(const mjModel* model, UkfSpec spec) : m_(model), d_(nullptr), spec_(std
   x = Vector::Zero(s.size);
   P = Matrix::Identity(s.n, s.n);
   Q = Matrix::Zero(s.n, s.n);
-  R = Matrix::Identity(static_cast<int>(s.z_index.size()), static_cast<int>(s.z_index.size()));
+  const int z_tangent = static_cast<int>(s.z_index.size()) - nq_ + nv_;
+  R = Matrix::Identity(z_tangent, z_tangent);
   act = Vector::Zero(na_);
   ctrl = Vector::Zero(nu_);
   qfrc = Vector::Zero(nv_);
@@ -87,6 +91,52 @@ Ukf::Ukf(const mjModel* model, UkfSpec spec) : m_(model), d_(nullptr), spec_(std
 
 Ukf::~Ukf() {
   if (d_) mj_deleteData(d_);
+}
+
+Matrix Ukf::Add(const Vector& x0, const Matrix& dx) const {
+  const int rows = static_cast<int>(dx.rows()), rest = static_cast<int>(x0.size()) - nq_;
+  Matrix out(rows, x0.size());
+  for (int i = 0; i < rows; ++i) {
+    out.row(i) = x0.transpose();
+    out.row(i).tail(rest) += dx.row(i).tail(rest);
+    // In place, renormalising the quaternions (as manifold.py's add).
+    mj_integratePos(m_, out.row(i).data(), dx.row(i).data(), 1.0);
+  }
+  return out;
+}
+
+Matrix Ukf::Residual(const Matrix& a, const Matrix& b) const {
+  const int rows = static_cast<int>(std::max(a.rows(), b.rows()));
+  const int rest = static_cast<int>(a.cols()) - nq_;
+  Matrix out(rows, nv_ + rest);
+  for (int i = 0; i < rows; ++i) {
+    const auto ai = a.row(a.rows() > 1 ? i : 0);
+    const auto bi = b.row(b.rows() > 1 ? i : 0);
+    out.row(i).tail(rest) = ai.tail(rest) - bi.tail(rest);
+    mj_differentiatePos(m_, out.row(i).data(), 1.0, bi.data(), ai.data());
+  }
+  return out;
+}
+
+Vector Ukf::Mean(const Matrix& points) const {
+  // The Karcher mean of manifold.py: from the point of largest weight, its tangent step at most
+  // kMeanIterations times, until the step is under kMeanTolerance.
+  constexpr double kMeanTolerance = 1e-12;
+  constexpr int kMeanIterations = 20;
+  const Vector& w = spec_.wm;
+  const int rest = static_cast<int>(points.cols()) - nq_;
+  Eigen::Index top = 0;
+  for (Eigen::Index i = 1; i < w.size(); ++i) {
+    if (w[i] > w[top]) top = i;
+  }
+  Vector mean = points.row(top).transpose();
+  mean.tail(rest) = points.rightCols(rest).transpose() * w;
+  for (int iteration = 0; iteration < kMeanIterations; ++iteration) {
+    Vector step = Residual(points, mean.transpose()).leftCols(nv_).transpose() * w;
+    mj_integratePos(m_, mean.data(), step.data(), 1.0);
+    if ((step.size() ? step.cwiseAbs().maxCoeff() : 0.0) < kMeanTolerance) break;
+  }
+  return mean;
 }
 
 Matrix Ukf::RobustCholeskyUpper(const Matrix& A) {
@@ -111,10 +161,19 @@ Matrix Ukf::SigmaPoints(const Vector& x0, const Matrix& P0) {
   if (s.scheme == Scheme::kSimplex) {
     Matrix U = RobustCholeskyUpper(P0);
     Matrix offsets = (U.transpose() * s.unit).transpose();  // (n + 1, n)
+    if (manifold_) return Add(x0, offsets);
     for (int i = 0; i < n + 1; ++i) sigmas.row(i) = x0.transpose() + offsets.row(i);
     return sigmas;
   }
   Matrix U = RobustCholeskyUpper(s.scale * P0);
+  if (manifold_) {
+    Matrix plus = Add(x0, U), minus = Add(x0, -U);
+    int first = s.scheme == Scheme::kMerwe ? 1 : 0;
+    if (first) sigmas.row(0) = x0.transpose();
+    sigmas.middleRows(first, n) = plus;
+    sigmas.middleRows(first + n, n) = minus;
+    return sigmas;
+  }
   int first = 0;
   if (s.scheme == Scheme::kMerwe) {
     sigmas.row(0) = x0.transpose();
@@ -198,8 +257,8 @@ Matrix Ukf::Propagate(const Matrix& sigmas, int nstep) {
 void Ukf::Predict() {
   Matrix sigmas = SigmaPoints(x, P);
   Matrix moved = Propagate(sigmas, spec_.nstep);
-  Vector mean = moved.transpose() * spec_.wm;
-  Matrix spread = moved.rowwise() - mean.transpose();
+  Vector mean = manifold_ ? Mean(moved) : Vector(moved.transpose() * spec_.wm);
+  Matrix spread = manifold_ ? Residual(moved, mean.transpose()) : Matrix(moved.rowwise() - mean.transpose());
   Matrix prior = spread.transpose() * (spec_.wc.asDiagonal() * spread);
   prior += Q;
   x = std::move(mean);
@@ -225,26 +284,27 @@ void Ukf::set_sigmas_f(const Matrix& sigmas) {
 
 void Ukf::Update(const Vector& z) {
   const int m = static_cast<int>(spec_.z_index.size());
+  const int mt = m - nq_ + nv_;  // z's tangent dimension
   Require(z.size() == m, "z must have " + std::to_string(m) + " entries, got " + std::to_string(z.size()));
-  Require(R.rows() == m && R.cols() == m, "R must be (dim_z, dim_z)");
+  Require(R.rows() == mt && R.cols() == mt, "R must be (dim_z, dim_z) in z's tangent space");
   const Matrix& sf = sigmas_f();
   const int ns = nsigma();
   Matrix sh(ns, m);
   for (int j = 0; j < m; ++j) sh.col(j) = sf.col(spec_.z_index[j]);
-  Vector zp = sh.transpose() * spec_.wm;
-  Matrix dz = sh.rowwise() - zp.transpose();
+  Vector zp = manifold_ ? Mean(sh) : Vector(sh.transpose() * spec_.wm);
+  Matrix dz = manifold_ ? Residual(sh, zp.transpose()) : Matrix(sh.rowwise() - zp.transpose());
   Matrix weighted = spec_.wc.asDiagonal() * dz;
   Matrix innovation_cov = dz.transpose() * weighted;
   innovation_cov += R;
-  Matrix dx = sf.rowwise() - x.transpose();
+  Matrix dx = manifold_ ? Residual(sf, x.transpose()) : Matrix(sf.rowwise() - x.transpose());
   const Eigen::MatrixXd square = innovation_cov;
   Eigen::PartialPivLU<Eigen::MatrixXd> lu(square);
   if ((lu.matrixLU().diagonal().array() == 0.0).any()) throw SingularMatrix("Singular matrix");
   Matrix inverse = lu.inverse();
   Matrix cross = dx.transpose() * weighted;
   Matrix gain = cross * inverse;
-  Vector innovation = z - zp;
-  x = x + gain * innovation;
+  Vector innovation = manifold_ ? Vector(Residual(z.transpose(), zp.transpose()).row(0).transpose()) : Vector(z - zp);
+  x = manifold_ ? Vector(Add(x, (gain * innovation).transpose()).row(0).transpose()) : Vector(x + gain * innovation);
   P = P - gain * (innovation_cov * gain.transpose());
   nis = (innovation.transpose() * inverse).dot(innovation);
   S = std::move(innovation_cov);

@@ -28,7 +28,7 @@ class SingularMatrix : public std::runtime_error {
 // What fixes a filter for its whole life; checked by the constructor.
 struct UkfSpec {
   int n = 0;                  // tangent dimension (side of P)
-  int size = 0;               // len(x); equals n for the plain vector states this engine takes
+  int size = 0;               // len(x): nq + n - nv
   int fblocks = 0;            // DRIVEN: 1 (force) or 2 (force and its rate); else 0
   bool controlled = false;    // x = [q, qd, qdd], qdd the last step's qacc
   Scheme scheme = Scheme::kMerwe;
@@ -85,6 +85,11 @@ class Ukf {
   Vector propagated_act;
 
  private:
+  // x (or z) moved along tangent rows dx; rows of points less rows of b as tangent vectors; the
+  // weighted mean of points. `rest`: the entries after qpos (a state's, or a measurement's).
+  Matrix Add(const Vector& x, const Matrix& dx) const;
+  Matrix Residual(const Matrix& a, const Matrix& b) const;
+  Vector Mean(const Matrix& points) const;
   Matrix RobustCholeskyUpper(const Matrix& A);
   void StepPoint(const double* row, double* out, double* act_out, int nstep, bool ramp);
 
@@ -92,6 +97,7 @@ class Ukf {
   mjData* d_;
   UkfSpec spec_;
   int nq_, nv_, na_, nu_;
+  bool manifold_;  // ball or free joints: nq != nv
   std::vector<mjtNum> template_;  // a fresh mjData's FULLPHYSICS state: time 0, history, plugins
   int qpos_at_, qvel_at_, act_at_;
   int repairs_ = 0;
