@@ -27,8 +27,8 @@ admitted. Needs py-spy (in the `dev` extra). Progress goes to stderr, the table 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import contextlib
+import dataclasses
 import json
 import math
 import os

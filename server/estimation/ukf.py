@@ -61,6 +61,8 @@ from jitdyn.server.estimation.interface import (
 from jitdyn.server.estimation.layout import derivative_order, force_blocks, linear_force_applies
 from jitdyn.server.estimation.linear_force import LinearForceUKF, force_response
 from jitdyn.server.estimation.manifold import SplitManifold, has_manifold
+from jitdyn.server.estimation.native import AdapterState
+from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
 from jitdyn.server.estimation.native.filter import NativeUKF
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
@@ -131,7 +133,7 @@ class FilterSnapshot:
     last_qvel: np.ndarray
     ticks_since_update: int
     guard: GuardState
-    adapter: NoiseSnapshot | None
+    adapter: NoiseSnapshot | AdapterState | None
     forecasts: CombinerSnapshot | None
 
 
@@ -265,10 +267,11 @@ class UnscentedFilter:
             )
         return BatchedUKF(propagate=self._propagate_sigmas, vector=not self._manifold, **kwargs)
 
-    def _noise_adapter(self) -> NoiseAdapter | None:
+    def _noise_adapter(self) -> NoiseAdapter | NativeNoiseAdapter | None:
         if self._config.noise_model != NoiseModel.ADAPTIVE:
             return None
-        return NoiseAdapter(
+        adapter = NativeNoiseAdapter if self._config.engine == Engine.NATIVE else NoiseAdapter
+        return adapter(
             r0=np.full(self._z_tangent, self._config.r),
             q0=self._Q,
             adapt_q=self._adapt_q_mask(),
@@ -304,7 +307,7 @@ class UnscentedFilter:
         self._guard.reset()
 
     @property
-    def adapter(self) -> NoiseAdapter | None:
+    def adapter(self) -> NoiseAdapter | NativeNoiseAdapter | None:
         """The adaptive noise model; None with NoiseModel.FIXED."""
         return self._adapter
 
@@ -626,8 +629,12 @@ class UnscentedFilter:
         self._last_qvel = snap.last_qvel.copy()
         self._ticks_since_update = snap.ticks_since_update
         self._guard.restore(snap.guard)
-        if self._adapter is not None and snap.adapter is not None:
-            self._adapter.restore(snap.adapter)
+        adapter, saved = self._adapter, snap.adapter
+        # Each engine's adapter takes its own snapshots (two branches for the type checker).
+        if isinstance(adapter, NativeNoiseAdapter) and isinstance(saved, AdapterState):
+            adapter.restore(saved)
+        elif isinstance(adapter, NoiseAdapter) and isinstance(saved, NoiseSnapshot):  # noqa: SIM114
+            adapter.restore(saved)
         if self._forecasts is not None and snap.forecasts is not None:
             self._forecasts.restore(snap.forecasts)
 

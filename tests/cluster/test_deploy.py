@@ -188,7 +188,7 @@ def test_the_wheel_builds_from_what_the_dockerfile_copies(tmp_path: Path) -> Non
                 origin = REPO / source.rstrip("/")
                 if origin.is_dir():
                     shutil.copytree(
-                        origin, context / origin.name, ignore=shutil.ignore_patterns("__pycache__")
+                        origin, context / origin.name, ignore=shutil.ignore_patterns("__pycache__", "*.so")
                     )
                 else:
                     context.mkdir(parents=True, exist_ok=True)

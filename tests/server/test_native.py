@@ -288,9 +288,69 @@ def test_an_unknown_engine_is_refused_by_name(tmp_path: Path) -> None:
 
     done = subprocess.run(
         [sys.executable, "-m", "jitdyn.cli", "serve", "--data", str(tmp_path), "--engine", "fortran"],
+        check=False,
         capture_output=True,
         text=True,
         timeout=60,
     )
     assert done.returncode != 0
     assert "--engine: expected one of native, python, got 'fortran'" in done.stderr, done.stderr
+
+
+def test_the_adaptive_noise_in_cpp_is_adaptive_py() -> None:
+    """Both adapters fed the same 400 updates (wild ones, non-finite ones, gaps, absorptions, a
+    snapshot taken and replayed from): the same verdicts, R, Q and Q over a gap."""
+    from jitdyn.server.estimation.adaptive import NoiseAdapter
+    from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
+
+    rng = np.random.default_rng(3)
+    n, m = 6, 4
+    q0 = np.diag(rng.uniform(0.01, 1.0, n))
+    q0[0, 3] = q0[3, 0] = 0.005
+    kwargs = {
+        "r0": np.full(m, 0.01),
+        "q0": q0,
+        "adapt_q": np.array([True] * 4 + [False] * 2),
+        "inflate": True,
+    }
+    python, native = NoiseAdapter(**kwargs), NativeNoiseAdapter(**kwargs)  # type: ignore[arg-type]
+    steps = []
+    for k in range(400):
+        scale = 30.0 if 100 <= k < 130 else 1.0  # a wrong model for a while: absorptions
+        y = rng.normal(0.0, 0.1 * scale, m)
+        if k == 50:
+            y[1] = np.inf
+        steps.append(
+            {
+                "innovation": y,
+                "consecutive": k % 17 != 0,
+                "gain": rng.normal(0.0, 0.3, (n, m)),
+                "nis": None if k % 23 == 5 else float(y @ y / 0.01),
+                "noise_share": float(rng.uniform(0.0, 1.2)),
+            }
+        )
+
+    def drive(adapter: NoiseAdapter | NativeNoiseAdapter, start: int, stop: int) -> list[np.ndarray]:
+        out = []
+        for k in range(start, stop):
+            verdict = adapter.observe(**steps[k])  # type: ignore[arg-type]
+            if verdict.absorb:
+                adapter.absorbed()
+            if k % 11 == 0:
+                adapter.observe_gap(nis=float(steps[k]["innovation"] @ steps[k]["innovation"]), m=m)
+            out += [np.array([verdict.adapted, verdict.absorb, adapter.window_full], dtype=float)]
+            out += [adapter.R, adapter.Q, adapter.Q_gap, adapter.q_for(2.0 * q0)]
+        return out
+
+    got_before, expected_before = drive(native, 0, 200), drive(python, 0, 200)
+    snapshots = native.snapshot(), python.snapshot()
+    got, expected = drive(native, 200, 400), drive(python, 200, 400)
+    native.restore(snapshots[0])
+    python.restore(snapshots[1])  # type: ignore[arg-type]
+    replayed_native, replayed_python = drive(native, 200, 400), drive(python, 200, 400)
+    pairs = zip(got_before + got + replayed_native, expected_before + expected + replayed_python, strict=True)
+    for i, (a, b) in enumerate(pairs):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15, err_msg=f"output {i}")
+    assert sum(float(a[1]) for a in expected_before + expected if a.shape == (3,)) > 0  # absorbed
+    for a, b in zip(got, replayed_native, strict=True):
+        np.testing.assert_array_equal(a, b)  # a restore replays bit for bit

@@ -20,7 +20,7 @@ except ImportError as error:  # pragma: no cover - a broken install, said in one
         "present (pip install -e . in the checkout)"
     ) from error
 
-__all__ = ["MUJOCO_VERSION", "SingularMatrix", "Ukf"]
+__all__ = ["MUJOCO_VERSION", "AdapterState", "SingularMatrix", "Ukf"]
 
 MUJOCO_VERSION = int(_ukf.MUJOCO_HEADER_VERSION)
 
@@ -31,4 +31,5 @@ if _ukf.mujoco_version() != MUJOCO_VERSION or mujoco.mj_version() != MUJOCO_VERS
     )
 
 Ukf = _ukf.Ukf
+AdapterState = _ukf.AdapterState
 SingularMatrix = _ukf.SingularMatrix

@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <string>
 
+#include "adaptive.h"
 #include "ukf.h"
 
 namespace py = pybind11;
@@ -51,10 +52,45 @@ void Assign(T& target, const T& value, const char* name) {
 }  // namespace
 
 PYBIND11_MODULE(_ukf, module) {
+  using jitdyn::Adapter;
+  using jitdyn::AdapterBounds;
+  using jitdyn::AdapterMatrix;
+  using jitdyn::AdapterState;
   module.doc() = "jitdyn's unscented Kalman filter on MuJoCo's C API (server/estimation/native/ukf.h)";
   module.attr("MUJOCO_HEADER_VERSION") = mjVERSION_HEADER;
   module.def("mujoco_version", [] { return mj_version(); }, "The version of the libmujoco loaded.");
   py::register_exception<jitdyn::SingularMatrix>(module, "SingularMatrix");
+
+  // A snapshot of an Adapter: opaque and immutable from Python.
+  py::class_<AdapterState>(module, "AdapterState");
+  py::class_<Adapter>(module, "Adapter")
+      .def(py::init([](const Eigen::VectorXd& r0, const AdapterMatrix& q0, const std::vector<bool>& adapt_q,
+                       bool inflate, const py::dict& bounds, double nis_limit) {
+             auto get = [&](const char* name) { return bounds[name].cast<double>(); };
+             auto count = [&](const char* name) { return bounds[name].cast<int>(); };
+             AdapterBounds b{get("r_min"),         get("r_max"),         get("q_scale_min"),
+                             get("q_scale_max"),   get("forgetting"),    count("window"),
+                             get("report_change"), count("window_r"),    count("min_differences"),
+                             get("inflation_min"), get("inflation_max"), get("inflation_gain"),
+                             get("inflation_leak"), get("inflation_step"), get("gap_gain"),
+                             get("gap_step"),      get("absorb_factor")};
+             return std::make_unique<Adapter>(r0, q0, adapt_q, inflate, b, nis_limit);
+           }),
+           py::kw_only(), py::arg("r0"), py::arg("q0"), py::arg("adapt_q"), py::arg("inflate"), py::arg("bounds"),
+           py::arg("nis_limit"))
+      .def("reset", &Adapter::Reset)
+      .def("observe", &Adapter::Observe, py::kw_only(), py::arg("innovation"), py::arg("consecutive"),
+           py::arg("gain"), py::arg("nis"), py::arg("noise_share"))
+      .def("observe_gap", &Adapter::ObserveGap, py::kw_only(), py::arg("nis"), py::arg("m"))
+      .def("absorbed", &Adapter::Absorbed)
+      .def("q_for", &Adapter::QFor, py::arg("q0"))
+      .def_property_readonly("window_full", &Adapter::window_full)
+      .def_property_readonly("r_diagonal", [](const Adapter& a) { return Eigen::VectorXd(a.r()); })
+      .def_property_readonly("scale", &Adapter::Scale)
+      .def_property_readonly("inflation", &Adapter::Inflation)
+      .def_property_readonly("gap_inflation", &Adapter::GapInflation)
+      .def("snapshot", [](const Adapter& a) { return a.state(); })
+      .def("restore", &Adapter::Restore, py::arg("state"));
 
   py::class_<Ukf>(module, "Ukf")
       .def(py::init(&MakeUkf), py::arg("model_address"), py::kw_only(), py::arg("n"), py::arg("size"),
