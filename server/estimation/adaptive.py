@@ -48,7 +48,7 @@ from typing import Final
 import numpy as np
 from scipy.stats import chi2
 
-__all__ = ["BOUNDS", "AdaptationBounds", "NoiseAdapter", "NoiseSnapshot", "Verdict"]
+__all__ = ["BOUNDS", "AdaptationBounds", "NoiseAdapter", "NoiseSnapshot", "Verdict", "checked_noise"]
 
 
 _MAD_TO_SIGMA: Final = 1.4826  # median |N(0, 1)| = 0.6745 = 1 / 1.4826
@@ -129,6 +129,17 @@ class NoiseSnapshot:
     reported_inflation: float
 
 
+def checked_noise(r0: np.ndarray, q0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """r0 (m,) positive and q0 (n, n), as float arrays; ValueError naming the one that is not."""
+    r0 = np.asarray(r0, dtype=np.float64)
+    q0 = np.asarray(q0, dtype=np.float64)
+    if r0.ndim != 1 or not np.all(r0 > 0):
+        raise ValueError(f"r0 must be a vector of positive variances, got {r0!r}")
+    if q0.shape != (q0.shape[0], q0.shape[0]):
+        raise ValueError(f"q0 must be square, got shape {q0.shape}")
+    return r0, q0
+
+
 class NoiseAdapter:
     """The adaptive R and Q of one filter (see the module docstring).
 
@@ -148,12 +159,7 @@ class NoiseAdapter:
         inflate: bool = True,
         bounds: AdaptationBounds = BOUNDS,
     ) -> None:
-        r0 = np.asarray(r0, dtype=np.float64)
-        q0 = np.asarray(q0, dtype=np.float64)
-        if r0.ndim != 1 or not np.all(r0 > 0):
-            raise ValueError(f"r0 must be a vector of positive variances, got {r0!r}")
-        if q0.shape != (q0.shape[0], q0.shape[0]):
-            raise ValueError(f"q0 must be square, got shape {q0.shape}")
+        r0, q0 = checked_noise(r0, q0)
         self._bounds = bounds
         self._inflate = bool(inflate)
         self._r0 = np.clip(r0, bounds.r_min, bounds.r_max)

@@ -196,38 +196,19 @@ def test_the_compiled_filter_names_what_was_wrong() -> None:
         kf.x = np.zeros(3)
     with pytest.raises(ValueError, match=r"z must have 4 entries, got 2"):
         kf.update(np.zeros(2))
-    with pytest.raises(ValueError, match=r"n must be 4, got 6"):
-        Ukf(
-            model._address,
-            n=6,
-            size=6,
-            fblocks=0,
-            controlled=False,
-            scheme=0,
-            scale=1.0,
-            unit=np.zeros((0, 0)),
-            wm=np.ones(13) / 13,
-            wc=np.ones(13) / 13,
-            z_index=[0],
-            nstep=1,
-            inputs=0,
-        )
-    with pytest.raises(ValueError, match=r"scheme must be 0, 1 or 2, got 5"):
-        Ukf(
-            model._address,
-            n=4,
-            size=4,
-            fblocks=0,
-            controlled=False,
-            scheme=5,
-            scale=1.0,
-            unit=np.zeros((0, 0)),
-            wm=np.ones(9) / 9,
-            wc=np.ones(9) / 9,
-            z_index=[0],
-            nstep=1,
-            inputs=0,
-        )
+    spec: dict[str, object] = {
+        "n": 4, "size": 4, "fblocks": 0, "controlled": False, "scheme": 0, "scale": 1.0,
+        "unit": np.zeros((0, 0)), "wm": np.ones(9) / 9, "wc": np.ones(9) / 9, "z_index": [0, 1],
+        "nstep": 1, "inputs": 0,
+    }  # fmt: skip
+    for changes, message in [
+        ({"n": 6, "size": 6}, r"n must be 4, got 6"),
+        ({"scheme": 5}, r"scheme must be 0, 1 or 2, got 5"),
+        ({"z_index": [1, 0]}, r"z_index must start with qpos"),
+        ({"nstep": 0}, r"nstep must be >= 1, got 0"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            Ukf(model._address, **{**spec, **changes})  # type: ignore[arg-type]
 
 
 def test_an_innovation_covariance_that_cannot_be_inverted_is_numpys_error() -> None:

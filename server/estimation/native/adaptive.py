@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 from scipy.stats import chi2
 
-from jitdyn.server.estimation.adaptive import BOUNDS, AdaptationBounds, Verdict
+from jitdyn.server.estimation.adaptive import BOUNDS, AdaptationBounds, Verdict, checked_noise
 from jitdyn.server.estimation.native import _ukf
 
 __all__ = ["NativeNoiseAdapter"]
@@ -31,12 +31,7 @@ class NativeNoiseAdapter:
         inflate: bool = True,
         bounds: AdaptationBounds = BOUNDS,
     ) -> None:
-        r0 = np.asarray(r0, dtype=np.float64)
-        q0 = np.asarray(q0, dtype=np.float64)
-        if r0.ndim != 1 or not np.all(r0 > 0):
-            raise ValueError(f"r0 must be a vector of positive variances, got {r0!r}")
-        if q0.shape != (q0.shape[0], q0.shape[0]):
-            raise ValueError(f"q0 must be square, got shape {q0.shape}")
+        r0, q0 = checked_noise(r0, q0)
         free = np.ones(q0.shape[0], dtype=bool) if adapt_q is None else np.asarray(adapt_q, dtype=bool)
         m = r0.size
         self._adapter = _ukf.Adapter(
