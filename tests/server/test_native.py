@@ -335,3 +335,21 @@ def test_the_adaptive_noise_in_cpp_is_adaptive_py() -> None:
     assert sum(float(a[1]) for a in expected_before + expected if a.shape == (3,)) > 0  # absorbed
     for a, b in zip(got, replayed_native, strict=True):
         np.testing.assert_array_equal(a, b)  # a restore replays bit for bit
+
+
+def test_the_engine_refuses_another_mujoco_in_one_line() -> None:
+    """Built against one MuJoCo, handed another's pointers: refused at import, in one line. (The
+    other MuJoCo is stood in for by the running one reporting another version.)"""
+    import subprocess
+    import sys
+
+    code = "import mujoco\nmujoco.mj_version = lambda: 3016000\nimport jitdyn.server.estimation.native\n"
+    done = subprocess.run(
+        [sys.executable, "-c", code], check=False, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode != 0
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith(
+        "jitdyn.errors.FailedPrecondition: jitdyn's native engine was built against MuJoCo "
+    ), last
+    assert "but MuJoCo 3016000" in last and "reinstall jitdyn" in last, last
