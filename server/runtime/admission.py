@@ -104,6 +104,9 @@ class Ticket:
     # s, the session's own estimator and dynamics per tick (wall time on the loop), without the
     # process's transport: what replaying a tick costs. Starts at the priced filter cycle.
     compute_per_tick: float = 0.0
+    # s, one tick of a late frame's replay (the timewarp), measured from this session's own replays;
+    # None before its first (see `replay_price`).
+    replay_per_tick: float | None = None
     released: bool = False
     admitted_at: float = field(default_factory=time.monotonic)
 
@@ -117,6 +120,24 @@ class Ticket:
         self.admission._count_tick(seconds)
         self.cost_per_tick += _EWMA * (seconds + self.admission.overhead - self.cost_per_tick)
         self.compute_per_tick += _EWMA * (seconds - self.compute_per_tick)
+
+    @property
+    def replay_price(self) -> float:
+        """s, what a late frame's replay is priced at per tick replayed: what this session's own
+        replays measured, and its compute per tick until it has replayed (a tick answered on the
+        loop costs more than its replay: the answer's dynamics and message)."""
+        return self.compute_per_tick if self.replay_per_tick is None else self.replay_per_tick
+
+    def observe_replay(self, seconds: float, *, cpu: float, ticks: int) -> None:
+        """A late frame's replay of `ticks` ticks took `seconds` on the loop, `cpu` of them its
+        thread's CPU: the process's share of time in replays, and the session's replay price (in
+        CPU time: a process the machine stopped mid-replay would otherwise price every later
+        replay out of reach)."""
+        self.admission.observe_replay(seconds)
+        if ticks > 0:
+            measured = cpu / ticks
+            previous = self.replay_per_tick
+            self.replay_per_tick = measured if previous is None else previous + _EWMA * (measured - previous)
 
     def release(self) -> None:
         self.admission._release(self)
@@ -382,7 +403,11 @@ class Admission:
             raise InvalidArgument(f"dt must be > 0, got {dt}")
         self._first_look()
         ticket = Ticket(
-            self, dt=dt, cost_per_tick=cost_per_tick, compute_per_tick=filter_seconds, grace=grace
+            self,
+            dt=dt,
+            cost_per_tick=cost_per_tick,
+            compute_per_tick=filter_seconds,
+            grace=grace,
         )
         with self._lock:
             if resumed:

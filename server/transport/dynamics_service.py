@@ -259,10 +259,13 @@ class _Stream:
         if unaffordable is not None:
             self.runtime.note_late(frame.seq)  # refused, it still says how late frames come
             return self.reject(frame.seq, RejectReason.TOO_OLD, unaffordable, frame=frame)
-        started = time.perf_counter()
+        runs = self.runtime.replay_cost(frame.seq)
+        started, cpu_started = time.perf_counter(), time.thread_time()
         outcome = self.runtime.apply_late(frame)
         if self.ticket is not None:
-            self.ticket.admission.observe_replay(time.perf_counter() - started)
+            self.ticket.observe_replay(
+                time.perf_counter() - started, cpu=time.thread_time() - cpu_started, ticks=runs
+            )
         return [Response(result=self.record_result(outcome, arrived=arrived))]
 
     def _wait_for_tick(self, frame: FrameIn) -> list[Response]:
@@ -292,7 +295,8 @@ class _Stream:
         is applied only when it fits, with the session's own next tick, in half a tick, and not while
         replays keep the process late (Admission.replays_behind), because replays on a server that
         is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md). A
-        frame whose tick waited for it adds no work (docs/decisions/0007-wait-for-late-frames.md):
+        replayed tick is priced at what the session's own replays measured, and at its compute per
+        tick before its first (Ticket.replay_price). A frame whose tick waited for it adds no work (docs/decisions/0007-wait-for-late-frames.md):
         it is always applied.
         """
         runs = self.runtime.replay_cost(seq)
@@ -305,7 +309,7 @@ class _Stream:
                 f"{runs} ticks of the filter again, and this server process {behind}: late frames "
                 "are not applied until it catches up"
             )
-        cost = runs * self.ticket.compute_per_tick
+        cost = runs * self.ticket.replay_price
         free = max(0.0, self.plan.dt / 2 - self.ticket.cost_per_tick)
         if cost <= free:
             return None

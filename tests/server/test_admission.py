@@ -385,3 +385,21 @@ def test_late_frames_wait_while_their_replays_keep_the_process_late(monkeypatch:
         reason,
     ), reason
     assert window(late=False, replaying=0.0) is None  # caught up: replays again
+
+
+def test_a_replay_is_priced_at_what_the_sessions_replays_cost_in_cpu() -> None:
+    """Before its first replay a session's replayed tick is priced at its compute per tick; then at
+    the CPU its replays took per tick replayed (a fading mean), whatever the wall clock said: a
+    process stopped mid-replay does not price every later replay out of reach. The wall time is
+    the process's time in replays."""
+    from jitdyn.server.runtime.admission import Ticket
+
+    admission = Admission(budget=1.0, count_machine_cpu=False, count_process_cpu=False)
+    ticket = Ticket(admission, dt=0.02, cost_per_tick=0.003, compute_per_tick=0.0012)
+    assert ticket.replay_price == pytest.approx(0.0012)
+    ticket.observe_replay(0.5, cpu=0.006, ticks=12)  # stopped for most of half a second
+    assert ticket.replay_price == pytest.approx(0.0005)
+    ticket.observe_replay(0.006, cpu=0.012, ticks=12)
+    assert ticket.replay_price == pytest.approx(0.0005 + 0.05 * (0.001 - 0.0005))
+    ticket.observe_replay(0.001, cpu=0.001, ticks=0)  # nothing replayed: the price stands
+    assert ticket.replay_price == pytest.approx(0.0005 + 0.05 * (0.001 - 0.0005))

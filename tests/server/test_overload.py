@@ -212,19 +212,20 @@ def test_the_door_refuses_an_open_priced_a_moment_ago_without_looking_up_its_mod
 
 
 def test_late_frames_wait_while_their_replays_keep_a_late_process_behind(tmp_path: Path) -> None:
-    """Two biped sessions whose every frame comes 12 ticks late, past the longest wait (8 ticks):
-    each is replayed (the timewarp), within its session's half-tick budget. While the process is
+    """Two pendulum_3 sessions whose every frame comes 12 ticks late, past the longest wait (8
+    ticks): each is replayed (the timewarp), within its session's half-tick budget at the price its
+    replays measured (a biped's 12-tick replay, at about 1 ms a tick, fits no 20 ms tick here). While the process is
     stopped for 100 ms every second (the machine taking its CPU), its answers go late with its
     replays taking a fifth of its time, and late frames are refused until it catches up; on the old
     rule every replay fitted its own session and was applied."""
     from jitdyn.client import Rejection
 
     server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "1.0")
-    dt, late = 0.02, 12
+    dt, late = 0.025, 12
     replayed, waiting = 0, []
     try:
         with Client(server.address, timeout=30) as client:
-            options = SessionOptions(model_name="biped", dt=dt, clock="REALTIME", scenario="CONTROLLED")
+            options = SessionOptions(model_name="pendulum_3", dt=dt, clock="REALTIME", scenario="CONTROLLED")
             with client.open_session(options) as first, client.open_session(options) as second:
                 for k in range(400):  # 8 s
                     time.sleep(max(0.0, (k + late) * dt - first.now()))
@@ -234,7 +235,7 @@ def test_late_frames_wait_while_their_replays_keep_a_late_process_behind(tmp_pat
                         os.kill(server.process.pid, signal.SIGCONT)
                     for session in (first, second):
                         session.send(
-                            FrameData(seq=k, t=k * dt, qpos=[0.0] * 6, qvel=[0.0] * 6, ctrl=[0.0] * 4)
+                            FrameData(seq=k, t=k * dt, qpos=[0.0] * 3, qvel=[0.0] * 3, ctrl=[0.0] * 3)
                         )
                         for answer in session.poll():
                             replayed += isinstance(answer, TickResult) and answer.source == "CORRECTED"
