@@ -12,8 +12,8 @@ Numbers are numpy arrays; a vector column is one (capacity, width) float64 block
 list column whose offsets are `k * width`; booleans and validity are bitmaps (bytearrays); strings
 are offsets and UTF-8 bytes. The vectors of a column are packed, a row without one a null of no
 values: the batch is the one `columns.records_to_batch` converts from the same records. The columns grow by doubling, and the batch viewing them is
-then built again; so is it when a vector column's width is first known. What it costs against the
-conversion it replaced: docs/decisions/0151-columnar-record-windows.md.
+then built again; so is it when a vector column's width is first known. The committer does not use
+it yet: what it costs against the committer's conversion, docs/decisions/0151-columnar-record-windows.md.
 """
 
 from __future__ import annotations

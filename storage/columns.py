@@ -27,6 +27,7 @@ __all__ = [
     "LOG_SCHEMA",
     "SCALAR_FIELDS",
     "STORED_SINCE",
+    "check_lengths",
     "conform",
     "expected_lengths",
     "list_matrix",
@@ -129,6 +130,20 @@ def expected_lengths(header: SessionHeader) -> dict[str, int]:
         "actuator_force": nu,
         "sensordata": ns,
     }
+
+
+def check_lengths(records: Sequence[TickRecord], lengths: dict[str, int]) -> None:
+    """Raise InvalidArgument naming the column when a present array of `records` has the wrong
+    length for its session (`lengths` from `expected_lengths`)."""
+    checked = [(name, _GETTERS[name], expected) for name, expected in lengths.items()]
+    for position, record in enumerate(records):
+        for name, getter, expected in checked:
+            array = getter(record)
+            if array is not None and len(array) != expected:
+                raise InvalidArgument(
+                    f"{name} must have {expected} values in every record, got {len(array)} "
+                    f"in the record at position {position} of the batch"
+                )
 
 
 def _list_column(name: str, arrays: list[object], expected: int | None) -> pa.Array:

@@ -244,13 +244,10 @@ class SessionRecorder:
         return self._writer.size() if self._writer is not None else 0
 
     def append(self, record: TickRecord) -> None:
-        """Write a record into the session's columns for the next group commit. Never waits for
-        the disk. The record's arrays are copied: they may be changed once it returns.
+        """Queue a record for the next group commit. Never waits for the disk.
 
-        Raises FailedPrecondition after close; InvalidArgument, naming the column, for a record
-        that does not fit the session's columns (a wrong length or type: a bug, which ends the
-        recorder as a failed write does); and Unavailable once the log could not be written (the
-        session cannot promise durability any more and should end).
+        Raises FailedPrecondition after close, and Unavailable once the log could not be written
+        (the session cannot promise durability any more and should end).
         """
         with self._cond:
             if self._state is not _State.OPEN:
@@ -259,15 +256,10 @@ class SessionRecorder:
                 )
             if self._failure is not None:
                 raise self._failure
+            self._appended += 1
             # Under the recorder's lock, so that `close` cannot unregister in between (the commit
             # thread never takes this lock while holding the committer's: no inversion).
-            try:
-                self._committer.append(self._key, record)
-            except InvalidArgument as exc:
-                self._failure = InvalidArgument(f"session {self._header.session_id}: {exc}")
-                self._cond.notify_all()
-                raise self._failure from None
-            self._appended += 1
+            self._committer.append(self._key, record)
 
     def flush(self, timeout: float | None = None) -> None:
         """Commit what is queued now and wait until it is durable (for tests and shutdown)."""

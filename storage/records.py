@@ -67,8 +67,8 @@ class TickRecord:
     The arrays are 1-D float64 vectors: frame_qpos and qpos (nq,), frame_qvel, frame_qacc, qvel,
     qacc, qfrc_inverse and qacc_forward (nv,), frame_ctrl and actuator_force (nu,), frame_sensordata
     and sensordata (nsensordata,), covariance_diagonal (state dimension,), filter_state (nq + nv or
-    nq + 2 nv,); None when absent. The recorder copies them into its columns in `append`, so views
-    (of an MjData, of a covariance's diagonal) are fine and may change once it returned.
+    nq + 2 nv,); None when absent. The recorder converts them on its commit thread, after `append`
+    returned, so they must not be changed afterwards: hand over copies, never views of an MjData.
     Records are not compared with == (numpy arrays have no single truth value); compare fields.
     """
 

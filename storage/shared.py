@@ -31,22 +31,13 @@ from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
 from jitdyn.storage.schema import session_leases, session_log, sessions
 from jitdyn.vocabulary import SessionStatus
 
-__all__ = [
-    "Fenced",
-    "Lease",
-    "SharedLogStream",
-    "SharedTier",
-    "TakenOver",
-    "Window",
-    "new_owner_id",
-    "read_window",
-]
+__all__ = ["Fenced", "Lease", "SharedLogStream", "SharedTier", "TakenOver", "Window", "new_owner_id"]
 
 # The log rows of one session read per query while compacting (bounded memory).
 _READ_PAGE: Final = 256
 
 
-def read_window(data: bytes) -> pa.RecordBatch:
+def _read_batch(data: bytes) -> pa.RecordBatch:
     """A row's batch as LOG_SCHEMA; one written before the newest columns were stored has the
     schema without them (an IPC batch does not carry its schema)."""
     try:
@@ -304,7 +295,7 @@ class SharedLogStream(Closeable):
                 return
             for row in page:
                 last = row.pk
-                batch = read_window(row.data)
+                batch = _read_batch(row.data)
                 if batch.num_rows:
                     yield batch
 
