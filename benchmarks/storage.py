@@ -4,6 +4,7 @@ long session to Parquet, with bytes per frame in each.
     python -m benchmarks.storage                 # 200k frames for throughput, 1e6 for compaction
     python -m benchmarks.storage --frames 500000 --compact-frames 1000000
     python -m benchmarks.storage --close         # only: the cost of closing a 20 Hz session
+    python -m benchmarks.storage --record-path   # only: a record's CPU, columns against lists
 
 Frames are pendulum_3-sized results (nq = nv = nu = 3) as the session runtime records them: the
 frame's qpos and qvel, the estimate, qacc, qfrc_inverse, the covariance diagonal and the filter
@@ -13,12 +14,18 @@ fsynced. Target: >= 100k frames/s. The many-sessions case compares one group com
 sessions of a process (DESIGN.md, Scale: one fsync per commit window) against one per session.
 `--close` measures what the server pays when a slow session ends: the compaction of a log of many
 tiny group commits, on a thread beside a thread that wakes every millisecond as the event loop does.
+`--record-path` sets what a record costs the server, the tick's `append` and its share of the
+commit thread's batch, as the committer does it now (written into preallocated columns, the
+window's batch a view of them: storage/buffers.py) beside the way it did before (records queued in
+a list, one batch converted from all sessions' records per window and sliced per session), on the
+same records in one run; the write and the fsync, the same in both, are left out.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime as dt
+import operator
 import os
 import statistics
 import sys
@@ -30,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jitdyn.storage.buffers import WindowRows
+from jitdyn.storage.columns import expected_lengths, records_to_batch
 from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.db import open_index
 from jitdyn.storage.index import SessionIndex
@@ -286,6 +295,90 @@ def close_cost(root: Path, index: SessionIndex, *, ticks: int, per_commit: int) 
     }
 
 
+def _check_lengths(records: list[TickRecord], lengths: dict[str, int]) -> None:
+    """The check the commit thread ran on every queued record before the columns did it on append."""
+    checked = [(name, operator.attrgetter(name), expected) for name, expected in lengths.items()]
+    for position, record in enumerate(records):
+        for name, getter, expected in checked:
+            array = getter(record)
+            if array is not None and len(array) != expected:
+                raise ValueError(f"{name} at {position}: {len(array)} values, not {expected}")
+
+
+def _listed_window(windows: list[list[TickRecord]], lengths: dict[str, int]) -> tuple[float, float]:
+    """Before: every session's records queued in a list, then one batch converted from all of them,
+    sliced and serialised per session. (s spent appending, s spent building and serialising)."""
+    queues: list[list[TickRecord]] = [[] for _ in windows]
+    lock = threading.Lock()
+    started = time.thread_time()
+    for k in range(len(windows[0])):
+        for queue, records in zip(queues, windows, strict=True):
+            with lock:
+                queue.append(records[k])
+    appended = time.thread_time()
+    _check_lengths([r for queue in queues for r in queue], lengths)
+    batch = records_to_batch([r for queue in queues for r in queue])
+    offset = 0
+    for queue in queues:
+        batch.slice(offset, len(queue)).serialize()
+        offset += len(queue)
+    return appended - started, time.thread_time() - appended
+
+
+def _columnar_window(windows: list[list[TickRecord]], columns: list[WindowRows]) -> tuple[float, float]:
+    """Now: each record written into its session's columns, then per session a batch viewing them,
+    serialised. (s spent appending, s spent building and serialising)."""
+    lock = threading.Lock()
+    started = time.thread_time()
+    for k in range(len(windows[0])):
+        for rows, records in zip(columns, windows, strict=True):
+            with lock:
+                rows.append(records[k])
+    appended = time.thread_time()
+    for rows in columns:
+        rows.batch().serialize()
+        rows.clear()
+    return appended - started, time.thread_time() - appended
+
+
+def record_path(*, sessions: int, per_window: int, windows: int) -> dict[str, dict[str, float]]:
+    """us per record of both ways, alternating window by window so that a noisy moment of the
+    shared machine hits both; the median window of each."""
+    trajectory = Trajectory(per_window * windows, seed=5)
+    lengths = expected_lengths(header())
+    columns = [WindowRows(lengths=lengths) for _ in range(sessions)]
+    samples: dict[str, list[tuple[float, float]]] = {"lists": [], "columns": []}
+    for w in range(windows):
+        base = w * per_window
+        batch = [[trajectory.record(base + k) for k in range(per_window)] for _ in range(sessions)]
+        samples["lists"].append(_listed_window(batch, lengths))
+        samples["columns"].append(_columnar_window(batch, columns))
+    records = sessions * per_window
+    out = {}
+    for way, runs in samples.items():
+        append = statistics.median(a for a, _ in runs) / records * 1e6
+        commit = statistics.median(c for _, c in runs) / records * 1e6
+        out[way] = {"append_us": append, "commit_us": commit, "total_us": append + commit}
+    return out
+
+
+def print_record_path(args: argparse.Namespace) -> None:
+    print(
+        f"a record's CPU (us), pendulum_3 rows, {args.sessions_per_window} sessions a commit window, "
+        f"median of {args.windows} windows each; {os.cpu_count()} CPUs"
+    )
+    print(f"{'rows/session/window':>20}{'way':>10}{'append':>10}{'batch':>10}{'total':>10}{'before/now':>12}")
+    for per_window in args.rows_per_window:
+        result = record_path(sessions=args.sessions_per_window, per_window=per_window, windows=args.windows)
+        ratio = result["lists"]["total_us"] / result["columns"]["total_us"]
+        for way, label in (("lists", "before"), ("columns", "now")):
+            r = result[way]
+            print(
+                f"{per_window:>20}{label:>10}{r['append_us']:>10.2f}{r['commit_us']:>10.2f}{r['total_us']:>10.2f}"
+                + (f"{ratio:>11.2f}x" if way == "columns" else "")
+            )
+
+
 def print_close(args: argparse.Namespace) -> None:
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         root = Path(tmp)
@@ -317,9 +410,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--close", action="store_true", help="only the close of a 20 Hz session")
     parser.add_argument("--close-ticks", type=int, default=600, help="close: ticks, two a commit (600)")
     parser.add_argument("--close-rounds", type=int, default=3, help="close: sessions closed (3)")
+    parser.add_argument("--record-path", action="store_true", help="only: a record's CPU, columns and lists")
+    parser.add_argument(
+        "--sessions-per-window", type=int, default=8, help="record path: sessions a window carries (8)"
+    )
+    parser.add_argument(
+        "--rows-per-window",
+        type=int,
+        nargs="+",
+        default=[1, 2, 8, 64],
+        help="record path: rows of each session a window carries (1 2 8 64; 20 Hz at the widest window: 2)",
+    )
+    parser.add_argument("--windows", type=int, default=400, help="record path: windows of each way (400)")
     args = parser.parse_args(argv)
     if args.close:
         print_close(args)
+        return 0
+    if args.record_path:
+        print_record_path(args)
         return 0
 
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:

@@ -1,0 +1,492 @@
+"""A session's commit window as preallocated columns in Arrow's own layout: `append` writes a
+`TickRecord`'s values into them on the tick's thread, and `batch` gives the commit thread the window
+as a slice of one Arrow batch that views those columns, built once, so that a window costs neither
+a conversion nor a copy before it is serialised.
+
+    rows = WindowRows(lengths=expected_lengths(header))
+    rows.append(record)        # the tick's thread; InvalidArgument names a column the record misfits
+    batch = rows.batch()       # the commit thread; valid until the next `append` or `clear`
+    rows.clear()               # once the batch is serialised: the rows are written again
+
+Numbers are numpy arrays; a vector column is one (capacity, width) float64 block, the values of a
+list column whose offsets are `k * width`; booleans and validity are bitmaps (bytearrays); strings
+are offsets and UTF-8 bytes. The vectors of a column are packed, a row without one a null of no
+values: the batch is the one `columns.records_to_batch` converts from the same records. The columns grow by doubling, and the batch viewing them is
+then built again; so is it when a vector column's width is first known. The committer does not use
+it yet: what it costs against the committer's conversion, docs/decisions/0151-columnar-record-windows.md.
+"""
+
+from __future__ import annotations
+
+import operator
+from collections.abc import Callable
+from typing import Any, Final
+
+import numpy as np
+import numpy.typing as npt
+import pyarrow as pa
+
+from jitdyn.errors import InvalidArgument
+from jitdyn.storage.columns import ARRAY_FIELDS, FLOAT_LIST, LOG_SCHEMA, SCALAR_FIELDS
+from jitdyn.storage.records import TickRecord
+
+__all__ = ["INITIAL_ROWS", "WindowRows"]
+
+# Rows allocated at first; doubled whenever a window needs more. A 20 Hz session's window holds one
+# to a few rows, and a burst of replays (CORRECTED answers) a few more.
+INITIAL_ROWS: Final = 16
+
+_F64: Final = np.dtype(np.float64)
+# Strings up to _WORD characters are encoded once, up to _WORDS of them a column.
+_WORD: Final = 32
+_WORDS: Final = 64
+_NUMBERS: Final[dict[pa.DataType, type[np.generic]]] = {
+    pa.int64(): np.int64,
+    pa.int32(): np.int32,
+    pa.float64(): np.float64,
+}
+
+
+def _bitmap(capacity: int) -> bytearray:
+    return bytearray((capacity + 7) // 8)
+
+
+def _set_bit(bits: bytearray, row: int, value: bool) -> None:
+    if value:
+        bits[row >> 3] |= 1 << (row & 7)
+    else:
+        bits[row >> 3] &= ~(1 << (row & 7)) & 0xFF
+
+
+def _copy_bits(new: bytearray, old: bytearray) -> bytearray:
+    new[: len(old)] = old
+    return new
+
+
+class _Scalars:
+    """A number or boolean column, with its validity bitmap when it is nullable."""
+
+    __slots__ = ("field", "get", "valid", "values")
+
+    def __init__(self, field: pa.Field, capacity: int) -> None:
+        self.field = field
+        self.get: Callable[[TickRecord], Any] = operator.attrgetter(field.name)
+        self.values: npt.NDArray[Any] | bytearray = (
+            _bitmap(capacity) if field.type == pa.bool_() else np.zeros(capacity, dtype=_NUMBERS[field.type])
+        )
+        self.valid = _bitmap(capacity) if field.nullable else None
+
+    def write(self, row: int, value: Any) -> None:
+        if self.valid is not None:
+            _set_bit(self.valid, row, value is not None)
+            if value is None:
+                # No earlier row's value stays behind a null.
+                value = False if isinstance(self.values, bytearray) else 0
+        if isinstance(self.values, bytearray):
+            if not isinstance(value, bool | np.bool_):
+                raise InvalidArgument(f"{self.field.name} must be a bool, got {value!r}")
+            _set_bit(self.values, row, bool(value))
+            return
+        try:
+            self.values[row] = value
+        except (TypeError, ValueError, OverflowError):
+            raise InvalidArgument(f"{self.field.name} must be {self.field.type}, got {value!r}") from None
+
+    def grow(self, capacity: int) -> None:
+        if isinstance(self.values, bytearray):
+            self.values = _copy_bits(_bitmap(capacity), self.values)
+        else:
+            self.values = np.resize(self.values, capacity)
+        if self.valid is not None:
+            self.valid = _copy_bits(_bitmap(capacity), self.valid)
+
+    def array(self, capacity: int) -> pa.Array:
+        validity = None if self.valid is None else pa.py_buffer(self.valid)
+        # null_count -1: counted by whoever reads a slice, never cached for the whole column.
+        return pa.Array.from_buffers(
+            self.field.type, capacity, [validity, pa.py_buffer(self.values)], null_count=-1
+        )
+
+
+class _Texts:
+    """A string column: offsets and UTF-8 bytes."""
+
+    __slots__ = ("data", "encoded", "end", "field", "get", "offsets")
+
+    def __init__(self, field: pa.Field, capacity: int) -> None:
+        self.field = field
+        self.get: Callable[[TickRecord], Any] = operator.attrgetter(field.name)
+        self.offsets = np.zeros(capacity + 1, dtype=np.int32)
+        self.data = bytearray(64 * capacity)
+        self.end = 0  # offsets[rows]: where the next row's bytes go
+        # The few words a column holds (kinds, sources, reasons), encoded once.
+        self.encoded: dict[str, bytes] = {}
+
+    def write(self, row: int, value: Any) -> bool:
+        """Store `value` in `row`; True when its bytes needed a larger buffer (the batch viewing
+        the old one is stale)."""
+        if not isinstance(value, str):
+            raise InvalidArgument(f"{self.field.name} must be a str, got {value!r}")
+        encoded = self.encoded.get(value)
+        if encoded is None:
+            encoded = value.encode()
+            if len(value) <= _WORD and len(self.encoded) < _WORDS:
+                self.encoded[value] = encoded
+        start = self.end
+        end = start + len(encoded)
+        grown = end > len(self.data)
+        if grown:
+            data = bytearray(max(2 * len(self.data), end))
+            data[:start] = self.data[:start]
+            self.data = data
+        if encoded:
+            self.data[start:end] = encoded
+        self.offsets[row + 1] = end
+        self.end = end
+        return grown
+
+    def rewind(self, row: int) -> None:
+        """Write `row` again (a failed append left it half written)."""
+        self.end = int(self.offsets[row])
+
+    def grow(self, capacity: int) -> None:
+        offsets = np.zeros(capacity + 1, dtype=np.int32)
+        offsets[: len(self.offsets)] = self.offsets
+        self.offsets = offsets
+
+    def array(self, capacity: int) -> pa.Array:
+        return pa.Array.from_buffers(
+            self.field.type, capacity, [None, pa.py_buffer(self.offsets), pa.py_buffer(self.data)]
+        )
+
+
+class _Vectors:
+    """A vector column: its vectors packed in a (capacity, width) float64 block, the list column's
+    values, with offsets and a validity bitmap; a row without a vector is a null of no values, as
+    `pa.array` lays it out. `expected` is the width every vector must have (None: the first one's,
+    for a column whose width is not fixed by the model: the covariance diagonal, the filter state,
+    the forecast weights).
+
+    A column is mostly the same in every row: present (`dense` True), or absent (False). Its
+    offsets and validity are then laid out for every row beforehand, so that a row costs the copy
+    of its vector, or nothing; a row that breaks the pattern writes them row by row (`dense` None)
+    until the window ends, and the next window starts in the pattern of the last row.
+
+    Such a column changes width only with the estimator; a window in which it does keeps this
+    column's vectors as a list, converted as the records' own arrays."""
+
+    __slots__ = (
+        "block",
+        "capacity",
+        "count",
+        "dense",
+        "expected",
+        "get",
+        "listed",
+        "name",
+        "offsets",
+        "shape",
+        "valid",
+        "width",
+    )
+
+    def __init__(self, name: str, capacity: int, expected: int | None) -> None:
+        self.name = name
+        self.capacity = capacity
+        self.get: Callable[[TickRecord], Any] = operator.attrgetter(name)
+        self.expected = expected
+        self.shape: tuple[int] | None = None
+        self.width = 0
+        self.block: npt.NDArray[np.float64] | None = None
+        self.offsets = np.zeros(capacity + 1, dtype=np.int32)
+        self.count = 0  # vectors in the block this window (while `dense` is None)
+        self.valid = _bitmap(capacity)
+        self.dense: bool | None = False
+        self.listed: list[npt.NDArray[np.float64] | None] | None = None
+        if expected is not None:
+            self._allocate(expected)
+
+    def _allocate(self, width: int) -> None:
+        self.shape = (width,)
+        self.width = width
+        self.block = np.zeros((self.capacity, width))
+
+    def _pattern(self, dense: bool) -> None:
+        """Lay out offsets and validity for rows that all hold a vector (`dense`) or none."""
+        if dense:
+            self.offsets[:] = np.arange(self.capacity + 1, dtype=np.int32) * np.int32(self.width)
+            self.valid[:] = b"\xff" * len(self.valid)
+        else:
+            self.offsets[:] = 0
+            self.valid[:] = bytes(len(self.valid))
+        self.dense = dense
+
+    def write(self, row: int, value: Any) -> bool:
+        """Store `value` (a 1-D vector, or None) in `row`; InvalidArgument on a wrong width. True
+        when the block was allocated anew (the batch viewing the old one is stale)."""
+        if self.dense is not None:
+            # Row by row from here: the pattern holds for the rows before this one.
+            self.count = row if self.dense else 0
+            self.dense = None
+        if value is None:
+            _set_bit(self.valid, row, False)
+            self.offsets[row + 1] = self.offsets[row]
+            if self.listed is not None:
+                self.listed.append(None)
+            return False
+        if not (isinstance(value, np.ndarray) and value.dtype is _F64):
+            value = np.asarray(value, dtype=np.float64)
+        allocated = False
+        if value.shape != self.shape:
+            if value.ndim != 1:
+                raise InvalidArgument(
+                    f"{self.name} must hold 1-D vectors, got an array of shape {value.shape}"
+                )
+            if self.expected is not None:
+                raise InvalidArgument(
+                    f"{self.name} must have {self.expected} values in every record, got {len(value)}"
+                )
+            if self.count == 0:  # the window's first vector sets the block's width
+                self._allocate(len(value))
+                allocated = True
+            elif self.listed is None:
+                self.listed = self._as_list(row)
+        if self.listed is not None:
+            self.listed.append(value.copy())
+        else:
+            assert self.block is not None
+            self.block[self.count] = value
+            self.count += 1
+        self.offsets[row + 1] = self.count * len(value) if self.listed is None else 0
+        _set_bit(self.valid, row, True)
+        return allocated
+
+    def _as_list(self, rows: int) -> list[npt.NDArray[np.float64] | None]:
+        assert self.block is not None
+        listed: list[npt.NDArray[np.float64] | None] = []
+        packed = 0
+        for k in range(rows):
+            if self.valid[k >> 3] & (1 << (k & 7)):
+                listed.append(self.block[packed].copy())
+                packed += 1
+            else:
+                listed.append(None)
+        return listed
+
+    def rewind(self, row: int) -> None:
+        """Write `row` again (a failed append left it half written)."""
+        if self.listed is not None:
+            del self.listed[row:]
+        elif self.dense is None and self.width > 0:
+            self.count = int(self.offsets[row]) // self.width
+
+    def grow(self, capacity: int) -> None:
+        self.capacity = capacity
+        old_offsets, old_valid = self.offsets, self.valid
+        self.offsets = np.zeros(capacity + 1, dtype=np.int32)
+        self.valid = _bitmap(capacity)
+        if self.dense is None:
+            self.offsets[: len(old_offsets)] = old_offsets
+            self.valid[: len(old_valid)] = old_valid
+        else:
+            self._pattern(self.dense)
+        if self.block is not None and self.shape is not None:
+            old = self.block
+            self._allocate(self.shape[0])
+            assert self.block is not None
+            self.block[: len(old)] = old
+
+    def array(self, capacity: int) -> pa.Array:
+        if self.block is None:
+            return pa.nulls(capacity, FLOAT_LIST)
+        values = pa.Array.from_buffers(pa.float64(), self.block.size, [None, pa.py_buffer(self.block)])
+        return pa.Array.from_buffers(
+            FLOAT_LIST,
+            capacity,
+            [pa.py_buffer(self.valid), pa.py_buffer(self.offsets)],
+            null_count=-1,
+            children=[values],
+        )
+
+    def clear(self, rows: int) -> None:
+        """Forget the window's `rows`; the next starts in the pattern of its last row."""
+        if rows and (self.dense is None or self.listed is not None):
+            last = self.valid[(rows - 1) >> 3] & (1 << ((rows - 1) & 7))
+            self._pattern(bool(last) and self.block is not None and self.listed is None)
+        self.count = 0
+        self.listed = None
+
+
+class WindowRows:
+    """The rows of one commit window of one session, as columns of LOG_SCHEMA.
+
+    Not thread-safe: the committer writes and swaps it under its own lock. `lengths` (from
+    `columns.expected_lengths`) fixes the width of the model's vector columns.
+    """
+
+    def __init__(self, *, lengths: dict[str, int], capacity: int = INITIAL_ROWS) -> None:
+        if capacity < 1:
+            raise InvalidArgument(f"capacity must be >= 1 row, got {capacity}")
+        unknown = sorted(set(lengths) - set(ARRAY_FIELDS))
+        if unknown:
+            raise InvalidArgument(f"lengths must name array columns of the log, got {unknown}")
+        self._lengths = dict(lengths)
+        self._capacity = capacity
+        self._scalars = [_Scalars(f, capacity) for f in SCALAR_FIELDS if f.type != pa.string()]
+        self._texts = [_Texts(f, capacity) for f in SCALAR_FIELDS if f.type == pa.string()]
+        self._vectors = [_Vectors(name, capacity, lengths.get(name)) for name in ARRAY_FIELDS]
+        self._order = self._column_order()
+        # The fast path's groups: numbers that are never null, then the other scalars.
+        self._numbers = [c for c in self._scalars if c.valid is None and not isinstance(c.values, bytearray)]
+        self._nullable = [
+            c for c in self._scalars if c.valid is not None and not isinstance(c.values, bytearray)
+        ]
+        self._flags = [c for c in self._scalars if isinstance(c.values, bytearray)]
+        self._get_vectors = operator.attrgetter(*ARRAY_FIELDS)
+        self._seq = next(s for s in self._scalars if s.field.name == "seq")
+        self._viewed: pa.RecordBatch | None = None  # the batch viewing every column, at capacity
+        self.rows = 0
+        # The highest seq of a result among the rows (None: only rejections, or no rows).
+        self.top_seq: int | None = None
+
+    def _column_order(self) -> list[_Scalars | _Texts | _Vectors]:
+        by_name: dict[str, _Scalars | _Texts | _Vectors] = {c.field.name: c for c in self._scalars}
+        by_name.update({c.field.name: c for c in self._texts})
+        by_name.update({c.name: c for c in self._vectors})
+        return [by_name[name] for name in LOG_SCHEMA.names]
+
+    def spare(self) -> WindowRows:
+        """An empty window for the same session, as large as this one has grown."""
+        return WindowRows(lengths=self._lengths, capacity=self._capacity)
+
+    def append(self, record: TickRecord) -> None:
+        """Write `record` as the next row. InvalidArgument, naming the column, when a value does not
+        fit it; the row is then not added (nothing of it is stored)."""
+        row = self.rows
+        if row == self._capacity:
+            self._grow()
+        try:
+            stale = self._write_fast(row, record)
+        except Exception:  # noqa: BLE001 - written again column by column, which names the culprit
+            stale = self._write_checked(row, record)
+        if stale:
+            self._viewed = None
+        self.rows = row + 1
+        if record.kind == "result":
+            seq = int(self._seq.values[row])
+            if self.top_seq is None or seq > self.top_seq:
+                self.top_seq = seq
+
+    def _write_fast(self, row: int, record: TickRecord) -> bool:
+        """The row as a tick writes it: numbers into numpy, vectors of the block's width; anything
+        else goes to the column's own `write`. True when the viewing batch is stale."""
+        byte, bit = row >> 3, 1 << (row & 7)
+        unset = 0xFF ^ bit
+        stale = False
+        for number in self._numbers:
+            number.values[row] = number.get(record)
+        for scalar in self._nullable:
+            value = scalar.get(record)
+            if value is None:
+                scalar.values[row] = 0
+                scalar.valid[byte] &= unset  # type: ignore[index]
+            else:
+                scalar.values[row] = value
+                scalar.valid[byte] |= bit  # type: ignore[index]
+        for flag in self._flags:
+            value = flag.get(record)
+            if value is True and flag.valid is None:
+                flag.values[byte] |= bit
+            elif value is False and flag.valid is None:
+                flag.values[byte] &= unset
+            else:
+                flag.write(row, value)
+        for text in self._texts:
+            value = text.get(record)
+            encoded = text.encoded.get(value) if type(value) is str else None
+            if encoded is None or text.end + len(encoded) > len(text.data):
+                stale |= text.write(row, value)
+            else:
+                end = text.end + len(encoded)
+                if encoded:
+                    text.data[text.end : end] = encoded
+                text.offsets[row + 1] = text.end = end
+        for vectors, value in zip(self._vectors, self._get_vectors(record), strict=True):
+            dense = vectors.dense
+            if (
+                dense is True
+                and value is not None
+                and type(value) is np.ndarray
+                and value.dtype is _F64
+                and value.shape == vectors.shape
+            ):
+                vectors.block[row] = value  # type: ignore[index]
+            elif dense is False and value is None:
+                pass
+            elif dense is not None or vectors.listed is not None:
+                stale |= vectors.write(row, value)
+            elif value is None:
+                vectors.offsets[row + 1] = vectors.count * vectors.width
+                vectors.valid[byte] &= unset
+            elif type(value) is np.ndarray and value.dtype is _F64 and value.shape == vectors.shape:
+                count = vectors.count
+                vectors.block[count] = value  # type: ignore[index]
+                vectors.count = count = count + 1
+                vectors.offsets[row + 1] = count * vectors.width
+                vectors.valid[byte] |= bit
+            else:
+                stale |= vectors.write(row, value)
+        return stale
+
+    def _write_checked(self, row: int, record: TickRecord) -> bool:
+        """The row column by column, each checking its value: InvalidArgument names the first that
+        does not fit."""
+        stale = False
+        self._rewind(row)
+        try:
+            for scalar in self._scalars:
+                scalar.write(row, scalar.get(record))
+            for text in self._texts:
+                stale |= text.write(row, text.get(record))
+            for vectors in self._vectors:
+                stale |= vectors.write(row, vectors.get(record))
+        except BaseException:
+            self._viewed = None  # a column may have been allocated anew before the one that failed
+            self._rewind(row)
+            raise
+        return stale
+
+    def _rewind(self, row: int) -> None:
+        for text in self._texts:
+            text.rewind(row)
+        for vectors in self._vectors:
+            vectors.rewind(row)
+
+    def _grow(self) -> None:
+        self._capacity *= 2
+        for column in self._order:
+            column.grow(self._capacity)
+        self._viewed = None
+
+    def batch(self) -> pa.RecordBatch:
+        """The rows as one batch of LOG_SCHEMA, viewing these columns: serialise or copy it before
+        the next `append` or `clear`."""
+        if self._viewed is None:
+            columns = [c.array(self._capacity) for c in self._order]
+            self._viewed = pa.RecordBatch.from_arrays(columns, schema=LOG_SCHEMA)
+        batch = self._viewed.slice(0, self.rows)
+        for vectors in self._vectors:
+            if vectors.listed is not None:
+                i = LOG_SCHEMA.get_field_index(vectors.name)
+                listed = pa.array(vectors.listed[: self.rows], type=FLOAT_LIST)
+                batch = batch.set_column(i, LOG_SCHEMA.field(i), listed)
+        return batch
+
+    def clear(self) -> None:
+        """Forget the rows (their batch was written); the columns keep their size."""
+        for vectors in self._vectors:
+            vectors.clear(self.rows)
+        for text in self._texts:
+            text.end = 0
+        self.rows = 0
+        self.top_seq = None
