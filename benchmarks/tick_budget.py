@@ -551,7 +551,8 @@ def one_run(
     options: Options, states: dict[str, np.ndarray], ukf_us: float, *, index: int = 1
 ) -> Budget | None:
     """A fresh `jitdyn serve --processes 1`, the load, the sampler over its steady part, the floor;
-    None when admission refused every session (a busy machine): there was no tick to attribute."""
+    None when admission refused every session (a busy machine: there was no tick to attribute) or
+    the sampler failed."""
     with local_server(("--processes", "1", *options.serve_args)) as (address, pid):
         begin, end = window(options.seconds)
         progress(
@@ -573,7 +574,9 @@ def one_run(
                 ukf_us=ukf_us,
             )
     if sampler.profile.error:
-        raise SystemExit(f"tick_budget: {sampler.profile.error}")
+        # py-spy lost the process (it exited, or a read failed mid-dump): this run says nothing.
+        progress(f"{sampler.profile.error}; the run is not counted")
+        return None
     if report.opened < options.sessions:
         refusal = report.errors[0] if report.errors else "no reason given"
         progress(f"only {report.opened} of {options.sessions} sessions were admitted: {refusal}")
@@ -881,7 +884,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             on_engine = dataclasses.replace(options, serve_args=(*options.serve_args, "--engine", engine))
             budget = one_run(on_engine, states, ukf_us, index=i + 1)
             if budget is None:
-                progress(f"run {i + 1}, --engine {engine}: no tick was answered; the run is not counted")
+                progress(f"run {i + 1}, --engine {engine}: not counted")
                 continue
             progress(
                 f"run {i + 1}, --engine {engine}: cpu/tick {budget.cpu_per_tick_us:.0f} us, floor "
