@@ -631,9 +631,9 @@ class UnscentedFilter:
         self._guard.restore(snap.guard)
         adapter, saved = self._adapter, snap.adapter
         # Each engine's adapter takes its own snapshots (two branches for the type checker).
-        if isinstance(adapter, NativeNoiseAdapter) and isinstance(saved, AdapterState):
+        if isinstance(adapter, NativeNoiseAdapter) and isinstance(saved, AdapterState):  # noqa: SIM114
             adapter.restore(saved)
-        elif isinstance(adapter, NoiseAdapter) and isinstance(saved, NoiseSnapshot):  # noqa: SIM114
+        elif isinstance(adapter, NoiseAdapter) and isinstance(saved, NoiseSnapshot):
             adapter.restore(saved)
         if self._forecasts is not None and snap.forecasts is not None:
             self._forecasts.restore(snap.forecasts)
