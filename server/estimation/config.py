@@ -332,9 +332,7 @@ def resolve_config(
         dt=dt,
         steps_per_tick=steps_per_tick(model, dt),
         measured=frozenset(measured),
-        engine=Engine.FILTERPY
-        if parse(Preset, preset, argument="preset") == Preset.THESIS
-        else Engine.NATIVE,
+        engine=Engine.FILTERPY if parse(Preset, preset, argument="preset") == Preset.THESIS else engine,
     )
     check_for_scenario(config.scenario, {"wrong_model": config.wrong_model}, argument="settings")
     check_against_model(model, config)

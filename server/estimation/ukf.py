@@ -261,7 +261,7 @@ class UnscentedFilter:
                 controlled=self._controlled,
                 manifold=x_manifold,
             )
-        if self._config.engine in (Engine.FAST, Engine.NATIVE):
+        if self._config.engine == Engine.FAST:
             return FastUKF(
                 propagate=self._propagate_sigmas, vector=not self._manifold, z_index=self._z_index, **kwargs
             )

@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from jitdyn.server.estimation.config import Engine, EstimatorConfig
+from jitdyn.server.estimation.config import Engine, EstimatorConfig, resolve_config
 from jitdyn.server.estimation.fast import FastUKF
 from jitdyn.server.estimation.interface import Estimate, Measurement
 from jitdyn.server.estimation.native import Ukf
@@ -261,6 +261,26 @@ def test_a_server_on_either_engine_answers_the_same(tmp_path: Path, scenario: st
     tol = ADAPTIVE_TOL if scenario == "DRIVEN" else TOL
     for i, (a, b) in enumerate(zip(*answers, strict=True)):
         np.testing.assert_allclose(a, b, rtol=tol, atol=tol, err_msg=f"answer {i // 5}")
+    # Two engines did answer: they add in different orders, so somewhere the last bits differ.
+    assert any(not np.array_equal(a, b) for a, b in zip(*answers, strict=True))
+
+
+def test_the_engine_setting_reaches_the_filter() -> None:
+    model = pendulum(2)
+    assert config_for(model, "PASSIVE").engine == Engine.NATIVE
+    python = resolve_config(
+        model=model, scenario="PASSIVE", dt=0.05, measured={"qpos", "qvel"}, engine=Engine.FAST
+    )
+    assert python.engine == Engine.FAST
+    thesis = resolve_config(
+        model=model,
+        scenario="PASSIVE",
+        dt=0.05,
+        measured={"qpos", "qvel"},
+        preset="THESIS",
+        engine=Engine.FAST,
+    )
+    assert thesis.engine == Engine.FILTERPY
 
 
 def test_an_unknown_engine_is_refused_by_name(tmp_path: Path) -> None:
