@@ -189,7 +189,7 @@ def test_the_door_refuses_an_open_priced_a_moment_ago_without_looking_up_its_mod
 
     from jitdyn.errors import NotFound
 
-    server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "0.3")
+    server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "0.15")
     biped = SessionOptions(model_name="biped", dt=0.005, clock="REALTIME", scenario="CONTROLLED")
     try:
         with Client(server.address, timeout=30) as client:
