@@ -15,6 +15,7 @@ of the wire (estimation, the runtime) can use the words without loading protobuf
 from __future__ import annotations
 
 import enum
+import functools
 import importlib
 from typing import Final, TypeVar
 
@@ -204,6 +205,7 @@ WORDS: Final[dict[type[enum.StrEnum], tuple[str, str, str]]] = {
 _W = TypeVar("_W", bound=enum.StrEnum)
 
 
+@functools.cache
 def _wrapper(kind: type[enum.StrEnum]) -> object:
     module, name, _ = WORDS[kind]
     return getattr(importlib.import_module(f"jitdyn.v1.{module}"), name)
@@ -214,8 +216,10 @@ def proto_enum_name(word: enum.StrEnum) -> str:
     return WORDS[type(word)][2] + word.name
 
 
+@functools.cache
 def to_proto(word: enum.StrEnum) -> int:
-    """The proto value of a member: Scenario.PASSIVE -> 1."""
+    """The proto value of a member: Scenario.PASSIVE -> 1. Cached: every result message asks it
+    (2.2 us each uncached, 0.45 cached)."""
     return int(_wrapper(type(word)).Value(proto_enum_name(word)))  # type: ignore[attr-defined]
 
 

@@ -1,0 +1,178 @@
+"""The server's own work for a tick, without the network: a session's frames fed straight to the
+servicer's stream (`_Stream.on_frame`: the frame's check, the runtime, the estimator, the result's
+dynamics, the record, the metrics, the result message and its serialisation), one thread, CPU time.
+
+    python -m benchmarks.tick_path                                   # pendulum_3, both engines
+    python -m benchmarks.tick_path --model biped --scenario CONTROLLED --rate 200
+    python -m benchmarks.tick_path --profile 25                      # where it goes, by function
+
+It opens a LOCKSTEP session on a server built as `jitdyn serve` builds one (not listening), in a
+temporary data folder, and feeds it the load generator's trajectory. Per tick it reports the
+thread's CPU (time.thread_time: what the other programs of a shared machine do not change) and the
+process's (the commit thread's share included), for each engine and for STATIC (no filter: what
+the tick costs around it), alternated round by round. gRPC's own read and write are not here:
+benchmarks/tick_budget.py sets the whole tick beside a bare echo.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import cProfile
+import pstats
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from benchmarks.load import _frames, trajectory
+from jitdyn.client import SessionOptions
+from jitdyn.server.estimation.config import Engine
+from jitdyn.server.runtime.opening import SessionOpener
+from jitdyn.server.transport.app import ServerConfig, create_server
+from jitdyn.server.transport.dynamics_service import _Stream
+from jitdyn.server.transport.opening import open_request
+from jitdyn.v1 import dynamics_pb2
+from jitdyn.vocabulary import Clock, Scenario
+
+_ARMS = {"native": (Engine.NATIVE, None), "python": (Engine.FAST, None), "static": (Engine.NATIVE, "STATIC")}
+
+
+@dataclass(frozen=True)
+class Run:
+    thread_us: float  # median over rounds of the feeding thread's CPU per tick
+    process_us: float  # the same, of the whole process (the commit thread included)
+
+
+def _options(model: str, scenario: str, rate: float, estimator: str | None) -> SessionOptions:
+    from jitdyn.experiments.objects import load_source
+
+    source = load_source(model)
+    if not source.builtin:
+        raise SystemExit(f"--model {model}: not a built-in model (this benchmark registers none)")
+    return SessionOptions(
+        model_name=source.name,
+        scenario=scenario,
+        dt=1.0 / rate,
+        clock=Clock.LOCKSTEP,
+        estimator={"estimator": estimator} if estimator else {},
+    )
+
+
+async def _feed(
+    engine: Engine, options: SessionOptions, frames: list[dynamics_pb2.Frame], folder: Path, profile: bool
+) -> tuple[float, float, pstats.Stats | None]:
+    """Thread and process CPU seconds per tick of one session fed `frames` (the first tenth warms up)."""
+    config = ServerConfig(address="127.0.0.1:0", data_root=folder, engine=engine, shares_process=True)
+    server, _, services = await create_server(config)
+    try:
+        opened = SessionOpener(services).open_session(open_request(options.to_message(), tenant="bench"))
+        stream = _Stream(opened)
+        warm = len(frames) // 10
+        for frame in frames[:warm]:
+            stream.on_frame(frame, stream.clock.now())
+        profiler = cProfile.Profile() if profile else None
+        thread, process = time.thread_time(), time.process_time()
+        if profiler is not None:
+            profiler.enable()
+        for frame in frames[warm:]:
+            for response in stream.on_frame(frame, stream.clock.now()):
+                response.SerializeToString()
+        if profiler is not None:
+            profiler.disable()
+        ticks = len(frames) - warm
+        thread, process = (time.thread_time() - thread) / ticks, (time.process_time() - process) / ticks
+        opened.recorder.close()
+        return thread, process, pstats.Stats(profiler) if profiler is not None else None
+    finally:
+        await server.stop(None)
+        services.committer.close()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.tick_path",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--model", default="pendulum_3", help="a built-in research object (default pendulum_3)"
+    )
+    parser.add_argument("--scenario", default="PASSIVE", choices=[s.value for s in Scenario])
+    parser.add_argument("--rate", type=float, default=20.0, help="frames per second, Hz (default 20)")
+    parser.add_argument("--ticks", type=int, default=1000, help="frames per session (default 1000)")
+    parser.add_argument("--rounds", type=int, default=3, help="sessions of each arm, alternated (default 3)")
+    parser.add_argument(
+        "--arms",
+        nargs="+",
+        choices=sorted(_ARMS),
+        default=["native", "python", "static"],
+        help="native / python: the UKF on that engine; static: no filter (default all three)",
+    )
+    parser.add_argument(
+        "--profile",
+        type=int,
+        metavar="N",
+        default=0,
+        help="print cProfile's N costliest functions of each arm's last session",
+    )
+    args = parser.parse_args(argv)
+    if args.ticks < 20 or args.rounds < 1 or args.rate <= 0:
+        parser.error(
+            f"--ticks must be >= 20, --rounds >= 1 and --rate > 0, got {args.ticks}, {args.rounds}, {args.rate}"
+        )
+    states = trajectory(args.model, args.scenario, args.rate, args.ticks)
+    with tempfile.TemporaryDirectory(prefix="jitdyn-tick-path-") as tmp:
+        folder = Path(tmp)
+        np_path = folder / "frames.npz"
+        import numpy as np
+
+        np.savez(np_path, **states)
+        measured = ["qpos", "qvel", "ctrl"] if args.scenario == Scenario.CONTROLLED else ["qpos", "qvel"]
+        raw = _frames(_Spec(str(np_path), args.ticks, 1.0 / args.rate), measured)  # type: ignore[arg-type]
+        frames = [dynamics_pb2.StreamSessionRequest.FromString(b).frame for b in raw]
+        samples: dict[str, list[tuple[float, float]]] = {arm: [] for arm in args.arms}
+        stats: dict[str, pstats.Stats | None] = {}
+        print(
+            f"# {args.model} {args.scenario} at {args.rate:g} Hz, LOCKSTEP, {args.ticks} frames, {args.rounds} rounds"
+        )
+        for r in range(args.rounds):
+            for arm in args.arms:
+                engine, estimator = _ARMS[arm]
+                options = _options(args.model, args.scenario, args.rate, estimator)
+                data = folder / f"data-{arm}-{r}"
+                last = r == args.rounds - 1
+                thread, process, stats[arm] = asyncio.run(
+                    _feed(engine, options, frames, data, bool(args.profile) and last)
+                )
+                samples[arm].append((thread, process))
+                print(
+                    f"  round {r + 1} {arm:7} thread {thread * 1e6:7.0f} us/tick, process {process * 1e6:7.0f}",
+                    flush=True,
+                )
+    print(f"\n{'arm':8} {'thread us/tick':>15} {'process us/tick':>16}")
+    for arm, runs in samples.items():
+        print(
+            f"{arm:8} {statistics.median(t for t, _ in runs) * 1e6:15.0f} {statistics.median(p for _, p in runs) * 1e6:16.0f}"
+        )
+    for arm, stat in stats.items():
+        if stat is not None:
+            print(f"\n## {arm}: cProfile, the last session's {args.ticks - args.ticks // 10} ticks (tottime)")
+            stat.sort_stats("tottime").print_stats(args.profile)
+    return 0
+
+
+@dataclass
+class _Spec:
+    """What benchmarks.load._frames reads of a WorkerSpec."""
+
+    frames_path: str
+    ticks: int
+    dt: float
+
+
+if __name__ == "__main__":
+    sys.exit(main())
