@@ -81,7 +81,9 @@ def one_session(engine: str, scenario: str | None) -> tuple[int, list[str], floa
             session.close()
     results = [a for a in answers if isinstance(a, TickResult)]
     corrected = {a.seq for a in results if a.source == "CORRECTED"} & LATE
-    refused = [a.message for a in answers if isinstance(a, Rejection)]
+    # Why the late frames were refused (a frame late for other reasons, the first at start-up, is
+    # not one of them).
+    refused = [a.message for a in answers if isinstance(a, Rejection) and a.seq in LATE]
     compute = statistics.median(a.compute_us for a in results if a.source == "MEASURED")
     return len(corrected), refused, compute
 

@@ -107,6 +107,9 @@ class Ticket:
     # s, one tick of a late frame's replay (the timewarp), measured from this session's own replays;
     # None before its first (see `replay_price`).
     replay_per_tick: float | None = None
+    # s, the thread CPU of the session's own estimator and dynamics per tick: `compute_per_tick`
+    # without the time the machine took the CPU away mid-tick; None before a tick tells it.
+    cpu_per_tick: float | None = None
     released: bool = False
     admitted_at: float = field(default_factory=time.monotonic)
 
@@ -114,19 +117,27 @@ class Ticket:
     def load(self) -> float:
         return self.cost_per_tick / self.dt
 
-    def observe(self, seconds: float) -> None:
-        """One tick took `seconds` of the estimator and dynamics; the process's learnt overhead per
-        tick (the transport, the loop, recording) is added."""
+    def observe(self, seconds: float, *, cpu: float | None = None) -> None:
+        """One tick took `seconds` of the estimator and dynamics (`cpu` of them its thread's CPU);
+        the process's learnt overhead per tick (the transport, the loop, recording) is added."""
         self.admission._count_tick(seconds)
         self.cost_per_tick += _EWMA * (seconds + self.admission.overhead - self.cost_per_tick)
         self.compute_per_tick += _EWMA * (seconds - self.compute_per_tick)
+        if cpu is not None:
+            previous = self.cpu_per_tick
+            self.cpu_per_tick = cpu if previous is None else previous + _EWMA * (cpu - previous)
 
     @property
     def replay_price(self) -> float:
         """s, what a late frame's replay is priced at per tick replayed: what this session's own
-        replays measured, and its compute per tick until it has replayed (a tick answered on the
-        loop costs more than its replay: the answer's dynamics and message)."""
-        return self.compute_per_tick if self.replay_per_tick is None else self.replay_per_tick
+        replays measured, and until it has replayed the CPU of its ticks (a tick answered on the
+        loop costs more than its replay: the answer's dynamics and message), or their compute
+        before a tick tells it. In CPU time, not wall time: on a busy machine the wall time of a
+        2-link arm's tick was 2.3 ms, and its first late frames were priced out of reach, so no
+        replay ever measured what one costs (benchmarks/late_arm.py)."""
+        if self.replay_per_tick is not None:
+            return self.replay_per_tick
+        return self.compute_per_tick if self.cpu_per_tick is None else self.cpu_per_tick
 
     def observe_replay(self, seconds: float, *, cpu: float, ticks: int) -> None:
         """A late frame's replay of `ticks` ticks took `seconds` on the loop, `cpu` of them its
@@ -310,6 +321,18 @@ class Admission:
             if behind is None or self.replay_share <= REPLAY_SHARE:
                 return None
             return f"{behind}, and replaying late frames took {100 * self.replay_share:.0f} % of that time"
+
+    def replay_room(self) -> float:
+        """s of the event loop a late frame's replay may take now without making another session's
+        next answer late: the loop's idle share (1 - this process's load) of the shortest grace of
+        its sessions, the longest any of their next ticks can wait past its time
+        (docs/decisions/0001-timewarp-budget.md)."""
+        with self._lock:
+            graces = [t.dt / 2 if t.grace is None else t.grace for t in self._by_id.values()]
+            if not graces:
+                return math.inf
+            load = max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
+            return min(graces) * max(0.0, 1.0 - load)
 
     def _behind(self) -> str | None:
         """Why the process's answers are late now (its answers or its loop, over the last window),

@@ -292,9 +292,11 @@ class _Stream:
         """REALTIME: why a late frame's timewarp is not applied, or None when it fits.
 
         The timewarp replays every tick the estimator ran since the late one, on the event loop; it
-        is applied only when it fits, with the session's own next tick, in half a tick, and not while
-        replays keep the process late (Admission.replays_behind), because replays on a server that
-        is already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md). A
+        is applied only when it fits before this session's next deadline with the session's own
+        next tick, and in the loop's idle share of the shortest grace of the process's sessions (the
+        longest any of their next answers can wait: Admission.replay_room), and not while replays
+        keep the process late (Admission.replays_behind), because replays on a server that is
+        already behind make it fall further behind (docs/decisions/0001-timewarp-budget.md). A
         replayed tick is priced at what the session's own replays measured, and at its compute per
         tick before its first (Ticket.replay_price). A frame whose tick waited for it adds no work (docs/decisions/0007-wait-for-late-frames.md):
         it is always applied.
@@ -310,14 +312,20 @@ class _Stream:
                 "are not applied until it catches up"
             )
         cost = runs * self.ticket.replay_price
-        free = max(0.0, self.plan.dt / 2 - self.ticket.cost_per_tick)
-        if cost <= free:
+        own = self.deadline(self.runtime.next_tick) - self.clock.now() - self.ticket.cost_per_tick
+        shared = self.ticket.admission.replay_room()
+        if cost <= min(own, shared):
             return None
+        room = (
+            f"only {1e3 * max(0.0, own):.1f} ms are left before this session's next deadline after its own "
+            f"tick ({1e3 * self.ticket.cost_per_tick:.1f} ms)"
+            if own <= shared
+            else f"the sessions of this server process (this one among them) can wait only "
+            f"{1e3 * max(0.0, shared):.1f} ms for the loop"
+        )
         return (
             f"frame {seq}: {self.runtime.next_tick - seq} ticks late; applying it means running "
-            f"{runs} ticks of the filter again, about "
-            f"{1e3 * cost:.1f} ms, and with this session's own ticks at {1e3 * self.ticket.cost_per_tick:.1f} ms "
-            f"only {1e3 * free:.1f} ms of half its {1e3 * self.plan.dt:g} ms tick is free, so it is not applied"
+            f"{runs} ticks of the filter again, about {1e3 * cost:.1f} ms, and {room}, so it is not applied"
         )
 
     def _too_old(self, seq: int) -> str:
@@ -385,9 +393,10 @@ class _Stream:
         if shed:
             outcome = self.runtime.shed(frame)
         else:
+            cpu = time.thread_time()
             outcome = self.runtime.advance(frame, horizon=self.horizon())
             if self.ticket is not None:
-                self.ticket.observe(outcome.compute_us / 1e6)
+                self.ticket.observe(outcome.compute_us / 1e6, cpu=time.thread_time() - cpu)
         response = Response(result=self.record_result(outcome, arrived=due))
         lateness = max(0.0, self.clock.now() - self.deadline(outcome.seq))
         self._m_lateness.observe(lateness)

@@ -403,3 +403,40 @@ def test_a_replay_is_priced_at_what_the_sessions_replays_cost_in_cpu() -> None:
     assert ticket.replay_price == pytest.approx(0.0005 + 0.05 * (0.001 - 0.0005))
     ticket.observe_replay(0.001, cpu=0.001, ticks=0)  # nothing replayed: the price stands
     assert ticket.replay_price == pytest.approx(0.0005 + 0.05 * (0.001 - 0.0005))
+
+
+def test_a_replay_may_take_the_loops_idle_share_of_the_shortest_grace() -> None:
+    """A late frame's replay runs on the loop ahead of every session's next tick: it may take what
+    the process's load leaves idle of the shortest grace among its sessions, and anything on a
+    process with no session."""
+    import math
+
+    admission = Admission(budget=1.0, count_machine_cpu=False, count_process_cpu=False)
+    assert admission.replay_room() == math.inf
+    arm = admission.admit(cost_per_tick=0.004, dt=0.02, what="arm at 50 Hz", grace=0.010)
+    assert admission.replay_room() == pytest.approx(0.010 * (1 - 0.2))
+    pendulum = admission.admit(cost_per_tick=0.003, dt=0.05, what="pendulum at 20 Hz")  # grace dt / 2
+    assert admission.replay_room() == pytest.approx(0.010 * (1 - 0.2 - 0.06))
+    arm.release()
+    assert admission.replay_room() == pytest.approx(0.025 * (1 - 0.06))
+    busy = [admission.admit(cost_per_tick=0.01, dt=0.05, what="x", resumed=True) for _ in range(6)]
+    assert admission.replay_room() == 0.0  # past a whole core: no room at all
+    for ticket in [pendulum, *busy]:
+        ticket.release()
+
+
+def test_before_its_first_replay_a_session_prices_one_at_its_ticks_cpu() -> None:
+    """Until a session has replayed, a replayed tick is priced at the thread CPU of its ticks once
+    they tell it, not at their wall time, which a busy machine stretches."""
+    from jitdyn.server.runtime.admission import Ticket
+
+    admission = Admission(budget=1.0, count_machine_cpu=False, count_process_cpu=False)
+    ticket = Ticket(admission, dt=0.02, cost_per_tick=0.003, compute_per_tick=0.0012)
+    ticket.observe(0.0023)  # no CPU told: the compute stands
+    assert ticket.replay_price == pytest.approx(ticket.compute_per_tick)
+    ticket.observe(0.0023, cpu=0.0006)  # preempted for most of the tick
+    assert ticket.replay_price == pytest.approx(0.0006)
+    ticket.observe(0.0023, cpu=0.0008)
+    assert ticket.replay_price == pytest.approx(0.0006 + 0.05 * (0.0008 - 0.0006))
+    ticket.observe_replay(0.01, cpu=0.002, ticks=4)
+    assert ticket.replay_price == pytest.approx(0.0005)  # its own replays, once measured
