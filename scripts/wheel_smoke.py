@@ -2,7 +2,9 @@
 
     python scripts/wheel_smoke.py            # build the wheel, install it into a fresh venv, try it
 
-From a folder outside the checkout (so nothing of the checkout is importable by accident), with the
+The wheel is built as deploy/Dockerfile's builder stage builds it: from what its COPY lines copy,
+laid out as they lay it out, with its `pip wheel --no-deps` (so the image builds from what the
+Dockerfile copies; one compile of the native engine serves both checks). From a folder outside the checkout (so nothing of the checkout is importable by accident), with the
 base install only (what the server needs): every command's --help, a short demo, `import
 jitdyn.client, jitdyn.server`, that the extras' packages are not there and the commands that need
 them say which extra to install, that no generic top-level name (`server`, `client`, `registry`,
@@ -13,6 +15,8 @@ folder (no MUJOCO_LOG.TXT). CI runs it; it takes about a minute, most of it pip.
 from __future__ import annotations
 
 import os
+import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -20,6 +24,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+DOCKERFILE = ROOT / "deploy" / "Dockerfile"
 GENERIC = ("server", "client", "registry", "storage", "experiments", "cli", "models")
 # Packages of the extras, which a base install must not pull in. (matplotlib is not among them:
 # filterpy, which the server needs, requires it.)
@@ -45,6 +50,34 @@ for path in walk(build_parser(), []):
 """
 
 
+def dockerfile_instructions() -> list[tuple[str, str]]:
+    """deploy/Dockerfile as (KEYWORD, the rest) pairs: continuation lines joined, comments left out."""
+    text = re.sub(r"\\\n", " ", DOCKERFILE.read_text())
+    lines = [line.strip() for line in text.splitlines()]
+    return [
+        (parts[0].upper(), parts[1] if len(parts) > 1 else "")
+        for parts in (line.split(None, 1) for line in lines if line and not line.startswith("#"))
+    ]
+
+
+def docker_context(dest: Path) -> Path:
+    """`dest`, holding what the Dockerfile's builder stage copies from the checkout, as it lays it
+    out (without compiled modules or caches, which .dockerignore keeps out)."""
+    for kind, value in dockerfile_instructions():
+        if kind != "COPY" or value.startswith("--from"):
+            continue
+        *sources, target = value.split()
+        for source in sources:
+            origin = ROOT / source.rstrip("/")
+            if origin.is_dir():
+                ignore = shutil.ignore_patterns("__pycache__", "*.so")
+                shutil.copytree(origin, dest / target.rstrip("/"), ignore=ignore)
+            else:
+                dest.mkdir(parents=True, exist_ok=True)
+                shutil.copy(origin, dest / origin.name)
+    return dest
+
+
 def run(args: list[str], *, cwd: Path, env: dict[str, str] | None = None, expect_ok: bool = True) -> str:
     started = time.monotonic()
     result = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, check=False, timeout=600)
@@ -59,12 +92,21 @@ def run(args: list[str], *, cwd: Path, env: dict[str, str] | None = None, expect
 def main() -> int:
     with tempfile.TemporaryDirectory(prefix="jitdyn-wheel-") as tmp_name:
         tmp = Path(tmp_name)
-        print("building the wheel", flush=True)
+        print("building the wheel from what deploy/Dockerfile copies", flush=True)
+        context = docker_context(tmp / "src")
         run(
-            [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(tmp / "dist"), str(ROOT)],
-            cwd=tmp,
+            [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(tmp / "dist"), "."],
+            cwd=context,
         )
         wheel = next((tmp / "dist").glob("jitdyn-*.whl"))
+        listing = run([sys.executable, "-m", "zipfile", "-l", str(wheel)], cwd=tmp)
+        for inside in (
+            "jitdyn/server/transport/app.py",
+            "jitdyn/cli/main.py",
+            "jitdyn/server/estimation/native/_ukf.",
+        ):
+            if inside not in listing:
+                raise SystemExit(f"the wheel built from the Dockerfile's context lacks {inside}")
         print(f"installing {wheel.name} into a fresh venv", flush=True)
         run([sys.executable, "-m", "venv", str(tmp / "venv")], cwd=tmp)
         python = str(tmp / "venv" / "bin" / "python")
