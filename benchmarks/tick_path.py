@@ -5,6 +5,7 @@ dynamics, the record, the metrics, the result message and its serialisation), on
     python -m benchmarks.tick_path                                   # pendulum_3, both engines
     python -m benchmarks.tick_path --model biped --scenario CONTROLLED --rate 200
     python -m benchmarks.tick_path --profile 25                      # where it goes, by function
+    python -m benchmarks.tick_path --grpc --sessions 8               # the whole tick, by thread
 
 It opens a LOCKSTEP session on a server built as `jitdyn serve` builds one (not listening), in a
 temporary data folder, and feeds it the load generator's trajectory. Per tick it reports the
@@ -12,6 +13,12 @@ thread's CPU (time.thread_time: what the other programs of a shared machine do n
 process's (the commit thread's share included), for each engine and for STATIC (no filter: what
 the tick costs around it), alternated round by round. gRPC's own read and write are not here:
 benchmarks/tick_budget.py sets the whole tick beside a bare echo.
+
+With --grpc the same arms run whole: REALTIME sessions from the load generator's client processes
+(benchmarks/load.py) over loopback to a server inside this process (BackgroundServer: it admits by
+its sessions' estimates alone, so a busy machine does not refuse them), and each of the server's
+threads' CPU per answered tick is read from /proc: the event loop (jitdyn-server), the commit
+thread, gRPC core's threads. What the loop spends beyond the tick path above is the transport.
 """
 
 from __future__ import annotations
@@ -19,20 +26,26 @@ from __future__ import annotations
 import argparse
 import asyncio
 import cProfile
+import os
 import pstats
+import re
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from benchmarks.load import _frames, trajectory
+import numpy as np
+
+from benchmarks.load import _frames, run, trajectory
 from jitdyn.client import SessionOptions
 from jitdyn.server.estimation.config import Engine
 from jitdyn.server.runtime.opening import SessionOpener
 from jitdyn.server.transport.app import ServerConfig, create_server
+from jitdyn.server.transport.background import BackgroundServer
 from jitdyn.server.transport.dynamics_service import _Stream
 from jitdyn.server.transport.opening import open_request
 from jitdyn.v1 import dynamics_pb2
@@ -92,6 +105,117 @@ async def _feed(
         services.committer.close()
 
 
+def _thread_cpu() -> dict[int, tuple[str, float]]:
+    """Every thread of this process: native id -> (name, CPU seconds so far), from /proc."""
+    names = {thread.native_id: thread.name for thread in threading.enumerate()}
+    tick = os.sysconf("SC_CLK_TCK")
+    found = {}
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+            comm = (task / "comm").read_text().strip()
+        except OSError:  # a thread that ended meanwhile
+            continue
+        tid = int(task.name)
+        found[tid] = (names.get(tid, comm), (int(fields[11]) + int(fields[12])) / tick)
+    return found
+
+
+def _over_grpc(arm: str, args: argparse.Namespace, states: dict[str, np.ndarray]) -> dict[str, float]:
+    """us of CPU per answered tick, by thread name, of a server in this process serving
+    `args.sessions` REALTIME sessions of `arm` from the load generator's client processes."""
+    engine, estimator = _ARMS[arm]
+    with tempfile.TemporaryDirectory(prefix="jitdyn-tick-path-") as tmp:
+        server = BackgroundServer(ServerConfig(address="127.0.0.1:0", data_root=Path(tmp), engine=engine))
+        try:
+            before = _thread_cpu()
+            report = run(
+                model=args.model,
+                scenario=args.scenario,
+                rate=args.rate,
+                sessions=args.sessions,
+                seconds=args.ticks / args.rate,
+                clients=2,
+                server=server.address,
+                states=states,
+                ukf_us=0.0,
+                estimator=estimator,
+                floor=False,
+            )
+            after = _thread_cpu()
+        finally:
+            server.close()
+    ticks = max(1, round(report.answered * report.ticks_sent))
+    by_name: dict[str, float] = {"answered %": 100 * report.answered}
+    for tid, (name, cpu) in after.items():
+        name = re.sub(r"_\d+$", "", name)  # a pool's threads together
+        used = cpu - before.get(tid, (name, 0.0))[1]
+        by_name[name] = by_name.get(name, 0.0) + used * 1e6 / ticks
+    return by_name
+
+
+def _grpc_table(args: argparse.Namespace, states: dict[str, np.ndarray]) -> None:
+    print(
+        f"# {args.model} {args.scenario} at {args.rate:g} Hz, {args.sessions} REALTIME sessions over gRPC "
+        f"for {args.ticks / args.rate:g} s, {args.rounds} rounds; us of CPU per answered tick, by thread"
+    )
+    rows: dict[str, list[dict[str, float]]] = {arm: [] for arm in args.arms}
+    for r in range(args.rounds):
+        for arm in args.arms:
+            rows[arm].append(_over_grpc(arm, args, states))
+            shown = ", ".join(f"{k} {v:.0f}" for k, v in rows[arm][-1].items() if v >= 1)
+            print(f"  round {r + 1} {arm:7} {shown}", flush=True)
+    names = sorted({n for runs in rows.values() for run_ in runs for n in run_ if n != "answered %"})
+    print(f"\n{'thread (medians)':28}" + "".join(f"{arm:>10}" for arm in args.arms))
+    for name in [*names, "answered %"]:
+        cells = [statistics.median(run_.get(name, 0.0) for run_ in rows[arm]) for arm in args.arms]
+        if max(cells) < 1.0:
+            continue  # a thread idle throughout
+        print(f"{name:28}" + "".join(f"{c:10.0f}" for c in cells))
+    totals = [
+        statistics.median(sum(v for k, v in run_.items() if k != "answered %") for run_ in rows[arm])
+        for arm in args.arms
+    ]
+    print(f"{'the process':28}" + "".join(f"{t:10.0f}" for t in totals))
+
+
+def _path_table(args: argparse.Namespace, states: dict[str, np.ndarray]) -> None:
+    with tempfile.TemporaryDirectory(prefix="jitdyn-tick-path-") as tmp:
+        folder = Path(tmp)
+        np_path = folder / "frames.npz"
+        np.savez(np_path, **states)
+        measured = ["qpos", "qvel", "ctrl"] if args.scenario == Scenario.CONTROLLED else ["qpos", "qvel"]
+        raw = _frames(_Spec(str(np_path), args.ticks, 1.0 / args.rate), measured)  # type: ignore[arg-type]
+        frames = [dynamics_pb2.StreamSessionRequest.FromString(b).frame for b in raw]
+        samples: dict[str, list[tuple[float, float]]] = {arm: [] for arm in args.arms}
+        stats: dict[str, pstats.Stats | None] = {}
+        print(
+            f"# {args.model} {args.scenario} at {args.rate:g} Hz, LOCKSTEP, {args.ticks} frames, {args.rounds} rounds"
+        )
+        for r in range(args.rounds):
+            for arm in args.arms:
+                engine, estimator = _ARMS[arm]
+                options = _options(args.model, args.scenario, args.rate, estimator)
+                data = folder / f"data-{arm}-{r}"
+                last = r == args.rounds - 1
+                thread, process, stats[arm] = asyncio.run(
+                    _feed(engine, options, frames, data, bool(args.profile) and last)
+                )
+                samples[arm].append((thread, process))
+                print(
+                    f"  round {r + 1} {arm:7} thread {thread * 1e6:7.0f} us/tick, process {process * 1e6:7.0f}",
+                    flush=True,
+                )
+    print(f"\n{'arm':8} {'thread us/tick':>15} {'process us/tick':>16}")
+    for arm, runs in samples.items():
+        thread_us = statistics.median(t for t, _ in runs) * 1e6
+        print(f"{arm:8} {thread_us:15.0f} {statistics.median(p for _, p in runs) * 1e6:16.0f}")
+    for arm, stat in stats.items():
+        if stat is not None:
+            print(f"\n## {arm}: cProfile, the last session's {args.ticks - args.ticks // 10} ticks (tottime)")
+            stat.sort_stats("tottime").print_stats(args.profile)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.tick_path",
@@ -119,49 +243,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=0,
         help="print cProfile's N costliest functions of each arm's last session",
     )
+    parser.add_argument(
+        "--grpc", action="store_true", help="whole REALTIME sessions over gRPC, CPU by thread (see above)"
+    )
+    parser.add_argument("--sessions", type=int, default=8, help="with --grpc: sessions at once (default 8)")
     args = parser.parse_args(argv)
-    if args.ticks < 20 or args.rounds < 1 or args.rate <= 0:
+    if args.ticks < 20 or args.rounds < 1 or args.rate <= 0 or args.sessions < 1:
         parser.error(
-            f"--ticks must be >= 20, --rounds >= 1 and --rate > 0, got {args.ticks}, {args.rounds}, {args.rate}"
+            f"--ticks must be >= 20, --rounds and --sessions >= 1 and --rate > 0, got {args.ticks}, "
+            f"{args.rounds}, {args.sessions}, {args.rate}"
         )
+    if args.grpc and args.profile:
+        parser.error("--profile profiles the tick path; it does not go with --grpc")
     states = trajectory(args.model, args.scenario, args.rate, args.ticks)
-    with tempfile.TemporaryDirectory(prefix="jitdyn-tick-path-") as tmp:
-        folder = Path(tmp)
-        np_path = folder / "frames.npz"
-        import numpy as np
-
-        np.savez(np_path, **states)
-        measured = ["qpos", "qvel", "ctrl"] if args.scenario == Scenario.CONTROLLED else ["qpos", "qvel"]
-        raw = _frames(_Spec(str(np_path), args.ticks, 1.0 / args.rate), measured)  # type: ignore[arg-type]
-        frames = [dynamics_pb2.StreamSessionRequest.FromString(b).frame for b in raw]
-        samples: dict[str, list[tuple[float, float]]] = {arm: [] for arm in args.arms}
-        stats: dict[str, pstats.Stats | None] = {}
-        print(
-            f"# {args.model} {args.scenario} at {args.rate:g} Hz, LOCKSTEP, {args.ticks} frames, {args.rounds} rounds"
-        )
-        for r in range(args.rounds):
-            for arm in args.arms:
-                engine, estimator = _ARMS[arm]
-                options = _options(args.model, args.scenario, args.rate, estimator)
-                data = folder / f"data-{arm}-{r}"
-                last = r == args.rounds - 1
-                thread, process, stats[arm] = asyncio.run(
-                    _feed(engine, options, frames, data, bool(args.profile) and last)
-                )
-                samples[arm].append((thread, process))
-                print(
-                    f"  round {r + 1} {arm:7} thread {thread * 1e6:7.0f} us/tick, process {process * 1e6:7.0f}",
-                    flush=True,
-                )
-    print(f"\n{'arm':8} {'thread us/tick':>15} {'process us/tick':>16}")
-    for arm, runs in samples.items():
-        print(
-            f"{arm:8} {statistics.median(t for t, _ in runs) * 1e6:15.0f} {statistics.median(p for _, p in runs) * 1e6:16.0f}"
-        )
-    for arm, stat in stats.items():
-        if stat is not None:
-            print(f"\n## {arm}: cProfile, the last session's {args.ticks - args.ticks // 10} ticks (tottime)")
-            stat.sort_stats("tottime").print_stats(args.profile)
+    (_grpc_table if args.grpc else _path_table)(args, states)
     return 0
 
 
