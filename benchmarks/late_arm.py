@@ -4,21 +4,23 @@ named) at 50 Hz REALTIME, whose frames now and then come 4 ticks late. How many 
 
     python -m benchmarks.late_arm                        # 3 rounds, both engines, DRIVEN
     python -m benchmarks.late_arm --scenario PASSIVE --rounds 5
+    python -m benchmarks.late_arm --beside 20            # with 20 pendulum_3 sessions on the server
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import mujoco
 import numpy as np
 
-from benchmarks.load import local_server
+from benchmarks.load import local_server, run
 from jitdyn.client import Client, FrameData, Rejection, SessionOptions, TickResult
 from jitdyn.settings import ENGINES
 
@@ -55,9 +57,45 @@ def truth() -> list[tuple[np.ndarray, np.ndarray]]:
     return states
 
 
-def one_session(engine: str, scenario: str | None) -> tuple[int, list[str], float]:
-    """(late frames CORRECTED, the refusals' messages, median compute us of the on-time answers)."""
-    with local_server(("--engine", engine)) as (address, _), Client(address, timeout=30) as client:
+@contextlib.contextmanager
+def beside(address: str, sessions: int) -> Iterator[None]:
+    """`sessions` pendulum_3 PASSIVE REALTIME sessions at 20 Hz from the load generator's client
+    processes, on the server at `address`, for the arm session's time (none for 0)."""
+    if sessions == 0:
+        yield
+        return
+    seconds = TICKS * DT + 8.0  # the generator's own start-up, then the arm's session inside it
+    thread = threading.Thread(
+        target=run,
+        kwargs={
+            "model": "pendulum_3",
+            "scenario": "PASSIVE",
+            "rate": 20.0,
+            "sessions": sessions,
+            "seconds": seconds,
+            "clients": 2,
+            "server": address,
+            "ukf_us": 0.0,
+            "floor": False,
+        },
+        daemon=True,
+    )
+    thread.start()
+    time.sleep(5.0)  # the generator's processes start and open their sessions
+    try:
+        yield
+    finally:
+        thread.join(timeout=seconds + 60)
+
+
+def one_session(engine: str, scenario: str | None, others: int = 0) -> tuple[int, list[str], float]:
+    """(late frames CORRECTED, the refusals' messages, median compute us of the on-time answers),
+    with `others` pendulum_3 sessions beside it."""
+    with (
+        local_server(("--engine", engine)) as (address, _),
+        beside(address, others),
+        Client(address, timeout=30) as client,
+    ):
         client.register_model(name="arm2", mjcf=ARM)
         options = SessionOptions(model_name="arm2", dt=DT, clock="REALTIME", scenario=scenario or "")
         with client.open_session(options) as session:
@@ -95,17 +133,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=3, help="sessions per engine, alternated (default 3)")
     parser.add_argument("--engines", nargs="+", choices=ENGINES, default=list(ENGINES))
     parser.add_argument(
+        "--beside",
+        type=int,
+        default=0,
+        metavar="N",
+        help="N pendulum_3 REALTIME sessions at 20 Hz on the same server meanwhile (default 0)",
+    )
+    parser.add_argument(
         "--scenario",
         choices=("PASSIVE", "DRIVEN"),
         help="default: none named (DRIVEN, the model is actuated)",
     )
     args = parser.parse_args(argv)
-    if args.rounds < 1:
-        parser.error(f"--rounds must be >= 1, got {args.rounds}")
+    if args.rounds < 1 or args.beside < 0:
+        parser.error(f"--rounds must be >= 1 and --beside >= 0, got {args.rounds} and {args.beside}")
     print(f"{'round':>5} {'engine':>7} {'corrected':>10} {'compute us':>10}  first refusal")
     for round_ in range(1, args.rounds + 1):
         for engine in args.engines:
-            corrected, refused, compute = one_session(engine, args.scenario)
+            corrected, refused, compute = one_session(engine, args.scenario, args.beside)
             first = refused[0] if refused else ""
             print(
                 f"{round_:5d} {engine:>7} {corrected:4d} of {len(LATE):<3d} {compute:10.0f}  {first}",
