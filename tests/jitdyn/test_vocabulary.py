@@ -66,3 +66,14 @@ def test_parse_takes_names_values_and_prefixed_names() -> None:
         match=r"^scenario must be one of PASSIVE, CONTROLLED, EXTERNAL, DRIVEN, got 'PASIVE'$",
     ):
         parse(Scenario, "PASIVE", argument="scenario")
+
+
+def test_a_name_two_kinds_share_keeps_each_kinds_value() -> None:
+    """Scenario.DRIVEN and WrongModel.DRIVEN are equal strings with different proto values: a cache
+    keyed by the member alone answered whichever was asked first for both."""
+    from jitdyn.vocabulary import WrongModel
+
+    assert Scenario.DRIVEN == WrongModel.DRIVEN  # the trap: StrEnum members compare as strings
+    for _ in range(2):  # the second time from the cache
+        assert to_proto(Scenario.DRIVEN) == 4
+        assert to_proto(WrongModel.DRIVEN) == 2
