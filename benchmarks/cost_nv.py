@@ -97,12 +97,13 @@ def truth(model: mujoco.MjModel, scenario: Scenario, nstep: int, ticks: int) -> 
 
 def physics(ukf: UnscentedFilter) -> None:
     """The rollout of this tick's sigma points (as the filter would step them), alone."""
-    kf, nq, nv = ukf._kf, ukf._nq, ukf._nv
+    kf, nq, nv, process = ukf._kf, ukf._nq, ukf._nv, ukf._process
+    process.set_inputs(act=ukf._act, ctrl=ukf._ctrl, qfrc=ukf._qfrc)
     if ukf._linear_force:
         chi = ukf._points.sigma_points(kf.x[: nq + nv], kf.P[: 2 * nv, : 2 * nv])
-        ukf._propagate_linear_force(chi, np.repeat(kf.x[None, nq + nv :], chi.shape[0], 0), nstep=None)
+        process.propagate_linear_force(chi, np.repeat(kf.x[None, nq + nv :], chi.shape[0], 0), nstep=None)
     else:
-        ukf._propagate_sigmas(ukf._points.sigma_points(kf.x, kf.P), nstep=None)
+        process.propagate(ukf._points.sigma_points(kf.x, kf.P), nstep=None)
 
 
 def measure(row: Row, rounds: int) -> dict[str, float]:

@@ -779,9 +779,10 @@ def tick_physics_us(model: str, scenario: str, rate: float, states: dict[str, np
             sigmas = ukf._points.sigma_points(kf.x, kf.P)
             if controlled:
                 ukf._ctrl = np.array(states["ctrl"][k])
+            ukf._process.set_inputs(act=ukf._act, ctrl=ukf._ctrl, qfrc=ukf._qfrc)
             started = time.process_time()  # the pool's threads included
             for _ in range(5):
-                ukf._propagate_sigmas(sigmas, nstep=None)
+                ukf._process.propagate(sigmas, nstep=None)
             samples.append((time.process_time() - started) / 5)
             ukf.advance(ctrl=frame.ctrl)
             ukf.update(frame)

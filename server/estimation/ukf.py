@@ -1,6 +1,9 @@
-"""jitdyn's unscented Kalman filter: filterpy's UnscentedKalmanFilter, built whole from an
-`EstimatorConfig`, with MuJoCo as the process model and the sigma points propagated in one batched
-call (estimation/batched.py, estimation/propagate.py) instead of filterpy's per-point loop.
+"""jitdyn's unscented Kalman filter, built whole from an `EstimatorConfig`, with MuJoCo as the
+process model. The numeric steps of a tick (sigma points, propagation, unscented transform,
+update, tidying) are a FilterCore (estimation/core.py): the compiled engine's, or the Python one's
+(filterpy's UnscentedKalmanFilter or its faster FastUKF, the sigma points propagated in one batched
+call by estimation/process.py); this module runs a tick through them and keeps the rest: the
+divergence guard, the adaptive noise, the forecast combination, the estimate.
 
     estimator = UnscentedFilter(model, config, pool=pool)
     estimator.initialise(Measurement(qpos=q0, qvel=v0))
@@ -48,6 +51,7 @@ from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.estimation.adaptive import NoiseAdapter, NoiseSnapshot
 from jitdyn.server.estimation.batched import BatchedUKF, tangent_unscented_transform
 from jitdyn.server.estimation.config import Engine, EstimatorConfig, check_against_model
+from jitdyn.server.estimation.core import FilterCore, PythonCore
 from jitdyn.server.estimation.fast import FastUKF
 from jitdyn.server.estimation.forecast import CombinedForecast, CombinerSnapshot, ForecastCombiner
 from jitdyn.server.estimation.guard import Guard, GuardState
@@ -59,21 +63,20 @@ from jitdyn.server.estimation.interface import (
     read_only,
 )
 from jitdyn.server.estimation.layout import derivative_order, force_blocks, linear_force_applies
-from jitdyn.server.estimation.linear_force import LinearForceUKF, force_response
+from jitdyn.server.estimation.linear_force import LinearForceUKF
 from jitdyn.server.estimation.manifold import SplitManifold, has_manifold
 from jitdyn.server.estimation.native import AdapterState
 from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
 from jitdyn.server.estimation.native.filter import NativeUKF
 from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.estimation.process import SigmaProcess
 from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
 from jitdyn.server.estimation.sigma import (
     MerweScaled,
     RobustCholesky,
     Simplex,
     UniformSpherical,
-    cholesky_upper,
     make_sigma_points,
-    nearest_positive_definite,
 )
 from jitdyn.vocabulary import (
     Channel,
@@ -175,7 +178,13 @@ class UnscentedFilter:
             inputs=_INPUTS[self._scenario],
             want_qacc=self._controlled,
         )
-        self._kf = self._filter(z_size)
+        # Plain vectors keep filterpy's own transform (and its arithmetic, bit for bit).
+        self._ut = tangent_unscented_transform if self._manifold else unscented_transform
+        self._process = SigmaProcess(
+            m, self._data, propagator=self._propagator, points=self._points, size=self._size,
+            fblocks=self._fblocks, controlled=self._controlled, steps_per_tick=config.steps_per_tick,
+        )  # fmt: skip
+        self._kf: FilterCore = self._filter(z_size)
         self._mass = self._mass_diagonal()
         self._Q = self._process_noise(config.dt)
         self._kf.Q = self._Q
@@ -184,8 +193,6 @@ class UnscentedFilter:
         self._adapter = self._noise_adapter()
         restart = config.wrong_model == WrongModel.RESTART
         self._guard = Guard(m=self._z_tangent, restart=restart, driven=self._driven)
-        # Plain vectors keep filterpy's own transform (and its arithmetic, bit for bit).
-        self._ut = tangent_unscented_transform if self._manifold else unscented_transform
         self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
         self._act_bounds = self._activation_bounds()
         self._forecasts = self._forecast_combiner()
@@ -222,8 +229,9 @@ class UnscentedFilter:
             add=self._x_manifold.add if self._x_manifold is not None else None,
         )
 
-    def _filter(self, z_size: int) -> BatchedUKF | NativeUKF:
-        """filterpy's filter over this state and measurement, its process model ours."""
+    def _filter(self, z_size: int) -> FilterCore:
+        """The engine's filter over this state and measurement: the native one, or filterpy's (or
+        its faster FastUKF, or the LinearForceUKF) with the process model in Python."""
         x_manifold = self._x_manifold
         z_manifold = SplitManifold(self._model, rest=z_size - self._nq) if self._manifold else None
         kwargs: dict[str, object] = {
@@ -240,17 +248,19 @@ class UnscentedFilter:
             "residual_z": z_manifold.residual if z_manifold is not None else None,
             "state_add": x_manifold.add if x_manifold is not None else None,
         }
+        process = self._process
+        inner: BatchedUKF
         if self._linear_force:
-            return LinearForceUKF(
+            inner = LinearForceUKF(
                 motion=self._order * self._nv,
-                propagate_forced=self._propagate_linear_force,
-                response=self._force_response,
+                propagate_forced=process.propagate_linear_force,
+                response=process.force_response,
                 z_index=self._z_index,
-                propagate=self._propagate_sigmas,
+                propagate=process.propagate,
                 vector=True,
                 **kwargs,
             )
-        if self._config.engine == Engine.NATIVE:
+        elif self._config.engine == Engine.NATIVE:
             return NativeUKF(
                 self._model,
                 points=self._points,
@@ -261,11 +271,13 @@ class UnscentedFilter:
                 controlled=self._controlled,
                 manifold=x_manifold,
             )
-        if self._config.engine == Engine.FAST:
-            return FastUKF(
-                propagate=self._propagate_sigmas, vector=not self._manifold, z_index=self._z_index, **kwargs
+        elif self._config.engine == Engine.FAST:
+            inner = FastUKF(
+                propagate=process.propagate, vector=not self._manifold, z_index=self._z_index, **kwargs
             )
-        return BatchedUKF(propagate=self._propagate_sigmas, vector=not self._manifold, **kwargs)
+        else:
+            inner = BatchedUKF(propagate=process.propagate, vector=not self._manifold, **kwargs)
+        return PythonCore(inner, process=process, ut=self._ut, model=self._model, data=self._data)
 
     def _noise_adapter(self) -> NoiseAdapter | NativeNoiseAdapter | None:
         if self._config.noise_model != NoiseModel.ADAPTIVE:
@@ -298,7 +310,6 @@ class UnscentedFilter:
         self._kf.x = x
         self._kf.P = self._P0.copy()
         self._act = np.zeros(self._na)
-        self._propagated_act = np.zeros(self._na)
         self._ctrl = np.zeros(self._nu)
         self._qfrc = np.zeros(self._nv)
         self._last: Measurement | None = None
@@ -332,8 +343,7 @@ class UnscentedFilter:
     @property
     def covariance_repairs(self) -> int:
         """How often an indefinite covariance had to be repaired, since construction."""
-        native = self._kf.repairs if isinstance(self._kf, NativeUKF) else 0
-        return self._sqrt.repairs + native
+        return self._sqrt.repairs + self._kf.repairs
 
     def forget(self) -> None:
         """Back to the uninitialised filter: the next initialise() keeps nothing of this one (a
@@ -376,13 +386,9 @@ class UnscentedFilter:
             self._kf.Q = self._adapter.Q if self._ticks_since_update == 0 else self._adapter.Q_gap
         if self._forecasts is not None:
             self._forecasts.advance()
-        if isinstance(self._kf, NativeUKF):
-            self._kf.set_inputs(act=self._act, ctrl=self._ctrl, qfrc=self._qfrc)
-            self._kf.predict()
-            self._propagated_act = self._kf.propagated_act
-        else:
-            self._kf.predict(UT=self._ut)
-        self._act = self._clip_act(self._propagated_act)
+        self._kf.set_inputs(act=self._act, ctrl=self._ctrl, qfrc=self._qfrc)
+        self._kf.predict()
+        self._act = self._clip_act(self._kf.propagated_act)
         self._ticks_since_update += 1
         reinitialised = False
         finite = self._tidy_covariance()
@@ -460,13 +466,7 @@ class UnscentedFilter:
     def _tidy_covariance(self) -> bool:
         """P symmetrised, and repaired when indefinite, while the filter is finite; whether it is
         (the tidying keeps a finite P finite: one check serves the whole step)."""
-        if isinstance(self._kf, NativeUKF):
-            return self._kf.tidy()
-        finite = self._finite()
-        if finite:
-            self._kf.P = _symmetric(self._kf.P)
-            self._repair_if_indefinite()
-        return finite
+        return self._kf.tidy()
 
     def _adapt(self, nis: float | None, *, finite: bool) -> tuple[bool, bool]:
         """The adaptive noise learns from this update (finite: x and P are): whether it adapted, and
@@ -516,12 +516,8 @@ class UnscentedFilter:
     def _correct(self, z: np.ndarray) -> float | None:
         """The filter's update with measurement z; its NIS, None when not finite."""
         try:
-            self._kf.update(z, UT=self._ut)
-            if isinstance(self._kf, NativeUKF):
-                nis = self._kf.nis
-            else:
-                y, SI = self._kf.y, self._kf.SI
-                nis = float(y @ SI @ y)
+            self._kf.update(z)
+            nis = self._kf.nis
         except np.linalg.LinAlgError:
             # An innovation covariance that cannot be inverted: nothing of this update is usable.
             self._kf.x = np.full(self._size, np.nan)
@@ -534,19 +530,21 @@ class UnscentedFilter:
         if nstep == 0:
             return self._estimate()
         Q = self._noise_over(nstep)
-        if isinstance(self._kf, LinearForceUKF):
-            sigmas_f = self._kf.sigmas_f
-            x, P = self._kf.prior(self._kf.x, self._kf.P, nstep=nstep)
-            self._kf.sigmas_f = sigmas_f
+        self._process.set_inputs(act=self._act, ctrl=self._ctrl, qfrc=self._qfrc)
+        linear = self._kf.inner if isinstance(self._kf, PythonCore) else None
+        if isinstance(linear, LinearForceUKF):
+            sigmas_f = linear.sigmas_f
+            x, P = linear.prior(linear.x, linear.P, nstep=nstep)
+            linear.sigmas_f = sigmas_f
             P = P + Q
         else:
             sigmas = self._points.sigma_points(self._kf.x, self._kf.P)
-            propagated = self._propagate_sigmas(sigmas, nstep=nstep)
+            propagated = self._process.propagate(sigmas, nstep=nstep)
             x, P = self._ut(
                 propagated, self._points.Wm, self._points.Wc, Q, self._kf.x_mean, self._kf.residual_x
             )
         P = _symmetric(P)
-        act = self._clip_act(self._propagated_act)
+        act = self._clip_act(self._process.propagated_act)
         return self._make_estimate(x, P, act=act)
 
     def glance(self, seconds: float) -> Estimate:
@@ -654,104 +652,8 @@ class UnscentedFilter:
                 f"{what} needs an initialised estimator: call initialise() with the first frame"
             )
 
-    def _finite(self) -> bool:
-        return bool(np.isfinite(self._kf.x).all() and np.isfinite(self._kf.P).all())
-
     def _largest_variance(self) -> float:
-        if isinstance(self._kf, NativeUKF):
-            return self._kf.largest_variance()
-        return float(self._kf.P.diagonal().max())
-
-    def _repair_if_indefinite(self) -> None:
-        if cholesky_upper(self._kf.P) is None:
-            self._sqrt.repairs += 1
-            self._kf.P = nearest_positive_definite(self._kf.P)
-
-    def _propagate_sigmas(self, sigmas: np.ndarray, *, nstep: int | None) -> np.ndarray:
-        """The process model on a sigma set (nsigma, len x) -> (nsigma, len x).
-
-        In CONTROLLED, qdd does not enter the dynamics, so points that differ from the first only
-        in qdd propagate exactly as it does (with Merwe points and an upper Cholesky factor, the
-        last 2 nv of them): each distinct (q, qd) is stepped once and its result shared, which
-        gives the same numbers with 2 nv fewer points stepped.
-        """
-        nq, nv = self._nq, self._nv
-        if self._driven:
-            return self._propagate_driven(sigmas, nstep=nstep)
-        head = sigmas[:, : nq + nv]
-        shared: np.ndarray | None = None
-        if self._controlled:
-            same = (head == head[0]).all(axis=1)
-            same[0] = False
-            if same.any():
-                shared = same
-                head = head[~same]
-        out = self._propagator(
-            head[:, :nq], head[:, nq:], act=self._act, ctrl=self._ctrl, qfrc=self._qfrc, nstep=nstep
-        )
-        stepped = np.empty((head.shape[0], self._size))
-        stepped[:, :nq] = out.qpos
-        stepped[:, nq : nq + nv] = out.qvel
-        if self._controlled:
-            stepped[:, nq + nv :] = out.qacc
-        act = out.act
-        if shared is None:
-            propagated = stepped
-        else:
-            propagated = np.empty((sigmas.shape[0], self._size))
-            propagated[~shared] = stepped
-            propagated[shared] = stepped[0]
-            if self._na:
-                act = np.empty((sigmas.shape[0], self._na))
-                act[~shared] = out.act
-                act[shared] = out.act[0]
-        if self._na:
-            self._propagated_act = self._points.Wm @ act
-        return propagated
-
-    def _propagate_driven(self, sigmas: np.ndarray, *, nstep: int | None) -> np.ndarray:
-        """DRIVEN: every point moves under its own force f (ramping with its rate fd under the
-        integrated random walk); f' = f + fd T, fd' = fd (T: the steps' span), or f' = f."""
-        nq, nv = self._nq, self._nv
-        force = sigmas[:, nq + nv : nq + 2 * nv]
-        rate = sigmas[:, nq + 2 * nv : nq + 3 * nv] if self._fblocks == 2 else None
-        out = self._propagator(
-            sigmas[:, :nq],
-            sigmas[:, nq : nq + nv],
-            act=self._act,
-            qfrc=np.ascontiguousarray(force),
-            qfrc_rate=None if rate is None else np.ascontiguousarray(rate),
-            nstep=nstep,
-        )
-        propagated = np.array(sigmas, dtype=np.float64)
-        propagated[:, :nq] = out.qpos
-        propagated[:, nq : nq + nv] = out.qvel
-        if rate is not None:
-            span = (self._config.steps_per_tick if nstep is None else nstep) * float(self._model.opt.timestep)
-            propagated[:, nq + nv : nq + 2 * nv] += span * rate
-        if self._na:
-            self._propagated_act = self._points.Wm @ out.act
-        return propagated
-
-    def _propagate_linear_force(
-        self, chi: np.ndarray, forces: np.ndarray, *, nstep: int | None
-    ) -> np.ndarray:
-        """SIMPLEX_LINEAR_FORCE: [q, qd] points (m, 2 nv), each under its own force (m, nv), nstep
-        physics steps on -> (m, 2 nv)."""
-        nq = self._nq
-        out = self._propagator(
-            chi[:, :nq], chi[:, nq:], act=self._act, qfrc=np.ascontiguousarray(forces), nstep=nstep
-        )
-        moved = np.empty_like(chi)
-        moved[:, :nq], moved[:, nq:] = out.qpos, out.qvel
-        if self._na:
-            self._propagated_act = self._points.Wm @ out.act
-        return moved
-
-    def _force_response(self, s: np.ndarray, f: np.ndarray, *, nstep: int | None) -> np.ndarray:
-        """B (2 nv, nv) at s = [q, qd] under force f (estimation/linear_force.py)."""
-        steps = self._config.steps_per_tick if nstep is None else nstep
-        return force_response(self._model, self._data, s, f, act=self._act, nstep=steps)
+        return self._kf.largest_variance()
 
     def _observe_forecast(self, m: Measurement) -> None:
         """Score the forecasts against frame m and start this tick's, from the posterior."""
@@ -993,14 +895,7 @@ class UnscentedFilter:
         ctrl = self._ctrl if self._controlled else self._no_ctrl
         if force is None:
             force = self._qfrc if self._scenario == Scenario.EXTERNAL else self._no_force
-        if isinstance(self._kf, NativeUKF):
-            return self._kf.forward(qpos, qvel, act=act, ctrl=ctrl, qfrc=force)
-        d = self._data
-        d.qpos[:], d.qvel[:], d.act[:] = qpos, qvel, act
-        d.ctrl[:] = ctrl
-        d.qfrc_applied[:] = force
-        mujoco.mj_forward(self._model, d)
-        return np.array(d.qacc)
+        return self._kf.forward(qpos, qvel, act=act, ctrl=ctrl, qfrc=force)
 
     def _estimate(
         self,

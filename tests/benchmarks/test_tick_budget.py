@@ -42,7 +42,7 @@ CASES = {
     "estimator cycle: the sigma points' physics": [
         ("Rollout.rollout", f"{SITE}/mujoco/rollout.py"),
         ("Propagator.__call__", f"{ROOT}/server/estimation/propagate.py"),
-        ("UnscentedFilter._propagate_sigmas", f"{ROOT}/server/estimation/ukf.py"),
+        ("SigmaProcess.propagate", f"{ROOT}/server/estimation/process.py"),
         ("SessionRuntime.advance", f"{ROOT}/server/runtime/session.py"),
     ],
     "estimator cycle: the filter's algebra": [

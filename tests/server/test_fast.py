@@ -80,8 +80,8 @@ def test_fast_engine_equals_filterpys(model_name: str, scenario: str, sigma_poin
     reference = dataclasses.replace(fast, engine=Engine.FILTERPY)
     frames = frames_of(model, fast)
     with WorkerPool(1) as pool:
-        assert isinstance(UnscentedFilter(model, fast, pool=pool)._kf, FastUKF)
-        assert not isinstance(UnscentedFilter(model, reference, pool=pool)._kf, FastUKF)
+        assert isinstance(UnscentedFilter(model, fast, pool=pool)._kf.inner, FastUKF)
+        assert not isinstance(UnscentedFilter(model, reference, pool=pool)._kf.inner, FastUKF)
     got, expected = run(model, fast, frames), run(model, reference, frames)
     for i, (a, b) in enumerate(zip(got, expected, strict=True)):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9, err_msg=f"output {i}")

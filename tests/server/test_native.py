@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from jitdyn.server.estimation.config import Engine, EstimatorConfig, resolve_config
+from jitdyn.server.estimation.core import PythonCore
 from jitdyn.server.estimation.fast import FastUKF
 from jitdyn.server.estimation.interface import Estimate, Measurement
 from jitdyn.server.estimation.native import Ukf
@@ -133,7 +134,8 @@ def assert_engines_agree(scenario: str, sigma_points: str, *, swing_scale: float
     python = dataclasses.replace(native, engine=Engine.FAST)
     with WorkerPool(1) as pool:
         assert isinstance(UnscentedFilter(model, native, pool=pool)._kf, NativeUKF)
-        assert isinstance(UnscentedFilter(model, python, pool=pool)._kf, FastUKF)
+        assert isinstance(UnscentedFilter(model, python, pool=pool)._kf, PythonCore)
+        assert isinstance(UnscentedFilter(model, python, pool=pool)._kf.inner, FastUKF)
     frames = frames_for(model, native, swing_scale=swing_scale)
     (got, seen), (expected, seen_python) = run(model, native, frames), run(model, python, frames)
     assert seen == seen_python
