@@ -10,10 +10,12 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ipaddress
 import logging
 import os
 import signal
+import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +25,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.key_files import SECRET_ENVIRONMENT, check_private_file, refuse_placeholder
 from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.config import Engine
@@ -36,7 +39,7 @@ from jitdyn.server.runtime.publishing import publish_pending_loop
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.runtime.stalls import LoopWatch, Stall
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
-from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
+from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
 from jitdyn.server.transport.metrics import metrics, serve_metrics
 from jitdyn.server.transport.registry_service import ModelRegistryServicer
@@ -170,6 +173,16 @@ def _is_loopback(address: str) -> bool:
         return False
 
 
+def _refuse_placeholders(config: ServerConfig) -> None:
+    """A Secret applied as shipped holds placeholders: refused here, before anything uses them."""
+    for name in SECRET_ENVIRONMENT:
+        refuse_placeholder(config.environ.get(name, ""), setting=f"environment variable {name}")
+    if config.index_url:
+        with contextlib.suppress(ValueError):
+            password = urllib.parse.urlsplit(config.index_url).password
+            refuse_placeholder(password or "", setting="the password of --index")
+
+
 def _check_security(config: ServerConfig) -> None:
     if ":" not in config.address:
         raise InvalidArgument(f"--address must be HOST:PORT, got {config.address!r}")
@@ -177,6 +190,7 @@ def _check_security(config: ServerConfig) -> None:
         raise InvalidArgument("--tls-cert and --tls-key must be given together")
     if config.tls_key:
         check_private_file(config.tls_key, setting="--tls-key")
+    _refuse_placeholders(config)
     if not _is_loopback(config.address) and not config.insecure and not (config.tls_cert and config.api_keys):
         raise InvalidArgument(
             f"--address {config.address} is not a loopback address: serving beyond this machine needs "

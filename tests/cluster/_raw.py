@@ -42,12 +42,13 @@ def frame(k: int) -> dynamics_pb2.Frame:
 class RawSession:
     """One StreamSession: `send` requests, `next` responses."""
 
-    def __init__(self, address: str, open_: dynamics_pb2.OpenSession) -> None:
+    def __init__(self, address: str, open_: dynamics_pb2.OpenSession, *, api_key: str | None = None) -> None:
         self.channel = grpc.insecure_channel(address)
         self._requests: queue.Queue[dynamics_pb2.StreamSessionRequest | None] = queue.Queue()
         stub = dynamics_pb2_grpc.DynamicsServiceStub(self.channel)
+        metadata = [("authorization", f"Bearer {api_key}")] if api_key else None
         self._responses: Iterator[dynamics_pb2.StreamSessionResponse] = stub.StreamSession(
-            iter(self._requests.get, None)
+            iter(self._requests.get, None), metadata=metadata
         )
         self._requests.put(dynamics_pb2.StreamSessionRequest(open=open_))
         first = self.next()
