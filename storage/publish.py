@@ -8,7 +8,8 @@ publishing again what could not be published when the session ended.
 
 The index never names a file that is not there: it holds the URI only once the upload is whole,
 and the local copy is deleted only after the index holds the URI. A publish that fails keeps the
-session in the data folder under its relative location (readable on this host, as without a root).
+session in the data folder under its relative location (readable on this host, as without a root),
+and, with a shared index, its rows in PostgreSQL until the root holds it (storage/shared.py).
 """
 
 from __future__ import annotations

@@ -45,12 +45,12 @@ from jitdyn.storage.log import LogStream, LogWriter, stream_log, try_lock
 from jitdyn.storage.parquet import header_from_json, header_to_json, write_frames
 from jitdyn.storage.publish import drop_local_copy, publish_frames
 from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, TickRecord, stored_word
-from jitdyn.storage.root import DataRoot
+from jitdyn.storage.root import DataRoot, is_uri
 from jitdyn.storage.shared import Fenced, Lease, SharedLogStream, SharedTier, TakenOver
 from jitdyn.storage.summary import Summariser
 from jitdyn.vocabulary import SessionStatus
 
-__all__ = ["SessionRecorder", "finish_orphan", "recover_unfinished"]
+__all__ = ["SessionRecorder", "finish_orphan", "publish_unpublished", "recover_unfinished"]
 
 _log = logging.getLogger(__name__)
 
@@ -352,7 +352,8 @@ class SessionRecorder:
             raise self._failure
 
         def end(summary: SessionSummaryInfo, location: str) -> None:
-            shared.finish(lease, status=status, summary=summary, location=location)
+            pending = self._root is not None and not is_uri(location)
+            shared.finish(lease, status=status, summary=summary, location=location, pending_upload=pending)
 
         # A resumed session's counts on this stream are only its latest part: its summary is
         # computed from all of its rows.
@@ -516,6 +517,32 @@ def finish_orphan(
     with shared.stream(header.session_id) as log:
         location = _compact(data_root=data_root, header=header, log=log, summariser=summariser)
     stored = publish_frames(root, data=data_root, relative=location)
-    shared.finish(taken.lease, status=taken.ended_as, summary=summariser.result(), location=stored)
+    shared.finish(
+        taken.lease,
+        status=taken.ended_as,
+        summary=summariser.result(),
+        location=stored,
+        pending_upload=root is not None and not is_uri(stored),
+    )
     drop_local_copy(data=data_root, relative=location, location=stored)
     return stored
+
+
+def publish_unpublished(*, data_root: Path, shared: SharedTier, root: DataRoot) -> str | None:
+    """Publish one ended session whose Parquet never reached `root` and whose replica let it be
+    (`SharedTier.claim_unpublished`): compacted again from its shared log, uploaded, the index
+    pointed at it, the log let go. Its id, or None when none waits. Blocking; a failed upload
+    raises and leaves the session to the next try, once this hold runs out."""
+    claimed = shared.claim_unpublished()
+    if claimed is None:
+        return None
+    header = header_from_json(claimed.header_json)
+    with shared.stream(header.session_id) as log:
+        location = _compact(data_root=data_root, header=header, log=log)
+    uri = root.publish(data_root / location, location)
+    if shared.published(header.session_id, old=claimed.location, new=uri):
+        _log.warning(
+            "session %s: published to the data root from the shared log (%s)", header.session_id, uri
+        )
+    (data_root / location).unlink(missing_ok=True)
+    return header.session_id
