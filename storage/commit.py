@@ -99,6 +99,10 @@ class _Session:
     bytes_written: int = 0
     lease: Lease | None = None  # its log is the shared tier's, under this lease
     retry_at: float = 0.0  # the shared tier did not answer: not due before then (monotonic s)
+    committed: int = 0  # records of a shared-tier session in windows the database took
+    # The first `retrying` pending records are a window whose commit may have landed: retried as
+    # they were, under the same key, never merged with newer records.
+    retrying: int = 0
 
     def due(self, now: float, window: float) -> bool:
         return (
@@ -277,9 +281,11 @@ class GroupCommitter(Closeable):
                     due.append(s)
             taken = []
             for s in due:
-                taken.append((s, s.pending))
-                s.pending = []
-                s.flush = False
+                size = s.retrying or len(s.pending)
+                taken.append((s, s.pending[:size]))
+                s.pending = s.pending[size:]
+                s.retrying = 0
+                s.flush = bool(s.pending)
                 s.in_flight = True
             return taken
 
@@ -332,7 +338,7 @@ class GroupCommitter(Closeable):
         for s, records, data in written:
             seqs = [r.seq for r in records if r.kind == "result"]
             assert s.lease is not None
-            windows.append(Window(s.lease, max(seqs) if seqs else None, data))
+            windows.append(Window(s.lease, max(seqs) if seqs else None, data, first=s.committed))
         try:
             fenced = self._shared.commit(windows)
         except STORAGE_ERRORS as exc:
@@ -348,6 +354,7 @@ class GroupCommitter(Closeable):
                 for s, records, _ in written:
                     if not s.failed:
                         s.pending = records + s.pending
+                        s.retrying = len(records)
                         s.first_pending_at = now
                         s.retry_at = now + _SHARED_RETRY
             return []
@@ -361,6 +368,7 @@ class GroupCommitter(Closeable):
                     s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
                 )
             else:
+                s.committed += len(records)
                 durable.append((s, records))
         return durable
 

@@ -5,7 +5,7 @@ docs/decisions/0120-durable-off-the-host.md).
 
     tier = SharedTier(engine, owner=new_owner_id(), lease_ttl=10.0)
     lease = tier.create(header)                 # epoch 1, owned by this process
-    fenced = tier.commit([Window(lease, top_seq, data)])   # one transaction for every session
+    fenced = tier.commit([Window(lease, top_seq, data, first=0)])   # one transaction for all sessions
     taken = tier.take_over(session_id, tenant)  # a resume on another replica: epoch + 1
 
 Every write names the epoch it holds; one made under an older epoch changes nothing and is
@@ -22,6 +22,7 @@ from typing import Final
 
 import pyarrow as pa
 import sqlalchemy as sa
+from sqlalchemy.dialects import postgresql
 
 from jitdyn.errors import FailedPrecondition, NotFound
 from jitdyn.lifecycle import Closeable
@@ -96,11 +97,14 @@ class Unpublished:
 @dataclass(frozen=True, slots=True)
 class Window:
     """One session's rows of a commit window: an encapsulated Arrow IPC record batch (LOG_SCHEMA),
-    and the highest result seq among them (None: only rejections)."""
+    the highest result seq among them (None: only rejections), and how many records of the
+    session's stream under this lease came before them (the window's key: retried, it is stored
+    once)."""
 
     lease: Lease
     top_seq: int | None
     data: bytes
+    first: int
 
 
 def _seconds(value: float) -> sa.ColumnElement[_dt.timedelta]:
@@ -175,12 +179,23 @@ class SharedTier:
                 ).scalars()
             )
             rows = [
-                {"session_id": w.lease.session_id, "epoch": w.lease.epoch, "data": w.data}
+                {
+                    "session_id": w.lease.session_id,
+                    "epoch": w.lease.epoch,
+                    "data": w.data,
+                    "first_record": w.first,
+                }
                 for w in windows
                 if w.lease.session_id in kept
             ]
             if rows:
-                conn.execute(sa.insert(session_log), rows)
+                # A window whose earlier COMMIT landed though its answer was lost is there already.
+                conn.execute(
+                    postgresql.insert(session_log).on_conflict_do_nothing(
+                        index_elements=["session_id", "epoch", "first_record"]
+                    ),
+                    rows,
+                )
         return {w.lease.session_id for w in windows} - kept
 
     def renew(self, leases: Sequence[Lease]) -> set[str]:
