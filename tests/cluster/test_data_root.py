@@ -81,7 +81,7 @@ def test_two_replicas_publish_to_one_bucket_that_a_third_machine_reads(
     for replica, ticks in zip(replicas, (12, 17), strict=True):
         session_id, location = one_session(replica, ticks)
         assert location.startswith(f"{root}/frames/model=pendulum_2/date=")
-        assert location.endswith(f"/{session_id}.parquet")
+        assert location.endswith(f"/{session_id}.e1.parquet")  # stored under its first epoch
         assert (session_row(index_url, session_id) or {})["location"] == location
         assert replica.stored_sessions() == []  # published, so not kept in the replica's folder
         stored[session_id] = ticks
@@ -211,7 +211,11 @@ def test_a_session_closed_while_the_store_is_down_survives_its_replica_and_its_f
         )
     print(f"{len(seqs)} of 120 frames in S3, published by {successor.name} {took:.1f} s after it started")
     assert seqs == list(range(120))
-    assert uri == f"s3://{bucket}/{location}"
+    # Published under the epoch of the replica that published it (it held the session to do so).
+    assert (
+        location.endswith(".e1.parquet")
+        and uri == f"s3://{bucket}/{location[: -len('e1.parquet')]}e2.parquet"
+    )
     assert (session_row(index_url, session_id) or {})["status"] == "COMPLETE"
     assert _log_rows(index_url, session_id) == 0  # the rows went once the store held the file
     assert "published to the data root from the shared log" in successor.log.read_text()
