@@ -136,7 +136,10 @@ class GroupCommitter(Closeable):
 
     def __init__(self, *, name: str = "jitdyn-commit", shared: SharedTier | None = None) -> None:
         self._shared = shared
+        # When the last renewal that succeeded began (monotonic s): a failed one leaves it, so the
+        # leases' standing is never overstated; the next try waits _SHARED_RETRY.
         self._renewed_at = time.monotonic()
+        self._renew_retry_at = 0.0
         self._outage_since: float | None = None
         self._cond = threading.Condition()
         self._sessions: dict[int, _Session] = {}
@@ -262,7 +265,7 @@ class GroupCommitter(Closeable):
                     return None
                 waiting = [s.next_due(window) for s in self._sessions.values() if s.pending and not s.failed]
                 if self._shared is not None and any(s.lease for s in self._sessions.values()):
-                    renew_at = self._renewed_at + self._shared.lease_ttl / 3
+                    renew_at = max(self._renewed_at + self._shared.lease_ttl / 3, self._renew_retry_at)
                     if now >= renew_at:
                         return []  # the leases are renewed by the thread, outside the lock
                     waiting.append(renew_at)
@@ -309,7 +312,7 @@ class GroupCommitter(Closeable):
                 else:
                     durable = local
             durable.extend(self._commit_shared([(s, r, d) for s, r, d in written if s.lease is not None]))
-            if self._shared is not None and time.monotonic() - self._renewed_at >= self._shared.lease_ttl / 3:
+            if self._shared is not None and self._renew_due(time.monotonic()):
                 self._renew_leases()
             with self._cond:
                 self._commits += 1 if durable else 0
@@ -365,12 +368,19 @@ class GroupCommitter(Closeable):
         for s, records, _ in written:
             if s.name in fenced:
                 self._fail(
-                    s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
+                    s,
+                    Fenced(
+                        f"session {s.name} was taken over by another stream (a resume); this one ends, resume it"
+                    ),
                 )
             else:
                 s.committed += len(records)
                 durable.append((s, records))
         return durable
+
+    def _renew_due(self, now: float) -> bool:
+        ttl = self._shared.lease_ttl if self._shared is not None else math.inf
+        return now - self._renewed_at >= ttl / 3 and now >= self._renew_retry_at
 
     def _renew_leases(self) -> None:
         """Extend the leases of every shared-tier session, those that committed nothing lately too."""
@@ -378,16 +388,21 @@ class GroupCommitter(Closeable):
             return
         with self._cond:
             held = [(s, s.lease) for s in self._sessions.values() if s.lease is not None and not s.failed]
-        self._renewed_at = time.monotonic()
+        started = time.monotonic()
         try:
             fenced = self._shared.renew([lease for _, lease in held if lease is not None])
         except STORAGE_ERRORS as exc:
+            self._renew_retry_at = time.monotonic() + _SHARED_RETRY
             _log.warning("the shared tier does not answer; leases not renewed: %s", exc)
             return
+        self._renewed_at = started
         for s, _ in held:
             if s.name in fenced:
                 self._fail(
-                    s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
+                    s,
+                    Fenced(
+                        f"session {s.name} was taken over by another stream (a resume); this one ends, resume it"
+                    ),
                 )
 
     def _write(

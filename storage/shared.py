@@ -24,7 +24,7 @@ import pyarrow as pa
 import sqlalchemy as sa
 from sqlalchemy.dialects import postgresql
 
-from jitdyn.errors import FailedPrecondition, NotFound
+from jitdyn.errors import NotFound, Unavailable
 from jitdyn.lifecycle import Closeable
 from jitdyn.storage.columns import LOG_SCHEMA, STORED_SINCE, conform
 from jitdyn.storage.index import finish_session, move_location
@@ -57,8 +57,9 @@ def _read_batch(data: bytes) -> pa.RecordBatch:
         return conform(pa.ipc.read_record_batch(pa.py_buffer(data), older))
 
 
-class Fenced(FailedPrecondition):
-    """A write under an epoch that is no longer the session's: another replica took it over."""
+class Fenced(Unavailable):
+    """A write under an epoch that is no longer the session's: another replica took it over. It
+    travels as UNAVAILABLE, which the SDK resumes: the session lives on with its new holder."""
 
 
 def new_owner_id() -> str:
@@ -283,6 +284,11 @@ class SharedTier:
         still pointed at `old`, and the log rows and lease go (storage.index.move_location)."""
         with self.engine.begin() as conn:
             return move_location(conn, session_id, old=old, new=new)
+
+    def ping(self) -> None:
+        """Ask the database the simplest question: raises as any query would when it cannot answer."""
+        with self.engine.connect() as conn:
+            conn.execute(sa.select(1))
 
     def stream(self, session_id: str) -> SharedLogStream:
         """The session's log, batch by batch (use as a context manager)."""
