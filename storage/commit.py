@@ -45,6 +45,7 @@ from jitdyn.storage.shared import Fenced, Lease, SharedTier, Window
 __all__ = [
     "COMMIT_SHARE",
     "MAX_WINDOW",
+    "RENEW_DEADLINE_SHARE",
     "SHARED_OUTAGE_LIMIT",
     "CommitStats",
     "GroupCommitter",
@@ -61,6 +62,9 @@ _COST_EWMA: Final = 0.2
 # waiting on it fail (UNAVAILABLE) once it has not answered for SHARED_OUTAGE_LIMIT (s).
 _SHARED_RETRY: Final = 0.5
 SHARED_OUTAGE_LIMIT: Final = 120.0
+# A process whose leases were last renewed longer ago than this share of the TTL steps down: its
+# sessions are told to move (Kubernetes' leader election: a renew deadline shorter than the lease).
+RENEW_DEADLINE_SHARE: Final = 2 / 3
 
 _log = logging.getLogger(__name__)
 
@@ -176,6 +180,8 @@ class GroupCommitter(Closeable):
         with self._cond:
             if self._stopping:
                 raise Unavailable("the commit thread is stopped; the server is shutting down")
+            if lease is not None and not any(s.lease for s in self._sessions.values()):
+                self._renewed_at = time.monotonic()  # the lease was made (or taken) just now
             key = self._next_key
             self._next_key += 1
             self._sessions[key] = _Session(
@@ -377,6 +383,16 @@ class GroupCommitter(Closeable):
                 s.committed += len(records)
                 durable.append((s, records))
         return durable
+
+    def lease_lost(self) -> bool:
+        """Whether this process holds leases it has not renewed within the renew deadline (the
+        index did not answer): its sessions should move to a replica that can hold them."""
+        if self._shared is None:
+            return False
+        with self._cond:
+            held = any(s.lease is not None and not s.failed for s in self._sessions.values())
+        deadline = RENEW_DEADLINE_SHARE * self._shared.lease_ttl
+        return held and time.monotonic() - self._renewed_at > deadline
 
     def _renew_due(self, now: float) -> bool:
         ttl = self._shared.lease_ttl if self._shared is not None else math.inf

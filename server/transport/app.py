@@ -163,6 +163,46 @@ class ServerConfig:
         return cls(**values)  # type: ignore[arg-type]
 
 
+def _shared_tier_tasks(server: grpc.aio.Server, services: Services) -> list[asyncio.Task[None]]:
+    """The background work of a replica of a shared tier: sessions nobody resumed, sessions not yet
+    on the data root, and stepping down when its leases cannot be renewed."""
+    tasks = []
+    if services.shared is not None:
+        tasks.append(asyncio.create_task(finish_orphans(services, data_root=services.data_root)))
+        stepping = step_down_when_lease_lost(server.dynamics, server.health, services)  # type: ignore[attr-defined]
+        tasks.append(asyncio.create_task(stepping))
+    if services.root is not None:
+        tasks.append(asyncio.create_task(publish_pending_loop(services)))
+    return tasks
+
+
+async def step_down_when_lease_lost(
+    dynamics: DynamicsServicer, health_servicer: health.aio.HealthServicer, services: Services
+) -> None:
+    """While this replica's leases are past their renew deadline (checked a few times per TTL): the
+    session service NOT_SERVING in health (balancers and readiness send no session here, a resume
+    goes elsewhere), and its sessions told to move, again each TTL while it lasts. Until cancelled."""
+    if services.shared is None:
+        return
+    ttl = services.shared.lease_ttl
+    service = dynamics_pb2.DESCRIPTOR.services_by_name["DynamicsService"].full_name
+    stepped_down = False
+    while True:
+        await asyncio.sleep(ttl / 4)
+        lost = services.committer.lease_lost()
+        if lost != stepped_down:
+            status = (
+                health_pb2.HealthCheckResponse.NOT_SERVING if lost else health_pb2.HealthCheckResponse.SERVING
+            )
+            await health_servicer.set(service, status)
+            stepped_down = lost
+        if lost:
+            told = await dynamics.step_down()
+            if told:
+                _log.warning("leases not renewed within their deadline: %d session(s) told to move", told)
+                await asyncio.sleep(ttl)
+
+
 def _is_loopback(address: str) -> bool:
     host = address.rsplit(":", 1)[0].strip("[]")
     if host == "localhost":
@@ -433,18 +473,12 @@ async def serve(
         loop.add_signal_handler(signum, stop.set)
     waiter = asyncio.create_task(server.wait_for_termination())
     stopper = asyncio.create_task(stop.wait())
-    orphans = (
-        asyncio.create_task(finish_orphans(services, data_root=services.data_root))
-        if services.shared is not None
-        else None
-    )
-    publisher = asyncio.create_task(publish_pending_loop(services)) if services.root is not None else None
+    background = [gc_pauses, *_shared_tier_tasks(server, services)]
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
     loop_watch.stop()
-    for task in (orphans, publisher, gc_pauses):
-        if task is not None:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+    for task in background:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
     if services.shared is not None:
         announce(f"jitdyn draining: open sessions are told to move (grace {config.drain_grace:g} s)")
         await server.health.enter_graceful_shutdown()  # type: ignore[attr-defined]

@@ -54,6 +54,7 @@ class RawSession:
         first = self.next()
         assert first.WhichOneof("payload") == "opened", first
         self.opened = first.opened
+        self.moves: list[dynamics_pb2.Moving] = []  # `moving` notices, which this client ignores
 
     def next(self) -> dynamics_pb2.StreamSessionResponse:
         return next(self._responses)
@@ -62,6 +63,9 @@ class RawSession:
         """Frame `k`, answered (LOCKSTEP)."""
         self._requests.put(dynamics_pb2.StreamSessionRequest(frame=frame(k)))
         response = self.next()
+        while response.WhichOneof("payload") == "moving":
+            self.moves.append(response.moving)
+            response = self.next()
         assert response.WhichOneof("payload") == "result", response
         return response.result
 

@@ -1,17 +1,23 @@
 """Leases that keep both promises, real time and nothing lost, with a short TTL so that each case
 runs in seconds: PostgreSQL cut off from every replica for longer than a lease and its resume
-timeout, and back at a different moment for each, takes no session from its live owner; expiry is
-judged on PostgreSQL's clock."""
+timeout, and back at a different moment for each, takes no session from its live owner; a replica
+cut off from it alone (a host of its own, `ip netns`) hands its session to a healthy one through
+the SDK, without an error or a lost frame."""
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
-from _cluster import Replica, TcpForward, free_port
-from _raw import RawSession, new_model, open_message, session_row
+from _cluster import NetnsHost, Replica, TcpForward, free_port
+from _raw import DT, RawSession, new_model, open_message, session_row
 from test_durable import stored_seqs
+from test_resume import frame
+
+from jitdyn.client import Client, Session, SessionOptions
 
 pytestmark = pytest.mark.postgres
 
@@ -30,15 +36,49 @@ def _through_forward(
     return start_replica(name, host, index_url=across, extra=SHORT), forward, port
 
 
+# gRPC's client-side balancing over the replicas' addresses, skipping one whose session service is
+# NOT_SERVING in health (as HAProxy's check and a Kubernetes readiness probe do).
+BALANCED = [
+    (
+        "grpc.service_config",
+        json.dumps(
+            {
+                "loadBalancingConfig": [{"round_robin": {}}],
+                "healthCheckConfig": {"serviceName": "jitdyn.v1.DynamicsService"},
+            }
+        ),
+    )
+]
+
+
+def _open_on(replica: Replica, client: Client) -> Session:
+    """A session the balancer put on `replica` (others it put elsewhere are closed)."""
+    for _ in range(10):
+        session = client.open_session(
+            SessionOptions(inline_mjcf=new_model(), inline_name="pendulum_2_inline", dt=DT)
+        )
+        if replica.metrics().get("jitdyn_open_sessions", 0) == 1:
+            return session
+        session.close()
+    raise AssertionError(f"the balancer never put a session on {replica.name}")
+
+
+@pytest.mark.parametrize("client", ["raw", "sdk"])
 def test_postgresql_down_for_every_replica_takes_no_session_from_its_live_owner(
-    start_replica: Callable[..., Replica], index_url: str
+    start_replica: Callable[..., Replica], index_url: str, client: str
 ) -> None:
     """The owner and another replica lose PostgreSQL together for longer than a lease and its
     resume timeout; the other gets it back first (the outage ended there first). The session goes
-    on answering on its owner throughout, is not claimed by the other, and is stored whole."""
+    on answering on its owner throughout the outage, is not claimed by the other, and is stored
+    whole. The owner tells it to move (its leases passed their deadline): a raw client ignores
+    that; the SDK tries the other replica, which cannot take it while the outage lasts, and stays;
+    once the other is back first, the SDK's next try may move it there (the owner's lease did run
+    out), without an error or a lost frame."""
     owner, owner_forward, owner_port = _through_forward(start_replica, index_url, "owner", "127.0.0.51")
     other, other_forward, other_port = _through_forward(start_replica, index_url, "other", "127.0.0.52")
-    session = RawSession(owner.address, open_message(new_model()))
+    sdk = Client(f"ipv4:{owner.address},{other.address}", timeout=30, channel_options=BALANCED)
+    raw = RawSession(owner.address, open_message(new_model())) if client == "raw" else None
+    session = _open_on(owner, sdk) if raw is None else None
     k, worst = 0, 0.0
 
     def stream_for(seconds: float) -> None:
@@ -46,7 +86,11 @@ def test_postgresql_down_for_every_replica_takes_no_session_from_its_live_owner(
         until = time.monotonic() + seconds
         while time.monotonic() < until:
             started = time.monotonic()
-            session.send(k)
+            if raw is not None:
+                raw.send(k)
+            else:
+                assert session is not None
+                session.send_frame(frame(k))
             worst = max(worst, time.monotonic() - started)
             k += 1
             time.sleep(0.02)
@@ -56,20 +100,82 @@ def test_postgresql_down_for_every_replica_takes_no_session_from_its_live_owner(
         owner_forward.close()
         other_forward.close()
         stream_for(OUTAGE)
+        during = worst
         other_forward = TcpForward(listen=("127.0.0.1", other_port), target=("127.0.0.1", 5432))
         stream_for(0.3)  # the other replica answers again, the owner not yet
         owner_forward = TcpForward(listen=("127.0.0.1", owner_port), target=("127.0.0.1", 5432))
         stream_for(2 * TTL)
-        closed = session.close()
+        if raw is not None:
+            ticks, session_id, stayed = raw.close().summary.ticks, raw.opened.session_id, bool(raw.moves)
+        else:
+            assert session is not None
+            ticks, session_id = session.close().ticks, session.opened.session_id
+            stayed = len(session.resumptions) <= 1  # and none while no replica could take it: `during`
     finally:
+        sdk.close()
         owner_forward.close()
         other_forward.close()
-    row = session_row(index_url, session.opened.session_id)
+    row = session_row(index_url, session_id)
+    moved = [] if session is None else session.resumptions
     print(
-        f"{k} frames answered, the slowest in {1e3 * worst:.1f} ms, through a {OUTAGE:g} s outage of "
-        f"PostgreSQL for both replicas; stored as {row and row['status']} with {closed.summary.ticks} ticks"
+        f"{client}: {k} frames answered, the slowest in {1e3 * during:.1f} ms during a {OUTAGE:g} s "
+        f"outage of PostgreSQL for both replicas ({1e3 * worst:.1f} ms in all; moves after it: "
+        f"{[(r.from_seq, round(r.took, 2)) for r in moved]}); stored as {row and row['status']} with "
+        f"{ticks} ticks"
     )
-    assert worst < 0.1
+    assert during < 0.1
+    assert stayed
     assert row is not None and row["status"] == "COMPLETE"
-    assert stored_seqs(owner, str(row["location"])) == list(range(k))
+    holder = owner if (owner.data / str(row["location"])).exists() else other  # the SDK's may have moved
+    assert stored_seqs(holder, str(row["location"])) == list(range(k))
     assert "nobody resumed it" not in other.log.read_text()
+
+
+def test_a_replica_cut_off_from_postgresql_alone_hands_its_session_to_a_healthy_one(
+    netns_host: NetnsHost, start_replica: Callable[..., Replica], index_url: str, tmp_path: Path
+) -> None:
+    """The owner, on a host of its own, loses PostgreSQL (its forward stops) while its client
+    streams through the SDK to `ipv4:owner,healthy`; the healthy replica reaches PostgreSQL. The
+    owner's leases pass their renew deadline, it tells the session to move, the SDK opens it on the
+    healthy replica while the owner still answers, and re-sends what was not durable: one session,
+    no error, every answered frame stored, before anyone could have claimed it as an orphan."""
+    folder = tmp_path / "shared-folder"
+    forward = TcpForward(listen=(netns_host.host_ip, 5432), target=("127.0.0.1", 5432))
+    across = index_url.replace("127.0.0.1:5432", f"{netns_host.host_ip}:5432")
+    try:
+        with Replica.start(
+            "cut",
+            host=netns_host.peer_ip,
+            port=50051,
+            data=folder,
+            index_url=across,
+            prefix=netns_host.prefix,
+            extra=["--insecure", *SHORT],
+        ) as cut:
+            healthy = start_replica("healthy", "127.0.0.53", data=folder, extra=SHORT)
+            target = f"ipv4:{cut.address},{healthy.address}"
+            with Client(target, timeout=30, channel_options=BALANCED) as client:
+                session = _open_on(cut, client)
+                seqs = [session.send_frame(frame(k)).seq for k in range(25)]
+                forward.close()
+                cut_at = time.monotonic()
+                k = 25
+                while not session.resumptions and time.monotonic() - cut_at < 4 * TTL + RESUME:
+                    seqs.append(session.send_frame(frame(k)).seq)
+                    k += 1
+                    time.sleep(0.02)
+                moved_after = time.monotonic() - cut_at
+                seqs += [session.send_frame(frame(j)).seq for j in range(k, k + 25)]
+                summary = session.close()
+    finally:
+        forward.close()
+    print(
+        f"moved {moved_after:.2f} s after the cut (TTL {TTL:g} s): {session.resumptions}; "
+        f"{len(seqs)} frames answered, {summary.ticks} ticks stored"
+    )
+    assert seqs == list(range(len(seqs)))
+    assert len(session.resumptions) == 1 and session.resumptions[0].cause.startswith("moving")
+    assert moved_after < 2 * TTL + RESUME
+    row = session_row(index_url, session.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    assert stored_seqs(healthy, str(row["location"])) == list(range(len(seqs)))
