@@ -185,6 +185,8 @@ class Session(SessionCore):
                 self._responses.put((self._generation, END))
                 return None
             if isinstance(item, grpc.RpcError):
+                if self._trial is not None and self._moved_meanwhile(self._trial):
+                    continue  # the stream broke because the move took the session: go on there
                 if self._ledger.resumable(item.code()):
                     self._resume(f"{item.code().name}: {item.details()}")
                     continue
@@ -243,6 +245,20 @@ class Session(SessionCore):
             self._requests.put(END)
         if self._realtime and not self._closed:
             self.sync()
+
+    def _moved_meanwhile(self, trial: _Trial) -> bool:
+        """The current stream broke while a move was being tried (it may be why: the move took the
+        session from it): wait for the try's first answer, and say whether it moved."""
+        deadline = time.monotonic() + self._ledger.policy.open_timeout
+        while self._trial is trial:
+            try:
+                tag, item = self._responses.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                self._drop_trial(trial)
+                return False
+            if tag == trial.stream[0]:
+                self._settle(trial, item)
+        return self._generation == trial.stream[0]
 
     def _drop_trial(self, trial: _Trial) -> None:
         self._trial = None
