@@ -20,7 +20,7 @@ import time
 import weakref
 from collections.abc import AsyncIterator, Mapping, Sequence
 from types import TracebackType
-from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar, Unpack
+from typing import TYPE_CHECKING, Any, Self, TypeAlias, TypeVar, Unpack
 
 import grpc
 
@@ -38,11 +38,11 @@ from jitdyn.client._models import (
 from jitdyn.client._resume import Refused, resume_outcome
 from jitdyn.client._session import Received, SessionArguments, SessionCore
 from jitdyn.client._transport import (
-    CHANNEL_OPTIONS,
     END,
     RESUMABLE_CODES,
     End,
     auth_metadata,
+    channel_options,
     explain_open_error,
     status_error,
 )
@@ -191,6 +191,11 @@ class AsyncSession(SessionCore):
                 self._responses.put_nowait((received_at, response))
         except grpc.RpcError as error:
             return error
+        except asyncio.CancelledError:
+            task = asyncio.current_task()
+            if call is not self._call and task is not None and not task.cancelling():
+                return None  # a move cancelled the stream it left, not this task
+            raise
 
     async def _try_move(self, cause: str) -> None:
         """Open the session elsewhere while the current stream answers on (make before break):
@@ -551,11 +556,14 @@ class AsyncClient:
         root_certificates: bytes | None = None,
         checksum: bool = True,
         connection_per_session: bool = True,
+        channel_options: Sequence[tuple[str, Any]] = (),
         resume: ResumePolicy | bool = True,
     ) -> None:
-        """`resume`: how sessions resume by themselves when their stream breaks (`ResumePolicy`);
+        """`channel_options`: gRPC channel arguments added to the SDK's own, as `Client` takes them.
+        `resume`: how sessions resume by themselves when their stream breaks (`ResumePolicy`);
         False turns it off."""
         self._address = address
+        self._channel_options = tuple(channel_options)
         self._resume = resume if isinstance(resume, ResumePolicy) else ResumePolicy(enabled=resume)
         self._root_certificates = root_certificates
         self._channel = self._new_channel(shared=True)
@@ -656,7 +664,8 @@ class AsyncClient:
     def _new_channel(self, *, shared: bool) -> grpc.aio.Channel:
         # gRPC shares one connection between channels of the same target and arguments unless a
         # channel asks for its own subchannel pool.
-        options = CHANNEL_OPTIONS if shared else (*CHANNEL_OPTIONS, ("grpc.use_local_subchannel_pool", 1))
+        base = channel_options(self._channel_options)
+        options = base if shared else (*base, ("grpc.use_local_subchannel_pool", 1))
         if self._root_certificates is not None:
             return grpc.aio.secure_channel(
                 self._address, grpc.ssl_channel_credentials(self._root_certificates), options=options

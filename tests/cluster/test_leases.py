@@ -6,6 +6,7 @@ the SDK, without an error or a lost frame."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import shutil
 import time
@@ -18,7 +19,7 @@ from _raw import DT, RawSession, new_model, open_message, session_row
 from test_durable import stored_seqs
 from test_resume import frame
 
-from jitdyn.client import Client, Session, SessionOptions
+from jitdyn.client import AsyncClient, AsyncSession, Client, Session, SessionOptions
 
 pytestmark = pytest.mark.postgres
 
@@ -208,3 +209,55 @@ def test_replicas_whose_clocks_are_a_minute_off_take_nothing_from_each_other(
     assert row is not None and row["status"] == "COMPLETE"
     assert stored_seqs(behind, str(row["location"])) == list(range(k))
     assert "nobody resumed it" not in ahead.log.read_text()
+
+
+def test_the_async_sdk_hands_over_too(
+    netns_host: NetnsHost, start_replica: Callable[..., Replica], index_url: str, tmp_path: Path
+) -> None:
+    """As the test above, with `AsyncClient`: its reader task tries the move while the stream
+    answers on."""
+    folder = tmp_path / "shared-folder"
+    forward = TcpForward(listen=(netns_host.host_ip, 5432), target=("127.0.0.1", 5432))
+    across = index_url.replace("127.0.0.1:5432", f"{netns_host.host_ip}:5432")
+    try:
+        with Replica.start(
+            "cut",
+            host=netns_host.peer_ip,
+            port=50051,
+            data=folder,
+            index_url=across,
+            prefix=netns_host.prefix,
+            extra=["--insecure", *SHORT],
+        ) as cut:
+            healthy = start_replica("healthy", "127.0.0.56", data=folder, extra=SHORT)
+            target = f"ipv4:{cut.address},{healthy.address}"
+            seqs, session = asyncio.run(_stream_async(target, cut, forward))
+    finally:
+        forward.close()
+    print(f"async: moved {session.resumptions}; {len(seqs)} frames answered")
+    assert seqs == list(range(len(seqs)))
+    assert len(session.resumptions) == 1 and session.resumptions[0].cause.startswith("moving")
+    row = session_row(index_url, session.opened.session_id)
+    assert row is not None and row["status"] == "COMPLETE"
+    assert stored_seqs(healthy, str(row["location"])) == list(range(len(seqs)))
+
+
+async def _stream_async(target: str, cut: Replica, forward: TcpForward) -> tuple[list[int], AsyncSession]:
+    async with AsyncClient(target, timeout=30, channel_options=BALANCED) as client:
+        for _ in range(10):
+            session = await client.open_session(
+                SessionOptions(inline_mjcf=new_model(), inline_name="pendulum_2_inline", dt=DT)
+            )
+            if cut.metrics().get("jitdyn_open_sessions", 0) == 1:
+                break
+            await session.close()
+        seqs = [(await session.send_frame(frame(k))).seq for k in range(25)]
+        forward.close()
+        cut_at, k = time.monotonic(), 25
+        while not session.resumptions and time.monotonic() - cut_at < 4 * TTL + RESUME:
+            seqs.append((await session.send_frame(frame(k))).seq)
+            k += 1
+            await asyncio.sleep(0.02)
+        seqs += [(await session.send_frame(frame(j))).seq for j in range(k, k + 25)]
+        await session.close()
+        return seqs, session
