@@ -56,7 +56,7 @@ def postgres(sessions: int, windows: int) -> list[float]:
                 )
         took = []
         for k in range(windows):
-            batch = [Window(lease, k, os.urandom(ROW_BYTES)) for lease in leases]
+            batch = [Window(lease, k, os.urandom(ROW_BYTES), first=k) for lease in leases]
             started = time.perf_counter()
             tier.commit(batch)
             took.append(time.perf_counter() - started)

@@ -21,7 +21,8 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self, TypeVar, Unpack
 
@@ -90,11 +91,11 @@ class Session(SessionCore):
         stub: dynamics_pb2_grpc.DynamicsServiceStub,
         options: SessionOptions,
         *,
-        reconnect: Callable[[], dynamics_pb2_grpc.DynamicsServiceStub] | None = None,
+        connections: _Connections | None = None,
         **arguments: Unpack[SessionArguments],
     ) -> None:
         super().__init__(options, **arguments)
-        self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
+        self._connections = connections  # a new connection for each resume attempt (None: the same one)
         self._stub = stub
         # Every stream's answers, tagged with the stream's generation: a resumed session ignores
         # what an earlier stream left behind.
@@ -103,9 +104,11 @@ class Session(SessionCore):
         self._requests: queue.Queue[dynamics_pb2.StreamSessionRequest | End] = queue.Queue()
         self._call: grpc.Call | None = None
         self._reader: threading.Thread | None = None
-        # Answers a stream that said `moving` gave after the notice, handed out before the next
-        # stream's (see `_leave`).
-        self._left: collections.deque[tuple[float, dynamics_pb2.StreamSessionResponse]] = collections.deque()
+        # Answers of the stream before a move (or of one that stayed), handed out before the
+        # current stream's (see `_move`).
+        self._left: collections.deque[_Item] = collections.deque()
+        self._generations = 0  # the newest stream's, a tried one's too
+        self._trial: _Trial | None = None  # a move being tried
         self._start_stream(dynamics_pb2.StreamSessionRequest(open=self._open_message))
         try:
             first = self._get(self._timeout)
@@ -123,15 +126,20 @@ class Session(SessionCore):
 
     def _start_stream(self, open_request: dynamics_pb2.StreamSessionRequest) -> None:
         """A new stream that begins with `open_request`, and a reader thread of its own."""
-        self._generation += 1
+        self._generation, self._requests, self._call, self._reader = self._new_stream(open_request)
+
+    def _new_stream(self, open_request: dynamics_pb2.StreamSessionRequest) -> _Stream:
+        """A stream that begins with `open_request`, read by a thread of its own under a new
+        generation; not yet the session's current one."""
+        self._generations += 1
         requests: queue.Queue[dynamics_pb2.StreamSessionRequest | End] = queue.Queue()
         requests.put(open_request)
-        self._requests = requests
-        self._call = self._stub.StreamSession(_iterate(requests), metadata=self._metadata)
-        self._reader = threading.Thread(
-            target=self._read, args=(self._call, self._generation), name="jitdyn-session-reader", daemon=True
+        call = self._stub.StreamSession(_iterate(requests), metadata=self._metadata)
+        reader = threading.Thread(
+            target=self._read, args=(call, self._generations), name="jitdyn-session-reader", daemon=True
         )
-        self._reader.start()
+        reader.start()
+        return self._generations, requests, call, reader
 
     def _end_stream(self) -> None:
         """Let go of the current stream (it broke, or its server said `moving`)."""
@@ -167,6 +175,8 @@ class Session(SessionCore):
                 raise NoAnswer(f"no answer from the server within {timeout} s") from None
             if generation == self._generation:
                 return item
+            if self._trial is not None and generation == self._trial.stream[0]:
+                self._settle(self._trial, item)
 
     def _get(self, timeout: float | None) -> tuple[float, dynamics_pb2.StreamSessionResponse] | None:
         while True:
@@ -175,6 +185,8 @@ class Session(SessionCore):
                 self._responses.put((self._generation, END))
                 return None
             if isinstance(item, grpc.RpcError):
+                if self._trial is not None and self._moved_meanwhile(self._trial):
+                    continue  # the stream broke because the move took the session: go on there
                 if self._ledger.resumable(item.code()):
                     self._resume(f"{item.code().name}: {item.details()}")
                     continue
@@ -189,8 +201,7 @@ class Session(SessionCore):
             if kind == "moving":
                 error = self._ledger.moving(response.moving)
                 if error is None:
-                    self._leave()
-                    self._resume(f"moving: {response.moving.reason}")
+                    self._move(f"moving: {response.moving.reason}")
                     continue
                 self._responses.put((self._generation, END))
                 self._finish()
@@ -199,33 +210,77 @@ class Session(SessionCore):
                 continue
             return item
 
-    def _leave(self) -> None:
-        """Leave a stream whose server said `moving`, reading it to its end: frames sent before the
-        notice was read are still answered (and stored) there, and a resume goes on after them.
-        The server parks the session when the requests end without a close; one that does not end
-        the stream within the policy's `open_timeout` is left as it is."""
-        self._requests.put(END)
+    def _move(self, cause: str) -> None:
+        """Open the session elsewhere while this stream still answers (make before break): the
+        tried stream's first answer is read as it comes, among this one's (`_raw`). Moved once
+        another replica has taken it; when none takes it now (the index is down for all of them
+        too), this stream goes on, and the server says `moving` again later."""
+        if self._trial is not None:
+            return  # one try at a time
+        previous = self._stub
+        if self._connections is not None:
+            self._stub = self._connections.trial()
+        generation, requests, call, reader = self._new_stream(self._ledger.resume_request())
+        self._trial = _Trial(
+            stream=(generation, requests, call, reader), cause=cause, started=time.monotonic(), stub=previous
+        )
+
+    def _settle(self, trial: _Trial, first: _Item) -> None:
+        """The tried stream's first answer: move to it, or let it go."""
+        self._trial = None
+        generation, requests, call, reader = trial.stream
+        outcome = resume_outcome(first, open_timeout=self._ledger.policy.open_timeout)
+        if isinstance(outcome, Refused):
+            self._ledger.refused(0, outcome)
+            self._drop_trial(trial)
+            return
+        self._end_stream()
+        if self._connections is not None:
+            self._connections.adopt(moved=True)
+        self._generation, self._requests, self._call, self._reader = generation, requests, call, reader
+        for request in self._ledger.resumed(outcome, cause=trial.cause, attempts=1, started=trial.started):
+            self._requests.put(request)
+        if self._closed:
+            self._requests.put(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
+            self._requests.put(END)
+        if self._realtime and not self._closed:
+            self.sync()
+
+    def _moved_meanwhile(self, trial: _Trial) -> bool:
+        """The current stream broke while a move was being tried (it may be why: the move took the
+        session from it): wait for the try's first answer, and say whether it moved."""
         deadline = time.monotonic() + self._ledger.policy.open_timeout
-        while True:
+        while self._trial is trial:
             try:
-                item = self._raw(max(0.0, deadline - time.monotonic()))
-            except NoAnswer:
-                return
-            if item is END or isinstance(item, grpc.RpcError):
-                return
-            if item[1].WhichOneof("payload") != "moving":
-                self._left.append(item)
+                tag, item = self._responses.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                self._drop_trial(trial)
+                return False
+            if tag == trial.stream[0]:
+                self._settle(trial, item)
+        return self._generation == trial.stream[0]
+
+    def _drop_trial(self, trial: _Trial) -> None:
+        self._trial = None
+        _, requests, call, _ = trial.stream
+        requests.put(END)
+        call.cancel()
+        self._stub = trial.stub
+        if self._connections is not None:
+            self._connections.adopt(moved=False)
 
     def _resume(self, cause: str) -> None:
         """Open the session again through the same target, re-send what is not durable, go on."""
         policy = self._ledger.policy
         started = time.monotonic()
+        if self._trial is not None:
+            self._drop_trial(self._trial)
         self._end_stream()
         last = cause
         for attempt in range(policy.attempts):
             time.sleep(policy.backoff(attempt))
-            if self._reconnect is not None:
-                self._stub = self._reconnect()
+            if self._connections is not None:
+                self._stub = self._connections.reconnect()
             self._start_stream(self._ledger.resume_request())
             try:
                 first: _Item | None = self._raw(policy.open_timeout)
@@ -378,6 +433,74 @@ def _iterate(
 
 
 _Item = tuple[float, dynamics_pb2.StreamSessionResponse] | grpc.RpcError | End
+# A stream: its generation, its requests, its call, its reader.
+_Stream = tuple[int, "queue.Queue[dynamics_pb2.StreamSessionRequest | End]", grpc.Call, threading.Thread]
+
+
+@dataclass(frozen=True)
+class _Trial:
+    """A move being tried: its stream, why, since when, and the stub of the stream it would leave."""
+
+    stream: _Stream
+    cause: str
+    started: float
+    stub: dynamics_pb2_grpc.DynamicsServiceStub
+
+
+class _Connections:
+    """The connections of one session when each has its own: the current stream's, and one a move
+    is tried on (make before break). A resume takes a new connection: a balancer keeps a
+    connection's streams on the backend it first chose (HAProxy's connection reuse), which is the
+    replica that died, is draining, or cannot hold the session."""
+
+    def __init__(self, client: Client) -> None:
+        self._client = client
+        self._current: grpc.Channel | None = None
+        self._trial: grpc.Channel | None = None
+
+    def _open(self) -> grpc.Channel:
+        channel = self._client._new_channel(shared=False)
+        with self._client._lock:
+            self._client._session_channels.add(channel)
+        return channel
+
+    def _drop(self, channel: grpc.Channel | None) -> None:
+        if channel is None:
+            return
+        with self._client._lock:
+            if channel not in self._client._session_channels:
+                return
+            self._client._session_channels.discard(channel)
+        channel.close()
+
+    def first(self) -> dynamics_pb2_grpc.DynamicsServiceStub:
+        self._current = self._open()
+        return dynamics_pb2_grpc.DynamicsServiceStub(self._current)
+
+    def reconnect(self) -> dynamics_pb2_grpc.DynamicsServiceStub:
+        """The current connection closed, a new one current (break before make)."""
+        self.close()
+        return self.first()
+
+    def trial(self) -> dynamics_pb2_grpc.DynamicsServiceStub:
+        """A new connection beside the current one, for a move."""
+        self._drop(self._trial)
+        self._trial = self._open()
+        return dynamics_pb2_grpc.DynamicsServiceStub(self._trial)
+
+    def adopt(self, moved: bool) -> None:
+        """The move worked (the tried connection is the current one now), or did not (it goes)."""
+        if moved:
+            self._drop(self._current)
+            self._current, self._trial = self._trial, None
+        else:
+            self._drop(self._trial)
+            self._trial = None
+
+    def close(self) -> None:
+        self._drop(self._trial)
+        self._drop(self._current)
+        self._trial = self._current = None
 
 
 class Client(Closeable):
@@ -514,30 +637,10 @@ class Client(Closeable):
 
     def open_session(self, options: SessionOptions) -> Session:
         """Open a session; raises the server's error (InvalidArgument, NotFound, ...) if it refuses."""
-        stub, ended, reconnect = self._dynamics, None, None
+        stub, connections = self._dynamics, None
         if self._connection_per_session:
-            current = [self._new_channel(shared=False)]
-            with self._lock:
-                self._session_channels.add(current[0])
-            stub = dynamics_pb2_grpc.DynamicsServiceStub(current[0])
-
-            def ended() -> None:
-                with self._lock:
-                    if current[0] not in self._session_channels:
-                        return
-                    self._session_channels.discard(current[0])
-                current[0].close()
-
-            def reconnect() -> dynamics_pb2_grpc.DynamicsServiceStub:
-                # A resume on a new connection: a balancer keeps a connection's streams on the
-                # backend it first chose (HAProxy's connection reuse), which is the replica that
-                # died or is draining.
-                ended()
-                current[0] = self._new_channel(shared=False)
-                with self._lock:
-                    self._session_channels.add(current[0])
-                return dynamics_pb2_grpc.DynamicsServiceStub(current[0])
-
+            connections = _Connections(self)
+            stub = connections.first()
         try:
             return Session(
                 stub,
@@ -545,9 +648,9 @@ class Client(Closeable):
                 timeout=self._timeout,
                 metadata=self._metadata,
                 checksum=self._checksum,
-                on_end=ended,
+                on_end=connections.close if connections is not None else None,
                 resume=self._resume,
-                reconnect=reconnect,
+                connections=connections,
             )
         except grpc.RpcError as error:
             raise status_error(error) from None

@@ -436,14 +436,16 @@ class ResumePolicy:
     target with the session's resume token, re-sends the frames not yet durable, and goes on.
 
     `attempts` resumes are tried, `initial_backoff` seconds apart at first, doubling up to
-    `max_backoff`; then SessionLost. The SDK keeps at most `max_unacknowledged` frames that no
+    `max_backoff`; then SessionLost. The defaults wait about 121 s in all: longer than a replica
+    holds its sessions' rows while the shared index does not answer (120 s), so a session outlives
+    any outage the server does. The SDK keeps at most `max_unacknowledged` frames that no
     result's `durable_seq` covers yet (ResumeBufferFull beyond). `enabled=False`: a broken stream
     raises as it always did."""
 
     enabled: bool = True
-    attempts: int = 8
+    attempts: int = 30
     initial_backoff: float = 0.1
-    max_backoff: float = 2.0
+    max_backoff: float = 5.0
     max_unacknowledged: int = 10_000
     open_timeout: float = 10.0  # seconds to wait for each resume's `opened`
 

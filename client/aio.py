@@ -18,9 +18,9 @@ import asyncio
 import contextlib
 import time
 import weakref
-from collections.abc import AsyncIterator, Callable, Mapping, Sequence
+from collections.abc import AsyncIterator, Mapping, Sequence
 from types import TracebackType
-from typing import TYPE_CHECKING, Self, TypeAlias, TypeVar, Unpack
+from typing import TYPE_CHECKING, Any, Self, TypeAlias, TypeVar, Unpack
 
 import grpc
 
@@ -38,11 +38,11 @@ from jitdyn.client._models import (
 from jitdyn.client._resume import Refused, resume_outcome
 from jitdyn.client._session import Received, SessionArguments, SessionCore
 from jitdyn.client._transport import (
-    CHANNEL_OPTIONS,
     END,
     RESUMABLE_CODES,
     End,
     auth_metadata,
+    channel_options,
     explain_open_error,
     status_error,
 )
@@ -92,11 +92,12 @@ class AsyncSession(SessionCore):
         stub: DynamicsServiceAsyncStub,
         options: SessionOptions,
         *,
-        reconnect: Callable[[], DynamicsServiceAsyncStub] | None = None,
+        connections: _AsyncConnections | None = None,
         **arguments: Unpack[SessionArguments],
     ) -> None:
         super().__init__(options, **arguments)
-        self._reconnect = reconnect  # a new connection for each resume attempt (None: the same one)
+        self._connections = connections  # a new connection for each resume attempt (None: the same one)
+        self._trial: asyncio.Task[None] | None = None  # a move being tried (see `_try_move`)
         self._stub = stub
         self._open_request = dynamics_pb2.StreamSessionRequest(open=self._open_message)
         self._responses: asyncio.Queue[_Received | JitdynError | End] = asyncio.Queue()
@@ -131,31 +132,22 @@ class AsyncSession(SessionCore):
         """A new stream that begins with `request` (an open), and its first answer, read here before
         the reader takes the stream over; None when none came within `timeout`."""
         self._call = call = self._stub.StreamSession(metadata=self._metadata)
-        self._write_refused = False
-        try:
-            await call.write(request)  # a refusal shows in the read that follows
-        except grpc.RpcError:
-            self._write_refused = True
-        except asyncio.InvalidStateError:
-            pass
-        try:
-            response = await asyncio.wait_for(call.read(), timeout)
-        except TimeoutError:
-            return None
-        except grpc.RpcError as error:
-            if self._write_refused and error.code() == grpc.StatusCode.INTERNAL:
-                return END  # the stream ended under the write, and grpc.aio hides how (`_broken`)
-            return error
-        if not isinstance(response, dynamics_pb2.StreamSessionResponse):
-            return END  # grpc.aio.EOF
-        return time.monotonic(), response
+        first, self._write_refused = await _first_answer(call, request, timeout)
+        return first
 
     async def _run(self) -> None:
         """The session's reader: every stream's answers into the queue, a resume between streams,
         and the session's end (its error, if any, then END)."""
         try:
             while True:
-                ended = await self._read(self._call)
+                call = self._call
+                ended = await self._read(call)
+                if isinstance(ended, grpc.RpcError) and self._trial is not None:
+                    # It may have broken because the move being tried took the session from it.
+                    with contextlib.suppress(Exception):
+                        await asyncio.wait_for(asyncio.shield(self._trial), self._ledger.policy.open_timeout)
+                if call is not self._call:
+                    continue  # a move left that stream: read the one it moved to
                 if ended is None:
                     return
                 if isinstance(ended, grpc.RpcError):
@@ -171,9 +163,9 @@ class AsyncSession(SessionCore):
                     if error is not None:
                         self._fail(error)
                         return
-                    async with self._write_lock:
-                        await self._leave(self._call)
-                        resumed = await self._resume(f"moving: {ended.reason}")
+                    if self._trial is None:
+                        self._trial = asyncio.create_task(self._try_move(f"moving: {ended.reason}"))
+                    continue  # this stream answers on meanwhile
                 if not resumed:
                     return
         finally:
@@ -199,17 +191,43 @@ class AsyncSession(SessionCore):
                 self._responses.put_nowait((received_at, response))
         except grpc.RpcError as error:
             return error
+        except asyncio.CancelledError:
+            task = asyncio.current_task()
+            if call is not self._call and task is not None and not task.cancelling():
+                return None  # a move cancelled the stream it left, not this task
+            raise
 
-    async def _leave(self, call: _Call) -> None:
-        """Leave a stream whose server said `moving`, reading it to its end: frames written before
-        the notice was read are still answered (and stored) there, and a resume goes on after them.
-        The server parks the session when the requests end without a close; one that does not
-        end the stream within the policy's `open_timeout` is left as it is."""
-        with contextlib.suppress(grpc.RpcError, asyncio.InvalidStateError, TimeoutError):
-            async with asyncio.timeout(self._ledger.policy.open_timeout):
-                await call.done_writing()
-                while isinstance(await self._read(call), dynamics_pb2.Moving):
-                    pass
+    async def _try_move(self, cause: str) -> None:
+        """Open the session elsewhere while the current stream answers on (make before break):
+        moved once another replica has taken it, re-sending what is not durable there; when none
+        takes it now (the index is down for all of them too), the current stream goes on."""
+        try:
+            policy = self._ledger.policy
+            started = time.monotonic()
+            stub = self._connections.trial() if self._connections is not None else self._stub
+            call: _Call = stub.StreamSession(metadata=self._metadata)
+            first, refused_write = await _first_answer(
+                call, self._ledger.resume_request(), policy.open_timeout
+            )
+            outcome = resume_outcome(first, open_timeout=policy.open_timeout)
+            if isinstance(outcome, Refused):
+                self._ledger.refused(0, outcome)
+                call.cancel()
+                if self._connections is not None:
+                    self._connections.adopt(moved=False)
+                return
+            async with self._write_lock:
+                left, self._call, self._stub, self._write_refused = self._call, call, stub, refused_write
+                left.cancel()
+                if self._connections is not None:
+                    self._connections.adopt(moved=True)
+                resumed = self._ledger.resumed(outcome, cause=cause, attempts=1, started=started)
+                try:
+                    await self._resend(resumed)
+                except JitdynError as error:
+                    self._fail(error)
+        finally:
+            self._trial = None
 
     def _fail(self, error: JitdynError) -> None:
         """The session is over with `error`: the caller's next read raises it."""
@@ -222,12 +240,14 @@ class AsyncSession(SessionCore):
         that nothing is written until the frames not durable are re-sent."""
         policy = self._ledger.policy
         started = time.monotonic()
+        if self._trial is not None:
+            self._trial.cancel()
         self._call.cancel()
         last = cause
         for attempt in range(policy.attempts):
             await asyncio.sleep(policy.backoff(attempt))
-            if self._reconnect is not None:
-                self._stub = self._reconnect()
+            if self._connections is not None:
+                self._stub = self._connections.reconnect()
             first = await self._open_stream(self._ledger.resume_request(), policy.open_timeout)
             outcome = resume_outcome(first, open_timeout=policy.open_timeout)
             if isinstance(outcome, Refused):
@@ -447,6 +467,83 @@ class AsyncSession(SessionCore):
             await self._reader_done()
 
 
+async def _first_answer(
+    call: _Call, request: dynamics_pb2.StreamSessionRequest, timeout: float | None
+) -> tuple[_First, bool]:
+    """Write `request` (an open) on `call` and read its first answer (None: none within `timeout`
+    s); and whether the write was refused (see `AsyncSession._broken`)."""
+    refused = False
+    try:
+        await call.write(request)  # a refusal shows in the read that follows
+    except grpc.RpcError:
+        refused = True
+    except asyncio.InvalidStateError:
+        pass
+    try:
+        response = await asyncio.wait_for(call.read(), timeout)
+    except TimeoutError:
+        return None, refused
+    except grpc.RpcError as error:
+        if refused and error.code() == grpc.StatusCode.INTERNAL:
+            return END, refused  # the stream ended under the write, and grpc.aio hides how
+        return error, refused
+    if not isinstance(response, dynamics_pb2.StreamSessionResponse):
+        return END, refused  # grpc.aio.EOF
+    return (time.monotonic(), response), refused
+
+
+class _AsyncConnections:
+    """The connections of one session when each has its own: the current stream's, and one a move
+    is tried on (make before break). See the sync client's `_Connections`."""
+
+    def __init__(self, client: AsyncClient) -> None:
+        self._client = client
+        self._current: grpc.aio.Channel | None = None
+        self._trial: grpc.aio.Channel | None = None
+
+    def _open(self) -> grpc.aio.Channel:
+        channel = self._client._new_channel(shared=False)
+        self._client._session_channels.add(channel)
+        return channel
+
+    def _drop(self, channel: grpc.aio.Channel | None) -> None:
+        if channel is None or channel not in self._client._session_channels:
+            return
+        self._client._session_channels.discard(channel)
+        task = asyncio.ensure_future(channel.close())
+        self._client._closing.add(task)
+        task.add_done_callback(self._client._closing.discard)
+
+    def first(self) -> DynamicsServiceAsyncStub:
+        self._current = self._open()
+        return dynamics_pb2_grpc.DynamicsServiceStub(self._current)
+
+    def reconnect(self) -> DynamicsServiceAsyncStub:
+        """The current connection closed, a new one current (break before make)."""
+        self.close()
+        return self.first()
+
+    def trial(self) -> DynamicsServiceAsyncStub:
+        """A new connection beside the current one, for a move."""
+        self._drop(self._trial)
+        self._trial = self._open()
+        return dynamics_pb2_grpc.DynamicsServiceStub(self._trial)
+
+    def adopt(self, moved: bool) -> None:
+        """The move worked (the tried connection is the current one now), or did not (it goes)."""
+        if moved:
+            self._drop(self._current)
+            self._current, self._trial = self._trial, None
+        else:
+            self._drop(self._trial)
+            self._trial = None
+
+    def close(self) -> None:
+        self._drop(self._trial)
+        self._drop(self._current)
+        self._trial = self._current = None
+
+
 class AsyncClient:
     """A connection to a jitdyn server over grpc.aio. Keyword-only options beyond the address."""
 
@@ -459,11 +556,14 @@ class AsyncClient:
         root_certificates: bytes | None = None,
         checksum: bool = True,
         connection_per_session: bool = True,
+        channel_options: Sequence[tuple[str, Any]] = (),
         resume: ResumePolicy | bool = True,
     ) -> None:
-        """`resume`: how sessions resume by themselves when their stream breaks (`ResumePolicy`);
+        """`channel_options`: gRPC channel arguments added to the SDK's own, as `Client` takes them.
+        `resume`: how sessions resume by themselves when their stream breaks (`ResumePolicy`);
         False turns it off."""
         self._address = address
+        self._channel_options = tuple(channel_options)
         self._resume = resume if isinstance(resume, ResumePolicy) else ResumePolicy(enabled=resume)
         self._root_certificates = root_certificates
         self._channel = self._new_channel(shared=True)
@@ -564,7 +664,8 @@ class AsyncClient:
     def _new_channel(self, *, shared: bool) -> grpc.aio.Channel:
         # gRPC shares one connection between channels of the same target and arguments unless a
         # channel asks for its own subchannel pool.
-        options = CHANNEL_OPTIONS if shared else (*CHANNEL_OPTIONS, ("grpc.use_local_subchannel_pool", 1))
+        base = channel_options(self._channel_options)
+        options = base if shared else (*base, ("grpc.use_local_subchannel_pool", 1))
         if self._root_certificates is not None:
             return grpc.aio.secure_channel(
                 self._address, grpc.ssl_channel_credentials(self._root_certificates), options=options
@@ -574,37 +675,19 @@ class AsyncClient:
     async def open_session(self, options: SessionOptions) -> AsyncSession:
         """Open a session; raises the server's error (InvalidArgument, NotFound, ...) if it refuses."""
         stub: DynamicsServiceAsyncStub = self._dynamics
-        ended: Callable[[], None] | None = None
-        reconnect: Callable[[], DynamicsServiceAsyncStub] | None = None
+        connections = None
         if self._connection_per_session:
-            current = [self._new_channel(shared=False)]
-            self._session_channels.add(current[0])
-            stub = dynamics_pb2_grpc.DynamicsServiceStub(current[0])
-
-            def ended() -> None:
-                channel = current[0]
-                if channel in self._session_channels:
-                    self._session_channels.discard(channel)
-                    task = asyncio.ensure_future(channel.close())
-                    self._closing.add(task)
-                    task.add_done_callback(self._closing.discard)
-
-            def reconnect() -> DynamicsServiceAsyncStub:
-                # See Client: a balancer keeps a connection's streams on the backend it first chose.
-                ended()
-                current[0] = self._new_channel(shared=False)
-                self._session_channels.add(current[0])
-                return dynamics_pb2_grpc.DynamicsServiceStub(current[0])
-
+            connections = _AsyncConnections(self)
+            stub = connections.first()
         session = AsyncSession(
             stub,
             options,
             timeout=self._timeout,
             metadata=self._metadata,
             checksum=self._checksum,
-            on_end=ended,
+            on_end=connections.close if connections is not None else None,
             resume=self._resume,
-            reconnect=reconnect,
+            connections=connections,
         )
         await session._open()
         self._open_sessions.add(session)

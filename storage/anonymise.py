@@ -23,12 +23,12 @@ import hmac
 import math
 import os
 import secrets
-import stat
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Final
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.key_files import check_private_file
 from jitdyn.storage.layout import fsync_dir
 
 __all__ = [
@@ -114,8 +114,8 @@ def load_or_create_secret(
 
     `JITDYN_SECRET` in `env` (hex) wins. Otherwise the key file: `secret_file`, else
     `JITDYN_SECRET_FILE` in `env`, else `default_secret_file(env)`; created with 32 random bytes and
-    mode 0600 when missing. Refused (FailedPrecondition) when the file is readable or writable by
-    group or others, or lies inside `data_root`: a key stored with the data protects nothing.
+    mode 0600 when missing. Refused (FailedPrecondition) when others could read or change the file
+    (jitdyn.key_files), or lies inside `data_root`: a key stored with the data protects nothing.
     """
     if env.get(ENV_SECRET):
         return _parse_secret(env[ENV_SECRET], origin=f"environment variable {ENV_SECRET}")
@@ -131,12 +131,7 @@ def load_or_create_secret(
             )
     if not path.exists():
         _create_secret(path)
-    mode = stat.S_IMODE(path.stat().st_mode)
-    if mode & 0o077:
-        raise FailedPrecondition(
-            f"the secret file {path} is accessible by group or others (mode {mode:04o}); "
-            f"run `chmod 600 {path}`"
-        )
+    check_private_file(path, setting="the secret file")
     return _parse_secret(path.read_text(), origin=f"the secret file {path}")
 
 

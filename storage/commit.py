@@ -45,6 +45,7 @@ from jitdyn.storage.shared import Fenced, Lease, SharedTier, Window
 __all__ = [
     "COMMIT_SHARE",
     "MAX_WINDOW",
+    "RENEW_DEADLINE_SHARE",
     "SHARED_OUTAGE_LIMIT",
     "CommitStats",
     "GroupCommitter",
@@ -61,6 +62,9 @@ _COST_EWMA: Final = 0.2
 # waiting on it fail (UNAVAILABLE) once it has not answered for SHARED_OUTAGE_LIMIT (s).
 _SHARED_RETRY: Final = 0.5
 SHARED_OUTAGE_LIMIT: Final = 120.0
+# A process whose leases were last renewed longer ago than this share of the TTL steps down: its
+# sessions are told to move (Kubernetes' leader election: a renew deadline shorter than the lease).
+RENEW_DEADLINE_SHARE: Final = 2 / 3
 
 _log = logging.getLogger(__name__)
 
@@ -99,6 +103,10 @@ class _Session:
     bytes_written: int = 0
     lease: Lease | None = None  # its log is the shared tier's, under this lease
     retry_at: float = 0.0  # the shared tier did not answer: not due before then (monotonic s)
+    committed: int = 0  # records of a shared-tier session in windows the database took
+    # The first `retrying` pending records are a window whose commit may have landed: retried as
+    # they were, under the same key, never merged with newer records.
+    retrying: int = 0
 
     def due(self, now: float, window: float) -> bool:
         return (
@@ -132,7 +140,10 @@ class GroupCommitter(Closeable):
 
     def __init__(self, *, name: str = "jitdyn-commit", shared: SharedTier | None = None) -> None:
         self._shared = shared
+        # When the last renewal that succeeded began (monotonic s): a failed one leaves it, so the
+        # leases' standing is never overstated; the next try waits _SHARED_RETRY.
         self._renewed_at = time.monotonic()
+        self._renew_retry_at = 0.0
         self._outage_since: float | None = None
         self._cond = threading.Condition()
         self._sessions: dict[int, _Session] = {}
@@ -169,6 +180,8 @@ class GroupCommitter(Closeable):
         with self._cond:
             if self._stopping:
                 raise Unavailable("the commit thread is stopped; the server is shutting down")
+            if lease is not None and not any(s.lease for s in self._sessions.values()):
+                self._renewed_at = time.monotonic()  # the lease was made (or taken) just now
             key = self._next_key
             self._next_key += 1
             self._sessions[key] = _Session(
@@ -258,7 +271,7 @@ class GroupCommitter(Closeable):
                     return None
                 waiting = [s.next_due(window) for s in self._sessions.values() if s.pending and not s.failed]
                 if self._shared is not None and any(s.lease for s in self._sessions.values()):
-                    renew_at = self._renewed_at + self._shared.lease_ttl / 3
+                    renew_at = max(self._renewed_at + self._shared.lease_ttl / 3, self._renew_retry_at)
                     if now >= renew_at:
                         return []  # the leases are renewed by the thread, outside the lock
                     waiting.append(renew_at)
@@ -277,9 +290,11 @@ class GroupCommitter(Closeable):
                     due.append(s)
             taken = []
             for s in due:
-                taken.append((s, s.pending))
-                s.pending = []
-                s.flush = False
+                size = s.retrying or len(s.pending)
+                taken.append((s, s.pending[:size]))
+                s.pending = s.pending[size:]
+                s.retrying = 0
+                s.flush = bool(s.pending)
                 s.in_flight = True
             return taken
 
@@ -303,7 +318,7 @@ class GroupCommitter(Closeable):
                 else:
                     durable = local
             durable.extend(self._commit_shared([(s, r, d) for s, r, d in written if s.lease is not None]))
-            if self._shared is not None and time.monotonic() - self._renewed_at >= self._shared.lease_ttl / 3:
+            if self._shared is not None and self._renew_due(time.monotonic()):
                 self._renew_leases()
             with self._cond:
                 self._commits += 1 if durable else 0
@@ -332,7 +347,7 @@ class GroupCommitter(Closeable):
         for s, records, data in written:
             seqs = [r.seq for r in records if r.kind == "result"]
             assert s.lease is not None
-            windows.append(Window(s.lease, max(seqs) if seqs else None, data))
+            windows.append(Window(s.lease, max(seqs) if seqs else None, data, first=s.committed))
         try:
             fenced = self._shared.commit(windows)
         except STORAGE_ERRORS as exc:
@@ -348,6 +363,7 @@ class GroupCommitter(Closeable):
                 for s, records, _ in written:
                     if not s.failed:
                         s.pending = records + s.pending
+                        s.retrying = len(records)
                         s.first_pending_at = now
                         s.retry_at = now + _SHARED_RETRY
             return []
@@ -358,11 +374,29 @@ class GroupCommitter(Closeable):
         for s, records, _ in written:
             if s.name in fenced:
                 self._fail(
-                    s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
+                    s,
+                    Fenced(
+                        f"session {s.name} was taken over by another stream (a resume); this one ends, resume it"
+                    ),
                 )
             else:
+                s.committed += len(records)
                 durable.append((s, records))
         return durable
+
+    def lease_lost(self) -> bool:
+        """Whether this process holds leases it has not renewed within the renew deadline (the
+        index did not answer): its sessions should move to a replica that can hold them."""
+        if self._shared is None:
+            return False
+        with self._cond:
+            held = any(s.lease is not None and not s.failed for s in self._sessions.values())
+        deadline = RENEW_DEADLINE_SHARE * self._shared.lease_ttl
+        return held and time.monotonic() - self._renewed_at > deadline
+
+    def _renew_due(self, now: float) -> bool:
+        ttl = self._shared.lease_ttl if self._shared is not None else math.inf
+        return now - self._renewed_at >= ttl / 3 and now >= self._renew_retry_at
 
     def _renew_leases(self) -> None:
         """Extend the leases of every shared-tier session, those that committed nothing lately too."""
@@ -370,16 +404,21 @@ class GroupCommitter(Closeable):
             return
         with self._cond:
             held = [(s, s.lease) for s in self._sessions.values() if s.lease is not None and not s.failed]
-        self._renewed_at = time.monotonic()
+        started = time.monotonic()
         try:
             fenced = self._shared.renew([lease for _, lease in held if lease is not None])
         except STORAGE_ERRORS as exc:
+            self._renew_retry_at = time.monotonic() + _SHARED_RETRY
             _log.warning("the shared tier does not answer; leases not renewed: %s", exc)
             return
+        self._renewed_at = started
         for s, _ in held:
             if s.name in fenced:
                 self._fail(
-                    s, Fenced(f"session {s.name} was taken over by another stream (a resume); this one ends")
+                    s,
+                    Fenced(
+                        f"session {s.name} was taken over by another stream (a resume); this one ends, resume it"
+                    ),
                 )
 
     def _write(

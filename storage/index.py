@@ -27,10 +27,10 @@ import sqlalchemy as sa
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
 from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, stored_word
-from jitdyn.storage.schema import sessions
+from jitdyn.storage.schema import session_leases, session_log, sessions
 from jitdyn.vocabulary import Clock, Scenario, SessionStatus
 
-__all__ = ["MAX_PAGE_SIZE", "Ending", "SessionIndex", "SessionRow", "finish_session"]
+__all__ = ["MAX_PAGE_SIZE", "Ending", "SessionIndex", "SessionRow", "finish_session", "move_location"]
 
 MAX_PAGE_SIZE: Final = 1000
 _TOKEN_VERSION: Final = 1
@@ -364,15 +364,9 @@ class SessionIndex:
 
     def move_location(self, session_id: str, *, old: str, new: str) -> bool:
         """Point an ended session at `new` if it still points at `old` (its Parquet was published to
-        the data root); whether it did."""
+        the data root), and let go of its shared log; whether it did."""
         with self._engine.begin() as conn:
-            result = conn.execute(
-                sa.update(sessions)
-                .where(sessions.c.session_id == session_id, sessions.c.location == old)
-                .where(sessions.c.status != SessionStatus.OPEN.value)
-                .values(location=new)
-            )
-        return bool(result.rowcount == 1)
+            return move_location(conn, session_id, old=old, new=new)
 
     def unfinished(self) -> builtins.list[SessionRow]:
         """Every OPEN session of every tenant: the server's own recovery at start is the one reader
@@ -394,6 +388,23 @@ class Ending(TypedDict):
     summary: SessionSummaryInfo
     location: str
     ended_at: NotRequired[_dt.datetime | None]
+
+
+def move_location(conn: sa.Connection, session_id: str, *, old: str, new: str) -> bool:
+    """`SessionIndex.move_location` inside the caller's transaction. The session's rows in the
+    shared log and its lease go in the same transaction: they were kept until the data root held
+    its Parquet, so that no finished session has its only copy on one replica's disk."""
+    moved = conn.execute(
+        sa.update(sessions)
+        .where(sessions.c.session_id == session_id, sessions.c.location == old)
+        .where(sessions.c.status != SessionStatus.OPEN.value)
+        .values(location=new)
+    ).rowcount
+    if moved != 1:
+        return False
+    conn.execute(sa.delete(session_log).where(session_log.c.session_id == session_id))
+    conn.execute(sa.delete(session_leases).where(session_leases.c.session_id == session_id))
+    return True
 
 
 def finish_session(conn: sa.Connection, session_id: str, **ending: Unpack[Ending]) -> None:

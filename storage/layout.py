@@ -22,6 +22,7 @@ __all__ = [
     "log_location",
     "make_dirs",
     "prepare_data_root",
+    "session_of",
     "write_durably",
 ]
 
@@ -34,9 +35,17 @@ def log_location(session_id: str) -> str:
     return str(PurePosixPath(LOG_DIR) / f"{session_id}.arrows")
 
 
-def frames_location(*, model_name: str, date: str, session_id: str) -> str:
-    """The session's Parquet file, relative to the data root (Hive partitions model and date)."""
-    return str(PurePosixPath(FRAMES_DIR) / f"model={model_name}" / f"date={date}" / f"{session_id}.parquet")
+def frames_location(*, model_name: str, date: str, session_id: str, epoch: int | None = None) -> str:
+    """The session's Parquet file, relative to the data root (Hive partitions model and date).
+    A session of the shared tier names the epoch it was stored under (`<id>.e<epoch>.parquet`):
+    a stale finisher's upload never overwrites the new owner's."""
+    name = f"{session_id}.parquet" if epoch is None else f"{session_id}.e{epoch}.parquet"
+    return str(PurePosixPath(FRAMES_DIR) / f"model={model_name}" / f"date={date}" / name)
+
+
+def session_of(file_name: str) -> str:
+    """The session id of a Parquet file's name (`<id>.parquet` or `<id>.e<epoch>.parquet`)."""
+    return file_name.split(".", 1)[0]
 
 
 def fsync_dir(path: Path) -> None:

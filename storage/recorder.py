@@ -43,14 +43,14 @@ from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.layout import frames_location, fsync_dir, log_location, make_dirs
 from jitdyn.storage.log import LogStream, LogWriter, stream_log, try_lock
 from jitdyn.storage.parquet import header_from_json, header_to_json, write_frames
-from jitdyn.storage.publish import drop_local_copy, publish_frames
+from jitdyn.storage.publish import drop_local_copy, publish_frames, settle_copies
 from jitdyn.storage.records import FINAL_STATUSES, SessionHeader, SessionSummaryInfo, TickRecord, stored_word
-from jitdyn.storage.root import DataRoot
+from jitdyn.storage.root import DataRoot, is_uri
 from jitdyn.storage.shared import Fenced, Lease, SharedLogStream, SharedTier, TakenOver
 from jitdyn.storage.summary import Summariser
 from jitdyn.vocabulary import SessionStatus
 
-__all__ = ["SessionRecorder", "finish_orphan", "recover_unfinished"]
+__all__ = ["SessionRecorder", "finish_orphan", "publish_unpublished", "recover_unfinished"]
 
 _log = logging.getLogger(__name__)
 
@@ -66,10 +66,14 @@ def _compact(
     header: SessionHeader,
     log: LogStream | SharedLogStream,
     summariser: Summariser | None = None,
+    epoch: int | None = None,
 ) -> str:
     """Write the log's rows, read batch by batch in bounded memory, as the session's Parquet file
-    (adding them to `summariser`); its location relative to the data root."""
-    location = frames_location(model_name=header.model_name, date=header.date, session_id=header.session_id)
+    (adding them to `summariser`; named for `epoch`, a shared-tier session's); its location
+    relative to the data root."""
+    location = frames_location(
+        model_name=header.model_name, date=header.date, session_id=header.session_id, epoch=epoch
+    )
     folder = make_dirs(data_root, str(Path(location).parent))
     write_frames(
         log.batches(),
@@ -352,17 +356,22 @@ class SessionRecorder:
             raise self._failure
 
         def end(summary: SessionSummaryInfo, location: str) -> None:
-            shared.finish(lease, status=status, summary=summary, location=location)
+            pending = self._root is not None and not is_uri(location)
+            shared.finish(lease, status=status, summary=summary, location=location, pending_upload=pending)
 
         # A resumed session's counts on this stream are only its latest part: its summary is
         # computed from all of its rows.
-        return self._store(shared.stream(self._header.session_id), None if self._resumed else summary, end)
+        return self._store(
+            shared.stream(self._header.session_id), None if self._resumed else summary, end, epoch=lease.epoch
+        )
 
     def _store(
         self,
         opened_log: AbstractContextManager[LogStream | SharedLogStream],
         summary: SessionSummaryInfo | None,
         end: Callable[[SessionSummaryInfo, str], None],
+        *,
+        epoch: int | None = None,
     ) -> str:
         """Compact the log to Parquet (summarising its rows when `summary` is None), publish it,
         `end(summary, location)` the session in the index, drop the local copy; returns where the
@@ -375,11 +384,17 @@ class SessionRecorder:
                     header=self._header,
                     log=log,
                     summariser=summariser if summary is None else None,
+                    epoch=epoch,
                 )
             summary = summariser.result() if summary is None else summary
             stored = publish_frames(self._root, data=self._data_root, relative=location)
-            end(summary, stored)
+            try:
+                end(summary, stored)
+            except Fenced:
+                settle_copies(self._root, relative=location, location=stored, won=False)
+                raise
             drop_local_copy(data=self._data_root, relative=location, location=stored)
+            settle_copies(self._root, relative=location, location=stored, won=True)
         except STORAGE_ERRORS as error:
             raise storage_failure(f"session {self._header.session_id} could not be stored", error) from None
         self._location, self._stored_summary = stored, summary
@@ -514,8 +529,43 @@ def finish_orphan(
     header = header_from_json(taken.header_json)
     summariser = Summariser(dof_names=header.dof_names)
     with shared.stream(header.session_id) as log:
-        location = _compact(data_root=data_root, header=header, log=log, summariser=summariser)
+        location = _compact(
+            data_root=data_root, header=header, log=log, summariser=summariser, epoch=taken.lease.epoch
+        )
     stored = publish_frames(root, data=data_root, relative=location)
-    shared.finish(taken.lease, status=taken.ended_as, summary=summariser.result(), location=stored)
+    try:
+        shared.finish(
+            taken.lease,
+            status=taken.ended_as,
+            summary=summariser.result(),
+            location=stored,
+            pending_upload=root is not None and not is_uri(stored),
+        )
+    except Fenced:
+        settle_copies(root, relative=location, location=stored, won=False)
+        raise
     drop_local_copy(data=data_root, relative=location, location=stored)
+    settle_copies(root, relative=location, location=stored, won=True)
     return stored
+
+
+def publish_unpublished(*, data_root: Path, shared: SharedTier, root: DataRoot) -> str | None:
+    """Publish one ended session whose Parquet never reached `root` and whose replica let it be
+    (`SharedTier.claim_unpublished`): compacted again from its shared log, uploaded, the index
+    pointed at it, the log let go. Its id, or None when none waits. Blocking; a failed upload
+    raises and leaves the session to the next try, once this hold runs out."""
+    claimed = shared.claim_unpublished()
+    if claimed is None:
+        return None
+    header = header_from_json(claimed.header_json)
+    with shared.stream(header.session_id) as log:
+        location = _compact(data_root=data_root, header=header, log=log, epoch=claimed.lease.epoch)
+    uri = root.publish(data_root / location, location)
+    won = shared.published(header.session_id, old=claimed.location, new=uri)
+    if won:
+        _log.warning(
+            "session %s: published to the data root from the shared log (%s)", header.session_id, uri
+        )
+    settle_copies(root, relative=location, location=uri, won=won)
+    (data_root / location).unlink(missing_ok=True)
+    return header.session_id

@@ -14,6 +14,7 @@ that says what is wrong. Why pyarrow.fs and publishing at finish: docs/decisions
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import uuid
 from collections.abc import Mapping
@@ -25,7 +26,7 @@ from urllib.parse import urlsplit
 import pyarrow.fs as pafs
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, Unavailable
-from jitdyn.storage.layout import make_dirs, write_durably
+from jitdyn.storage.layout import make_dirs, session_of, write_durably
 
 __all__ = [
     "SCHEMES",
@@ -200,6 +201,26 @@ class DataRoot:
         stored = self.filesystem.get_file_info(path)
         if stored.type != pafs.FileType.File or stored.size != size:
             raise OSError(f"{self.uri_of(relative)} holds {stored.size} bytes after the upload of {size}")
+
+    def delete(self, relative: str) -> None:
+        """Remove the file at `relative`; one that is not there is no error."""
+        with contextlib.suppress(FileNotFoundError):
+            self.filesystem.delete_file(self.path_of(relative))
+
+    def drop_other_copies(self, relative: str) -> list[str]:
+        """Remove every other stored copy of the session whose file is `relative` (another epoch's:
+        a stale finisher's, or one published before a take-over); the names removed."""
+        folder = PurePosixPath(relative).parent
+        keep = PurePosixPath(relative).name
+        session = session_of(keep)
+        selector = pafs.FileSelector(self.path_of(str(folder)), allow_not_found=True)
+        removed = []
+        for info in self.filesystem.get_file_info(selector):
+            name = PurePosixPath(info.path).name
+            if name != keep and name.endswith(".parquet") and session_of(name) == session:
+                self.delete(f"{folder}/{name}")
+                removed.append(name)
+        return removed
 
     def exists(self, relative: str) -> bool:
         return bool(self.filesystem.get_file_info(self.path_of(relative)).type == pafs.FileType.File)

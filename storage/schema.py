@@ -126,5 +126,9 @@ session_log = sa.Table(
     sa.Column("session_id", sa.String(36), nullable=False),
     sa.Column("epoch", sa.BigInteger, nullable=False),
     sa.Column("data", sa.LargeBinary, nullable=False),
+    # Records of the session's stream under this epoch before this window: a retried commit
+    # (its first try's COMMIT may have landed) stores the window once.
+    sa.Column("first_record", sa.BigInteger, nullable=True),
     sa.Index("ix_session_log_session_id_pk", "session_id", "pk"),
+    sa.Index("uq_session_log_window", "session_id", "epoch", "first_record", unique=True),
 )

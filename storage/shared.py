@@ -5,7 +5,7 @@ docs/decisions/0120-durable-off-the-host.md).
 
     tier = SharedTier(engine, owner=new_owner_id(), lease_ttl=10.0)
     lease = tier.create(header)                 # epoch 1, owned by this process
-    fenced = tier.commit([Window(lease, top_seq, data)])   # one transaction for every session
+    fenced = tier.commit([Window(lease, top_seq, data, first=0)])   # one transaction for all sessions
     taken = tier.take_over(session_id, tenant)  # a resume on another replica: epoch + 1
 
 Every write names the epoch it holds; one made under an older epoch changes nothing and is
@@ -22,16 +22,26 @@ from typing import Final
 
 import pyarrow as pa
 import sqlalchemy as sa
+from sqlalchemy.dialects import postgresql
 
-from jitdyn.errors import FailedPrecondition, NotFound
+from jitdyn.errors import NotFound, Unavailable
 from jitdyn.lifecycle import Closeable
 from jitdyn.storage.columns import LOG_SCHEMA, STORED_SINCE, conform
-from jitdyn.storage.index import finish_session
+from jitdyn.storage.index import finish_session, move_location
 from jitdyn.storage.records import SessionHeader, SessionSummaryInfo
 from jitdyn.storage.schema import session_leases, session_log, sessions
 from jitdyn.vocabulary import SessionStatus
 
-__all__ = ["Fenced", "Lease", "SharedLogStream", "SharedTier", "TakenOver", "Window", "new_owner_id"]
+__all__ = [
+    "Fenced",
+    "Lease",
+    "SharedLogStream",
+    "SharedTier",
+    "TakenOver",
+    "Unpublished",
+    "Window",
+    "new_owner_id",
+]
 
 # The log rows of one session read per query while compacting (bounded memory).
 _READ_PAGE: Final = 256
@@ -47,8 +57,9 @@ def _read_batch(data: bytes) -> pa.RecordBatch:
         return conform(pa.ipc.read_record_batch(pa.py_buffer(data), older))
 
 
-class Fenced(FailedPrecondition):
-    """A write under an epoch that is no longer the session's: another replica took it over."""
+class Fenced(Unavailable):
+    """A write under an epoch that is no longer the session's: another replica took it over. It
+    travels as UNAVAILABLE, which the SDK resumes: the session lives on with its new holder."""
 
 
 def new_owner_id() -> str:
@@ -75,17 +86,40 @@ class TakenOver:
 
 
 @dataclass(frozen=True, slots=True)
+class Unpublished:
+    """An ended session whose Parquet is not on the data root yet, held for publishing from its
+    shared log: its lease, the header it was opened with, and the location the index holds."""
+
+    lease: Lease
+    header_json: str
+    location: str
+
+
+@dataclass(frozen=True, slots=True)
 class Window:
     """One session's rows of a commit window: an encapsulated Arrow IPC record batch (LOG_SCHEMA),
-    and the highest result seq among them (None: only rejections)."""
+    the highest result seq among them (None: only rejections), and how many records of the
+    session's stream under this lease came before them (the window's key: retried, it is stored
+    once)."""
 
     lease: Lease
     top_seq: int | None
     data: bytes
+    first: int
 
 
-def _now() -> _dt.datetime:
-    return _dt.datetime.now(_dt.UTC)
+def _seconds(value: float) -> sa.ColumnElement[_dt.timedelta]:
+    return sa.type_coerce(sa.cast(value, sa.Float) * sa.literal_column("interval '1 second'"), sa.Interval())
+
+
+# Expiry is judged on one clock, PostgreSQL's (the transaction's start), never on a replica's: a host
+# whose clock is off neither takes live sessions nor keeps dead ones.
+_NOW: Final = sa.func.now()
+
+
+def _is_open(c: sa.ColumnClause[str] | sa.Column[str]) -> sa.ColumnElement[bool]:
+    """The lease's session is still OPEN in the index (not ended and waiting for its upload)."""
+    return sa.exists().where(sessions.c.session_id == c, sessions.c.status == SessionStatus.OPEN.value)
 
 
 class SharedTier:
@@ -96,8 +130,8 @@ class SharedTier:
         self.owner = owner
         self.lease_ttl = lease_ttl
 
-    def _expiry(self) -> _dt.datetime:
-        return _now() + _dt.timedelta(seconds=self.lease_ttl)
+    def _expiry(self) -> sa.ColumnElement[_dt.datetime]:
+        return _NOW + _seconds(self.lease_ttl)
 
     def create(self, header: SessionHeader, *, header_json: str, conn: sa.Connection) -> Lease:
         """The lease of a new session, epoch 1, in the caller's transaction (the index row's)."""
@@ -146,12 +180,23 @@ class SharedTier:
                 ).scalars()
             )
             rows = [
-                {"session_id": w.lease.session_id, "epoch": w.lease.epoch, "data": w.data}
+                {
+                    "session_id": w.lease.session_id,
+                    "epoch": w.lease.epoch,
+                    "data": w.data,
+                    "first_record": w.first,
+                }
                 for w in windows
                 if w.lease.session_id in kept
             ]
             if rows:
-                conn.execute(sa.insert(session_log), rows)
+                # A window whose earlier COMMIT landed though its answer was lost is there already.
+                conn.execute(
+                    postgresql.insert(session_log).on_conflict_do_nothing(
+                        index_elements=["session_id", "epoch", "first_record"]
+                    ),
+                    rows,
+                )
         return {w.lease.session_id for w in windows} - kept
 
     def renew(self, leases: Sequence[Lease]) -> set[str]:
@@ -179,7 +224,7 @@ class SharedTier:
             updated = conn.execute(
                 sa.update(session_leases)
                 .where(c.session_id == lease.session_id, c.epoch == lease.epoch)
-                .values(owner="", expires_at=_now(), ended_as=ended_as.value)
+                .values(owner="", expires_at=_NOW, ended_as=ended_as.value)
             ).rowcount
         if updated != 1:
             raise Fenced(f"session {lease.session_id} was taken over by another stream")
@@ -191,7 +236,7 @@ class SharedTier:
         with self.engine.begin() as conn:
             row = conn.execute(
                 sa.update(session_leases)
-                .where(c.session_id == session_id, c.tenant == tenant)
+                .where(c.session_id == session_id, c.tenant == tenant, _is_open(c.session_id))
                 .values(epoch=c.epoch + 1, owner=self.owner, expires_at=self._expiry())
                 .returning(c.epoch, c.header_json, c.durable_seq, c.ended_as)
             ).one_or_none()
@@ -208,13 +253,13 @@ class SharedTier:
         """Take over one session whose lease ran out more than `resume_timeout` ago (its server
         died, or its stream ended, and nobody resumed it); None when there is none."""
         c = session_leases.c
-        stale = _now() - _dt.timedelta(seconds=resume_timeout)
+        stale = _NOW - _seconds(resume_timeout)
         with self.engine.begin() as conn:
             candidate = conn.execute(
                 sa.select(c.session_id, c.tenant)
                 # Never this process's own: a session it still serves whose renewals the database
                 # missed (an outage) is not an orphan; another replica may take it, fencing it.
-                .where(c.expires_at < stale, c.owner != self.owner)
+                .where(c.expires_at < stale, c.owner != self.owner, _is_open(c.session_id))
                 .order_by(c.expires_at)
                 .limit(1)
                 .with_for_update(skip_locked=True)
@@ -234,6 +279,17 @@ class SharedTier:
             ended_as=SessionStatus(row.ended_as),
         )
 
+    def published(self, session_id: str, *, old: str, new: str) -> bool:
+        """The data root holds the ended session's Parquet at `new`: the index points there if it
+        still pointed at `old`, and the log rows and lease go (storage.index.move_location)."""
+        with self.engine.begin() as conn:
+            return move_location(conn, session_id, old=old, new=new)
+
+    def ping(self) -> None:
+        """Ask the database the simplest question: raises as any query would when it cannot answer."""
+        with self.engine.connect() as conn:
+            conn.execute(sa.select(1))
+
     def stream(self, session_id: str) -> SharedLogStream:
         """The session's log, batch by batch (use as a context manager)."""
         return SharedLogStream(self.engine, session_id)
@@ -245,17 +301,59 @@ class SharedTier:
         status: SessionStatus,
         summary: SessionSummaryInfo,
         location: str,
+        pending_upload: bool = False,
     ) -> None:
-        """End the session in one transaction: the lease (fenced), the index row, the log rows."""
+        """End the session in one transaction: the lease (fenced), the index row, the log rows.
+
+        `pending_upload` (its Parquet is meant for the data root, whose upload failed) keeps the
+        log rows and the lease, held by this process for one TTL: the rows are the only copy off this host until
+        the data root holds the Parquet. This process publishes its local file meanwhile
+        (storage/publish.py), and once the lease runs out any replica publishes from the rows
+        (`claim_unpublished`); whichever moves the location first lets go of the rows."""
         c = session_leases.c
+        fence = sa.and_(c.session_id == lease.session_id, c.epoch == lease.epoch)
         with self.engine.begin() as conn:
-            gone = conn.execute(
-                sa.delete(session_leases).where(c.session_id == lease.session_id, c.epoch == lease.epoch)
-            ).rowcount
-            if gone != 1:
+            if not pending_upload:
+                done = conn.execute(sa.delete(session_leases).where(fence)).rowcount
+            else:
+                done = conn.execute(
+                    sa.update(session_leases)
+                    .where(fence)
+                    .values(owner=self.owner, expires_at=self._expiry(), ended_as=SessionStatus(status).value)
+                ).rowcount
+            if done != 1:
                 raise Fenced(f"session {lease.session_id} was taken over by another stream")
             finish_session(conn, lease.session_id, status=status, summary=summary, location=location)
-            conn.execute(sa.delete(session_log).where(session_log.c.session_id == lease.session_id))
+            if not pending_upload:
+                conn.execute(sa.delete(session_log).where(session_log.c.session_id == lease.session_id))
+
+    def claim_unpublished(self) -> Unpublished | None:
+        """Hold one ended session whose Parquet the data root lacks and whose holder's lease ran
+        out (its replica died, or cannot publish), for one TTL under a new epoch; None when there
+        is none."""
+        c = session_leases.c
+        with self.engine.begin() as conn:
+            candidate = conn.execute(
+                sa.select(c.session_id, sessions.c.location)
+                .join(sessions, sessions.c.session_id == c.session_id)
+                .where(c.expires_at < _NOW, sessions.c.status != SessionStatus.OPEN.value)
+                .order_by(c.expires_at)
+                .limit(1)
+                .with_for_update(of=session_leases, skip_locked=True)
+            ).one_or_none()
+            if candidate is None:
+                return None
+            row = conn.execute(
+                sa.update(session_leases)
+                .where(c.session_id == candidate.session_id)
+                .values(epoch=c.epoch + 1, owner=self.owner, expires_at=self._expiry())
+                .returning(c.epoch, c.header_json)
+            ).one()
+        return Unpublished(
+            lease=Lease(candidate.session_id, int(row.epoch)),
+            header_json=row.header_json,
+            location=str(candidate.location),
+        )
 
     def discard(self, lease: Lease) -> None:
         """Remove a session that was never served: its lease, its log rows, its index row."""

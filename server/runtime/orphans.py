@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
+import time
 from pathlib import Path
 
 from jitdyn.server.runtime.services import Services
@@ -38,11 +40,36 @@ def finish_orphans_once(services: Services, *, data_root: Path) -> list[str]:
 
 
 async def finish_orphans(services: Services, *, data_root: Path) -> None:
-    """Look for sessions nobody resumed, a few times per resume timeout, until cancelled."""
+    """Look for sessions nobody resumed, a few times per resume timeout, until cancelled.
+
+    After the index did not answer, this replica waits one lease TTL of answers before it claims
+    anything: the owners cut off with it renew their leases first (their commits retry every half
+    second), so a session is never taken from a live owner because the outage ended here first."""
     interval = min(1.0, max(0.1, services.resume_timeout / 4))
+    ttl = services.shared.lease_ttl if services.shared is not None else 0.0
+    answered_since = time.monotonic()  # a fresh start waits for nothing: it was never cut off
+    waited_for_owners = True
     while True:
-        try:
-            await asyncio.to_thread(finish_orphans_once, services, data_root=data_root)
-        except STORAGE_ERRORS as error:
-            _log.warning("cannot look for sessions nobody resumed: %s", error)
+        if waited_for_owners or time.monotonic() - answered_since >= ttl:
+            waited_for_owners = True
+            try:
+                await asyncio.to_thread(finish_orphans_once, services, data_root=data_root)
+            except STORAGE_ERRORS as error:
+                _log.warning("cannot look for sessions nobody resumed: %s", error)
+                waited_for_owners = False
+                answered_since = math.inf
+        else:
+            answered_since = await asyncio.to_thread(_answered_at, services, answered_since)
         await asyncio.sleep(interval)
+
+
+def _answered_at(services: Services, since: float) -> float:
+    """`since`, or now if the index answers a trivial question for the first time since it failed;
+    math.inf while it does not answer. Blocking."""
+    if services.shared is None:
+        return since
+    try:
+        services.shared.ping()
+    except STORAGE_ERRORS:
+        return math.inf
+    return min(since, time.monotonic())

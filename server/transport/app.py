@@ -10,10 +10,12 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ipaddress
 import logging
 import os
 import signal
+import urllib.parse
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +25,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.key_files import SECRET_ENVIRONMENT, check_private_file, refuse_placeholder
 from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.config import Engine
@@ -36,7 +39,7 @@ from jitdyn.server.runtime.publishing import publish_pending_loop
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.runtime.stalls import LoopWatch, Stall
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
-from jitdyn.server.transport.auth import ApiKeyInterceptor, check_private_file, load_api_keys
+from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
 from jitdyn.server.transport.metrics import metrics, serve_metrics
 from jitdyn.server.transport.registry_service import ModelRegistryServicer
@@ -160,6 +163,46 @@ class ServerConfig:
         return cls(**values)  # type: ignore[arg-type]
 
 
+def _shared_tier_tasks(server: grpc.aio.Server, services: Services) -> list[asyncio.Task[None]]:
+    """The background work of a replica of a shared tier: sessions nobody resumed, sessions not yet
+    on the data root, and stepping down when its leases cannot be renewed."""
+    tasks = []
+    if services.shared is not None:
+        tasks.append(asyncio.create_task(finish_orphans(services, data_root=services.data_root)))
+        stepping = step_down_when_lease_lost(server.dynamics, server.health, services)  # type: ignore[attr-defined]
+        tasks.append(asyncio.create_task(stepping))
+    if services.root is not None:
+        tasks.append(asyncio.create_task(publish_pending_loop(services)))
+    return tasks
+
+
+async def step_down_when_lease_lost(
+    dynamics: DynamicsServicer, health_servicer: health.aio.HealthServicer, services: Services
+) -> None:
+    """While this replica's leases are past their renew deadline (checked a few times per TTL): the
+    session service NOT_SERVING in health (balancers and readiness send no session here, a resume
+    goes elsewhere), and its sessions told to move, again each TTL while it lasts. Until cancelled."""
+    if services.shared is None:
+        return
+    ttl = services.shared.lease_ttl
+    service = dynamics_pb2.DESCRIPTOR.services_by_name["DynamicsService"].full_name
+    stepped_down = False
+    while True:
+        await asyncio.sleep(ttl / 4)
+        lost = services.committer.lease_lost()
+        if lost != stepped_down:
+            status = (
+                health_pb2.HealthCheckResponse.NOT_SERVING if lost else health_pb2.HealthCheckResponse.SERVING
+            )
+            await health_servicer.set(service, status)
+            stepped_down = lost
+        if lost:
+            told = await dynamics.step_down()
+            if told:
+                _log.warning("leases not renewed within their deadline: %d session(s) told to move", told)
+                await asyncio.sleep(ttl)
+
+
 def _is_loopback(address: str) -> bool:
     host = address.rsplit(":", 1)[0].strip("[]")
     if host == "localhost":
@@ -170,6 +213,16 @@ def _is_loopback(address: str) -> bool:
         return False
 
 
+def _refuse_placeholders(config: ServerConfig) -> None:
+    """A Secret applied as shipped holds placeholders: refused here, before anything uses them."""
+    for name in SECRET_ENVIRONMENT:
+        refuse_placeholder(config.environ.get(name, ""), setting=f"environment variable {name}")
+    if config.index_url:
+        with contextlib.suppress(ValueError):
+            password = urllib.parse.urlsplit(config.index_url).password
+            refuse_placeholder(password or "", setting="the password of --index")
+
+
 def _check_security(config: ServerConfig) -> None:
     if ":" not in config.address:
         raise InvalidArgument(f"--address must be HOST:PORT, got {config.address!r}")
@@ -177,6 +230,7 @@ def _check_security(config: ServerConfig) -> None:
         raise InvalidArgument("--tls-cert and --tls-key must be given together")
     if config.tls_key:
         check_private_file(config.tls_key, setting="--tls-key")
+    _refuse_placeholders(config)
     if not _is_loopback(config.address) and not config.insecure and not (config.tls_cert and config.api_keys):
         raise InvalidArgument(
             f"--address {config.address} is not a loopback address: serving beyond this machine needs "
@@ -419,18 +473,12 @@ async def serve(
         loop.add_signal_handler(signum, stop.set)
     waiter = asyncio.create_task(server.wait_for_termination())
     stopper = asyncio.create_task(stop.wait())
-    orphans = (
-        asyncio.create_task(finish_orphans(services, data_root=services.data_root))
-        if services.shared is not None
-        else None
-    )
-    publisher = asyncio.create_task(publish_pending_loop(services)) if services.root is not None else None
+    background = [gc_pauses, *_shared_tier_tasks(server, services)]
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
     loop_watch.stop()
-    for task in (orphans, publisher, gc_pauses):
-        if task is not None:
-            task.cancel()
-            await asyncio.gather(task, return_exceptions=True)
+    for task in background:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
     if services.shared is not None:
         announce(f"jitdyn draining: open sessions are told to move (grace {config.drain_grace:g} s)")
         await server.health.enter_graceful_shutdown()  # type: ignore[attr-defined]

@@ -13,7 +13,6 @@ import contextvars
 import hashlib
 import hmac
 import re
-import stat
 import time
 from collections.abc import Awaitable, Callable, Mapping, Sequence
 from pathlib import Path
@@ -21,7 +20,8 @@ from typing import Any, TypeVar
 
 import grpc
 
-from jitdyn.errors import FailedPrecondition, InvalidArgument
+from jitdyn.errors import InvalidArgument
+from jitdyn.key_files import check_private_file, refuse_placeholder
 
 __all__ = [
     "DEFAULT_TENANT",
@@ -54,23 +54,10 @@ def _digest(key: str) -> bytes:
     return hashlib.sha256(key.encode()).digest()
 
 
-def check_private_file(path: Path, *, setting: str) -> None:
-    """Refuse a key file that group or others may read or write (FailedPrecondition, with the chmod
-    that fixes it): a key anyone on the machine can read protects nothing."""
-    try:
-        mode = stat.S_IMODE(path.stat().st_mode)
-    except OSError as error:
-        raise InvalidArgument(f"{setting} {str(path)!r} cannot be read: {error.strerror}") from None
-    if mode & 0o077:
-        raise FailedPrecondition(
-            f"{setting} {path} is accessible by group or others (mode {mode:04o}); run `chmod 600 {path}`"
-        )
-
-
 def load_api_keys(path: Path) -> dict[bytes, str]:
     """SHA-256 of each key -> its tenant, from a `KEY TENANT` file. Keys of fewer than 16 characters,
-    bad tenant names and repeated keys are refused with the line they are on; a file group or others
-    can read is refused."""
+    bad tenant names, repeated keys and secret.yaml's placeholder are refused with the line they are on;
+    a file others could read is refused (jitdyn.key_files)."""
     keys: dict[bytes, str] = {}
     check_private_file(path, setting="--api-keys")
     try:
@@ -87,6 +74,7 @@ def load_api_keys(path: Path) -> dict[bytes, str]:
                 f"--api-keys {path}:{number}: expected `KEY TENANT`, got {len(parts)} fields"
             )
         key, tenant = parts
+        refuse_placeholder(key, setting=f"--api-keys {path}:{number}: the key")
         if len(key) < 16:
             raise InvalidArgument(
                 f"--api-keys {path}:{number}: a key must have at least 16 characters, got {len(key)}"

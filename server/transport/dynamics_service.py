@@ -648,14 +648,35 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 pass
         return len(self._streams)
 
-    async def _tell_to_move(self, stream: _Stream, context: _Context) -> None:
+    async def step_down(self) -> int:
+        """This replica's leases ran past their renew deadline (the index does not answer it): tell
+        every session of the shared tier to move, without waiting for a flush that cannot come.
+        Each goes on here until its client has opened it elsewhere, so a session no other replica
+        can take (the index is down for all) keeps being answered. The sessions told."""
+        told = 0
+        for stream, context in list(self._streams.items()):
+            if stream.recorder.resumable:
+                reason = "this replica cannot renew its lease (the index does not answer it)"
+                await self._tell_to_move(stream, context, reason=reason, flush=False)
+                told += 1
+        return told
+
+    async def _tell_to_move(
+        self,
+        stream: _Stream,
+        context: _Context,
+        *,
+        reason: str = "the replica is draining (it is being stopped)",
+        flush: bool = True,
+    ) -> None:
         recorder = stream.recorder
         try:
-            await asyncio.to_thread(recorder.flush, 5.0)
+            if flush:
+                await asyncio.to_thread(recorder.flush, 5.0)
         except JitdynError as error:
             _log.warning("session %s: not flushed before moving: %s", recorder.header.session_id, error)
         durable = recorder.durable_seq
-        moving = dynamics_pb2.Moving(reason="the replica is draining (it is being stopped)")
+        moving = dynamics_pb2.Moving(reason=reason)
         if durable is not None:
             moving.durable_seq = durable
         try:

@@ -10,6 +10,7 @@ from jitdyn.client import ResumePolicy
 from jitdyn.client._resume import Refused, ResumeLedger, resume_outcome
 from jitdyn.client._transport import END
 from jitdyn.errors import ResumeBufferFull, SessionLost
+from jitdyn.storage.commit import SHARED_OUTAGE_LIMIT
 from jitdyn.v1 import dynamics_pb2
 
 
@@ -82,7 +83,13 @@ def test_the_buffer_is_bounded_and_nothing_is_kept_without_a_token_or_after_canc
     )
     assert ledger().moving(dynamics_pb2.Moving(reason="drain")) is None
     lost = ledger().lost("UNAVAILABLE: gone", "NOT_FOUND: no such session")
-    assert isinstance(lost, SessionLost) and lost.attempts == 8
+    assert isinstance(lost, SessionLost) and lost.attempts == ResumePolicy().attempts
+
+
+def test_the_resume_budget_outlasts_the_longest_outage_the_server_holds_rows_through() -> None:
+    policy = ResumePolicy()
+    waited = sum(policy.backoff(attempt) for attempt in range(policy.attempts))
+    assert waited > SHARED_OUTAGE_LIMIT, waited
 
 
 class _Status(grpc.RpcError):

@@ -461,9 +461,11 @@ class NetnsHost:
         """What runs a command inside the namespace."""
         return (tool("ip"), "netns", "exec", self.namespace)
 
-    def forward(self, port: int) -> str:
-        """Make the host's 127.0.0.1:`port` reachable from inside as host_ip:`port`; returns it."""
-        self._forwards.append(TcpForward(listen=(self.host_ip, port), target=("127.0.0.1", port)))
+    def forward(self, port: int, *, to: int | None = None) -> str:
+        """Make the host's 127.0.0.1:`to` (default: `port`) reachable from inside as
+        host_ip:`port`; returns it."""
+        target = ("127.0.0.1", port if to is None else to)
+        self._forwards.append(TcpForward(listen=(self.host_ip, port), target=target))
         return f"{self.host_ip}:{port}"
 
     def cut(self) -> None:

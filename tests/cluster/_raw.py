@@ -42,17 +42,19 @@ def frame(k: int) -> dynamics_pb2.Frame:
 class RawSession:
     """One StreamSession: `send` requests, `next` responses."""
 
-    def __init__(self, address: str, open_: dynamics_pb2.OpenSession) -> None:
+    def __init__(self, address: str, open_: dynamics_pb2.OpenSession, *, api_key: str | None = None) -> None:
         self.channel = grpc.insecure_channel(address)
         self._requests: queue.Queue[dynamics_pb2.StreamSessionRequest | None] = queue.Queue()
         stub = dynamics_pb2_grpc.DynamicsServiceStub(self.channel)
+        metadata = [("authorization", f"Bearer {api_key}")] if api_key else None
         self._responses: Iterator[dynamics_pb2.StreamSessionResponse] = stub.StreamSession(
-            iter(self._requests.get, None)
+            iter(self._requests.get, None), metadata=metadata
         )
         self._requests.put(dynamics_pb2.StreamSessionRequest(open=open_))
         first = self.next()
         assert first.WhichOneof("payload") == "opened", first
         self.opened = first.opened
+        self.moves: list[dynamics_pb2.Moving] = []  # `moving` notices, which this client ignores
 
     def next(self) -> dynamics_pb2.StreamSessionResponse:
         return next(self._responses)
@@ -61,6 +63,9 @@ class RawSession:
         """Frame `k`, answered (LOCKSTEP)."""
         self._requests.put(dynamics_pb2.StreamSessionRequest(frame=frame(k)))
         response = self.next()
+        while response.WhichOneof("payload") == "moving":
+            self.moves.append(response.moving)
+            response = self.next()
         assert response.WhichOneof("payload") == "result", response
         return response.result
 

@@ -12,12 +12,14 @@ import os
 import re
 import shutil
 import subprocess
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 import pytest
+import sqlalchemy as sa
 from _cluster import REPO, MotoS3, Replica, tool, wait_for
 from _raw import PENDULUM, RawSession, open_message, session_row
 
@@ -79,7 +81,7 @@ def test_two_replicas_publish_to_one_bucket_that_a_third_machine_reads(
     for replica, ticks in zip(replicas, (12, 17), strict=True):
         session_id, location = one_session(replica, ticks)
         assert location.startswith(f"{root}/frames/model=pendulum_2/date=")
-        assert location.endswith(f"/{session_id}.parquet")
+        assert location.endswith(f"/{session_id}.e1.parquet")  # stored under its first epoch
         assert (session_row(index_url, session_id) or {})["location"] == location
         assert replica.stored_sessions() == []  # published, so not kept in the replica's folder
         stored[session_id] = ticks
@@ -166,3 +168,67 @@ def test_a_session_ended_while_the_store_is_down_moves_to_the_root_once_it_answe
         table = pq.read_table(uri.removeprefix("s3://"), filesystem=s3(back), columns=["seq"])
         assert table.column("seq").to_pylist() == list(range(9))
     assert f"session {session_id}: published to the data root now" in replica.log.read_text()
+
+
+def test_a_session_closed_while_the_store_is_down_survives_its_replica_and_its_folder(
+    start_replica: Callable[..., Replica], index_url: str, tmp_path: Path
+) -> None:
+    """The session's only off-host copy is its rows in PostgreSQL until the data root holds its
+    Parquet: its replica killed and its folder deleted before the store is back, the next replica
+    publishes it from those rows."""
+    fast = ["--lease-ttl=1s", "--resume-timeout=1s"]
+    store = MotoS3.start(workdir=tmp_path / "moto")
+    bucket = "jitdyn-evicted"
+    try:
+        s3(store).create_dir(bucket)
+        doomed = start_replica(
+            "evicted", "127.0.0.44", extra=[f"--data-root=s3://{bucket}", *fast], env=s3_env(store)
+        )
+    finally:
+        store.close()
+    session_id, location = one_session(doomed, 120)
+    assert not location.startswith("s3://")  # kept in the folder: the store did not answer
+    doomed.kill()
+    shutil.rmtree(doomed.data)
+    with MotoS3.start(workdir=tmp_path / "moto-again", port=store.port) as back:
+        s3(back).create_dir(bucket)
+        started = time.monotonic()
+        successor = start_replica(
+            "successor", "127.0.0.45", extra=[f"--data-root=s3://{bucket}", *fast], env=s3_env(back)
+        )
+        wait_for(
+            lambda: str((session_row(index_url, session_id) or {})["location"]).startswith("s3://"),
+            timeout=30,
+            what="no replica published the session from the shared log",
+        )
+        took = time.monotonic() - started
+        uri = str((session_row(index_url, session_id) or {})["location"])
+        table = pq.read_table(uri.removeprefix("s3://"), filesystem=s3(back), columns=["kind", "seq"])
+        seqs = sorted(
+            s
+            for k, s in zip(table["kind"].to_pylist(), table["seq"].to_pylist(), strict=True)
+            if k == "result"
+        )
+    print(f"{len(seqs)} of 120 frames in S3, published by {successor.name} {took:.1f} s after it started")
+    assert seqs == list(range(120))
+    # Published under the epoch of the replica that published it (it held the session to do so).
+    assert (
+        location.endswith(".e1.parquet")
+        and uri == f"s3://{bucket}/{location[: -len('e1.parquet')]}e2.parquet"
+    )
+    assert (session_row(index_url, session_id) or {})["status"] == "COMPLETE"
+    assert _log_rows(index_url, session_id) == 0  # the rows went once the store held the file
+    assert "published to the data root from the shared log" in successor.log.read_text()
+
+
+def _log_rows(index_url: str, session_id: str) -> int:
+    engine = sa.create_engine(index_url)
+    try:
+        with engine.connect() as conn:
+            return int(
+                conn.execute(
+                    sa.text("SELECT count(*) FROM session_log WHERE session_id = :id"), {"id": session_id}
+                ).scalar_one()
+            )
+    finally:
+        engine.dispose()

@@ -3,9 +3,11 @@ operators see them."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -97,6 +99,78 @@ def test_key_files_others_can_read_are_refused_at_start(
             f"(mode {mode:04o}); run `chmod 600 {keys}`"
         )
     ]
+
+
+_CHECK_AS_POD_USER = """
+import sys
+from pathlib import Path
+from jitdyn.errors import FailedPrecondition
+from jitdyn.key_files import check_private_file
+for name in sys.argv[1:]:
+    try:
+        check_private_file(Path(name), setting="--api-keys")
+        print("accepted")
+    except FailedPrecondition as error:
+        print(error)
+"""
+
+
+def test_key_files_owned_by_root_may_be_read_by_their_group_as_a_secret_volume_mounts_them() -> None:
+    """PostgreSQL's rule, checked by a process that is not root (as a pod's is): a root-owned key
+    readable by its group (a Secret volume's 0440 root:fsGroup) is accepted; others reading it, its
+    group writing it, or an owner that is neither root nor the server's user are refused."""
+    setpriv = shutil.which("setpriv")
+    if os.geteuid() != 0 or setpriv is None:
+        pytest.skip("checking as another user needs root and setpriv")
+    with tempfile.TemporaryDirectory(prefix="jitdyn-keys-") as name:  # pytest's tmp_path is root's only
+        folder = Path(name)
+        folder.chmod(0o755)
+        _check_as_pod_user(folder, setpriv)
+
+
+def _check_as_pod_user(folder: Path, setpriv: str) -> None:
+    cases = {0o440: "accepted", 0o640: "accepted", 0o400: "accepted", 0o444: "others", 0o460: "others"}
+    files = []
+    for mode in cases:
+        path = folder / f"root-{mode:04o}"
+        path.write_text("k")
+        os.chown(path, 0, 10001)
+        path.chmod(mode)
+        files.append(path)
+    foreign = folder / "foreign"
+    foreign.write_text("k")
+    os.chown(foreign, 10002, 10001)
+    foreign.chmod(0o440)
+    done = subprocess.run(
+        [
+            setpriv,
+            "--reuid=10001",
+            "--regid=10001",
+            "--groups=10001",
+            sys.executable,
+            "-c",
+            _CHECK_AS_POD_USER,
+            *map(str, files),
+            str(foreign),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    )
+    lines = done.stdout.splitlines()
+    for (mode, expected), path, line in zip(cases.items(), files, lines, strict=False):
+        if expected == "accepted":
+            assert line == "accepted", (oct(mode), line)
+        else:
+            assert line == (
+                f"--api-keys {path} is owned by root and accessible by others or writable by its group "
+                f"(mode {mode:04o}); a key file root owns may be read by its group only: 0440 or 0640"
+            )
+    assert lines[-1] == (
+        f"--api-keys {foreign} is owned by uid 10002, neither this server's user (uid 10001) nor root; "
+        f"run `chown 10001 {foreign}`"
+    )
 
 
 def test_a_data_folder_that_cannot_be_written_stops_serve_in_one_line(

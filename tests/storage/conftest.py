@@ -5,6 +5,7 @@ with the SessionServicer on a loopback port 0."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import threading
 import uuid
@@ -31,16 +32,11 @@ def data_root(tmp_path: Path) -> Path:
     return root
 
 
-@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
-def engine(request: pytest.FixtureRequest, data_root: Path) -> Iterator[sa.Engine]:
-    """A migrated index: a SQLite file in the data root, or a fresh PostgreSQL schema."""
-    if request.param == "sqlite":
-        engine = open_index(f"sqlite:///{data_root / 'index.sqlite'}")
-        yield engine
-        engine.dispose()
-        return
+@contextlib.contextmanager
+def postgres_index(url: str = POSTGRES_URL) -> Iterator[sa.Engine]:
+    """A migrated index in a fresh PostgreSQL schema (reached at `url`), dropped afterwards."""
     schema = f"jitdyn_test_{uuid.uuid4().hex[:12]}"
-    engine = open_index(POSTGRES_URL, schema=schema)
+    engine = open_index(url, schema=schema)
     try:
         yield engine
     finally:
@@ -49,6 +45,18 @@ def engine(request: pytest.FixtureRequest, data_root: Path) -> Iterator[sa.Engin
         with admin.begin() as conn:
             conn.execute(sa.text(f'DROP SCHEMA IF EXISTS "{schema}" CASCADE'))
         admin.dispose()
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)])
+def engine(request: pytest.FixtureRequest, data_root: Path) -> Iterator[sa.Engine]:
+    """A migrated index: a SQLite file in the data root, or a fresh PostgreSQL schema."""
+    if request.param == "sqlite":
+        engine = open_index(f"sqlite:///{data_root / 'index.sqlite'}")
+        yield engine
+        engine.dispose()
+        return
+    with postgres_index() as engine:
+        yield engine
 
 
 @pytest.fixture()

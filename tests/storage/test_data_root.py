@@ -7,9 +7,10 @@ from __future__ import annotations
 import logging
 import sys
 from collections.abc import Callable, Iterator
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
+import pyarrow.dataset as pads
 import pyarrow.fs as pafs
 import pyarrow.parquet as pq
 import pytest
@@ -20,6 +21,7 @@ from _cluster import MotoS3, Unavailable, free_port
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.errors import Unavailable as UnavailableError
+from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.export import export_session
 from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.publish import publish_pending
@@ -27,6 +29,9 @@ from jitdyn.storage.query import run_query
 from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.records import SessionHeader
 from jitdyn.storage.root import normalise_root_uri, open_data_root, open_location, resolve_data_root
+from jitdyn.storage.shared import Fenced, SharedTier
+
+from .conftest import build_header, build_records, postgres_index
 
 BUCKET = "jitdyn-root"
 
@@ -338,3 +343,55 @@ def test_readers_name_an_unreachable_root_in_one_line(
     assert str(queried.value).startswith(f"the data root holding {BUCKET}/readers/frames cannot be read: ")
     for error in (exported.value, queried.value):
         assert "\n" not in str(error) and "connect" in str(error).lower()
+
+
+@pytest.mark.postgres
+def test_a_stale_finisher_leaves_the_new_owners_object_alone(moto: MotoS3, tmp_path: Path) -> None:
+    """Objects are fenced by the epoch in their key: a session taken over (epoch 2) and closed by
+    its new owner, then closed late by its old holder (epoch 1, whose upload lands after): the index
+    names the epoch-2 object, the late one is removed, and the data root's files hold the session
+    once."""
+    env = s3_env(moto.endpoint_url)
+    root = open_data_root(f"s3://{BUCKET}/fenced", environ=env)
+    header, records = build_header(), build_records(20)
+    with postgres_index() as engine:
+        index = SessionIndex(engine)
+        old_tier = SharedTier(engine, owner="stale", lease_ttl=30)
+        new_tier = SharedTier(engine, owner="owner", lease_ttl=30)
+        with GroupCommitter(shared=old_tier) as old_commits, GroupCommitter(shared=new_tier) as new_commits:
+            stale = SessionRecorder(
+                data_root=tmp_path / "a",
+                index=index,
+                header=header,
+                committer=old_commits,
+                shared=old_tier,
+                root=root,
+            )
+            for record in records[:10]:
+                stale.append(record)
+            stale.flush(timeout=10)
+            taken = new_tier.take_over(header.session_id, tenant="")
+            owner = SessionRecorder(
+                data_root=tmp_path / "b",
+                index=index,
+                header=header,
+                committer=new_commits,
+                shared=new_tier,
+                resumed=taken,
+                root=root,
+            )
+            for record in records[10:]:
+                owner.append(record)
+            location = owner.close()
+            with pytest.raises(Fenced):
+                stale.close()
+        indexed = index.get(header.session_id, tenant="").location
+    s3 = moto.filesystem()
+    folder = f"{BUCKET}/fenced/frames/model=pendulum_3/date=2026-11-21"
+    names = [PurePosixPath(i.path).name for i in s3.get_file_info(pafs.FileSelector(folder))]
+    dataset = pads.dataset(f"{BUCKET}/fenced/frames", filesystem=s3, format="parquet", partitioning="hive")
+    table = dataset.to_table(columns=["session_id", "seq"])
+    print(f"the data root holds {names}; the index names {indexed.rsplit('/', 1)[1]}")
+    assert location == indexed == f"s3://{BUCKET}/fenced/frames/model=pendulum_3/date=2026-11-21/{names[0]}"
+    assert names == [f"{header.session_id}.e2.parquet"]
+    assert table.column("seq").to_pylist() == [r.seq for r in records]

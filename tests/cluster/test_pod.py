@@ -1,0 +1,337 @@
+"""deploy/kubernetes run as a kubelet runs it, without a kubelet: the Deployment's container in a
+network namespace of its own (its pod network), in a mount namespace where the Secret volume, the
+emptyDirs and a read-only root are mounted as the kubelet mounts them, as the pod's user
+(runAsUser 10001, fsGroup 10001 as a supplementary group, no capabilities), with the environment
+the kubelet builds (the image's ENV, then envFrom the ConfigMap and the Secret, then env) and the
+image's ENTRYPOINT. Only the cluster's host names change: they point at this machine's PostgreSQL
+and at moto's S3, forwarded into the pod's network on the ports the manifests name."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import re
+import secrets
+import shlex
+import subprocess
+import sys
+from collections.abc import Iterator, Mapping
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import grpc
+import psycopg
+import pyarrow.parquet as pq
+import pytest
+import yaml
+from _cluster import POSTGRES_ADMIN, REPO, MotoS3, NetnsHost, tool, wait_for
+from _raw import PENDULUM, RawSession, open_message
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from jitdyn.key_files import PLACEHOLDER_PREFIX
+from jitdyn.v1 import model_registry_pb2, model_registry_pb2_grpc
+
+pytestmark = pytest.mark.postgres
+
+KUBERNETES = REPO / "deploy" / "kubernetes"
+DOCKERFILE = REPO / "deploy" / "Dockerfile"
+# What the cluster's DNS would answer for the Services the ConfigMap names.
+CLUSTER_HOSTS = ("postgres.jitdyn.svc.cluster.local", "minio.jitdyn.svc.cluster.local")
+# Environment variable names the kubelet takes from an envFrom source (others are skipped, with an
+# event; `api-keys` is one: it reaches the pod as a file only).
+_ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_LISTENING = re.compile(r"jitdyn listening on (\S+):(\d+) \(")
+
+
+def _manifest(name: str) -> dict[str, Any]:
+    (document,) = [d for d in yaml.safe_load_all((KUBERNETES / name).read_text()) if d]
+    return dict(document)
+
+
+def _image() -> tuple[dict[str, str], list[str], tuple[int, int]]:
+    """The final stage's ENV, ENTRYPOINT and USER, as `docker build` bakes them into the image."""
+    text = re.sub(r"\\\n", " ", DOCKERFILE.read_text())
+    final = text.split("\nFROM ")[-1]
+    environment: dict[str, str] = {}
+    entrypoint: list[str] = []
+    user = (0, 0)
+    for line in final.splitlines():
+        word, _, rest = line.strip().partition(" ")
+        if word == "ENV":
+            environment.update(part.split("=", 1) for part in shlex.split(rest))  # type: ignore[arg-type]
+        elif word == "ENTRYPOINT":
+            entrypoint = json.loads(rest)
+        elif word == "USER":
+            uid, gid = rest.split(":")
+            user = (int(uid), int(gid))
+    return environment, entrypoint, user
+
+
+def operator_secret(*, api_key: str) -> dict[str, str]:
+    """secret.yaml's stringData with every placeholder replaced, as an operator does before applying
+    it (PostgreSQL here trusts local connections and moto takes any keys, so these are accepted)."""
+    values = dict(_manifest("secret.yaml")["stringData"])
+    real = {
+        "JITDYN_SECRET": secrets.token_hex(32),
+        "PGPASSWORD": secrets.token_urlsafe(24),
+        "AWS_ACCESS_KEY_ID": "AKIA" + secrets.token_hex(8).upper(),
+        "AWS_SECRET_ACCESS_KEY": secrets.token_urlsafe(30),
+        "api-keys": f"{api_key} tenant-a\n",
+    }
+    assert all(v.startswith(PLACEHOLDER_PREFIX) or k not in real for k, v in values.items())
+    values.update(real)
+    return values
+
+
+def _pod_environment(
+    container: Mapping[str, Any], *, config: Mapping[str, str], secret: Mapping[str, str]
+) -> dict[str, str]:
+    """The kubelet's order: the image's ENV, envFrom in the order listed, then env (each wins over
+    what came before)."""
+    image_env, _, _ = _image()
+    environment = {
+        "PATH": f"{Path(tool('jitdyn')).parent}:/usr/local/bin:/usr/bin:/bin",
+        "HOME": "/var/lib/jitdyn",  # the image user's home (useradd --home-dir)
+        "HOSTNAME": "jitdyn-7c9d5b6f4-x2x9q",
+        **image_env,
+    }
+    sources = {"configMapRef": config, "secretRef": secret}
+    for source in container.get("envFrom", []):
+        ((kind, _),) = source.items()
+        environment.update({k: v for k, v in sources[kind].items() if _ENV_NAME.fullmatch(k)})
+    environment.update({e["name"]: e["value"] for e in container.get("env", [])})
+    return environment
+
+
+def _secret_volume(
+    path: Path, volume: Mapping[str, Any], secret: Mapping[str, str], *, fs_group: int
+) -> None:
+    """A Secret volume as the kubelet's atomic writer lays it out: the files in a timestamped folder,
+    `..data` a symlink to it, each item a symlink through `..data`; files root:fsGroup with the
+    volume's defaultMode."""
+    stamp = _dt.datetime.now(_dt.UTC).strftime("..%Y_%m_%d_%H_%M_%S.%f000")
+    path.mkdir(mode=0o755)
+    (path / stamp).mkdir(mode=0o755)
+    mode = volume["secret"].get("defaultMode", 0o644)
+    for item in volume["secret"]["items"]:
+        target = path / stamp / item["path"]
+        target.write_text(secret[item["key"]])
+        os.chown(target, 0, fs_group)
+        os.chmod(target, item.get("mode", mode))
+        os.symlink(f"..data/{item['path']}", path / item["path"])
+    os.symlink(stamp, path / "..data")
+    for folder in (path, path / stamp):
+        os.chown(folder, 0, fs_group)
+        os.chmod(folder, 0o2755)
+
+
+def _empty_dir(path: Path, *, fs_group: int) -> None:
+    path.mkdir()
+    os.chown(path, 0, fs_group)
+    os.chmod(path, 0o2777)
+
+
+@contextmanager
+def _postgres_for(url: str) -> Iterator[None]:
+    """The role and database the ConfigMap's index URL names, made fresh and dropped afterwards."""
+    parts = re.fullmatch(r"postgresql\+psycopg://(\w+)@[^/]+/(\w+)", url)
+    assert parts, url
+    role, database = parts.groups()
+    with psycopg.connect(POSTGRES_ADMIN, autocommit=True, connect_timeout=3) as admin:
+        admin.execute(f'DROP DATABASE IF EXISTS "{database}" WITH (FORCE)')
+        if admin.execute("SELECT 1 FROM pg_roles WHERE rolname = %s", (role,)).fetchone() is None:
+            admin.execute(f'CREATE ROLE "{role}" LOGIN')
+        admin.execute(f'CREATE DATABASE "{database}" OWNER "{role}"')
+        try:
+            yield
+        finally:
+            admin.execute(f'DROP DATABASE IF EXISTS "{database}" WITH (FORCE)')
+
+
+@dataclass
+class Pod:
+    """The Deployment's container, started; `address` as another pod reaches it."""
+
+    process: subprocess.Popen[bytes]
+    log: Path
+    address: str
+
+    def log_text(self) -> str:
+        return self.log.read_text(errors="replace")
+
+
+def _python_for_everyone(staging: Path) -> list[str]:
+    """Mounts that let the pod's user run this interpreter when it is installed under root's home
+    (pyenv in /root, mode 0700), as an image's Python is readable by every user: an empty /root
+    with only the installation in it."""
+    base = Path(sys.base_prefix).resolve()
+    if not base.is_relative_to("/root"):
+        return []
+    staging.mkdir()
+    quoted = shlex.quote(str(base))
+    return [
+        f"mount --bind {quoted} {shlex.quote(str(staging))}",
+        "mount -t tmpfs -o mode=0755,size=1m tmpfs /root",
+        f"mkdir -p {quoted}",
+        f"mount --move {shlex.quote(str(staging))} {quoted}",
+    ]
+
+
+def _mount_script(
+    mounts: Mapping[str, tuple[Path, bool]], run_as: list[str], command: list[str], *, staging: Path
+) -> str:
+    """What the container runtime does in the pod's mount namespace: the root file system read-only
+    (readOnlyRootFilesystem), each volume mounted, then the entrypoint as the pod's user."""
+    lines = ["set -e", *_python_for_everyone(staging), "mount --bind / /", "mount -o remount,bind,ro /"]
+    # A volume mounted over a folder that holds another's source (the /tmp emptyDir over pytest's
+    # tmp_path) goes last.
+    sources = [source for source, _ in mounts.values()]
+    order = sorted(mounts, key=lambda target: any(s.is_relative_to(target) for s in sources))
+    for target in order:
+        source, read_only = mounts[target]
+        lines.append(f"mount --bind {shlex.quote(str(source))} {shlex.quote(target)}")
+        # A bind takes its source mount's flags: the read-only root's, until set.
+        flag = "ro" if read_only else "rw"
+        lines.append(f"mount -o remount,bind,{flag} {shlex.quote(target)}")
+    lines.append("exec " + shlex.join([*run_as, *command]))
+    return "\n".join(lines)
+
+
+@contextmanager
+def run_pod(
+    workdir: Path, host: NetnsHost, *, config: Mapping[str, str], secret: Mapping[str, str]
+) -> Iterator[Pod]:
+    """deployment.yaml's pod: its volumes made, its container started; stopped afterwards."""
+    spec = _manifest("deployment.yaml")["spec"]["template"]["spec"]
+    (container,) = spec["containers"]
+    context = spec["securityContext"]
+    uid, gid, fs_group = context["runAsUser"], context["runAsGroup"], context["fsGroup"]
+    assert context["runAsNonRoot"] and uid != 0
+    volumes = {v["name"]: v for v in spec["volumes"]}
+    mounts: dict[str, tuple[Path, bool]] = {}
+    for mount in container["volumeMounts"]:
+        source = workdir / "volumes" / mount["name"]
+        source.parent.mkdir(exist_ok=True)
+        if "secret" in volumes[mount["name"]]:
+            _secret_volume(source, volumes[mount["name"]], secret, fs_group=fs_group)
+        else:
+            _empty_dir(source, fs_group=fs_group)
+        mounts[mount["mountPath"]] = (source, bool(mount.get("readOnly")))
+    _, entrypoint, _ = _image()
+    command = [*(container.get("command") or entrypoint), *container.get("args", [])]
+    command[0] = tool(command[0])  # the image's `jitdyn` is this checkout's
+    environment = _pod_environment(container, config=config, secret=secret)
+    run_as = [
+        tool("setpriv"),
+        f"--reuid={uid}",
+        f"--regid={gid}",
+        f"--groups={fs_group}",
+        "--inh-caps=-all",
+        "--bounding-set=-all",
+        "--no-new-privs",
+        "--",
+        "env",
+        "-i",
+        *(f"{k}={v}" for k, v in environment.items()),
+    ]
+    log = workdir / "pod.log"
+    with ExitStack() as stack:
+        for target in mounts:
+            # Mount points must exist on the host's file system, as the image has them.
+            if not Path(target).exists():
+                Path(target).mkdir(parents=True)
+                stack.callback(lambda t=target: Path(t).rmdir())
+        script = _mount_script(mounts, run_as, command, staging=workdir / "python")
+        with log.open("wb") as out:
+            process = subprocess.Popen(
+                [*host.prefix, tool("unshare"), "--mount", "--propagation=private", "sh", "-c", script],
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+        stack.callback(_stop_pod, process)
+        port = int(environment["JITDYN_ADDRESS"].rsplit(":", 1)[1])
+        pod = Pod(process, log, f"{host.peer_ip}:{port}")
+
+        def listening() -> bool:
+            if process.poll() is not None:
+                raise RuntimeError(f"the pod exited ({process.returncode}):\n{pod.log_text()}")
+            return _LISTENING.search(pod.log_text()) is not None
+
+        wait_for(listening, timeout=60, what="the pod did not listen")
+        yield pod
+
+
+def _stop_pod(process: subprocess.Popen[bytes]) -> None:
+    if process.poll() is None:
+        os.killpg(process.pid, 15)
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, 9)
+            process.wait(timeout=10)
+
+
+def _point_at(config: Mapping[str, str], host: NetnsHost) -> dict[str, str]:
+    """The ConfigMap with the cluster's host names replaced by the pod network's way to this host."""
+    pointed = {}
+    for name, value in config.items():
+        for cluster_host in CLUSTER_HOSTS:
+            value = value.replace(cluster_host, host.host_ip)
+        pointed[name] = value
+    return pointed
+
+
+def _serving(address: str, service: str) -> bool:
+    """The readiness probe: gRPC health of `service`."""
+    with grpc.insecure_channel(address) as channel:
+        try:
+            answer = health_pb2_grpc.HealthStub(channel).Check(
+                health_pb2.HealthCheckRequest(service=service), timeout=1
+            )
+        except grpc.RpcError:
+            return False
+    return bool(answer.status == health_pb2.HealthCheckResponse.SERVING)
+
+
+def test_the_deployment_starts_as_a_kubelet_runs_it_and_serves_an_authenticated_session(
+    netns_host: NetnsHost, tmp_path: Path
+) -> None:
+    config = _point_at(_manifest("configmap.yaml")["data"], netns_host)
+    index_port = int(re.search(r"@[^:/]+:(\d+)/", config["JITDYN_INDEX_URL"]).group(1))  # type: ignore[union-attr]
+    netns_host.forward(index_port, to=5432)
+    api_key = secrets.token_urlsafe(32)
+    secret = operator_secret(api_key=api_key)
+    bucket = config["JITDYN_DATA_ROOT"].removeprefix("s3://").split("/", 1)[0]
+    with (
+        MotoS3.start(workdir=tmp_path / "moto") as store,
+        _postgres_for(config["JITDYN_INDEX_URL"]),
+    ):
+        store.filesystem().create_dir(bucket)
+        netns_host.forward(int(config["AWS_ENDPOINT_URL"].rsplit(":", 1)[1]), to=store.port)
+        with run_pod(tmp_path, netns_host, config=config, secret=secret) as pod:
+            wait_for(
+                lambda: _serving(pod.address, "jitdyn.v1.DynamicsService"),
+                timeout=30,
+                what="the readiness probe did not pass",
+            )
+            status = Path(f"/proc/{pod.process.pid}/status").read_text()
+            uids = re.search(r"^Uid:\s+(\d+)", status, re.MULTILINE).group(1)  # type: ignore[union-attr]
+            groups = re.search(r"^Groups:\s*(.*)$", status, re.MULTILINE).group(1)  # type: ignore[union-attr]
+            with grpc.insecure_channel(pod.address) as channel, pytest.raises(grpc.RpcError) as refused:
+                model_registry_pb2_grpc.ModelRegistryServiceStub(channel).ListModels(
+                    model_registry_pb2.ListModelsRequest(), timeout=10
+                )
+            assert refused.value.code() == grpc.StatusCode.UNAUTHENTICATED
+            session = RawSession(pod.address, open_message(PENDULUM), api_key=api_key)
+            for k in range(20):
+                session.send(k)
+            location = session.close().summary.location
+        print(f"pod ran as uid {uids}, groups {groups}; session stored at {location}")
+        assert (uids, groups.split()) == ("10001", ["10001"])
+        assert location.startswith(f"{config['JITDYN_DATA_ROOT']}/frames/")
+        table = pq.read_table(location.removeprefix("s3://"), filesystem=store.filesystem(), columns=["seq"])
+        assert sorted(set(table.column("seq").to_pylist())) == list(range(20))
