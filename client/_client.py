@@ -21,7 +21,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self, TypeVar, Unpack
@@ -238,7 +238,14 @@ class Session(SessionCore):
         if self._connections is not None:
             self._connections.adopt(moved=True)
         self._generation, self._requests, self._call, self._reader = generation, requests, call, reader
-        for request in self._ledger.resumed(outcome, cause=trial.cause, attempts=1, started=trial.started):
+        self._after_resume(
+            self._ledger.resumed(outcome, cause=trial.cause, attempts=1, started=trial.started)
+        )
+
+    def _after_resume(self, resent: Iterable[dynamics_pb2.StreamSessionRequest]) -> None:
+        """On the new stream: the requests the server has not acknowledged, again; the close when
+        the session was closed meanwhile; a sync on a REALTIME session, whose clock starts anew."""
+        for request in resent:
             self._requests.put(request)
         if self._closed:
             self._requests.put(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
@@ -294,13 +301,9 @@ class Session(SessionCore):
                 if outcome.retry:
                     continue
                 break
-            for request in self._ledger.resumed(outcome, cause=cause, attempts=attempt + 1, started=started):
-                self._requests.put(request)
-            if self._closed:
-                self._requests.put(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
-                self._requests.put(END)
-            if self._realtime and not self._closed:
-                self.sync()
+            self._after_resume(
+                self._ledger.resumed(outcome, cause=cause, attempts=attempt + 1, started=started)
+            )
             return
         self._responses.put((self._generation, END))
         self._finish()
