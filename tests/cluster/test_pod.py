@@ -14,6 +14,7 @@ import os
 import re
 import secrets
 import shlex
+import stat
 import subprocess
 import sys
 from collections.abc import Iterator, Mapping
@@ -163,21 +164,39 @@ class Pod:
         return self.log.read_text(errors="replace")
 
 
-def _python_for_everyone(staging: Path) -> list[str]:
-    """Mounts that let the pod's user run this interpreter when it is installed under root's home
-    (pyenv in /root, mode 0700), as an image's Python is readable by every user: an empty /root
-    with only the installation in it."""
-    base = Path(sys.base_prefix).resolve()
-    if not base.is_relative_to("/root"):
-        return []
-    staging.mkdir()
-    quoted = shlex.quote(str(base))
-    return [
-        f"mount --bind {quoted} {shlex.quote(str(staging))}",
-        "mount -t tmpfs -o mode=0755,size=1m tmpfs /root",
-        f"mkdir -p {quoted}",
-        f"mount --move {shlex.quote(str(staging))} {quoted}",
-    ]
+def _blocking_ancestor(path: Path) -> Path | None:
+    """The outermost folder above `path` that other users cannot enter (mode without o+x)."""
+    for ancestor in reversed(path.parents[:-1]):
+        if not ancestor.stat().st_mode & stat.S_IXOTH:
+            return ancestor
+    return None
+
+
+def _code_for_everyone(staging: Path) -> list[str]:
+    """Mounts that let the pod's user run this interpreter, this checkout and its venv when they lie
+    under a folder only root may enter (pyenv in /root, a CI checkout under a 0700 folder), as an
+    image's installation is readable by every user: over each such folder, an empty one holding only
+    the code."""
+    paths = sorted({Path(p).resolve() for p in (sys.base_prefix, sys.prefix, REPO)})
+    outermost = [p for p in paths if not any(p != q and p.is_relative_to(q) for q in paths)]
+    blocked = {path: folder for path in outermost if (folder := _blocking_ancestor(path))}
+    lines = []
+    for k, path in enumerate(blocked):
+        (staging / str(k)).mkdir(parents=True)
+        lines.append(f"mount --bind {shlex.quote(str(path))} {shlex.quote(str(staging / str(k)))}")
+    for folder in dict.fromkeys(blocked.values()):
+        lines.append(f"mount -t tmpfs -o mode=0755,size=1m tmpfs {shlex.quote(str(folder))}")
+    for k, path in enumerate(blocked):
+        lines.append(f"mkdir -p {shlex.quote(str(path))}")
+        lines.append(f"mount --move {shlex.quote(str(staging / str(k)))} {shlex.quote(str(path))}")
+    return lines
+
+
+def _unreadable_code() -> list[Path]:
+    """This checkout's and its interpreters' folders that other users cannot read and enter."""
+    paths = {Path(p).resolve() for p in (sys.base_prefix, sys.prefix, REPO)}
+    wanted = stat.S_IROTH | stat.S_IXOTH
+    return sorted(p for p in paths if p.stat().st_mode & wanted != wanted)
 
 
 def _mount_script(
@@ -185,7 +204,7 @@ def _mount_script(
 ) -> str:
     """What the container runtime does in the pod's mount namespace: the root file system read-only
     (readOnlyRootFilesystem), each volume mounted, then the entrypoint as the pod's user."""
-    lines = ["set -e", *_python_for_everyone(staging), "mount --bind / /", "mount -o remount,bind,ro /"]
+    lines = ["set -e", *_code_for_everyone(staging), "mount --bind / /", "mount -o remount,bind,ro /"]
     # A volume mounted over a folder that holds another's source (the /tmp emptyDir over pytest's
     # tmp_path) goes last.
     sources = [source for source, _ in mounts.values()]
@@ -312,6 +331,9 @@ def test_the_deployment_starts_as_a_kubelet_runs_it_and_serves_an_authenticated_
         pytest.skip(
             f"this checkout or its venv ({', '.join(map(str, code))}) lies under the pod's {hiding[0]} volume"
         )
+    if unreadable := _unreadable_code():
+        # The tmpfs over a locked parent folder opens the way, not the folders themselves.
+        pytest.skip(f"the pod's user may not read {', '.join(map(str, unreadable))}")
     config = _point_at(_manifest("configmap.yaml")["data"], netns_host)
     index_port = int(re.search(r"@[^:/]+:(\d+)/", config["JITDYN_INDEX_URL"]).group(1))  # type: ignore[union-attr]
     netns_host.forward(index_port, to=5432)
