@@ -258,6 +258,9 @@ def run_pod(
     ]
     log = workdir / "pod.log"
     with ExitStack() as stack:
+        # The image's folders are 0755 whatever this process's umask (a server run in-process by an
+        # earlier test leaves its 077): mount points and the folders over locked parents included.
+        stack.callback(os.umask, os.umask(0o022))
         for target in mounts:
             # Mount points must exist on the host's file system, as the image has them.
             if not Path(target).exists():
