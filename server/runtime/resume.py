@@ -97,7 +97,7 @@ class ResumeTokens:
         if now > expires:
             at = datetime.fromtimestamp(expires, UTC).isoformat(timespec="seconds")
             raise PermissionDenied(
-                f"{where} expired at {at} ({now - expires:.0f} s ago; tokens last --resume-token-ttl "
+                f"{where} expired at {at} ({now - expires:.1f} s ago; tokens last --resume-token-ttl "
                 "from the last answer that renewed them)"
             )
         return epoch

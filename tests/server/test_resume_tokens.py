@@ -43,7 +43,9 @@ def test_a_token_names_its_epoch_to_the_session_and_tenant_it_was_issued_to() ->
 def test_another_session_or_tenant_is_refused_saying_which() -> None:
     tokens = ResumeTokens(SECRET, ttl=600.0)
     token = tokens.issue(SESSION, tenant="lab-a", epoch=1)
-    assert "issued for another session" in refused(tokens, token, session_id="00000000-0000-4000-8000-000000000000")
+    assert "issued for another session" in refused(
+        tokens, token, session_id="00000000-0000-4000-8000-000000000000"
+    )
     message = refused(tokens, token, tenant="lab-b")
     assert "issued to another tenant" in message and "lab-a" not in message
 
