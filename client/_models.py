@@ -356,7 +356,9 @@ class Opened:
     scenario: Scenario  # the scenario in force
     scenario_reason: str = ""  # why: asked for, or the server's choice for the model
     noise_reason: str = ""  # why the noise model in estimator["noise_model"]
-    resume_token: str = ""  # lets the SDK resume the session elsewhere; empty: not resumable
+    # Lets the SDK resume the session elsewhere; empty: not resumable. A credential: kept out of
+    # the repr (the SDK presents the newest one it was given, which may be a later renewal).
+    resume_token: str = field(default="", repr=False)
     resume_from_seq: int | None = None  # a resumed session: the first tick this stream expects
     resume_reason: str = ""  # a resumed session: how its estimator continues
 

@@ -81,6 +81,13 @@ class ResumeLedger:
         self.session_id = opened.session_id
         self._token = opened.resume_token
 
+    def renewed(self, token: str) -> None:
+        """A newer resume token from the server (a resume's `opened`, or a result's renewal): the
+        one the next resume presents, since the server refuses an older one once it has been
+        passed (expired, or stale). Never logged."""
+        if token:
+            self._token = token
+
     def stop(self) -> None:
         """The caller cancelled the session: it is never resumed."""
         self._stopped = True
@@ -116,10 +123,13 @@ class ResumeLedger:
         while self._unacknowledged and self._unacknowledged[0][0] <= self._durable:
             self._unacknowledged.popleft()
 
-    def fresh(self, result: dynamics_pb2.Result) -> bool:
-        """Bookkeeping of a result; False for the answer to a re-sent frame the caller already had."""
+    def fresh(self, result: dynamics_pb2.Result, *, current: bool = True) -> bool:
+        """Bookkeeping of a result; False for the answer to a re-sent frame the caller already had.
+        `current`: it came on the session's current stream (one a move has left renews no token)."""
         if result.HasField("durable_seq"):
             self.acknowledge(result.durable_seq)
+        if current:
+            self.renewed(result.resume_token)
         if result.source == dynamics_pb2.SOURCE_CORRECTED:
             return True
         if result.seq <= self._delivered:
@@ -160,6 +170,7 @@ class ResumeLedger:
         skips to re-send on the new stream, in order."""
         from_seq = opened.resume_from_seq if opened.HasField("resume_from_seq") else 0
         self.acknowledge(from_seq - 1)
+        self.renewed(opened.resume_token)
         self._after_resume = True
         self.resumptions.append(
             Resumption(

@@ -186,7 +186,7 @@ class AsyncSession(SessionCore):
                 elif kind == "overloaded":
                     self._ledger.warned(response.overloaded)
                     continue
-                elif kind == "result" and not self._ledger.fresh(response.result):
+                elif kind == "result" and not self._ledger.fresh(response.result, current=call is self._call):
                     continue
                 self._responses.put_nowait((received_at, response))
         except grpc.RpcError as error:

@@ -227,6 +227,11 @@ class SessionRecorder:
         return self._shared is not None
 
     @property
+    def epoch(self) -> int | None:
+        """The lease epoch this recorder holds the session under; None without a shared tier."""
+        return None if self._lease is None else self._lease.epoch
+
+    @property
     def stored_summary(self) -> SessionSummaryInfo | None:
         """The summary the index holds, once `close` stored the session: for a resumed session,
         computed from all of its rows (the stream's own counts are only its latest part)."""

@@ -116,6 +116,9 @@ session_leases = sa.Table(
     sa.Column("header_json", sa.Text, nullable=False),
     # What a session nobody resumes is stored as: RECOVERED (its server died) or ABANDONED.
     sa.Column("ended_as", sa.String(16), nullable=False, server_default="RECOVERED"),
+    # The lease epoch of the newest resume token presented for the session (0: none yet); a token
+    # of an older epoch is stale (docs/decisions/0164-bound-resume-tokens.md).
+    sa.Column("token_epoch", sa.BigInteger, nullable=False, server_default="0"),
     sa.Index("ix_session_leases_expires_at", "expires_at"),
 )
 

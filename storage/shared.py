@@ -6,7 +6,7 @@ docs/decisions/0120-durable-off-the-host.md).
     tier = SharedTier(engine, owner=new_owner_id(), lease_ttl=10.0)
     lease = tier.create(header)                 # epoch 1, owned by this process
     fenced = tier.commit([Window(lease, top_seq, data, first=0)])   # one transaction for all sessions
-    taken = tier.take_over(session_id, tenant)  # a resume on another replica: epoch + 1
+    taken = tier.take_over(session_id, tenant=t, token_epoch=e)  # a resume elsewhere: epoch + 1
 
 Every write names the epoch it holds; one made under an older epoch changes nothing and is
 reported fenced, so a replica cut off and back cannot write to a session another has taken over.
@@ -24,7 +24,7 @@ import pyarrow as pa
 import sqlalchemy as sa
 from sqlalchemy.dialects import postgresql
 
-from jitdyn.errors import NotFound, Unavailable
+from jitdyn.errors import NotFound, PermissionDenied, Unavailable
 from jitdyn.lifecycle import Closeable
 from jitdyn.storage.columns import LOG_SCHEMA, STORED_SINCE, conform
 from jitdyn.storage.index import finish_session, move_location
@@ -229,19 +229,34 @@ class SharedTier:
         if updated != 1:
             raise Fenced(f"session {lease.session_id} was taken over by another stream")
 
-    def take_over(self, session_id: str, *, tenant: str) -> TakenOver:
+    def take_over(self, session_id: str, *, tenant: str, token_epoch: int) -> TakenOver:
         """Hold an OPEN session under a new epoch, whoever held it (its old holder's writes are
-        fenced from now on). NotFound for a session that is not open here."""
+        fenced from now on), for a resume token issued under `token_epoch`. NotFound for a session
+        that is not open here; PermissionDenied for a stale token: one older than a token already
+        presented for the session (docs/decisions/0164-bound-resume-tokens.md)."""
         c = session_leases.c
         with self.engine.begin() as conn:
+            held = conn.execute(
+                sa.select(c.token_epoch)
+                .where(c.session_id == session_id, c.tenant == tenant, _is_open(c.session_id))
+                .with_for_update()
+            ).one_or_none()
+            if held is None:
+                raise NotFound(f"session {session_id!r} is not open: it is unknown, or it has ended")
+            if token_epoch < held.token_epoch:
+                raise PermissionDenied(
+                    f"open.resume.token of session {session_id!r} is stale: it was issued under lease "
+                    f"epoch {token_epoch}, and the session has since been resumed with a token of "
+                    f"epoch {held.token_epoch}; resume with the newest token the session was given"
+                )
             row = conn.execute(
                 sa.update(session_leases)
-                .where(c.session_id == session_id, c.tenant == tenant, _is_open(c.session_id))
-                .values(epoch=c.epoch + 1, owner=self.owner, expires_at=self._expiry())
+                .where(c.session_id == session_id)
+                .values(
+                    epoch=c.epoch + 1, owner=self.owner, expires_at=self._expiry(), token_epoch=token_epoch
+                )
                 .returning(c.epoch, c.header_json, c.durable_seq, c.ended_as)
-            ).one_or_none()
-        if row is None:
-            raise NotFound(f"session {session_id!r} is not open: it is unknown, or it has ended")
+            ).one()
         return TakenOver(
             lease=Lease(session_id, int(row.epoch)),
             header_json=row.header_json,

@@ -8,8 +8,9 @@ subject anonymised, the stored header begun, a REALTIME session priced and admit
 
 Errors are the project's (jitdyn.errors): InvalidArgument for a bad request, NotFound for a model
 that does not exist, ResourceExhausted for a session the server cannot carry; for a resume
-(`request.resume`), PermissionDenied for a wrong token, NotFound for a session that is not open,
-FailedPrecondition where the server shares no index with other replicas.
+(`request.resume`), PermissionDenied for a token that is forged, altered, expired, another tenant's
+or stale (server/runtime/resume.py), NotFound for a session that is not open, FailedPrecondition
+where the server shares no index with other replicas.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import threading
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Final
 
@@ -37,7 +38,7 @@ from jitdyn.server.runtime.admission import Ticket
 from jitdyn.server.runtime.costs import snapshot_bytes, tick_cost
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.plan import OpenRequest, SessionPlan, plan_session
-from jitdyn.server.runtime.resume import check_resume_token, resume_token
+from jitdyn.server.runtime.resume import ResumeTokens
 from jitdyn.server.runtime.services import Services
 from jitdyn.server.runtime.session import SessionRuntime
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
@@ -114,7 +115,8 @@ class OpenedSession:
     pseudonym: str
     scenario_reason: str  # why this scenario
     noise_reason: str  # why this noise model
-    resume_token: str = ""  # "" without a shared tier
+    tokens: ResumeTokens | None = None  # a shared tier's: what issues this session's resume tokens
+    resume_token: str = field(default="", repr=False)  # "" without a shared tier; never logged
     resume_from_seq: int | None = None  # a resumed session: the first tick this stream answers
     resume_reason: str = ""  # a resumed session: how its estimator continues
     elapsed: float = 0.0  # s since the session first opened (a resumed session's clock goes on)
@@ -122,6 +124,11 @@ class OpenedSession:
     @property
     def session_id(self) -> str:
         return self.recorder.header.session_id
+
+    def fresh_token(self) -> str:
+        """A new resume token of this session under its current lease epoch, expiring the tokens'
+        ttl from now ("" without a shared tier)."""
+        return _resume_token(self.tokens, self.recorder)
 
     def discard(self) -> None:
         """Undo the open (its share of the budget, its log and index row). Blocking."""
@@ -254,8 +261,10 @@ class SessionOpener:
                 "open.resume: this server cannot resume sessions: it shares no index with other "
                 "replicas (serve with --index postgresql+psycopg://...)"
             )
-        check_resume_token(self._services.resume_secret, resume.session_id, resume.token)
-        return shared.take_over(resume.session_id, tenant=request.tenant)
+        epoch = self._services.resume_tokens.check(
+            resume.token, session_id=resume.session_id, tenant=request.tenant
+        )
+        return shared.take_over(resume.session_id, tenant=request.tenant, token_epoch=epoch)
 
     def _open(self, request: OpenRequest, taken: TakenOver | None) -> OpenedSession:
         info, model = self._model(request)
@@ -406,6 +415,7 @@ class SessionOpener:
     def _start(self, resolved: _Resolved) -> OpenedSession:
         """Begin the stored session (its header, its log) and build its runtime."""
         services, plan, model = self._services, resolved.plan, resolved.model
+        tokens = services.resume_tokens if services.shared is not None else None
         settings: dict[str, object] = {
             k: v for k, v in dataclasses.asdict(resolved.config).items() if k in SETTINGS
         }
@@ -452,9 +462,8 @@ class SessionOpener:
                 pseudonym=pseudonym,
                 scenario_reason=resolved.scenario_reason,
                 noise_reason=_noise_reason(resolved),
-                resume_token=resume_token(services.resume_secret, header.session_id)
-                if services.shared is not None
-                else "",
+                tokens=tokens,
+                resume_token=_resume_token(tokens, recorder),
                 resume_from_seq=None if taken is None else first_tick,
                 resume_reason="" if taken is None else _resume_reason(first_tick, plan.clock),
                 elapsed=0.0 if taken is None else (datetime.now(UTC) - header.started_at).total_seconds(),
@@ -462,6 +471,14 @@ class SessionOpener:
         except BaseException:
             recorder.discard()
             raise
+
+
+def _resume_token(tokens: ResumeTokens | None, recorder: SessionRecorder) -> str:
+    """A resume token of `recorder`'s session under the epoch it holds it by; "" without a shared tier."""
+    epoch = recorder.epoch
+    if tokens is None or epoch is None:
+        return ""
+    return tokens.issue(recorder.header.session_id, tenant=recorder.header.tenant, epoch=epoch)
 
 
 def _resume_reason(first_tick: int, clock: Clock) -> str:

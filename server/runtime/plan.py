@@ -72,7 +72,7 @@ class Resume:
     """A session to continue, and the token its `opened` carried."""
 
     session_id: str
-    token: str
+    token: str = field(repr=False)  # a credential: never in a repr, a log line or an error
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -6,6 +6,7 @@ Built once by server/transport/app.py; `admit` and `release` count open sessions
 
 from __future__ import annotations
 
+import secrets
 import threading
 from collections import Counter
 from dataclasses import dataclass, field
@@ -16,6 +17,7 @@ from jitdyn.registry import ModelRegistry
 from jitdyn.server.estimation.config import Engine
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.runtime.admission import Admission
+from jitdyn.server.runtime.resume import ResumeTokens
 from jitdyn.settings import Settings
 from jitdyn.storage.anonymise import Anonymiser
 from jitdyn.storage.commit import GroupCommitter
@@ -60,9 +62,12 @@ class Services:
     committer: GroupCommitter = field(default_factory=GroupCommitter)
     admission: Admission = field(default_factory=Admission)
     # Replicas sharing a PostgreSQL index: leases and logs in the shared tier, sessions resumable
-    # with a token made from `resume_secret`. None: one machine (SQLite, local logs).
+    # with a token of `resume_tokens` (keyed from the server secret by app.py; by default from a
+    # random one, good in this process only). None: one machine (SQLite, local logs).
     shared: SharedTier | None = None
-    resume_secret: bytes = b""
+    resume_tokens: ResumeTokens = field(
+        default_factory=lambda: ResumeTokens(secrets.token_bytes(32), ttl=_DEFAULTS.resume_token_ttl)
+    )
     resume_timeout: float = _DEFAULTS.resume_timeout
     _open: Counter[str] = field(default_factory=Counter)
     _lock: threading.Lock = field(default_factory=threading.Lock)

@@ -36,6 +36,7 @@ from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.orphans import finish_orphans
 from jitdyn.server.runtime.priority import prioritise
 from jitdyn.server.runtime.publishing import publish_pending_loop
+from jitdyn.server.runtime.resume import ResumeTokens
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
 from jitdyn.server.runtime.stalls import LoopWatch, Stall
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
@@ -126,6 +127,7 @@ class ServerConfig:
     # Replicas sharing a PostgreSQL index: leases, resumption, draining (jitdyn.settings).
     lease_ttl: float = _DEFAULTS.lease_ttl
     resume_timeout: float = _DEFAULTS.resume_timeout
+    resume_token_ttl: float = _DEFAULTS.resume_token_ttl
     drain_grace: float = _DEFAULTS.drain_grace
     stall_report: float = _DEFAULTS.stall_report  # s without a beat of the loop that is logged; 0: none
     # The serving processes' CPU priority, a nice value (server/runtime/priority.py); None: left as is.
@@ -149,6 +151,7 @@ class ServerConfig:
             "metrics_address": settings.metrics_address,
             "lease_ttl": settings.lease_ttl,
             "resume_timeout": settings.resume_timeout,
+            "resume_token_ttl": settings.resume_token_ttl,
             "drain_grace": settings.drain_grace,
             "stall_report": settings.stall_report,
             "nice": settings.nice,
@@ -355,7 +358,7 @@ async def _services(
     )
     services = Services(
         shared=shared,
-        resume_secret=secret,
+        resume_tokens=ResumeTokens(secret, ttl=config.resume_token_ttl),
         resume_timeout=config.resume_timeout,
         committer=GroupCommitter(shared=shared),
         registry=registry,

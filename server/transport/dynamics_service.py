@@ -126,6 +126,7 @@ class _Stream:
         self._write_lock = asyncio.Lock()
         self._overload_checked = self._overload_told = -math.inf
         self._late_since: float | None = None  # monotonic s since every check found it unaffordable
+        self._token_issued = time.monotonic()  # when the client's newest resume token was made
 
     async def write(self, context: _Context, *responses: Response) -> None:
         """Send `responses` in order, as one batch: the request loop and the REALTIME clock each
@@ -133,11 +134,25 @@ class _Stream:
         let the other writer's newer tick overtake the rest of it (the first answer to tick 58
         after tick 59's). The lock is FIFO, and batches queue in the order they were computed."""
         notice = self.overload_notice()
+        self.renew_token(responses)
         async with self._write_lock:
             for response in responses:
                 await context.write(response)
             if notice is not None:
                 await context.write(notice)
+
+    def renew_token(self, responses: tuple[Response, ...]) -> None:
+        """Hand the client a fresh resume token on the first result among `responses` once its
+        newest is half the tokens' ttl old: while a stream answers, its client's token stays good
+        for at least half the ttl, whenever the stream breaks (docs/decisions/0164)."""
+        tokens = self.opened.tokens
+        if tokens is None or time.monotonic() - self._token_issued < tokens.ttl / 2:
+            return
+        for response in responses:
+            if response.HasField("result"):
+                response.result.resume_token = self.opened.fresh_token()
+                self._token_issued = time.monotonic()
+                return
 
     def overload_notice(self) -> Response | None:
         """REALTIME: the in-band warning that this session's answers may go late

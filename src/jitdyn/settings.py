@@ -365,6 +365,16 @@ class Settings:
         "close, and that nobody resumes within this time after its hold ran out, is stored by a live "
         "replica (RECOVERED or ABANDONED)",
     )
+    resume_token_ttl: float = setting(
+        600.0,
+        parse=checked(parse_duration, lambda value: value > 0, "a duration > 0, like 600s"),
+        commands=("serve",),
+        metavar="DURATION",
+        default_text="600s",
+        help="with a PostgreSQL index: how long a session's resume token is good for; a stream hands "
+        "its client a fresh one with an answer every half of it, so keep it over twice the longest "
+        "time a client may need to resume (the SDK tries for about 121 s)",
+    )
     drain_grace: float = setting(
         30.0,
         parse=checked(parse_duration, lambda value: value >= 0, "a duration >= 0, like 30s"),

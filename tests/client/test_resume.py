@@ -10,6 +10,7 @@ from jitdyn.client import ResumePolicy
 from jitdyn.client._resume import Refused, ResumeLedger, resume_outcome
 from jitdyn.client._transport import END
 from jitdyn.errors import ResumeBufferFull, SessionLost
+from jitdyn.settings import Settings
 from jitdyn.storage.commit import SHARED_OUTAGE_LIMIT
 from jitdyn.v1 import dynamics_pb2
 
@@ -90,6 +91,36 @@ def test_the_resume_budget_outlasts_the_longest_outage_the_server_holds_rows_thr
     policy = ResumePolicy()
     waited = sum(policy.backoff(attempt) for attempt in range(policy.attempts))
     assert waited > SHARED_OUTAGE_LIMIT, waited
+
+
+def test_a_resume_token_outlasts_the_resume_budget_and_the_longest_outage() -> None:
+    """A stream renews its client's token every half of --resume-token-ttl: when it breaks, the
+    token it left is good for at least that half, which covers every attempt of the SDK's budget
+    after the longest outage a replica answers through."""
+    policy = ResumePolicy()
+    waited = sum(policy.backoff(attempt) for attempt in range(policy.attempts))
+    assert Settings().resume_token_ttl / 2 > waited + SHARED_OUTAGE_LIMIT
+
+
+def test_the_newest_token_is_the_one_a_resume_presents() -> None:
+    kept = ledger(token="first")
+    kept.resumed(
+        dynamics_pb2.SessionOpened(resume_from_seq=0, resume_token="second"),
+        cause="UNAVAILABLE: gone",
+        attempts=1,
+        started=0.0,
+    )
+    assert kept.resume_request().open.resume.token == "second"
+    renewal = result(0)
+    renewal.resume_token = "third"
+    assert kept.fresh(renewal)
+    assert kept.resume_request().open.resume.token == "third"
+    # A stream a move has left renews nothing; a result without a renewal keeps the token.
+    stale = result(1)
+    stale.resume_token = "left-behind"
+    kept.fresh(stale, current=False)
+    kept.fresh(result(2))
+    assert kept.resume_request().open.resume.token == "third"
 
 
 class _Status(grpc.RpcError):

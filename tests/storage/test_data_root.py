@@ -370,7 +370,7 @@ def test_a_stale_finisher_leaves_the_new_owners_object_alone(moto: MotoS3, tmp_p
             for record in records[:10]:
                 stale.append(record)
             stale.flush(timeout=10)
-            taken = new_tier.take_over(header.session_id, tenant="")
+            taken = new_tier.take_over(header.session_id, tenant="", token_epoch=1)
             owner = SessionRecorder(
                 data_root=tmp_path / "b",
                 index=index,

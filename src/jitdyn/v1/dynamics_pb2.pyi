@@ -313,7 +313,10 @@ class Resume(_message.Message):
     session_id: _builtins.str
     """The session to continue (`SessionOpened.session_id`)."""
     token: _builtins.str
-    """Its `SessionOpened.resume_token`; a wrong token is PERMISSION_DENIED."""
+    """The newest token the session was given (`SessionOpened.resume_token`, or a later
+    `Result.resume_token`); a forged, altered, expired, stale or another tenant's token is
+    PERMISSION_DENIED, its message saying which.
+    """
     def __init__(
         self,
         *,
@@ -742,8 +745,10 @@ class SessionOpened(_message.Message):
     defaults, or the preset's for the scenario.
     """
     resume_token: _builtins.str
-    """An opaque token that lets this session be resumed on any replica (`OpenSession.resume`);
-    empty when the server cannot resume sessions (no shared index).
+    """An opaque token that lets this session be resumed on any replica (`OpenSession.resume`), by
+    the same tenant, until it expires or a newer one is presented (each resume's `opened` carries
+    a new one, and a result now and then renews it: `Result.resume_token`); empty when the server
+    cannot resume sessions (no shared index). A credential: keep it out of logs.
     """
     resume_from_seq: _builtins.int
     """A resumed session: the first tick this stream expects; frames before it are already stored.
@@ -842,6 +847,7 @@ class Result(_message.Message):
     ABSORBED_FIELD_NUMBER: _builtins.int
     FORECAST_WEIGHTS_FIELD_NUMBER: _builtins.int
     SCENARIO_FIELD_NUMBER: _builtins.int
+    RESUME_TOKEN_FIELD_NUMBER: _builtins.int
     seq: _builtins.int
     """The tick index."""
     t: _builtins.float
@@ -901,6 +907,11 @@ class Result(_message.Message):
     """ESTIMATOR_UKF: the scenario of the filter that answered: `SessionOpened.scenario`, or
     SCENARIO_DRIVEN once WRONG_MODEL_DRIVEN absorbed a wrong PASSIVE model. Unspecified for the
     dead-reckoning estimators and before the first frame.
+    """
+    resume_token: _builtins.str
+    """A fresh resume token, which replaces the one the client holds (`SessionOpened.resume_token`):
+    tokens expire, and a stream sets this on a result every half of their lifetime
+    (`jitdyn serve --resume-token-ttl`). Empty on every other result.
     """
     @_builtins.property
     def qpos(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
@@ -990,10 +1001,11 @@ class Result(_message.Message):
         absorbed: _builtins.bool = ...,
         forecast_weights: _abc.Iterable[_builtins.float] | None = ...,
         scenario: _common_pb2.Scenario.ValueType = ...,
+        resume_token: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "durable_seq", b"durable_seq", "nis", b"nis"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "absorbed", b"absorbed", "actuator_force", b"actuator_force", "adapted", b"adapted", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "forecast_weights", b"forecast_weights", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "scenario", b"scenario", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "absorbed", b"absorbed", "actuator_force", b"actuator_force", "adapted", b"adapted", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "forecast_weights", b"forecast_weights", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "resume_token", b"resume_token", "scenario", b"scenario", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__durable_seq: _TypeAlias = _typing.Literal["durable_seq"]  # noqa: Y015
     _WhichOneofArgType__durable_seq: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq"]  # noqa: Y015
