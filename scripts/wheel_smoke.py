@@ -9,7 +9,8 @@ base install only (what the server needs): every command's --help, a short demo,
 jitdyn.client, jitdyn.server`, that the extras' packages are not there and the commands that need
 them say which extra to install, that no generic top-level name (`server`, `client`, `registry`,
 `storage`, `experiments`, `cli`, `models`) was installed, and that nothing is left in the working
-folder (no MUJOCO_LOG.TXT). CI runs it; it takes about a minute, most of it pip.
+folder (no MUJOCO_LOG.TXT). tests/test_wheel.py runs it (marked slow); it takes two to three
+minutes, most of them the compile.
 """
 
 from __future__ import annotations
