@@ -186,6 +186,29 @@ class Replica:
         self.close()
 
 
+def behind_haproxy(
+    start_replica: Callable[..., Replica],
+    start_balancer: Callable[..., Balancer],
+    folder: Path,
+    hosts: Sequence[str],
+    *,
+    extra: Sequence[str],
+) -> tuple[list[Replica], Balancer]:
+    """One replica on each of `hosts` behind HAProxy, sharing the data folder `folder` (an inline
+    model registered by one loads on the others from there)."""
+    replicas = [start_replica(f"r{n}", host, data=folder, extra=list(extra)) for n, host in enumerate(hosts)]
+    return replicas, start_balancer(replicas)
+
+
+def session_owner(replicas: Sequence[Replica]) -> Replica:
+    """The live replica with the one open session."""
+    holding = [
+        r for r in replicas if r.process.poll() is None and r.metrics().get("jitdyn_open_sessions", 0) > 0
+    ]
+    assert len(holding) == 1, [(r.name, r.metrics().get("jitdyn_open_sessions")) for r in replicas]
+    return holding[0]
+
+
 def render_haproxy(replicas: Sequence[Replica], *, bind: str, stats_socket: Path) -> str:
     """deploy/haproxy/haproxy.cfg with its three placeholders filled."""
     servers = "\n".join(f"    server {r.name} {r.address}" for r in replicas)

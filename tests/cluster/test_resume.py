@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
-from _cluster import Balancer, Replica, wait_for
+from _cluster import Balancer, Replica, behind_haproxy, session_owner, wait_for
 from _raw import DT, new_model, session_row
 
 from jitdyn.client import (
@@ -48,20 +48,11 @@ def options(mjcf: str) -> SessionOptions:
 def cluster(
     start_replica: Callable[..., Replica], start_balancer: Callable[..., Balancer], tmp_path: Path
 ) -> tuple[list[Replica], Balancer]:
-    """Three replicas behind HAProxy. They share a data folder only because model content is not in
-    the shared tier yet (an inline model registered by one does not load on another)."""
-    folder = tmp_path / "shared-folder"
-    replicas = [start_replica(f"r{n}", host, data=folder, extra=FAST) for n, host in enumerate(HOSTS)]
-    return replicas, start_balancer(replicas)
+    """Three replicas behind HAProxy."""
+    return behind_haproxy(start_replica, start_balancer, tmp_path / "shared-folder", HOSTS, extra=FAST)
 
 
-def owner(replicas: list[Replica]) -> Replica:
-    """The replica with the one open session."""
-    holding = [
-        r for r in replicas if r.process.poll() is None and r.metrics().get("jitdyn_open_sessions", 0) > 0
-    ]
-    assert len(holding) == 1, [(r.name, r.metrics().get("jitdyn_open_sessions")) for r in replicas]
-    return holding[0]
+owner = session_owner
 
 
 def stored_seqs(folder: Path, location: str) -> list[int]:

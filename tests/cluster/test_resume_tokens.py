@@ -15,7 +15,7 @@ from pathlib import Path
 import grpc
 import pytest
 import sqlalchemy as sa
-from _cluster import Balancer, Replica
+from _cluster import Balancer, Replica, behind_haproxy, session_owner
 from _raw import RawSession, new_model, open_message, resume_message, session_row
 
 from jitdyn.client import AsyncClient, AsyncSession, Client, FrameData, SessionOptions, Summary
@@ -40,13 +40,7 @@ def options(mjcf: str) -> SessionOptions:
     return SessionOptions(inline_mjcf=mjcf, inline_name="pendulum_2_inline", dt=DT)
 
 
-def owner(replicas: list[Replica]) -> Replica:
-    """The live replica with the one open session."""
-    holding = [
-        r for r in replicas if r.process.poll() is None and r.metrics().get("jitdyn_open_sessions", 0) > 0
-    ]
-    assert len(holding) == 1, [(r.name, r.metrics().get("jitdyn_open_sessions")) for r in replicas]
-    return holding[0]
+owner = session_owner
 
 
 def lease(index_url: str, session_id: str) -> tuple[int, int]:
@@ -88,9 +82,9 @@ def test_a_session_resumes_twice_in_a_row_on_the_newest_token_and_an_older_one_i
     index_url: str,
     tmp_path: Path,
 ) -> None:
-    folder = tmp_path / "shared-folder"
-    replicas = [start_replica(f"r{n}", host, data=folder, extra=FAST) for n, host in enumerate(HOSTS)]
-    balancer = start_balancer(replicas)
+    replicas, balancer = behind_haproxy(
+        start_replica, start_balancer, tmp_path / "shared-folder", HOSTS, extra=FAST
+    )
     with Client(balancer.address, timeout=30) as client:
         session = client.open_session(options(new_model()))
         first_token, session_id = session.opened.resume_token, session.opened.session_id
@@ -123,9 +117,9 @@ def test_an_async_session_resumes_twice_in_a_row_on_the_newest_token(
     index_url: str,
     tmp_path: Path,
 ) -> None:
-    folder = tmp_path / "shared-folder"
-    replicas = [start_replica(f"r{n}", host, data=folder, extra=FAST) for n, host in enumerate(HOSTS)]
-    balancer = start_balancer(replicas)
+    replicas, balancer = behind_haproxy(
+        start_replica, start_balancer, tmp_path / "shared-folder", HOSTS, extra=FAST
+    )
 
     async def run() -> tuple[list[int], AsyncSession, Summary, list[tuple[int, int]]]:
         async with AsyncClient(balancer.address, timeout=30) as client:
