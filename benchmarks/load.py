@@ -598,6 +598,12 @@ def transport_floor(
 # One run.
 
 
+def per_tick_us(cpu_seconds: float, ticks: float) -> float:
+    """CPU per answered tick, us; nan when nothing was answered (printed as nan, not as the whole
+    CPU of the run charged to one tick)."""
+    return cpu_seconds / ticks * 1e6 if ticks else math.nan
+
+
 @dataclass
 class RunReport:
     model: str
@@ -946,7 +952,7 @@ def run(
         late_p50_ms=percentile(merged.lateness_ms, 50),
         late_p99_ms=percentile(merged.lateness_ms, 99),
         late_max_ms=float(late.max()),
-        cpu_per_tick_us=(cpu2 - cpu1) / max(1, sum(t1 <= a < t2 for a in merged.arrivals)) * 1e6,
+        cpu_per_tick_us=per_tick_us(cpu2 - cpu1, sum(t1 <= a < t2 for a in merged.arrivals)),
         shed=merged.shed / expected,
         late_frames=merged.late_frames / expected,
         rejected=merged.rejected,
@@ -956,7 +962,7 @@ def run(
         frame_delay_p50_ms=percentile(merged.frame_delay_ms, 50),
         frame_delay_p99_ms=percentile(merged.frame_delay_ms, 99),
         ukf_cycle_us=ukf_us,
-        client_cpu_per_tick_us=merged.cpu_seconds / max(1, merged.answered) * 1e6,
+        client_cpu_per_tick_us=per_tick_us(merged.cpu_seconds, merged.answered),
         floor_grpc_us=floor_grpc,
         physics_us=physics,
         frame_bytes=frame_bytes,
