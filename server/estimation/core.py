@@ -17,6 +17,9 @@ estimate) itself.
 | unscented transform, update | estimation/fast.py, batched.py (filterpy's) | Ukf::Predict, Ukf::Update |
 | tidy, repair | PythonCore.tidy | Ukf::Tidy |
 | forward dynamics | PythonCore.forward | Ukf::Forward |
+
+Both take their Q and P0 from estimation/noise.py (UkfNoise), and their adaptive noise from
+estimation/adaptive.py or native/adaptive.py.
 """
 
 from __future__ import annotations

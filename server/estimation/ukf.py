@@ -44,7 +44,6 @@ from typing import Final
 
 import mujoco
 import numpy as np
-from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import unscented_transform
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
@@ -68,6 +67,7 @@ from jitdyn.server.estimation.manifold import SplitManifold, has_manifold
 from jitdyn.server.estimation.native import AdapterState
 from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
 from jitdyn.server.estimation.native.filter import NativeUKF
+from jitdyn.server.estimation.noise import UkfNoise
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.process import SigmaProcess
 from jitdyn.server.estimation.propagate import Inputs, Propagator, process_model
@@ -88,12 +88,8 @@ from jitdyn.vocabulary import (
     WrongModel,
 )
 
-__all__ = ["FilterSnapshot", "UnscentedFilter", "process_noise"]
+__all__ = ["FilterSnapshot", "UnscentedFilter"]
 
-# DRIVEN's initial uncertainty of the unknown force (and its rate), as the acceleration it would
-# give each dof alone: 10 rad/s^2 (or m/s^2), 100 rad/s^3; scaled by the mass matrix's diagonal.
-FORCE_P0_ACCELERATION: Final = 10.0
-FORCE_RATE_P0_JERK: Final = 100.0
 # The longest gap the forecast combination learns its weights for, s (past it the filter answers).
 FORECAST_HORIZON: Final = 0.5
 # What moves the sigma points besides the model's own forces, per scenario.
@@ -106,18 +102,6 @@ _INPUTS: Final = {
 
 
 _SPANS_KEPT = 16  # process noises kept by span: a horizon, and a glance at each tick of a late window
-
-
-def process_noise(*, order: int, dt: float, var: float, nv: int) -> np.ndarray:
-    """filterpy's discrete white-noise Q, one block per dof, in jitdyn's layout.
-
-    filterpy's order_by_dim=True lays a dof's derivatives together, [q0, qd0, q1, qd1, ...];
-    jitdyn's state is [q0, q1, ..., qd0, qd1, ...], which is filterpy's order_by_dim=False (its
-    "order by derivative" permutation). Returns (order nv, order nv).
-    """
-    return np.asarray(
-        Q_discrete_white_noise(dim=order, dt=dt, var=var, block_size=nv, order_by_dim=False), dtype=np.float64
-    )
 
 
 @dataclass(frozen=True)
@@ -185,11 +169,11 @@ class UnscentedFilter:
             fblocks=self._fblocks, controlled=self._controlled, steps_per_tick=config.steps_per_tick,
         )  # fmt: skip
         self._kf: FilterCore = self._filter(z_size)
-        self._mass = self._mass_diagonal()
-        self._Q = self._process_noise(config.dt)
+        self._noise = UkfNoise.of(m, self._data, config)
+        self._Q = self._noise.process_noise(config.dt)
         self._kf.Q = self._Q
         self._kf.R = config.r * np.eye(self._z_tangent)
-        self._P0 = self._initial_covariance()
+        self._P0 = self._noise.initial_covariance()
         self._adapter = self._noise_adapter()
         restart = config.wrong_model == WrongModel.RESTART
         self._guard = Guard(m=self._z_tangent, restart=restart, driven=self._driven)
@@ -286,7 +270,7 @@ class UnscentedFilter:
         return adapter(
             r0=np.full(self._z_tangent, self._config.r),
             q0=self._Q,
-            adapt_q=self._adapt_q_mask(),
+            adapt_q=self._noise.adapt_q_mask(),
             inflate=self._driven,
         )
 
@@ -591,7 +575,7 @@ class UnscentedFilter:
         """The process noise of nstep physics steps (the adapter's factors applied)."""
         Q = self._extrapolation_Q.get(nstep)
         if Q is None:
-            Q = self._process_noise(nstep * float(self._model.opt.timestep))
+            Q = self._noise.process_noise(nstep * float(self._model.opt.timestep))
             if len(self._extrapolation_Q) >= _SPANS_KEPT:
                 self._extrapolation_Q = {self._config.steps_per_tick: self._Q}
             self._extrapolation_Q[nstep] = Q
@@ -756,54 +740,6 @@ class UnscentedFilter:
         except np.linalg.LinAlgError:
             return nis
         return value if np.isfinite(value) else nis
-
-    def _adapt_q_mask(self) -> np.ndarray:
-        """(n,) the components whose Q adapts: all but the unknown force's. The force's corrections
-        are its real changes, large for a driven body; a Q matched to them spreads the sigma points
-        so wide that the predicted mean leaves the motion's path (measured: docs/experiments.md)."""
-        return np.zeros(self._n, dtype=bool) if self._driven else np.ones(self._n, dtype=bool)
-
-    def _mass_diagonal(self) -> np.ndarray:
-        """(nv,) the mass matrix's diagonal at qpos0 (kg, kg m^2): the scale of a dof's force."""
-        m, d = self._model, self._data
-        d.qpos[:] = m.qpos0
-        d.qvel[:] = 0.0
-        mujoco.mj_forward(m, d)
-        full = np.zeros((m.nv, m.nv))
-        mujoco.mj_fullM(m, d, full)
-        return np.asarray(np.diagonal(full).copy())
-
-    def _process_noise(self, dt: float) -> np.ndarray:
-        """Q over dt (n, n): the discrete white-noise blocks of [q, qd] (and qdd), then, in DRIVEN,
-        the unknown force's: a random walk, f' = f + w with Var w = force_var m_ii^2 dt, or an
-        integrated random walk of (f, fd) with the same intensity on fd."""
-        base = process_noise(order=self._order, dt=dt, var=self._config.q_var, nv=self._nv)
-        if not self._driven:
-            return base
-        nv, k = self._nv, self._order * self._nv
-        Q = np.zeros((self._n, self._n))
-        Q[:k, :k] = base
-        intensity = self._config.force_var * self._mass**2
-        f = np.arange(k, k + nv)
-        if self._fblocks == 1:
-            Q[f, f] = intensity * dt
-        else:
-            fd = f + nv
-            Q[f, f] = intensity * dt**3 / 3.0
-            Q[f, fd] = Q[fd, f] = intensity * dt**2 / 2.0
-            Q[fd, fd] = intensity * dt
-        return Q
-
-    def _initial_covariance(self) -> np.ndarray:
-        """P0: p0 I on [q, qd] (and qdd); in DRIVEN the force's uncertainty as an acceleration of
-        FORCE_P0_ACCELERATION (its rate's as FORCE_RATE_P0_JERK) on each dof alone."""
-        diagonal = np.full(self._n, self._config.p0)
-        k, nv = self._order * self._nv, self._nv
-        if self._driven:
-            diagonal[k : k + nv] = (FORCE_P0_ACCELERATION * self._mass) ** 2
-            if self._fblocks == 2:
-                diagonal[k + nv :] = (FORCE_RATE_P0_JERK * self._mass) ** 2
-        return np.diag(diagonal)
 
     def _activation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         low = np.full(self._na, -np.inf)

@@ -18,6 +18,7 @@ from jitdyn.server.estimation.config import EstimatorConfig, resolve_config
 from jitdyn.server.estimation.guard import DIVERGENCE_TICKS, NIS_LIMIT_PER_DIMENSION, RESTART_UPDATES
 from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.manifold import SplitManifold
+from jitdyn.server.estimation.noise import process_noise
 from jitdyn.server.estimation.pool import Backend, WorkerPool
 from jitdyn.server.estimation.sigma import (
     MerweScaled,
@@ -27,7 +28,7 @@ from jitdyn.server.estimation.sigma import (
     make_sigma_points,
     nearest_positive_definite,
 )
-from jitdyn.server.estimation.ukf import UnscentedFilter, process_noise
+from jitdyn.server.estimation.ukf import UnscentedFilter
 
 
 def pendulum(n: int) -> mujoco.MjModel:
