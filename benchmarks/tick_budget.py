@@ -170,8 +170,7 @@ WAITING = "read in a wait (select, a lock): not spent"
 _SERVICE = "server/transport/dynamics_service.py"
 _UKF = "server/estimation/ukf.py"
 _FORECAST_METHODS = tuple(
-    f"UnscentedFilter.{m}"
-    for m in ("_combined", "_forecast", "_observe_forecast", "_answer_scale", "_answer_nis", "_observe_gap")
+    f"UnscentedFilter.{m}" for m in ("_combined", "_forecast", "_answer_nis", "_observe_gap")
 )
 _CLOCK_METHODS = (
     "_RealtimeClock.run",
@@ -225,6 +224,7 @@ STAGES: tuple[Stage, ...] = (
         anywhere(
             in_files(
                 "server/estimation/forecast.py",
+                "server/estimation/foresight.py",
                 "server/estimation/matching.py",
                 "server/estimation/deadreckoning.py",
             ),

@@ -20,8 +20,8 @@ from jitdyn.experiments.objects import load_source
 from jitdyn.experiments.recorded import RECORDINGS
 from jitdyn.server.estimation.config import LARGE_STATE
 from jitdyn.server.estimation.forecast import ForecastCombiner
+from jitdyn.server.estimation.foresight import FORECAST_HORIZON
 from jitdyn.server.estimation.propagate import process_model, step_seconds
-from jitdyn.server.estimation.ukf import FORECAST_HORIZON
 
 __all__ = ["HORIZONS", "RECORDING_GAPS", "foresight_rows", "learned_cost", "target"]
 

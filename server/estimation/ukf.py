@@ -22,7 +22,8 @@ The scenarios are the thesis' (reference/thesis-experiments.md):
 
 DRIVEN with Forecast.COMBINED (PRESET_JITDYN's default): a tick without a frame is answered by the
 combination of the model's rollout, IEEE 1278's extrapolators and motion matching over the
-session's own past that scored best on the session's own frames (estimation/forecast.py); its
+session's own past that scored best on the session's own frames (estimation/forecast.py, fed
+and read by estimation/foresight.py); its
 variance over [q, qd] is the larger of the combination's scored error and the filter's prediction,
 and its unknown force the inverse dynamics of the forecast motion (the filter's own mean and
 covariance go on predicting under their own force, unchanged). DRIVEN with SIMPLEX_LINEAR_FORCE: estimation/linear_force.py.
@@ -38,7 +39,6 @@ divergence guard, wrong_model RESTART) is estimation/guard.py's, and the estimat
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Final
 
@@ -52,7 +52,8 @@ from jitdyn.server.estimation.batched import BatchedUKF, tangent_unscented_trans
 from jitdyn.server.estimation.config import Engine, EstimatorConfig, check_against_model
 from jitdyn.server.estimation.core import FilterCore, PythonCore
 from jitdyn.server.estimation.fast import FastUKF
-from jitdyn.server.estimation.forecast import CombinedForecast, CombinerSnapshot, ForecastCombiner
+from jitdyn.server.estimation.forecast import CombinedForecast, CombinerSnapshot
+from jitdyn.server.estimation.foresight import Foresight
 from jitdyn.server.estimation.guard import Guard, GuardState
 from jitdyn.server.estimation.interface import (
     Estimate,
@@ -81,7 +82,6 @@ from jitdyn.server.estimation.sigma import (
 from jitdyn.vocabulary import (
     Channel,
     EstimatorKind,
-    Forecast,
     NoiseModel,
     Scenario,
     SigmaScheme,
@@ -90,8 +90,6 @@ from jitdyn.vocabulary import (
 
 __all__ = ["FilterSnapshot", "UnscentedFilter"]
 
-# The longest gap the forecast combination learns its weights for, s (past it the filter answers).
-FORECAST_HORIZON: Final = 0.5
 # What moves the sigma points besides the model's own forces, per scenario.
 _INPUTS: Final = {
     Scenario.PASSIVE: Inputs.NONE,
@@ -179,7 +177,7 @@ class UnscentedFilter:
         self._guard = Guard(m=self._z_tangent, restart=restart, driven=self._driven)
         self._extrapolation_Q: dict[int, np.ndarray] = {config.steps_per_tick: self._Q}
         self._act_bounds = self._activation_bounds()
-        self._forecasts = self._forecast_combiner()
+        self._foresight = Foresight.of(m, config, fblocks=self._fblocks, manifold=self._manifold)
         self._no_ctrl, self._no_force = np.zeros(self._nu), np.zeros(self._nv)
         self._clear()
 
@@ -274,18 +272,6 @@ class UnscentedFilter:
             inflate=self._driven,
         )
 
-    def _forecast_combiner(self) -> ForecastCombiner | None:
-        config = self._config
-        if config.forecast != Forecast.COMBINED or not self._driven or self._manifold:
-            return None
-        return ForecastCombiner(
-            self._model,
-            dt=config.dt,
-            steps_per_tick=config.steps_per_tick,
-            horizon=int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9)),
-            learner=True,
-        )
-
     def _clear(self) -> None:
         """The mutable state of a filter not yet initialised; snapshot() copies all of it."""
         self._initialised = False
@@ -345,15 +331,15 @@ class UnscentedFilter:
         self._start_from(m, qvel_fallback=np.zeros(self._nv))
         if self._scenario == Scenario.EXTERNAL and m.qacc is not None:
             self._qfrc = self._inverse(m.qpos, self._last_qvel, m.qacc)
-        if self._forecasts is not None:
-            self._forecasts.reset()
-            self._observe_forecast(m)
+        if self._foresight is not None:
+            self._foresight.reset()
+            self._foresight.observe(m, x=self._kf.x, act=self._act)
         self._initialised = True
 
     def predict(self, *, ctrl: np.ndarray | None) -> Estimate:
         reinitialised = self._predict(ctrl, "predict")
         estimate = self._estimate(reinitialised=reinitialised)
-        if self._forecasts is not None and not reinitialised:
+        if self._foresight is not None and not reinitialised:
             estimate = self._combined(estimate)
         return estimate
 
@@ -368,8 +354,8 @@ class UnscentedFilter:
         if self._adapter is not None:
             # The first tick after a frame is an ordinary tick; the next ones are a gap's.
             self._kf.Q = self._adapter.Q if self._ticks_since_update == 0 else self._adapter.Q_gap
-        if self._forecasts is not None:
-            self._forecasts.advance()
+        if self._foresight is not None:
+            self._foresight.advance()
         self._kf.set_inputs(act=self._act, ctrl=self._ctrl, qfrc=self._qfrc)
         self._kf.predict()
         self._act = self._clip_act(self._kf.propagated_act)
@@ -395,7 +381,7 @@ class UnscentedFilter:
         prior = self._gap_prior()
         # What the gap's answers were worth: the frame against the answer it ends (before the
         # correction changes the prior).
-        gap_nis = self._answer_nis(z, None) if prior is not None and self._forecasts is not None else None
+        gap_nis = self._answer_nis(z, None) if prior is not None and self._foresight is not None else None
         nis = self._correct(z)
         if prior is not None:
             self._observe_gap(gap_nis, nis)
@@ -412,8 +398,8 @@ class UnscentedFilter:
             self._restart(m)
         else:
             self._accept(m)
-        if self._forecasts is not None:
-            self._observe_forecast(m)
+        if self._foresight is not None:
+            self._foresight.observe(m, x=self._kf.x, act=self._act)
         if m.ctrl is not None:
             self._ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
         return self._estimate(
@@ -431,7 +417,7 @@ class UnscentedFilter:
         answer (`gap_nis`, the combination's), or against the filter's prediction (`nis`)."""
         if self._adapter is None:
             return
-        gap_nis = nis if self._forecasts is None or gap_nis is None else gap_nis
+        gap_nis = nis if self._foresight is None or gap_nis is None else gap_nis
         if gap_nis is not None:
             self._adapter.observe_gap(nis=gap_nis, m=self._z_tangent)
 
@@ -597,7 +583,7 @@ class UnscentedFilter:
             ticks_since_update=self._ticks_since_update,
             guard=self._guard.state,
             adapter=self._adapter.snapshot() if self._adapter is not None else None,
-            forecasts=self._forecasts.snapshot() if self._forecasts is not None else None,
+            forecasts=self._foresight.snapshot() if self._foresight is not None else None,
         )
 
     def restore(self, snap: object) -> None:
@@ -617,8 +603,8 @@ class UnscentedFilter:
             adapter.restore(saved)
         elif isinstance(adapter, NoiseAdapter) and isinstance(saved, NoiseSnapshot):
             adapter.restore(saved)
-        if self._forecasts is not None and snap.forecasts is not None:
-            self._forecasts.restore(snap.forecasts)
+        if self._foresight is not None and snap.forecasts is not None:
+            self._foresight.restore(snap.forecasts)
 
     # -- internals ------------------------------------------------------------------------------
 
@@ -639,107 +625,34 @@ class UnscentedFilter:
     def _largest_variance(self) -> float:
         return self._kf.largest_variance()
 
-    def _observe_forecast(self, m: Measurement) -> None:
-        """Score the forecasts against frame m and start this tick's, from the posterior."""
-        if self._forecasts is None:
-            return
-        nq, nv = self._nq, self._nv
-        x = self._kf.x
-        if not np.all(np.isfinite(x)):
-            return
-        qvel = m.qvel if m.qvel is not None else x[nq : nq + nv]
-        self._forecasts.observe(
-            m.qpos,
-            qvel,
-            mean_qpos=x[:nq],
-            mean_qvel=x[nq : nq + nv],
-            act=self._act,
-            force=x[nq + nv : nq + 2 * nv],
-            rate=x[nq + 2 * nv : nq + 3 * nv] if self._fblocks == 2 else None,
-        )
-
     def _combined(self, estimate: Estimate) -> Estimate:
-        """Over a gap: the forecast combination's answer, when its weights are learnt."""
-        if self._forecasts is None or self._ticks_since_update == 0:
+        """Over a gap: the forecast combination's answer (estimation/foresight.py), when its weights
+        are learnt."""
+        if self._foresight is None or self._ticks_since_update == 0:
             return estimate
         answer = self._forecast()
         if answer is None:
             return estimate
-        nq, nv = self._nq, self._nv
-        state = np.array(estimate.state)
-        state[:nq], state[nq : nq + nv] = answer.qpos, answer.qvel
         # The unknown force answered is the one under which the physics follows the forecast: the
         # inverse dynamics of its q, qd and qdd (so torques over a gap agree with the motion).
         force = self._inverse(answer.qpos, answer.qvel, answer.qacc)
-        if np.all(np.isfinite(force)):
-            state[nq + nv : nq + 2 * nv] = force
-        frozen = read_only(state)
-        P = np.array(estimate.covariance)
-        root = self._answer_scale(P, answer)
-        k = root.size
-        P[:k, :] *= root[:, None]
-        P[:, :k] *= root[None, :]
-        return dataclasses.replace(
-            estimate,
-            qpos=frozen[:nq],
-            qvel=frozen[nq : nq + nv],
-            qacc=read_only(answer.qacc),
-            state=frozen,
-            covariance=read_only(P),
-            forecast_weights=tuple(float(w) for w in answer.weights),
-        )
+        return self._foresight.combined(estimate, answer, force=force)
 
     def _forecast(self, *, ended: bool = False) -> CombinedForecast | None:
-        """The combination's answer now (ended: on the frame that ends a gap, the one its last tick
-        gave), its variances net of the frames' noise (R's diagonal)."""
-        if self._forecasts is None:
+        """The combination's answer now (ended: the gap's last), net of the frames' noise."""
+        if self._foresight is None:
             return None
-        nv = self._nv
-        noise_q = noise_qd = None
-        if self._adapter is not None:
-            r = self._adapter.r_diagonal
-            noise_q = r[:nv]
-            if self._measures(Channel.QVEL):
-                noise_qd = r[nv : 2 * nv]
-        return self._forecasts.forecast(noise_q=noise_q, noise_qd=noise_qd, ended=ended)
-
-    def _answer_scale(self, P: np.ndarray, answer: CombinedForecast) -> np.ndarray:
-        """(2 nv,) the factors on the rows and columns of P's [q, qd] block that give the
-        combination's answer its variance: per component the larger of the combination's own (its
-        scored errors at this horizon) and the filter's prediction's, the filter's correlations kept.
-        The combination's alone was measured more optimistic than the filter's (median NEES / dim
-        over the gap ticks 50 against 0.6 on the pendulum, 2.3 against 0.95 on myoElbow with
-        wearable frames): its scores never see the phase of the motion a gap starts at (no frames
-        come there), and its weights are chosen to minimise the same scores."""
-        k = 2 * self._nv
-        predicted = np.diagonal(P)[:k]
-        wanted = np.maximum(predicted, np.concatenate([answer.var_q, answer.var_qd]))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.asarray(np.where(predicted > 0.0, np.sqrt(wanted / predicted), 1.0))
+        r = self._adapter.r_diagonal if self._adapter is not None else None
+        return self._foresight.answer(r_diagonal=r, measures_qvel=self._measures(Channel.QVEL), ended=ended)
 
     def _answer_nis(self, z: np.ndarray, nis: float | None) -> float | None:
-        """The NIS of the frame z that ends a gap against the gap's last answer: the combination's
-        with its covariance, or the filter's prediction (its NIS, `nis`) where the filter answered
-        (no combination, or a gap past its scored horizon). One m x m solve, once a gap."""
+        """The NIS of the frame z that ends a gap against the gap's last answer, or `nis` where the
+        filter answered (Foresight.gap_nis)."""
+        assert self._foresight is not None
         # The gap's last answer: mu learns what the answers given were worth (past the scored
         # horizon they were the filter's, and `_forecast` says None).
         answer = self._forecast(ended=True) if self._x_manifold is None else None
-        if answer is None:
-            return nis
-        nq, nv, m = self._nq, self._nv, z.size
-        P = np.array(self._kf.P)
-        root = self._answer_scale(P, answer)
-        k = root.size
-        P[:k, :] *= root[:, None]
-        P[:, :k] *= root[None, :]
-        mean = np.concatenate([answer.qpos, answer.qvel])[:m]
-        S = P[:m, :m] + self._kf.R
-        y = z[: nq + nv][:m] - mean
-        try:
-            value = float(y @ np.linalg.solve(S, y))
-        except np.linalg.LinAlgError:
-            return nis
-        return value if np.isfinite(value) else nis
+        return self._foresight.gap_nis(z, P=self._kf.P, R=self._kf.R, answer=answer, nis=nis)
 
     def _activation_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         low = np.full(self._na, -np.inf)
