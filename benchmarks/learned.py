@@ -35,6 +35,7 @@ import numpy as np
 from benchmarks.ukf_cycle import load
 from jitdyn.experiments.foresight import learned_cost
 from jitdyn.experiments.recorded import RECORDINGS, research_object
+from jitdyn.server.estimation.extrapolators import EXTRAPOLATORS, extrapolate
 from jitdyn.server.estimation.matching import K, MotionMatcher
 from jitdyn.vocabulary import Scenario
 
@@ -120,11 +121,7 @@ def accuracy(name: str, *, noise: bool) -> list[tuple[float, dict[str, float]]]:
             if t + h >= T:
                 continue
             s = h * dt
-            guesses = {
-                "STATIC": zq[t],
-                "CONSTANT_VELOCITY": zq[t] + zv[t] * s,
-                "CONSTANT_ACCELERATION": zq[t] + zv[t] * s + 0.5 * a0 * s * s,
-            }
+            guesses = {str(kind.value): extrapolate(kind, zq[t], zv[t], a0, s)[0] for kind in EXTRAPOLATORS}
             ticks = np.full((1, K), np.nan) if found is None else found.ticks[None, :].astype(float)
             weights = np.zeros((1, K)) if found is None else found.weights[None, :]
             guesses["MATCHING"] = matcher.follow(ticks, weights, np.array([h]), zq[t][None], zv[t][None])[0][

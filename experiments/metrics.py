@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
+from jitdyn.server.estimation.extrapolators import extrapolate
 from jitdyn.vocabulary import EstimatorKind
 
 __all__ = [
@@ -186,13 +187,8 @@ def dead_reckon(
     q0, v0, a0 = (np.asarray(x, dtype=float) for x in (q, qd, qdd))
     if not q0.shape == v0.shape == a0.shape:
         raise ValueError(f"q, qd and qdd must have the same shape, got {q0.shape}, {v0.shape}, {a0.shape}")
-    if kind is EstimatorKind.STATIC:
-        return q0.copy(), v0.copy()
-    if kind is EstimatorKind.CONSTANT_VELOCITY:
-        return q0 + v0 * horizon, v0.copy()
-    if kind is EstimatorKind.CONSTANT_ACCELERATION:
-        return q0 + v0 * horizon + 0.5 * a0 * horizon**2, v0 + a0 * horizon
-    raise ValueError(f"kind must be a dead-reckoning estimator (IEEE 1278.1, DRM F/R), got {kind!r}")
+    q_at, qd_at, _ = extrapolate(kind, q0, v0, a0, horizon)  # ValueError for another kind
+    return q_at, qd_at
 
 
 def ticks_since_frame(received: np.ndarray | Sequence[bool]) -> np.ndarray:

@@ -6,8 +6,7 @@ time since it, in generalized coordinates (quaternions of ball and free joints m
 mj_integratePos):
 
 - STATIC: the last measured state is held (q, qd and qdd as measured).
-- CONSTANT_VELOCITY: q(t) = q0 + qd0 t; qd = qd0; qdd = 0.
-- CONSTANT_ACCELERATION: q(t) = q0 + qd0 t + qdd0 t^2 / 2; qd = qd0 + qdd0 t; qdd = qdd0.
+- CONSTANT_VELOCITY and CONSTANT_ACCELERATION: as estimation/extrapolators.py moves q and qd.
 
 Channels a client does not measure come from the last two frames as DIS does: qd0 from the
 difference of positions, qdd0 from the difference of velocities, over the time between the frames
@@ -25,6 +24,7 @@ import numpy as np
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.estimation.config import EstimatorConfig, check_against_model
+from jitdyn.server.estimation.extrapolators import mean_velocity, velocity
 from jitdyn.server.estimation.interface import Estimate, Measurement, check_measurement, read_only
 from jitdyn.server.estimation.layout import derivative_order
 from jitdyn.vocabulary import EstimatorKind
@@ -148,17 +148,14 @@ class DeadReckoning:
     def _at(self, anchor: _Anchor, t: float) -> Estimate:
         """The extrapolation t seconds after the anchor."""
         qpos = anchor.qpos.copy()
-        if self._kind == EstimatorKind.STATIC or t == 0.0:
-            qvel, qacc = anchor.qvel, anchor.qacc
-            if self._kind == EstimatorKind.CONSTANT_VELOCITY:
-                qacc = np.zeros(self._nv)
-        elif self._kind == EstimatorKind.CONSTANT_VELOCITY:
-            mujoco.mj_integratePos(self._model, qpos, anchor.qvel, t)
-            qvel, qacc = anchor.qvel, np.zeros(self._nv)
+        kind = self._kind
+        if kind == EstimatorKind.STATIC or t == 0.0:
+            qvel = anchor.qvel
         else:
-            displacement = anchor.qvel + 0.5 * t * anchor.qacc  # times t: qd0 t + qdd0 t^2 / 2
-            mujoco.mj_integratePos(self._model, qpos, displacement, t)
-            qvel, qacc = anchor.qvel + t * anchor.qacc, anchor.qacc
+            mujoco.mj_integratePos(self._model, qpos, mean_velocity(kind, anchor.qvel, anchor.qacc, t), t)
+            qvel = velocity(kind, anchor.qvel, anchor.qacc, t)
+        # STATIC reports the qdd measured (the state held as it came); CONSTANT_VELOCITY none.
+        qacc = np.zeros(self._nv) if kind == EstimatorKind.CONSTANT_VELOCITY else anchor.qacc
         parts = [qpos, qvel] + ([qacc] if self._order == 3 else [])
         return Estimate(
             qpos=read_only(qpos),

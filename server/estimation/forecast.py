@@ -76,6 +76,7 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
+from jitdyn.server.estimation.extrapolators import EXTRAPOLATORS, extrapolate
 from jitdyn.server.estimation.interface import SHARED_WITH_EARLIER
 from jitdyn.server.estimation.matching import K, MotionMatcher
 
@@ -89,7 +90,7 @@ __all__ = [
 ]
 
 # The predictors' order in weights (Result.forecast_weights), and the learned one after them.
-PREDICTORS: Final = ("MODEL", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION")
+PREDICTORS: Final = ("MODEL", *(str(kind.value) for kind in EXTRAPOLATORS))
 LEARNED: Final = "LEARNED"
 # Samples a horizon needs before its weights answer; fading memory of the error covariances
 # (weight of the past per sample 0.8: about 5 scored forecasts per horizon, so that the weights
@@ -564,10 +565,9 @@ class ForecastCombiner:
         t = int(self._marks[i, _AGE]) * self._dt
         q0, v0, a0 = row[c.q0], row[c.v0], row[c.a0]
         q, v, a = np.empty((3, len(self._predictors), self._nv))
-        q[0], q[1], q[2] = row[c.qpos], q0, q0 + v0 * t
-        q[3] = q0 + v0 * t + 0.5 * a0 * t * t
-        v[0], v[1], v[2], v[3] = row[c.qvel], v0, v0, v0 + a0 * t
-        a[0], a[1], a[2], a[3] = row[c.qacc], 0.0, 0.0, a0
+        q[0], v[0], a[0] = row[c.qpos], row[c.qvel], row[c.qacc]
+        for p, kind in enumerate(EXTRAPOLATORS, start=1):
+            q[p], v[p], a[p] = extrapolate(kind, q0, v0, a0, t)
         learned = self._learned(self._table[i : i + 1], self._marks[i : i + 1, _AGE])
         if learned is not None:
             q[4], v[4], a[4] = (x[0] for x in learned)
@@ -608,20 +608,18 @@ class ForecastCombiner:
         t = (ages * self._dt)[:, None]
         q0, v0, a0 = rows[:, c.q0], rows[:, c.v0], rows[:, c.a0]
         positions = np.empty((ages.size, len(self._predictors), self._nv))  # the q of `_predictions`
-        positions[:, 0], positions[:, 1] = rows[:, c.qpos], q0
-        positions[:, 2] = q0 + v0 * t
-        positions[:, 3] = q0 + v0 * t + 0.5 * a0 * t * t
+        velocities = np.empty_like(positions)
+        positions[:, 0], velocities[:, 0] = rows[:, c.qpos], rows[:, c.qvel]
+        for p, kind in enumerate(EXTRAPOLATORS, start=1):
+            positions[:, p], velocities[:, p], _ = extrapolate(kind, q0, v0, a0, t)
         if learned is not None:
             positions[:, 4] = learned[0]
             matched = ages[~np.isnan(rows[:, c.match_ticks][:, 0])]
             np.add.at(self._learned_count, matched, 1.0)
         errors = positions - qpos[None, None, :]  # (S, P, nv)
-        verrors = np.empty_like(errors)  # the qd of `_predictions`, against the frame's
-        verrors[:, 0] = rows[:, c.qvel] - qvel
-        verrors[:, 1] = verrors[:, 2] = v0 - qvel
-        verrors[:, 3] = v0 + a0 * t - qvel
         if learned is not None:
-            verrors[:, 4] = learned[1] - qvel
+            velocities[:, 4] = learned[1]
+        verrors = velocities - qvel[None, None, :]  # the qd of `_predictions`, against the frame's
         finite = np.isfinite(errors).all(axis=(1, 2)) & np.isfinite(verrors).all(axis=(1, 2))
         if not finite.all():
             errors, verrors, ages = errors[finite], verrors[finite], ages[finite]

@@ -33,6 +33,9 @@ from typing import Final
 
 import numpy as np
 
+from jitdyn.server.estimation.extrapolators import extrapolate
+from jitdyn.vocabulary import EstimatorKind
+
 __all__ = ["CANDIDATE_EVERY", "LAG", "WINDOW", "K", "Match", "MotionMatcher"]
 
 # The past a match searches (s), how far apart its candidates are (s), the span of a feature (s),
@@ -160,7 +163,7 @@ class MotionMatcher:
         t = (ages * self._dt)[:, None]
         known = ticks[:, 0] == ticks[:, 0]  # not NaN
         if not known.all():
-            q, v, a = q0 + v0 * t, v0.copy(), np.zeros_like(v0)
+            q, v, a = extrapolate(EstimatorKind.CONSTANT_VELOCITY, q0, v0, np.zeros_like(v0), t)
             if known.any():
                 rows = np.flatnonzero(known)
                 q[rows], v[rows], a[rows] = self.follow(

@@ -18,6 +18,7 @@ from scipy.optimize import minimize
 
 from jitdyn.client import FrameData, SessionOptions, TickResult
 from jitdyn.server.estimation.config import resolve_config
+from jitdyn.server.estimation.extrapolators import EXTRAPOLATORS, extrapolate
 from jitdyn.server.estimation.forecast import (
     FORGETTING,
     MAX_NOVELTY,
@@ -179,10 +180,12 @@ class _ReferenceCombiner:
         if self.count[h] < MIN_SAMPLES:
             return None
         t = latest.age * self.dt
-        p, zero = latest, np.zeros(self.nv)
-        q = np.stack([p.qpos, p.q0, p.q0 + p.v0 * t, p.q0 + p.v0 * t + 0.5 * p.a0 * t * t])
-        v = np.stack([p.qvel, p.v0, p.v0, p.v0 + p.a0 * t])
-        a = np.stack([p.qacc, zero, zero, p.a0])
+        p = latest
+        # The extrapolators' formulas are estimation/extrapolators.py's, here as in the combination.
+        moved = [extrapolate(kind, p.q0, p.v0, p.a0, t) for kind in EXTRAPOLATORS]
+        q = np.stack([p.qpos, *(m[0] for m in moved)])
+        v = np.stack([p.qvel, *(m[1] for m in moved)])
+        a = np.stack([p.qacc, *(m[2] for m in moved)])
         C = self.cov[h]
         # The novelty guard: a predictor departing from STATIC (row 1) by more than NOVELTY times
         # the RMS departure of its scored past has its errors scaled by the ratio over NOVELTY.
@@ -200,7 +203,7 @@ class _ReferenceCombiner:
 
     def _positions(self, p: _Probe) -> np.ndarray:
         t = p.age * self.dt
-        return np.stack([p.qpos, p.q0, p.q0 + p.v0 * t, p.q0 + p.v0 * t + 0.5 * p.a0 * t * t])
+        return np.stack([p.qpos, *(extrapolate(kind, p.q0, p.v0, p.a0, t)[0] for kind in EXTRAPOLATORS)])
 
     def _step(self, p: _Probe) -> _Probe:
         if p.age >= self.horizon and p.keep:
