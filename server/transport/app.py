@@ -43,6 +43,7 @@ from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
 from jitdyn.server.transport.metrics import metrics, serve_metrics
+from jitdyn.server.transport.probes import LOOP_HUNG_AFTER, MirroredHealth, Probes
 from jitdyn.server.transport.registry_service import ModelRegistryServicer
 from jitdyn.server.transport.session_service import SessionServicer
 from jitdyn.settings import Settings, default_workers
@@ -119,6 +120,8 @@ class ServerConfig:
     startup_tasks: bool = True
     reuse_port: bool = False  # SO_REUSEPORT: several processes serve one port
     metrics_address: str | None = None  # HOST:PORT of the Prometheus endpoint; None: none
+    # HOST:PORT of the kubelet's probes, answered off the event loop (server/transport/probes.py).
+    health_address: str | None = None
     # The server runs inside another program (BackgroundServer: the demo, the experiments, tests):
     # the process's CPU is not all its own, so admission counts only its sessions' estimates.
     shares_process: bool = False
@@ -149,6 +152,7 @@ class ServerConfig:
             "api_keys": settings.api_keys,
             "insecure": settings.insecure,
             "metrics_address": settings.metrics_address,
+            "health_address": settings.health_address,
             "lease_ttl": settings.lease_ttl,
             "resume_timeout": settings.resume_timeout,
             "resume_token_ttl": settings.resume_token_ttl,
@@ -334,9 +338,7 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
     return server, port, services
 
 
-async def _services(
-    config: ServerConfig, server: grpc.aio.Server
-) -> tuple[Services, health.aio.HealthServicer]:
+async def _services(config: ServerConfig, server: grpc.aio.Server) -> tuple[Services, MirroredHealth]:
     root = await asyncio.to_thread(open_root, config)
     data_root = await asyncio.to_thread(prepare_data_root, config.data_root)
     secret = load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
@@ -384,7 +386,7 @@ async def _services(
     server.dynamics = dynamics_servicer  # type: ignore[attr-defined]
     dynamics_pb2_grpc.add_DynamicsServiceServicer_to_server(dynamics_servicer, server)
     session_pb2_grpc.add_SessionServiceServicer_to_server(SessionServicer(index), server)
-    health_servicer = health.aio.HealthServicer()
+    health_servicer = MirroredHealth()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     for name in ("", *SERVICE_NAMES):
         await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
@@ -439,12 +441,38 @@ async def observe_collections(pauses: CollectionPauses, every: float = 1.0) -> N
         await asyncio.sleep(every)
 
 
+def start_probes(
+    config: ServerConfig, server: grpc.aio.Server, watch: LoopWatch, stopping: asyncio.Event
+) -> Probes | None:
+    """The kubelet's probes on `config.health_address`, off the loop: alive while the loop beats
+    (and while the server stops: a drain is no hang); ready as the sessions' port's health says."""
+    if config.health_address is None:
+        return None
+    probes = Probes.start(
+        config.health_address, alive=lambda: stopping.is_set() or watch.silent() < LOOP_HUNG_AFTER
+    )
+    server.health.mirror(probes)  # type: ignore[attr-defined]
+    return probes
+
+
+def _announce_start(
+    config: ServerConfig, services: Services, port: int, announce: Callable[[str], None]
+) -> None:
+    host = config.address.rsplit(":", 1)[0]
+    announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")
+    announce(
+        f"data in {services.data_root} (index: {config.index_url or default_index_url(services.data_root)})"
+    )
+    if services.root is not None:
+        announce(f"finished sessions go to the data root {services.root.uri}")
+
+
 async def serve(
     config: ServerConfig, *, announce: Callable[[str], None] = print, process_index: int | None = None
 ) -> None:
     """Run until SIGINT or SIGTERM, then shut down gracefully. `process_index`: this is one of the
     processes of `jitdyn serve --processes N` (server/transport/processes.py), whose parent serves
-    the metrics."""
+    the metrics and the probes."""
     metrics().set_process(process_index or 0)
     # The sessions gauge from the start, at 0: a dashboard sees an idle server as idle, not missing.
     metrics().open_sessions.labels(metrics().process).set(0)
@@ -460,17 +488,14 @@ async def serve(
     freeze_startup_heap()
     gc_pauses = asyncio.create_task(observe_collections(watch_collections()))
     loop_watch = watch_loop(services.admission, stall=config.stall_report)
+    stop = asyncio.Event()
+    probes = start_probes(config, server, loop_watch, stop) if process_index is None else None
     services.admission.start_window()
-    host = config.address.rsplit(":", 1)[0]
-    announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")
-    announce(
-        f"data in {services.data_root} (index: {config.index_url or default_index_url(services.data_root)})"
-    )
-    if services.root is not None:
-        announce(f"finished sessions go to the data root {services.root.uri}")
+    _announce_start(config, services, port, announce)
     if metrics_served is not None:
         announce(f"metrics on http://{metrics_served}/metrics")
-    stop = asyncio.Event()
+    if probes is not None:
+        announce(f"health probes on {probes.address} (plaintext gRPC health, off the event loop)")
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, stop.set)
@@ -478,6 +503,7 @@ async def serve(
     stopper = asyncio.create_task(stop.wait())
     background = [gc_pauses, *_shared_tier_tasks(server, services)]
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
+    stop.set()
     loop_watch.stop()
     for task in background:
         task.cancel()
@@ -489,5 +515,7 @@ async def serve(
         announce(f"jitdyn drained: {left} session(s) had not moved")
     announce("jitdyn shutting down: open sessions are being stored")
     await shutdown(server, services, grace=config.shutdown_grace)
+    if probes is not None:
+        probes.stop()
     stopper.cancel()
     waiter.cancel()

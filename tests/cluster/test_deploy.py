@@ -80,13 +80,20 @@ def test_the_selectors_pick_the_deployments_pods() -> None:
     )
 
 
-def test_probes_ask_jitdyn_grpc_health_on_the_grpc_port() -> None:
+def test_probes_ask_jitdyn_grpc_health_on_the_health_port_off_the_event_loop() -> None:
     (container,) = _one("Deployment")["spec"]["template"]["spec"]["containers"]
     ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+    environment = {e["name"]: e["value"] for e in container["env"]}
+    # The health port is the one jitdyn serves its probes on (--health-address), not the sessions'.
+    assert int(environment["JITDYN_HEALTH_ADDRESS"].rsplit(":", 1)[1]) == ports["health"] != ports["grpc"]
     for probe in ("readinessProbe", "livenessProbe", "startupProbe"):
-        assert container[probe]["grpc"]["port"] == ports["grpc"], probe
+        assert container[probe]["grpc"]["port"] == ports["health"], probe
+        # A probe's timeout is not the 1 s default a loaded machine's scheduler can eat.
+        assert container[probe]["timeoutSeconds"] >= 2, probe
     # Readiness follows the session service: a draining replica (NOT_SERVING) takes no new sessions.
     assert container["readinessProbe"]["grpc"]["service"] == SESSION_SERVICE
+    # Liveness asks the server's own liveness (no service name): whether its event loop runs.
+    assert "service" not in container["livenessProbe"]["grpc"]
 
 
 def test_the_autoscaler_follows_a_metric_jitdyn_exports() -> None:

@@ -307,12 +307,15 @@ def _point_at(config: Mapping[str, str], host: NetnsHost) -> dict[str, str]:
     return pointed
 
 
-def _serving(address: str, service: str) -> bool:
-    """The readiness probe: gRPC health of `service`."""
+def _probe(pod: Pod, probe: Mapping[str, Any]) -> bool:
+    """One of the container's `grpc:` probes, as the kubelet asks it: the pod's IP, the probe's port
+    and service (none: ""), its timeoutSeconds (1 s when not given)."""
+    address = f"{pod.address.rsplit(':', 1)[0]}:{probe['grpc']['port']}"
     with grpc.insecure_channel(address) as channel:
         try:
             answer = health_pb2_grpc.HealthStub(channel).Check(
-                health_pb2.HealthCheckRequest(service=service), timeout=1
+                health_pb2.HealthCheckRequest(service=probe["grpc"].get("service", "")),
+                timeout=probe.get("timeoutSeconds", 1),
             )
         except grpc.RpcError:
             return False
@@ -350,11 +353,10 @@ def test_the_deployment_starts_as_a_kubelet_runs_it_and_serves_an_authenticated_
         store.filesystem().create_dir(bucket)
         netns_host.forward(int(config["AWS_ENDPOINT_URL"].rsplit(":", 1)[1]), to=store.port)
         with run_pod(tmp_path, netns_host, config=config, secret=secret) as pod:
-            wait_for(
-                lambda: _serving(pod.address, "jitdyn.v1.DynamicsService"),
-                timeout=30,
-                what="the readiness probe did not pass",
-            )
+            for kind in ("startupProbe", "readinessProbe", "livenessProbe"):
+                wait_for(
+                    lambda k=kind: _probe(pod, container[k]), timeout=30, what=f"the {kind} did not pass"
+                )
             status = Path(f"/proc/{pod.process.pid}/status").read_text()
             uids = re.search(r"^Uid:\s+(\d+)", status, re.MULTILINE).group(1)  # type: ignore[union-attr]
             groups = re.search(r"^Groups:\s*(.*)$", status, re.MULTILINE).group(1)  # type: ignore[union-attr]
