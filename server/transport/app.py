@@ -174,12 +174,19 @@ def _shared_tier_tasks(server: grpc.aio.Server, services: Services) -> list[asyn
     """The background work of a replica of a shared tier: sessions nobody resumed, sessions not yet
     on the data root, and stepping down when its leases cannot be renewed."""
     tasks = []
+    m = metrics()
     if services.shared is not None:
-        tasks.append(asyncio.create_task(finish_orphans(services, data_root=services.data_root)))
+        claimed = m.claimed.labels(m.process)
+        tasks.append(
+            asyncio.create_task(
+                finish_orphans(services, data_root=services.data_root, on_claimed=claimed.inc)
+            )
+        )
         stepping = step_down_when_lease_lost(server.dynamics, server.health, services)  # type: ignore[attr-defined]
         tasks.append(asyncio.create_task(stepping))
     if services.root is not None:
-        tasks.append(asyncio.create_task(publish_pending_loop(services)))
+        waiting = m.awaiting_upload.labels(m.process)
+        tasks.append(asyncio.create_task(publish_pending_loop(services, on_waiting=waiting.set)))
     return tasks
 
 
@@ -467,6 +474,21 @@ def _announce_start(
         announce(f"finished sessions go to the data root {services.root.uri}")
 
 
+async def observe_commits(committer: GroupCommitter, every: float = 1.0) -> None:
+    """Move the committer's counts of commit windows the storage did not take and of sessions
+    fenced into `jitdyn_commit_errors_total` and `jitdyn_sessions_fenced_total`, every `every`
+    seconds, from the loop (the commit thread never touches the metrics)."""
+    m = metrics()
+    errors, fenced = m.commit_errors.labels(m.process), m.fenced.labels(m.process)
+    seen_errors = seen_fenced = 0
+    while True:
+        await asyncio.sleep(every)
+        now = committer.stats()
+        errors.inc(now.errors - seen_errors)
+        fenced.inc(now.fenced - seen_fenced)
+        seen_errors, seen_fenced = now.errors, now.fenced
+
+
 async def serve(
     config: ServerConfig, *, announce: Callable[[str], None] = print, process_index: int | None = None
 ) -> None:
@@ -501,7 +523,8 @@ async def serve(
         loop.add_signal_handler(signum, stop.set)
     waiter = asyncio.create_task(server.wait_for_termination())
     stopper = asyncio.create_task(stop.wait())
-    background = [gc_pauses, *_shared_tier_tasks(server, services)]
+    commits = asyncio.create_task(observe_commits(services.committer))
+    background = [gc_pauses, commits, *_shared_tier_tasks(server, services)]
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
     stop.set()
     loop_watch.stop()
