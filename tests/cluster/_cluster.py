@@ -186,11 +186,27 @@ class Replica:
         self.close()
 
 
-def render_haproxy(replicas: Sequence[Replica], *, bind: str, stats_socket: Path) -> str:
-    """deploy/haproxy/haproxy.cfg with its three placeholders filled."""
+# The shipped frontend ends TLS. The tests of balancing, failover and resumption run the same
+# configuration with this one line cleartext (their clients speak plaintext): nothing else differs.
+TLS_BIND = "bind ${JITDYN_LB_BIND} ssl crt ${JITDYN_LB_CERT} alpn h2"
+CLEARTEXT_BIND = "bind ${JITDYN_LB_BIND} proto h2"
+
+
+def render_haproxy(
+    replicas: Sequence[Replica], *, bind: str, stats_socket: Path, cert: Path | None = None
+) -> str:
+    """deploy/haproxy/haproxy.cfg with its placeholders filled: TLS with `cert` (the chain, then
+    its key, in one PEM file), else with the cleartext bind."""
     servers = "\n".join(f"    server {r.name} {r.address}" for r in replicas)
-    return string.Template(HAPROXY_TEMPLATE.read_text()).substitute(
-        JITDYN_LB_BIND=bind, JITDYN_LB_STATS_SOCKET=str(stats_socket), JITDYN_LB_SERVERS=servers
+    template = HAPROXY_TEMPLATE.read_text()
+    assert template.count(TLS_BIND) == 1, "haproxy.cfg's frontend no longer binds as TLS_BIND says"
+    if cert is None:
+        template = template.replace(TLS_BIND, CLEARTEXT_BIND)
+    return string.Template(template).substitute(
+        JITDYN_LB_BIND=bind,
+        JITDYN_LB_CERT=str(cert),
+        JITDYN_LB_STATS_SOCKET=str(stats_socket),
+        JITDYN_LB_SERVERS=servers,
     )
 
 
@@ -205,13 +221,18 @@ class Balancer:
     log: Path
 
     @classmethod
-    def start(cls, replicas: Sequence[Replica], *, workdir: Path, host: str = "127.0.0.1") -> Balancer:
+    def start(
+        cls, replicas: Sequence[Replica], *, workdir: Path, host: str = "127.0.0.1", cert: Path | None = None
+    ) -> Balancer:
+        """Start and wait until every replica is UP; TLS to clients with `cert` (render_haproxy)."""
         haproxy = tool("haproxy")
         workdir.mkdir(parents=True, exist_ok=True)
         port = free_port(host)
         stats_socket = workdir / "haproxy.sock"
         config = workdir / "haproxy.cfg"
-        config.write_text(render_haproxy(replicas, bind=f"{host}:{port}", stats_socket=stats_socket))
+        config.write_text(
+            render_haproxy(replicas, bind=f"{host}:{port}", stats_socket=stats_socket, cert=cert)
+        )
         check = subprocess.run(
             [haproxy, "-c", "-f", str(config)], check=False, capture_output=True, text=True
         )

@@ -58,6 +58,7 @@ def test_every_manifest_is_valid_against_the_kubernetes_schemas(version: str) ->
             "ConfigMap",
             "Deployment",
             "HorizontalPodAutoscaler",
+            "Ingress",
             "PodDisruptionBudget",
             "Secret",
             "Service",
@@ -179,3 +180,18 @@ def test_the_dockerfile_copies_every_package_the_wheel_is_built_from() -> None:
     assert {f"!{name}/" for name in folders} <= set(ignored), (
         "the build context must keep every package folder"
     )
+
+
+def test_the_ingress_ends_tls_and_sends_grpc_to_the_services_grpc_port() -> None:
+    ingress = _one("Ingress")["spec"]
+    (tls,) = ingress["tls"]
+    (rule,) = ingress["rules"]
+    assert tls["secretName"] and rule["host"] in tls["hosts"]
+    (path,) = rule["http"]["paths"]
+    backend = path["backend"]["service"]
+    services = {r["metadata"]["name"]: r for _, r in _resources() if r["kind"] == "Service"}
+    ports = {p["name"]: p for p in services[backend["name"]]["spec"]["ports"]}
+    # The Service's port that carries gRPC in cleartext HTTP/2, as the replicas serve it.
+    assert ports[backend["port"]["name"]]["appProtocol"] == "kubernetes.io/h2c"
+    annotations = _one("Ingress")["metadata"]["annotations"]
+    assert annotations["nginx.ingress.kubernetes.io/backend-protocol"] == "GRPC"
