@@ -25,7 +25,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from jitdyn.key_files import SECRET_ENVIRONMENT, check_private_file, refuse_placeholder
+from jitdyn.key_files import SECRET_ENVIRONMENT, check_ca_file, check_private_file, refuse_placeholder
 from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.config import Engine
@@ -237,6 +237,19 @@ def _refuse_placeholders(config: ServerConfig) -> None:
             refuse_placeholder(password or "", setting="the password of --index")
 
 
+def _check_ca_files(config: ServerConfig) -> None:
+    """The CA files the index URL (libpq's sslrootcert) and the S3 client (AWS_CA_BUNDLE) are to
+    check their servers against: there, readable and PEM, or one line saying which is not."""
+    if config.index_url:
+        query = urllib.parse.parse_qs(urllib.parse.urlsplit(config.index_url).query)
+        for path in query.get("sslrootcert", []):
+            if path != "system":  # libpq 16+: the system's CAs
+                check_ca_file(Path(path), setting="--index sslrootcert")
+    bundle = config.environ.get("AWS_CA_BUNDLE")
+    if bundle and config.data_root_uri:
+        check_ca_file(Path(bundle), setting="environment variable AWS_CA_BUNDLE")
+
+
 def _check_security(config: ServerConfig) -> None:
     if ":" not in config.address:
         raise InvalidArgument(f"--address must be HOST:PORT, got {config.address!r}")
@@ -245,6 +258,7 @@ def _check_security(config: ServerConfig) -> None:
     if config.tls_key:
         check_private_file(config.tls_key, setting="--tls-key")
     _refuse_placeholders(config)
+    _check_ca_files(config)
     if not _is_loopback(config.address) and not config.insecure and not (config.tls_cert and config.api_keys):
         raise InvalidArgument(
             f"--address {config.address} is not a loopback address: serving beyond this machine needs "

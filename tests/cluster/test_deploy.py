@@ -39,8 +39,8 @@ def _resources() -> Iterator[tuple[str, dict[str, Any]]]:
                 yield path.name, document
 
 
-def _one(kind: str) -> dict[str, Any]:
-    (found,) = [r for _, r in _resources() if r["kind"] == kind]
+def _one(kind: str, name: str | None = None) -> dict[str, Any]:
+    (found,) = [r for _, r in _resources() if r["kind"] == kind and name in (None, r["metadata"]["name"])]
     return found
 
 
@@ -60,6 +60,7 @@ def test_every_manifest_is_valid_against_the_kubernetes_schemas(version: str) ->
             "HorizontalPodAutoscaler",
             "Ingress",
             "PodDisruptionBudget",
+            "Secret",
             "Secret",
             "Service",
             "Service",
@@ -115,7 +116,7 @@ def _environment() -> dict[str, str]:
     (container,) = _one("Deployment")["spec"]["template"]["spec"]["containers"]
     environment = {e["name"]: e["value"] for e in container["env"]}
     environment.update(_one("ConfigMap")["data"])
-    environment.update(_one("Secret")["stringData"])
+    environment.update(_one("Secret", "jitdyn")["stringData"])
     return environment
 
 
@@ -132,7 +133,7 @@ def test_every_jitdyn_setting_the_pod_gets_is_one_jitdyn_serve_reads_and_parses(
     assert environment["JITDYN_API_KEYS"].startswith("/etc/jitdyn/")
     assert {"AWS_ENDPOINT_URL", "AWS_REGION", "JITDYN_DATA_ROOT", "JITDYN_INDEX_URL"} <= environment.keys()
     assert environment["JITDYN_DATA_ROOT"].startswith("s3://")
-    secret = _one("Secret")["stringData"]
+    secret = _one("Secret", "jitdyn")["stringData"]
     assert {
         "AWS_ACCESS_KEY_ID",
         "AWS_SECRET_ACCESS_KEY",
@@ -195,3 +196,23 @@ def test_the_ingress_ends_tls_and_sends_grpc_to_the_services_grpc_port() -> None
     assert ports[backend["port"]["name"]]["appProtocol"] == "kubernetes.io/h2c"
     annotations = _one("Ingress")["metadata"]["annotations"]
     assert annotations["nginx.ingress.kubernetes.io/backend-protocol"] == "GRPC"
+
+
+def test_the_index_and_the_object_store_are_reached_over_tls_checked_against_the_mounted_ca() -> None:
+    from urllib.parse import parse_qs, urlsplit
+
+    config = _one("ConfigMap")["data"]
+    spec = _one("Deployment")["spec"]["template"]["spec"]
+    (container,) = spec["containers"]
+    ca_secret = _one("Secret", "jitdyn-ca")
+    (volume,) = [v for v in spec["volumes"] if v.get("secret", {}).get("secretName") == "jitdyn-ca"]
+    (mount,) = [m for m in container["volumeMounts"] if m["name"] == volume["name"]]
+    (item,) = volume["secret"]["items"]
+    assert item["key"] in ca_secret["stringData"]
+    ca_file = f"{mount['mountPath']}/{item['path']}"
+    query = parse_qs(urlsplit(config["JITDYN_INDEX_URL"]).query)
+    assert query == {"sslmode": ["verify-full"], "sslrootcert": [ca_file]}, query
+    assert config["AWS_ENDPOINT_URL"].startswith("https://")
+    assert config["AWS_CA_BUNDLE"] == ca_file
+    # Read by the server's group (fsGroup), as the API keys are: 0440.
+    assert volume["secret"]["defaultMode"] == 0o440 and mount["readOnly"] is True
