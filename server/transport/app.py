@@ -463,17 +463,28 @@ async def observe_collections(pauses: CollectionPauses, every: float = 1.0) -> N
 
 
 def start_probes(
-    config: ServerConfig, server: grpc.aio.Server, watch: LoopWatch, stopping: asyncio.Event
-) -> Probes | None:
-    """The kubelet's probes on `config.health_address`, off the loop: alive while the loop beats
-    (and while the server stops: a drain is no hang); ready as the sessions' port's health says."""
-    if config.health_address is None:
-        return None
-    probes = Probes.start(
-        config.health_address, alive=lambda: stopping.is_set() or watch.silent() < LOOP_HUNG_AFTER
-    )
-    server.health.mirror(probes)  # type: ignore[attr-defined]
-    return probes
+    probes: Probes | None, server: grpc.aio.Server, watch: LoopWatch, stopping: asyncio.Event
+) -> None:
+    """The kubelet's probes, off the loop: alive while the loop beats (and while the server stops:
+    a drain is no hang); ready as the sessions' port's health says."""
+    if probes is not None:
+        probes.start(alive=lambda: stopping.is_set() or watch.silent() < LOOP_HUNG_AFTER)
+        server.health.mirror(probes)  # type: ignore[attr-defined]
+
+
+async def _create_serving(
+    config: ServerConfig, *, probes_here: bool
+) -> tuple[grpc.aio.Server, int, Services, Probes | None]:
+    """create_server, with the probes' port bound first when this process answers them (a busy
+    port stops the start before anything is made on disk)."""
+    probes = Probes.bind(config.health_address) if config.health_address and probes_here else None
+    try:
+        server, port, services = await create_server(config)
+    except BaseException:
+        if probes is not None:
+            probes.stop()
+        raise
+    return server, port, services, probes
 
 
 def _announce_start(
@@ -515,7 +526,7 @@ async def serve(
     metrics_served = None
     if config.metrics_address and process_index is None:
         metrics_served = serve_metrics(config.metrics_address)
-    server, port, services = await create_server(config)
+    server, port, services, probes = await _create_serving(config, probes_here=process_index is None)
     await server.start()
     if config.nice is not None:  # once listening: a server that cannot start says only why
         prioritise(config.nice)
@@ -525,7 +536,7 @@ async def serve(
     gc_pauses = asyncio.create_task(observe_collections(watch_collections()))
     loop_watch = watch_loop(services.admission, stall=config.stall_report)
     stop = asyncio.Event()
-    probes = start_probes(config, server, loop_watch, stop) if process_index is None else None
+    start_probes(probes, server, loop_watch, stop)
     services.admission.start_window()
     _announce_start(config, services, port, announce)
     if metrics_served is not None:

@@ -4,8 +4,10 @@ with ticks never fails liveness. A liveness probe answered on the loop (as it wa
 port with a 1 s timeout) gets a loaded pod restarted, and its sessions then land on the other
 replicas, which fall behind in turn. Why, and what else was weighed: docs/decisions/0165.
 
-    probes = Probes.start("0.0.0.0:8081", alive=lambda: watch.silent() < LOOP_HUNG_AFTER)
-    health = MirroredHealth(probes)     # the sessions' port's health, mirrored for readiness
+    probes = Probes.bind("0.0.0.0:8081")     # before anything else: a busy port stops the start
+    ...
+    probes.start(alive=lambda: watch.silent() < LOOP_HUNG_AFTER)
+    health.mirror(probes)                    # the sessions' port's health (MirroredHealth), for readiness
     ...
     probes.stop()
 
@@ -42,18 +44,19 @@ _NOT_SERVING: Final = health_pb2.HealthCheckResponse.NOT_SERVING
 class _ProbeHealth(health.HealthServicer):
     """grpc.health.v1 whose service "" is `alive()`, asked at each check; the others as set."""
 
-    def __init__(self, alive: Callable[[], bool]) -> None:
+    def __init__(self) -> None:
         super().__init__()
-        self._alive = alive
+        self.alive: Callable[[], bool] = lambda: False
 
     def Check(self, request: health_pb2.HealthCheckRequest, context: Any) -> health_pb2.HealthCheckResponse:
         if request.service == LIVENESS:
-            return health_pb2.HealthCheckResponse(status=_SERVING if self._alive() else _NOT_SERVING)
+            return health_pb2.HealthCheckResponse(status=_SERVING if self.alive() else _NOT_SERVING)
         return super().Check(request, context)
 
 
 class Probes:
-    """The probes' server, started; `address` is where it listens (port 0 picks a free one)."""
+    """The probes' server: bound by `bind`, answering from `start`; `address` is where it listens
+    (port 0 picks a free one)."""
 
     def __init__(self, server: grpc.Server, servicer: _ProbeHealth, address: str) -> None:
         self._server = server
@@ -61,10 +64,10 @@ class Probes:
         self.address = address
 
     @classmethod
-    def start(cls, address: str, *, alive: Callable[[], bool]) -> Probes:
-        """Listen on `address` (plaintext: the kubelet's probes speak no TLS) and answer.
-        FailedPrecondition, in one line, when the address cannot be bound."""
-        servicer = _ProbeHealth(alive)
+    def bind(cls, address: str) -> Probes:
+        """Bound to `address` (plaintext: the kubelet's probes speak no TLS), answering nothing until
+        `start`. FailedPrecondition, in one line, when the address cannot be bound."""
+        servicer = _ProbeHealth()
         server = grpc.server(
             futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="jitdyn-probes"),
             # Not SO_REUSEPORT (grpc's default): a second server on the port is an error, not a sharer.
@@ -80,8 +83,12 @@ class Probes:
                 f"cannot serve health probes on {address}: the address is in use or not an address of "
                 "this machine; choose another with --health-address HOST:PORT"
             )
-        server.start()
         return cls(server, servicer, f"{address.rsplit(':', 1)[0]}:{port}")
+
+    def start(self, *, alive: Callable[[], bool]) -> None:
+        """Answer from now on: liveness by `alive()`, asked at each check."""
+        self._servicer.alive = alive
+        self._server.start()
 
     def set(self, service: str, status: int) -> None:
         """The readiness of `service`, a HealthCheckResponse.ServingStatus (never liveness: that is

@@ -236,9 +236,15 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
     that dies), ready while every child serves."""
     if processes < 1:
         raise InvalidArgument(f"--processes must be at least 1, got {processes}")
-    # The port first: a busy one must leave nothing created on disk.
+    # The ports first: a busy one must leave nothing created on disk.
     with _reserved_port(config.address) as port:
-        data_root, index_url = prepare_data(config)
+        probes = Probes.bind(config.health_address) if config.health_address else None
+        try:
+            data_root, index_url = prepare_data(config)
+        except BaseException:
+            if probes is not None:
+                probes.stop()
+            raise
         metrics_dir = tempfile.mkdtemp(prefix="jitdyn-metrics-")
         os.environ[MULTIPROCESS_ENV] = metrics_dir  # inherited by the children, before they import metrics
         served: dict[str, str] = {}
@@ -257,13 +263,12 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
         )
         children = _Children(child_config, metrics_dir=metrics_dir)
         previous = {s: signal.signal(s, children.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        probes = None
         try:
             children.start_all(processes)
             if children.stopping:
                 return
-            if config.health_address:  # bound once every child serves, as one process binds it
-                probes = Probes.start(config.health_address, alive=lambda: True)
+            if probes is not None:  # answering once every child serves
+                probes.start(alive=lambda: True)
                 _set_ready(probes, True)
                 served["probes"] = probes.address
             _announce_start(

@@ -10,6 +10,7 @@ import os
 import re
 import secrets
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -166,3 +167,34 @@ def test_with_several_processes_the_supervising_one_answers_the_probes(tmp_path:
         assert _check(probes, SESSION_SERVICE)[0] == "SERVING"
     finally:
         server.stop()
+
+
+def test_a_busy_health_port_stops_the_start_in_one_line_before_anything_is_made(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        busy = f"127.0.0.1:{taken.getsockname()[1]}"
+        env = dict(os.environ, JITDYN_SECRET=secrets.token_hex(32))
+        for processes in ("1", "2"):
+            done = subprocess.run(
+                [
+                    *(sys.executable, "-m", "jitdyn.cli", "serve", "--address=127.0.0.1:0"),
+                    f"--data={tmp_path / 'data'}",
+                    f"--processes={processes}",
+                    f"--health-address={busy}",
+                ],
+                env=env,
+                capture_output=True,
+                text=True,
+                timeout=120,
+                check=False,
+            )
+            assert done.returncode == 1, done.stdout + done.stderr
+            assert (done.stdout + done.stderr).splitlines() == [
+                (
+                    f"jitdyn serve: FailedPrecondition: cannot serve health probes on {busy}: the address "
+                    "is in use or not an address of this machine; choose another with --health-address "
+                    "HOST:PORT"
+                )
+            ]
+            assert not (tmp_path / "data").exists()
