@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import queue
 import threading
 import time
@@ -49,6 +50,7 @@ from jitdyn.client._transport import (
     explain_open_error,
     status_error,
 )
+from jitdyn.client._transport import root_certificates as root_certificates_of
 from jitdyn.errors import FailedPrecondition, JitdynError, NoAnswer, error_for_status
 from jitdyn.lifecycle import Closeable
 from jitdyn.v1 import (
@@ -516,6 +518,7 @@ class Client(Closeable):
         timeout: float | None = 60.0,
         api_key: str | None = None,
         root_certificates: bytes | None = None,
+        ca_file: str | os.PathLike[str] | None = None,
         checksum: bool = True,
         connection_per_session: bool = True,
         channel_options: Sequence[tuple[str, Any]] = (),
@@ -524,11 +527,13 @@ class Client(Closeable):
         """`channel_options` are gRPC channel arguments added to the SDK's own (e.g.
         `[("grpc.lb_policy_name", "round_robin")]` with `address="ipv4:10.0.0.1:50051,10.0.0.2:50051"`).
         `resume`: how sessions resume by themselves when their stream breaks (`ResumePolicy`);
-        False turns it off."""
+        False turns it off. TLS: `ca_file`, a PEM file of the CA that signed the server's (or its
+        balancer's) certificate, or the same as bytes in `root_certificates`; neither: plaintext."""
         self._address = address
         self._channel_options = tuple(channel_options)
         self._resume = resume if isinstance(resume, ResumePolicy) else ResumePolicy(enabled=resume)
-        self._root_certificates = root_certificates
+        # TLS when given roots to trust: the server's (or its balancer's) CA, as bytes or a PEM file.
+        self._root_certificates = root_certificates_of(root_certificates, ca_file)
         self._channel = self._new_channel(shared=True)
         # Each session on its own connection (its own HTTP/2 connection, not a stream of the
         # client's): `jitdyn serve --processes N` is N processes on one port, and the kernel spreads

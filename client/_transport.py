@@ -4,13 +4,14 @@ authorization metadata, the status-to-exception mapping and the end marker of a 
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Sequence
 from enum import Enum, auto
 from typing import Any, Final
 
 import grpc
 
-from jitdyn.errors import JitdynError, error_for_status
+from jitdyn.errors import InvalidArgument, JitdynError, error_for_status
 
 __all__ = [
     "CHANNEL_OPTIONS",
@@ -22,6 +23,7 @@ __all__ = [
     "End",
     "auth_metadata",
     "channel_options",
+    "root_certificates",
     "status_error",
 ]
 
@@ -88,9 +90,48 @@ class End(Enum):
 END: Final = End.END
 
 
+def root_certificates(given: bytes | None, ca_file: str | os.PathLike[str] | None) -> bytes | None:
+    """The PEM certificates a TLS channel trusts: `given`, or those of `ca_file` (the CA that
+    signed the server's or the balancer's certificate); None for a plaintext channel.
+    InvalidArgument, in one line, for both at once, or a `ca_file` that cannot be read or holds no
+    PEM certificate."""
+    if ca_file is None:
+        return given
+    if given is not None:
+        raise InvalidArgument("give root_certificates or ca_file, not both")
+    try:
+        with open(ca_file, "rb") as file:
+            data = file.read()
+    except OSError as error:
+        raise InvalidArgument(f"ca_file {os.fspath(ca_file)}: {error.strerror}") from None
+    if b"-----BEGIN CERTIFICATE-----" not in data:
+        raise InvalidArgument(
+            f"ca_file {os.fspath(ca_file)}: holds no PEM certificate (-----BEGIN CERTIFICATE-----)"
+        )
+    return data
+
+
+# What gRPC says of a TLS handshake that failed, and what it most often means.
+_TLS_FAILURES: Final = (
+    "CERTIFICATE_VERIFY_FAILED",
+    "Tls handshake failed",
+    "Ssl handshake failed",
+    "WRONG_VERSION_NUMBER",
+)
+_TLS_HINT: Final = (
+    "the TLS handshake with the server failed: if it serves TLS, trust the CA that signed its "
+    "certificate (ca_file= or root_certificates=) and connect to the name the certificate is for; "
+    "if it serves plaintext, give neither"
+)
+
+
 def status_error(error: grpc.RpcError) -> JitdynError:
-    """The `jitdyn.errors` exception for the status an RPC ended with (sync or grpc.aio)."""
-    return error_for_status(error.code(), error.details() or "")
+    """The `jitdyn.errors` exception for the status an RPC ended with (sync or grpc.aio); a failed
+    TLS handshake says what to check."""
+    details = error.details() or ""
+    if error.code() == grpc.StatusCode.UNAVAILABLE and any(f in details for f in _TLS_FAILURES):
+        details = f"{_TLS_HINT} ({details})"
+    return error_for_status(error.code(), details)
 
 
 # Why an open can end in a bare stream reset: HAProxy before 3.2 turns a server's refusal of a

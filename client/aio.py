@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import time
 import weakref
 from collections.abc import AsyncIterator, Mapping, Sequence
@@ -46,6 +47,7 @@ from jitdyn.client._transport import (
     explain_open_error,
     status_error,
 )
+from jitdyn.client._transport import root_certificates as root_certificates_of
 from jitdyn.errors import FailedPrecondition, JitdynError, NoAnswer, error_for_status
 from jitdyn.v1 import (
     dynamics_pb2,
@@ -554,6 +556,7 @@ class AsyncClient:
         timeout: float | None = 60.0,
         api_key: str | None = None,
         root_certificates: bytes | None = None,
+        ca_file: str | os.PathLike[str] | None = None,
         checksum: bool = True,
         connection_per_session: bool = True,
         channel_options: Sequence[tuple[str, Any]] = (),
@@ -561,11 +564,13 @@ class AsyncClient:
     ) -> None:
         """`channel_options`: gRPC channel arguments added to the SDK's own, as `Client` takes them.
         `resume`: how sessions resume by themselves when their stream breaks (`ResumePolicy`);
-        False turns it off."""
+        False turns it off. TLS: `ca_file`, a PEM file of the CA that signed the server's (or its
+        balancer's) certificate, or the same as bytes in `root_certificates`; neither: plaintext."""
         self._address = address
         self._channel_options = tuple(channel_options)
         self._resume = resume if isinstance(resume, ResumePolicy) else ResumePolicy(enabled=resume)
-        self._root_certificates = root_certificates
+        # TLS when given roots to trust: the server's (or its balancer's) CA, as bytes or a PEM file.
+        self._root_certificates = root_certificates_of(root_certificates, ca_file)
         self._channel = self._new_channel(shared=True)
         # See Client: each session on its own connection, so that `jitdyn serve --processes N`
         # spreads them over its processes.

@@ -133,6 +133,8 @@ class CommitStats:
     sessions: int  # logs registered now
     cpu_seconds: float  # the commit thread's CPU, writing and syncing
     window: float  # s: the least commit window now, widened to keep commits under COMMIT_SHARE
+    errors: int = 0  # windows the storage did not take (a write or sync failed, the index did not answer)
+    fenced: int = 0  # sessions whose writes were refused: another stream took them over
 
 
 class GroupCommitter(Closeable):
@@ -153,6 +155,8 @@ class GroupCommitter(Closeable):
         self._records = 0
         self._syncs = 0
         self._cpu = 0.0
+        self._errors = 0
+        self._fenced = 0
         self._commit_cost = 0.0  # s of this thread's CPU per commit, a moving average
         self._wake_at = -math.inf  # when the waiting thread wakes by itself (monotonic s); -inf: awake
         self._window = 0.0  # s, the least window of every log: _commit_cost / COMMIT_SHARE
@@ -244,6 +248,8 @@ class GroupCommitter(Closeable):
                 sessions=len(self._sessions),
                 cpu_seconds=self._cpu,
                 window=self._window,
+                errors=self._errors,
+                fenced=self._fenced,
             )
 
     def close(self) -> None:
@@ -311,6 +317,7 @@ class GroupCommitter(Closeable):
                 try:
                     _sync_all([s.fd for s, _ in local])
                 except OSError as exc:
+                    self._count_error()
                     for s, _ in local:
                         self._fail(
                             s, storage_failure(f"session {s.name}: its log cannot be made durable", exc)
@@ -351,6 +358,7 @@ class GroupCommitter(Closeable):
         try:
             fenced = self._shared.commit(windows)
         except STORAGE_ERRORS as exc:
+            self._count_error()
             now = time.monotonic()
             if self._outage_since is None:
                 self._outage_since = now
@@ -476,16 +484,22 @@ class GroupCommitter(Closeable):
             if written != data.size:
                 raise OSError(f"short write: {written} of {data.size} bytes")
         except (OSError, pa.ArrowException) as exc:
+            self._count_error()
             self._fail(s, storage_failure(f"session {s.name}: its log cannot be written", exc))
             return None
         s.bytes_written += data.size
         return s, records, b""
+
+    def _count_error(self) -> None:
+        with self._cond:
+            self._errors += 1
 
     def _fail(self, s: _Session, failure: JitdynError) -> None:
         _log.error("%s", failure)
         with self._cond:
             s.failed = True
             s.pending = []
+            self._fenced += isinstance(failure, Fenced)
         s.on_failure(failure)
 
     def _run_guarded(self) -> None:

@@ -23,7 +23,7 @@ from jitdyn.storage.layout import FRAMES_DIR, fsync_dir, session_of
 from jitdyn.storage.root import DataRoot, is_uri
 from jitdyn.vocabulary import SessionStatus
 
-__all__ = ["drop_local_copy", "publish_frames", "publish_pending", "settle_copies"]
+__all__ = ["awaiting_upload", "drop_local_copy", "publish_frames", "publish_pending", "settle_copies"]
 
 _log = logging.getLogger(__name__)
 
@@ -77,6 +77,15 @@ def settle_copies(root: DataRoot | None, *, relative: str, location: str, won: b
     except STORAGE_ERRORS as error:
         # Left for the next winner's sweep; the index names only the winner either way.
         _log.warning("%s: other copies could not be settled: %s", relative, error)
+
+
+def awaiting_upload(data: Path) -> int:
+    """How many finished sessions' Parquet files are in the data folder: with a data root, those it
+    does not hold yet (a published file's local copy is deleted once the index names the root's)."""
+    frames = data / FRAMES_DIR
+    if not frames.is_dir():
+        return 0
+    return sum(1 for _ in frames.glob("model=*/date=*/*.parquet"))
 
 
 def publish_pending(root: DataRoot, *, data: Path, index: SessionIndex) -> list[str]:

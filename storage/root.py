@@ -8,7 +8,9 @@ URI (a shared folder, or an S3-compatible object store) and reached through pyar
 A root is `s3://BUCKET[/PREFIX]`, `file:///ABSOLUTE/PATH` or a plain path. S3 takes the usual AWS
 settings from the environment: AWS_ENDPOINT_URL (or AWS_ENDPOINT_URL_S3; an http:// endpoint is
 allowed), AWS_REGION (or AWS_DEFAULT_REGION), AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY,
-AWS_SESSION_TOKEN; without keys, pyarrow's default credential chain. Every failure is one line
+AWS_SESSION_TOKEN, AWS_CA_BUNDLE (a PEM file of the CAs an https endpoint's certificate is checked
+against, as the AWS CLI reads it; else the system's); without keys, pyarrow's default credential
+chain. Every failure is one line
 that says what is wrong. Why pyarrow.fs and publishing at finish: docs/decisions/0101-data-root.md.
 """
 
@@ -109,7 +111,13 @@ def _endpoint(environ: Mapping[str, str]) -> tuple[str | None, str]:
 
 
 @functools.lru_cache(maxsize=16)
-def _s3(endpoint: str | None, scheme: str, region: str | None, keys: tuple[str, str, str] | None) -> Any:
+def _s3(
+    endpoint: str | None,
+    scheme: str,
+    region: str | None,
+    keys: tuple[str, str, str] | None,
+    ca_bundle: str | None = None,
+) -> Any:
     options: dict[str, Any] = {
         "scheme": scheme,
         "connect_timeout": _CONNECT_TIMEOUT,
@@ -120,6 +128,8 @@ def _s3(endpoint: str | None, scheme: str, region: str | None, keys: tuple[str, 
         options["endpoint_override"] = endpoint
     if region is not None:
         options["region"] = region
+    if ca_bundle is not None:
+        options["tls_ca_file_path"] = ca_bundle
     if keys is not None:
         options["access_key"], options["secret_key"] = keys[0], keys[1]
         if keys[2]:
@@ -141,7 +151,7 @@ def _s3_for(bucket: str, environ: Mapping[str, str]) -> Any:
         region = "us-east-1"  # what S3-compatible servers answer to unless told otherwise
     key, secret = environ.get("AWS_ACCESS_KEY_ID"), environ.get("AWS_SECRET_ACCESS_KEY")
     keys = (key, secret, environ.get("AWS_SESSION_TOKEN", "")) if key and secret else None
-    return _s3(endpoint, scheme, region, keys)
+    return _s3(endpoint, scheme, region, keys, environ.get("AWS_CA_BUNDLE") or None)
 
 
 def _filesystem(uri: str, environ: Mapping[str, str]) -> tuple[Any, str]:

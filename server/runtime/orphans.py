@@ -10,6 +10,7 @@ import asyncio
 import logging
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from jitdyn.server.runtime.services import Services
@@ -39,8 +40,11 @@ def finish_orphans_once(services: Services, *, data_root: Path) -> list[str]:
     return finished
 
 
-async def finish_orphans(services: Services, *, data_root: Path) -> None:
-    """Look for sessions nobody resumed, a few times per resume timeout, until cancelled.
+async def finish_orphans(
+    services: Services, *, data_root: Path, on_claimed: Callable[[int], None] = lambda count: None
+) -> None:
+    """Look for sessions nobody resumed, a few times per resume timeout, until cancelled; each
+    pass that stored some tells `on_claimed` how many.
 
     After the index did not answer, this replica waits one lease TTL of answers before it claims
     anything: the owners cut off with it renew their leases first (their commits retry every half
@@ -53,7 +57,9 @@ async def finish_orphans(services: Services, *, data_root: Path) -> None:
         if waited_for_owners or time.monotonic() - answered_since >= ttl:
             waited_for_owners = True
             try:
-                await asyncio.to_thread(finish_orphans_once, services, data_root=data_root)
+                finished = await asyncio.to_thread(finish_orphans_once, services, data_root=data_root)
+                if finished:
+                    on_claimed(len(finished))
             except STORAGE_ERRORS as error:
                 _log.warning("cannot look for sessions nobody resumed: %s", error)
                 waited_for_owners = False

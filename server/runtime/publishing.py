@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Final
 
 from jitdyn.server.runtime.services import Services
 from jitdyn.storage.failures import STORAGE_ERRORS
-from jitdyn.storage.publish import publish_pending
+from jitdyn.storage.publish import awaiting_upload, publish_pending
 from jitdyn.storage.recorder import publish_unpublished
 from jitdyn.storage.root import DataRoot
 from jitdyn.storage.shared import SharedTier
@@ -33,8 +34,14 @@ def _publish_from_shared_log(shared: SharedTier, *, data: Path, root: DataRoot) 
         pass
 
 
-async def publish_pending_loop(services: Services, *, interval: float = PUBLISH_INTERVAL) -> None:
-    """Publish what waits in the data folder, every `interval` seconds, until cancelled."""
+async def publish_pending_loop(
+    services: Services,
+    *,
+    interval: float = PUBLISH_INTERVAL,
+    on_waiting: Callable[[int], None] = lambda count: None,
+) -> None:
+    """Publish what waits in the data folder, every `interval` seconds, until cancelled; after each
+    try, `on_waiting` gets how many finished sessions' files still wait there."""
     root = services.root
     if root is None:
         return
@@ -52,4 +59,5 @@ async def publish_pending_loop(services: Services, *, interval: float = PUBLISH_
                 type(error).__name__,
                 " ".join(str(error).split()),
             )
+        on_waiting(await asyncio.to_thread(awaiting_upload, services.data_root))
         await asyncio.sleep(interval)

@@ -198,6 +198,11 @@ class LoopWatch:
         if self._handle is not None:
             self._handle.cancel()
 
+    def silent(self) -> float:
+        """Seconds since the loop last beat; safe from any thread (the kubelet's liveness probe asks
+        it from the probes' own threads, server/transport/probes.py)."""
+        return max(0.0, time.monotonic() - self._beat)
+
     def _on_beat(self) -> None:
         now = self._loop.time()
         self._beat = time.monotonic()

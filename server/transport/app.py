@@ -25,7 +25,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
-from jitdyn.key_files import SECRET_ENVIRONMENT, check_private_file, refuse_placeholder
+from jitdyn.key_files import SECRET_ENVIRONMENT, check_ca_file, check_private_file, refuse_placeholder
 from jitdyn.mujoco_log import route_mujoco_messages
 from jitdyn.registry import DEFAULT_LIMITS, ModelRegistry, RegistryLimits
 from jitdyn.server.estimation.config import Engine
@@ -43,6 +43,7 @@ from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
 from jitdyn.server.transport.metrics import metrics, serve_metrics
+from jitdyn.server.transport.probes import LOOP_HUNG_AFTER, MirroredHealth, Probes
 from jitdyn.server.transport.registry_service import ModelRegistryServicer
 from jitdyn.server.transport.session_service import SessionServicer
 from jitdyn.settings import Settings, default_workers
@@ -119,6 +120,8 @@ class ServerConfig:
     startup_tasks: bool = True
     reuse_port: bool = False  # SO_REUSEPORT: several processes serve one port
     metrics_address: str | None = None  # HOST:PORT of the Prometheus endpoint; None: none
+    # HOST:PORT of the kubelet's probes, answered off the event loop (server/transport/probes.py).
+    health_address: str | None = None
     # The server runs inside another program (BackgroundServer: the demo, the experiments, tests):
     # the process's CPU is not all its own, so admission counts only its sessions' estimates.
     shares_process: bool = False
@@ -149,6 +152,7 @@ class ServerConfig:
             "api_keys": settings.api_keys,
             "insecure": settings.insecure,
             "metrics_address": settings.metrics_address,
+            "health_address": settings.health_address,
             "lease_ttl": settings.lease_ttl,
             "resume_timeout": settings.resume_timeout,
             "resume_token_ttl": settings.resume_token_ttl,
@@ -170,12 +174,19 @@ def _shared_tier_tasks(server: grpc.aio.Server, services: Services) -> list[asyn
     """The background work of a replica of a shared tier: sessions nobody resumed, sessions not yet
     on the data root, and stepping down when its leases cannot be renewed."""
     tasks = []
+    m = metrics()
     if services.shared is not None:
-        tasks.append(asyncio.create_task(finish_orphans(services, data_root=services.data_root)))
+        claimed = m.claimed.labels(m.process)
+        tasks.append(
+            asyncio.create_task(
+                finish_orphans(services, data_root=services.data_root, on_claimed=claimed.inc)
+            )
+        )
         stepping = step_down_when_lease_lost(server.dynamics, server.health, services)  # type: ignore[attr-defined]
         tasks.append(asyncio.create_task(stepping))
     if services.root is not None:
-        tasks.append(asyncio.create_task(publish_pending_loop(services)))
+        waiting = m.awaiting_upload.labels(m.process)
+        tasks.append(asyncio.create_task(publish_pending_loop(services, on_waiting=waiting.set)))
     return tasks
 
 
@@ -226,6 +237,19 @@ def _refuse_placeholders(config: ServerConfig) -> None:
             refuse_placeholder(password or "", setting="the password of --index")
 
 
+def _check_ca_files(config: ServerConfig) -> None:
+    """The CA files the index URL (libpq's sslrootcert) and the S3 client (AWS_CA_BUNDLE) are to
+    check their servers against: there, readable and PEM, or one line saying which is not."""
+    if config.index_url:
+        query = urllib.parse.parse_qs(urllib.parse.urlsplit(config.index_url).query)
+        for path in query.get("sslrootcert", []):
+            if path != "system":  # libpq 16+: the system's CAs
+                check_ca_file(Path(path), setting="--index sslrootcert")
+    bundle = config.environ.get("AWS_CA_BUNDLE")
+    if bundle and config.data_root_uri:
+        check_ca_file(Path(bundle), setting="environment variable AWS_CA_BUNDLE")
+
+
 def _check_security(config: ServerConfig) -> None:
     if ":" not in config.address:
         raise InvalidArgument(f"--address must be HOST:PORT, got {config.address!r}")
@@ -234,6 +258,7 @@ def _check_security(config: ServerConfig) -> None:
     if config.tls_key:
         check_private_file(config.tls_key, setting="--tls-key")
     _refuse_placeholders(config)
+    _check_ca_files(config)
     if not _is_loopback(config.address) and not config.insecure and not (config.tls_cert and config.api_keys):
         raise InvalidArgument(
             f"--address {config.address} is not a loopback address: serving beyond this machine needs "
@@ -334,9 +359,7 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
     return server, port, services
 
 
-async def _services(
-    config: ServerConfig, server: grpc.aio.Server
-) -> tuple[Services, health.aio.HealthServicer]:
+async def _services(config: ServerConfig, server: grpc.aio.Server) -> tuple[Services, MirroredHealth]:
     root = await asyncio.to_thread(open_root, config)
     data_root = await asyncio.to_thread(prepare_data_root, config.data_root)
     secret = load_or_create_secret(secret_file=config.secret_file, env=config.environ, data_root=data_root)
@@ -384,7 +407,7 @@ async def _services(
     server.dynamics = dynamics_servicer  # type: ignore[attr-defined]
     dynamics_pb2_grpc.add_DynamicsServiceServicer_to_server(dynamics_servicer, server)
     session_pb2_grpc.add_SessionServiceServicer_to_server(SessionServicer(index), server)
-    health_servicer = health.aio.HealthServicer()
+    health_servicer = MirroredHealth()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     for name in ("", *SERVICE_NAMES):
         await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
@@ -439,19 +462,71 @@ async def observe_collections(pauses: CollectionPauses, every: float = 1.0) -> N
         await asyncio.sleep(every)
 
 
+def start_probes(
+    probes: Probes | None, server: grpc.aio.Server, watch: LoopWatch, stopping: asyncio.Event
+) -> None:
+    """The kubelet's probes, off the loop: alive while the loop beats (and while the server stops:
+    a drain is no hang); ready as the sessions' port's health says."""
+    if probes is not None:
+        probes.start(alive=lambda: stopping.is_set() or watch.silent() < LOOP_HUNG_AFTER)
+        server.health.mirror(probes)  # type: ignore[attr-defined]
+
+
+async def _create_serving(
+    config: ServerConfig, *, probes_here: bool
+) -> tuple[grpc.aio.Server, int, Services, Probes | None]:
+    """create_server, with the probes' port bound first when this process answers them (a busy
+    port stops the start before anything is made on disk)."""
+    probes = Probes.bind(config.health_address) if config.health_address and probes_here else None
+    try:
+        server, port, services = await create_server(config)
+    except BaseException:
+        if probes is not None:
+            probes.stop()
+        raise
+    return server, port, services, probes
+
+
+def _announce_start(
+    config: ServerConfig, services: Services, port: int, announce: Callable[[str], None]
+) -> None:
+    host = config.address.rsplit(":", 1)[0]
+    announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")
+    announce(
+        f"data in {services.data_root} (index: {config.index_url or default_index_url(services.data_root)})"
+    )
+    if services.root is not None:
+        announce(f"finished sessions go to the data root {services.root.uri}")
+
+
+async def observe_commits(committer: GroupCommitter, every: float = 1.0) -> None:
+    """Move the committer's counts of commit windows the storage did not take and of sessions
+    fenced into `jitdyn_commit_errors_total` and `jitdyn_sessions_fenced_total`, every `every`
+    seconds, from the loop (the commit thread never touches the metrics)."""
+    m = metrics()
+    errors, fenced = m.commit_errors.labels(m.process), m.fenced.labels(m.process)
+    seen_errors = seen_fenced = 0
+    while True:
+        await asyncio.sleep(every)
+        now = committer.stats()
+        errors.inc(now.errors - seen_errors)
+        fenced.inc(now.fenced - seen_fenced)
+        seen_errors, seen_fenced = now.errors, now.fenced
+
+
 async def serve(
     config: ServerConfig, *, announce: Callable[[str], None] = print, process_index: int | None = None
 ) -> None:
     """Run until SIGINT or SIGTERM, then shut down gracefully. `process_index`: this is one of the
     processes of `jitdyn serve --processes N` (server/transport/processes.py), whose parent serves
-    the metrics."""
+    the metrics and the probes."""
     metrics().set_process(process_index or 0)
     # The sessions gauge from the start, at 0: a dashboard sees an idle server as idle, not missing.
     metrics().open_sessions.labels(metrics().process).set(0)
     metrics_served = None
     if config.metrics_address and process_index is None:
         metrics_served = serve_metrics(config.metrics_address)
-    server, port, services = await create_server(config)
+    server, port, services, probes = await _create_serving(config, probes_here=process_index is None)
     await server.start()
     if config.nice is not None:  # once listening: a server that cannot start says only why
         prioritise(config.nice)
@@ -460,24 +535,23 @@ async def serve(
     freeze_startup_heap()
     gc_pauses = asyncio.create_task(observe_collections(watch_collections()))
     loop_watch = watch_loop(services.admission, stall=config.stall_report)
+    stop = asyncio.Event()
+    start_probes(probes, server, loop_watch, stop)
     services.admission.start_window()
-    host = config.address.rsplit(":", 1)[0]
-    announce(f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'})")
-    announce(
-        f"data in {services.data_root} (index: {config.index_url or default_index_url(services.data_root)})"
-    )
-    if services.root is not None:
-        announce(f"finished sessions go to the data root {services.root.uri}")
+    _announce_start(config, services, port, announce)
     if metrics_served is not None:
         announce(f"metrics on http://{metrics_served}/metrics")
-    stop = asyncio.Event()
+    if probes is not None:
+        announce(f"health probes on {probes.address} (plaintext gRPC health, off the event loop)")
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, stop.set)
     waiter = asyncio.create_task(server.wait_for_termination())
     stopper = asyncio.create_task(stop.wait())
-    background = [gc_pauses, *_shared_tier_tasks(server, services)]
+    commits = asyncio.create_task(observe_commits(services.committer))
+    background = [gc_pauses, commits, *_shared_tier_tasks(server, services)]
     await asyncio.wait({waiter, stopper}, return_when=asyncio.FIRST_COMPLETED)
+    stop.set()
     loop_watch.stop()
     for task in background:
         task.cancel()
@@ -489,5 +563,7 @@ async def serve(
         announce(f"jitdyn drained: {left} session(s) had not moved")
     announce("jitdyn shutting down: open sessions are being stored")
     await shutdown(server, services, grace=config.shutdown_grace)
+    if probes is not None:
+        probes.stop()
     stopper.cancel()
     waiter.cancel()

@@ -580,6 +580,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         # is inside the try, so that a cancel arriving while `opened` is written still stores the
         # session and releases its slot.
         metrics().open_sessions.labels(metrics().process).inc()
+        if first.open.HasField("resume"):
+            metrics().resumed.labels(metrics().process).inc()
         status = SessionStatus.ABANDONED
         try:
             # The session clock starts as `opened` leaves, as the client's starts as it arrives:

@@ -15,6 +15,14 @@ start) and the parent serves them all from one endpoint.
     jitdyn_durable_lag_ticks{process}                      ticks between a result and the newest durable one
     jitdyn_process_load_cores{process}                     the admission's view of the process's load
     jitdyn_loop_lag_seconds{process}                       how late the event loop ran what fell due
+
+With replicas sharing a PostgreSQL index and a data root (deploy/):
+
+    jitdyn_sessions_resumed_total{process}                 resumes taken over here
+    jitdyn_sessions_fenced_total{process}                  sessions taken over elsewhere, refused here
+    jitdyn_sessions_claimed_total{process}                 sessions nobody resumed, stored here
+    jitdyn_commit_errors_total{process}                    commit windows the storage did not take
+    jitdyn_files_awaiting_upload{process}                  finished Parquet not yet on the data root
 """
 
 from __future__ import annotations
@@ -94,6 +102,35 @@ class Metrics:
             ["process"],
             multiprocess_mode="livemax",
         )
+        self._fleet()
+
+    def _fleet(self) -> None:
+        """What replicas sharing a PostgreSQL index and a data root count."""
+        self.resumed = Counter(
+            "jitdyn_sessions_resumed", "Resumes taken over here: a client's stream moved in.", ["process"]
+        )
+        self.fenced = Counter(
+            "jitdyn_sessions_fenced",
+            "Sessions whose writes were refused here because another stream took them over.",
+            ["process"],
+        )
+        self.claimed = Counter(
+            "jitdyn_sessions_claimed",
+            "Sessions nobody resumed (their replica died), claimed and stored by this one.",
+            ["process"],
+        )
+        self.commit_errors = Counter(
+            "jitdyn_commit_errors",
+            "Commit windows the storage did not take: a log's write or sync failed, or the shared "
+            "index did not answer (its rows are retried).",
+            ["process"],
+        )
+        self.awaiting_upload = Gauge(
+            "jitdyn_files_awaiting_upload",
+            "Finished sessions' Parquet files in the data folder that the data root does not hold yet.",
+            ["process"],
+            multiprocess_mode="livemax",  # the processes of one server share one data folder
+        )
 
     def set_process(self, index: int) -> None:
         """This process's index. Its counters of rare events start at 0: rate() needs a sample
@@ -101,6 +138,9 @@ class Metrics:
         (or rejection of a reason, or collection of a generation) from the dashboard."""
         self.process = str(index)
         self.refusals.labels(self.process)
+        for counter in (self.resumed, self.fenced, self.claimed, self.commit_errors):
+            counter.labels(self.process)
+        self.awaiting_upload.labels(self.process).set(0)
         for reason in RejectReason:
             self.rejections.labels(self.process, reason)
         for generation in ("0", "1", "2"):

@@ -32,13 +32,15 @@ from collections.abc import Callable, Iterator
 from multiprocessing.process import BaseProcess
 from typing import Any
 
+from grpc_health.v1 import health_pb2
 from prometheus_client import multiprocess as prometheus_multiprocess
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.server.estimation.config import Engine
 from jitdyn.server.runtime.priority import prioritise
-from jitdyn.server.transport.app import ServerConfig, prepare_data, serve
+from jitdyn.server.transport.app import SERVICE_NAMES, ServerConfig, prepare_data, serve
 from jitdyn.server.transport.metrics import MULTIPROCESS_ENV, serve_metrics
+from jitdyn.server.transport.probes import Probes
 from jitdyn.storage.root import normalise_root_uri
 
 __all__ = ["run_processes"]
@@ -193,26 +195,71 @@ class _Children:
                 child.kill()
 
 
+def _announce_start(
+    config: ServerConfig,
+    *,
+    port: int,
+    processes: int,
+    index_url: str,
+    served: dict[str, str],
+    announce: Callable[[str], None],
+) -> None:
+    host = config.address.rpartition(":")[0]
+    announce(
+        f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'}, {processes} processes)"
+    )
+    announce(f"data in {config.data_root} (index: {index_url})")
+    if config.data_root_uri is not None:
+        announce(f"finished sessions go to the data root {normalise_root_uri(config.data_root_uri)}")
+    if "metrics" in served:
+        announce(f"metrics on http://{served['metrics']}/metrics")
+    if "probes" in served:
+        announce(f"health probes on {served['probes']} (plaintext gRPC health, from the supervising process)")
+    if config.engine != Engine.NATIVE:
+        announce(
+            "the UKF runs on the python engine (--engine python): the numpy reference of the "
+            "native one, 1.3-3.5x its CPU per filter cycle; fewer sessions fit"
+        )
+
+
+def _set_ready(probes: Probes | None, ready: bool) -> None:
+    """The sessions' services in the probes' health: the children's port is served or not."""
+    status = health_pb2.HealthCheckResponse.SERVING if ready else health_pb2.HealthCheckResponse.NOT_SERVING
+    if probes is not None:
+        for name in SERVICE_NAMES:
+            probes.set(name, status)
+
+
 def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[str], None] = print) -> None:
-    """Serve `config` from `processes` processes until SIGINT or SIGTERM."""
+    """Serve `config` from `processes` processes until SIGINT or SIGTERM. With --health-address,
+    this supervising process answers the probes: alive while it supervises (it restarts a child
+    that dies), ready while every child serves."""
     if processes < 1:
         raise InvalidArgument(f"--processes must be at least 1, got {processes}")
-    # The port first: a busy one must leave nothing created on disk.
+    # The ports first: a busy one must leave nothing created on disk.
     with _reserved_port(config.address) as port:
-        data_root, index_url = prepare_data(config)
+        probes = Probes.bind(config.health_address) if config.health_address else None
+        try:
+            data_root, index_url = prepare_data(config)
+        except BaseException:
+            if probes is not None:
+                probes.stop()
+            raise
         metrics_dir = tempfile.mkdtemp(prefix="jitdyn-metrics-")
         os.environ[MULTIPROCESS_ENV] = metrics_dir  # inherited by the children, before they import metrics
-        metrics_served = serve_metrics(config.metrics_address) if config.metrics_address else None
-        host = config.address.rpartition(":")[0]
+        served: dict[str, str] = {}
+        if config.metrics_address:
+            served["metrics"] = serve_metrics(config.metrics_address)
         if config.nice is not None:  # the children inherit it
             prioritise(config.nice)
         child_config = dataclasses.replace(
             config,
-            address=f"{host}:{port}",
+            address=f"{config.address.rpartition(':')[0]}:{port}",
             data_root=data_root,
             startup_tasks=False,
             reuse_port=True,
             nice=None,
+            health_address=None,
         )
         children = _Children(child_config, metrics_dir=metrics_dir)
         previous = {s: signal.signal(s, children.on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -220,23 +267,25 @@ def run_processes(config: ServerConfig, *, processes: int, announce: Callable[[s
             children.start_all(processes)
             if children.stopping:
                 return
-            announce(
-                f"jitdyn listening on {host}:{port} ({'TLS' if config.tls_cert else 'plaintext'}, {processes} processes)"
+            if probes is not None:  # answering once every child serves
+                probes.start(alive=lambda: True)
+                _set_ready(probes, True)
+                served["probes"] = probes.address
+            _announce_start(
+                child_config,
+                port=port,
+                processes=processes,
+                index_url=index_url,
+                served=served,
+                announce=announce,
             )
-            announce(f"data in {data_root} (index: {index_url})")
-            if config.data_root_uri is not None:
-                announce(f"finished sessions go to the data root {normalise_root_uri(config.data_root_uri)}")
-            if metrics_served is not None:
-                announce(f"metrics on http://{metrics_served}/metrics")
-            if config.engine != Engine.NATIVE:
-                announce(
-                    "the UKF runs on the python engine (--engine python): the numpy reference of the "
-                    "native one, 1.3-3.5x its CPU per filter cycle; fewer sessions fit"
-                )
             children.supervise()
+            _set_ready(probes, False)
             announce("jitdyn shutting down: open sessions are being stored")
         finally:
             children.stop()
+            if probes is not None:
+                probes.stop()
             for s, handler in previous.items():
                 signal.signal(s, handler)
             shutil.rmtree(metrics_dir, ignore_errors=True)

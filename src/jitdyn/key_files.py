@@ -19,7 +19,13 @@ from typing import Final
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 
-__all__ = ["PLACEHOLDER_PREFIX", "SECRET_ENVIRONMENT", "check_private_file", "refuse_placeholder"]
+__all__ = [
+    "PLACEHOLDER_PREFIX",
+    "SECRET_ENVIRONMENT",
+    "check_ca_file",
+    "check_private_file",
+    "refuse_placeholder",
+]
 
 # Every value deploy/kubernetes/secret.yaml ships starts with this ("replace-me",
 # "replace-with-64-hex-digits", "replace-with-a-long-random-key").
@@ -73,3 +79,21 @@ def refuse_placeholder(value: str, *, setting: str) -> None:
             f"{setting} is still the placeholder {value.strip()!r} of deploy/kubernetes/secret.yaml; "
             "set the real value in the Secret"
         )
+
+
+def check_ca_file(path: Path, *, setting: str) -> None:
+    """Refuse a file of CA certificates (what a TLS connection checks its server against) that
+    cannot be read, still holds the placeholder of deploy/kubernetes/ca-secret.yaml, or holds no PEM
+    certificate: one line each, before a connection fails with a library's longer story."""
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise InvalidArgument(f"{setting} {path} cannot be read: {error.strerror}") from None
+    text = data.strip().decode(errors="replace")
+    if text.lower().startswith(PLACEHOLDER_PREFIX):
+        raise FailedPrecondition(
+            f"{setting} {path} is still the placeholder {text!r} of deploy/kubernetes/ca-secret.yaml; "
+            "set your CA's certificate (PEM) in the Secret"
+        )
+    if b"-----BEGIN CERTIFICATE-----" not in data:
+        raise InvalidArgument(f"{setting} {path} holds no PEM certificate (-----BEGIN CERTIFICATE-----)")

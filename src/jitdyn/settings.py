@@ -339,6 +339,13 @@ class Settings:
         "would exceed it is refused with RESOURCE_EXHAUSTED",
     )
     metrics_address: str | None = _serve_address(None, "serve Prometheus metrics there, e.g. 127.0.0.1:9464")
+    health_address: str | None = _serve_address(
+        None,
+        "serve the kubelet's probes there, e.g. 0.0.0.0:8081: plaintext gRPC health answered off the "
+        "event loop, so a loop busy with ticks never fails them. Liveness (no service name) fails only "
+        "when the loop has not run for 30 s; readiness (jitdyn.v1.DynamicsService) follows the sessions' "
+        "port: NOT_SERVING while draining or stepped down",
+    )
     max_sessions: int = _quota(
         "open sessions per process, a quota (REALTIME sessions are admitted by --tick-budget)"
     )

@@ -18,6 +18,7 @@ import secrets
 import shutil
 import signal
 import socket
+import ssl
 import string
 import subprocess
 import sys
@@ -209,11 +210,27 @@ def session_owner(replicas: Sequence[Replica]) -> Replica:
     return holding[0]
 
 
-def render_haproxy(replicas: Sequence[Replica], *, bind: str, stats_socket: Path) -> str:
-    """deploy/haproxy/haproxy.cfg with its three placeholders filled."""
+# The shipped frontend ends TLS. The tests of balancing, failover and resumption run the same
+# configuration with this one line cleartext (their clients speak plaintext): nothing else differs.
+TLS_BIND = "bind ${JITDYN_LB_BIND} ssl crt ${JITDYN_LB_CERT} alpn h2"
+CLEARTEXT_BIND = "bind ${JITDYN_LB_BIND} proto h2"
+
+
+def render_haproxy(
+    replicas: Sequence[Replica], *, bind: str, stats_socket: Path, cert: Path | None = None
+) -> str:
+    """deploy/haproxy/haproxy.cfg with its placeholders filled: TLS with `cert` (the chain, then
+    its key, in one PEM file), else with the cleartext bind."""
     servers = "\n".join(f"    server {r.name} {r.address}" for r in replicas)
-    return string.Template(HAPROXY_TEMPLATE.read_text()).substitute(
-        JITDYN_LB_BIND=bind, JITDYN_LB_STATS_SOCKET=str(stats_socket), JITDYN_LB_SERVERS=servers
+    template = HAPROXY_TEMPLATE.read_text()
+    assert template.count(TLS_BIND) == 1, "haproxy.cfg's frontend no longer binds as TLS_BIND says"
+    if cert is None:
+        template = template.replace(TLS_BIND, CLEARTEXT_BIND)
+    return string.Template(template).substitute(
+        JITDYN_LB_BIND=bind,
+        JITDYN_LB_CERT=str(cert),
+        JITDYN_LB_STATS_SOCKET=str(stats_socket),
+        JITDYN_LB_SERVERS=servers,
     )
 
 
@@ -228,13 +245,18 @@ class Balancer:
     log: Path
 
     @classmethod
-    def start(cls, replicas: Sequence[Replica], *, workdir: Path, host: str = "127.0.0.1") -> Balancer:
+    def start(
+        cls, replicas: Sequence[Replica], *, workdir: Path, host: str = "127.0.0.1", cert: Path | None = None
+    ) -> Balancer:
+        """Start and wait until every replica is UP; TLS to clients with `cert` (render_haproxy)."""
         haproxy = tool("haproxy")
         workdir.mkdir(parents=True, exist_ok=True)
         port = free_port(host)
         stats_socket = workdir / "haproxy.sock"
         config = workdir / "haproxy.cfg"
-        config.write_text(render_haproxy(replicas, bind=f"{host}:{port}", stats_socket=stats_socket))
+        config.write_text(
+            render_haproxy(replicas, bind=f"{host}:{port}", stats_socket=stats_socket, cert=cert)
+        )
         check = subprocess.run(
             [haproxy, "-c", "-f", str(config)], check=False, capture_output=True, text=True
         )
@@ -309,27 +331,33 @@ class Balancer:
 
 @dataclass
 class MotoS3:
-    """moto's S3-speaking server on a free loopback port (any keys, region us-east-1)."""
+    """moto's S3-speaking server on a free loopback port (any keys, region us-east-1); https when
+    started with a certificate, `ca` being the CA that signed it."""
 
     port: int
     process: subprocess.Popen[bytes]
     log: Path
+    ca: Path | None = None
 
     @classmethod
-    def start(cls, *, workdir: Path, port: int | None = None) -> MotoS3:
-        """Start on `port` (a free one by default), and wait until it answers."""
+    def start(
+        cls, *, workdir: Path, port: int | None = None, tls: tuple[Path, Path, Path] | None = None
+    ) -> MotoS3:
+        """Start on `port` (a free one by default), and wait until it answers. `tls`: (certificate,
+        its key, the CA that signed it), to serve https."""
         moto = tool("moto_server")
         workdir.mkdir(parents=True, exist_ok=True)
         port = free_port() if port is None else port
         log = workdir / "moto.log"
+        secure = ["--ssl-cert", str(tls[0]), "--ssl-key", str(tls[1])] if tls else []
         with log.open("wb") as out:
             process = subprocess.Popen(
-                [moto, "-H", "127.0.0.1", "-p", str(port)],
+                [moto, "-H", "127.0.0.1", "-p", str(port), *secure],
                 stdout=out,
                 stderr=subprocess.STDOUT,
                 start_new_session=True,
             )
-        server = cls(port, process, log)
+        server = cls(port, process, log, tls[2] if tls else None)
         try:
             wait_for(server._answers, timeout=30, what="moto_server did not answer")
         except Exception:
@@ -340,15 +368,16 @@ class MotoS3:
     def _answers(self) -> bool:
         if self.process.poll() is not None:
             raise RuntimeError(f"moto_server exited:\n{self.log.read_text()}")
+        context = ssl.create_default_context(cafile=str(self.ca)) if self.ca else None
         try:
-            with urllib.request.urlopen(f"{self.endpoint_url}/", timeout=1):
+            with urllib.request.urlopen(f"{self.endpoint_url}/", timeout=1, context=context):
                 return True
         except OSError:
             return False
 
     @property
     def endpoint_url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
+        return f"{'https' if self.ca else 'http'}://127.0.0.1:{self.port}"
 
     def filesystem(self) -> Any:
         """pyarrow's own S3 client on this server, as the replicas make it from AWS_ENDPOINT_URL,
@@ -356,8 +385,9 @@ class MotoS3:
         import pyarrow.fs as pafs
 
         return pafs.S3FileSystem(
-            endpoint_override=self.endpoint_url.removeprefix("http://"),
-            scheme="http",
+            endpoint_override=f"127.0.0.1:{self.port}",
+            scheme="https" if self.ca else "http",
+            tls_ca_file_path=str(self.ca) if self.ca else None,
             access_key="testing",
             secret_key="testing",
             region="us-east-1",

@@ -39,8 +39,8 @@ def _resources() -> Iterator[tuple[str, dict[str, Any]]]:
                 yield path.name, document
 
 
-def _one(kind: str) -> dict[str, Any]:
-    (found,) = [r for _, r in _resources() if r["kind"] == kind]
+def _one(kind: str, name: str | None = None) -> dict[str, Any]:
+    (found,) = [r for _, r in _resources() if r["kind"] == kind and name in (None, r["metadata"]["name"])]
     return found
 
 
@@ -58,7 +58,9 @@ def test_every_manifest_is_valid_against_the_kubernetes_schemas(version: str) ->
             "ConfigMap",
             "Deployment",
             "HorizontalPodAutoscaler",
+            "Ingress",
             "PodDisruptionBudget",
+            "Secret",
             "Secret",
             "Service",
             "Service",
@@ -80,13 +82,20 @@ def test_the_selectors_pick_the_deployments_pods() -> None:
     )
 
 
-def test_probes_ask_jitdyn_grpc_health_on_the_grpc_port() -> None:
+def test_probes_ask_jitdyn_grpc_health_on_the_health_port_off_the_event_loop() -> None:
     (container,) = _one("Deployment")["spec"]["template"]["spec"]["containers"]
     ports = {p["name"]: p["containerPort"] for p in container["ports"]}
+    environment = {e["name"]: e["value"] for e in container["env"]}
+    # The health port is the one jitdyn serves its probes on (--health-address), not the sessions'.
+    assert int(environment["JITDYN_HEALTH_ADDRESS"].rsplit(":", 1)[1]) == ports["health"] != ports["grpc"]
     for probe in ("readinessProbe", "livenessProbe", "startupProbe"):
-        assert container[probe]["grpc"]["port"] == ports["grpc"], probe
+        assert container[probe]["grpc"]["port"] == ports["health"], probe
+        # A probe's timeout is not the 1 s default a loaded machine's scheduler can eat.
+        assert container[probe]["timeoutSeconds"] >= 2, probe
     # Readiness follows the session service: a draining replica (NOT_SERVING) takes no new sessions.
     assert container["readinessProbe"]["grpc"]["service"] == SESSION_SERVICE
+    # Liveness asks the server's own liveness (no service name): whether its event loop runs.
+    assert "service" not in container["livenessProbe"]["grpc"]
 
 
 def test_the_autoscaler_follows_a_metric_jitdyn_exports() -> None:
@@ -107,7 +116,7 @@ def _environment() -> dict[str, str]:
     (container,) = _one("Deployment")["spec"]["template"]["spec"]["containers"]
     environment = {e["name"]: e["value"] for e in container["env"]}
     environment.update(_one("ConfigMap")["data"])
-    environment.update(_one("Secret")["stringData"])
+    environment.update(_one("Secret", "jitdyn")["stringData"])
     return environment
 
 
@@ -124,7 +133,7 @@ def test_every_jitdyn_setting_the_pod_gets_is_one_jitdyn_serve_reads_and_parses(
     assert environment["JITDYN_API_KEYS"].startswith("/etc/jitdyn/")
     assert {"AWS_ENDPOINT_URL", "AWS_REGION", "JITDYN_DATA_ROOT", "JITDYN_INDEX_URL"} <= environment.keys()
     assert environment["JITDYN_DATA_ROOT"].startswith("s3://")
-    secret = _one("Secret")["stringData"]
+    secret = _one("Secret", "jitdyn")["stringData"]
     assert {
         "AWS_ACCESS_KEY_ID",
         "AWS_SECRET_ACCESS_KEY",
@@ -172,3 +181,38 @@ def test_the_dockerfile_copies_every_package_the_wheel_is_built_from() -> None:
     assert {f"!{name}/" for name in folders} <= set(ignored), (
         "the build context must keep every package folder"
     )
+
+
+def test_the_ingress_ends_tls_and_sends_grpc_to_the_services_grpc_port() -> None:
+    ingress = _one("Ingress")["spec"]
+    (tls,) = ingress["tls"]
+    (rule,) = ingress["rules"]
+    assert tls["secretName"] and rule["host"] in tls["hosts"]
+    (path,) = rule["http"]["paths"]
+    backend = path["backend"]["service"]
+    services = {r["metadata"]["name"]: r for _, r in _resources() if r["kind"] == "Service"}
+    ports = {p["name"]: p for p in services[backend["name"]]["spec"]["ports"]}
+    # The Service's port that carries gRPC in cleartext HTTP/2, as the replicas serve it.
+    assert ports[backend["port"]["name"]]["appProtocol"] == "kubernetes.io/h2c"
+    annotations = _one("Ingress")["metadata"]["annotations"]
+    assert annotations["nginx.ingress.kubernetes.io/backend-protocol"] == "GRPC"
+
+
+def test_the_index_and_the_object_store_are_reached_over_tls_checked_against_the_mounted_ca() -> None:
+    from urllib.parse import parse_qs, urlsplit
+
+    config = _one("ConfigMap")["data"]
+    spec = _one("Deployment")["spec"]["template"]["spec"]
+    (container,) = spec["containers"]
+    ca_secret = _one("Secret", "jitdyn-ca")
+    (volume,) = [v for v in spec["volumes"] if v.get("secret", {}).get("secretName") == "jitdyn-ca"]
+    (mount,) = [m for m in container["volumeMounts"] if m["name"] == volume["name"]]
+    (item,) = volume["secret"]["items"]
+    assert item["key"] in ca_secret["stringData"]
+    ca_file = f"{mount['mountPath']}/{item['path']}"
+    query = parse_qs(urlsplit(config["JITDYN_INDEX_URL"]).query)
+    assert query == {"sslmode": ["verify-full"], "sslrootcert": [ca_file]}, query
+    assert config["AWS_ENDPOINT_URL"].startswith("https://")
+    assert config["AWS_CA_BUNDLE"] == ca_file
+    # Read by the server's group (fsGroup), as the API keys are: 0440.
+    assert volume["secret"]["defaultMode"] == 0o440 and mount["readOnly"] is True

@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from _tls import Authority
 from grpc_health.v1 import health_pb2
 from hpack import Decoder
 from hyperframe.frame import DataFrame, Frame, HeadersFrame, SettingsFrame
@@ -96,12 +97,15 @@ def test_haproxy_accepts_the_rendered_config(tmp_path: Path) -> None:
     template = HAPROXY_TEMPLATE.read_text()
     assert set(re.findall(r"\$\{(\w+)\}", template)) == {
         "JITDYN_LB_BIND",
+        "JITDYN_LB_CERT",
         "JITDYN_LB_STATS_SOCKET",
         "JITDYN_LB_SERVERS",
     }
+    edge = Authority.make(tmp_path / "pki").issue("edge", hosts=["jitdyn.example.org"])
     config = tmp_path / "haproxy.cfg"
     config.write_text(
         template.replace("${JITDYN_LB_BIND}", "127.0.0.1:50051")
+        .replace("${JITDYN_LB_CERT}", str(edge.pem))
         .replace("${JITDYN_LB_STATS_SOCKET}", str(tmp_path / "sock"))
         .replace("${JITDYN_LB_SERVERS}", "    server r1 127.0.0.2:50051\n    server r2 127.0.0.3:50051")
     )

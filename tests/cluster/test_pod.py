@@ -3,8 +3,10 @@ network namespace of its own (its pod network), in a mount namespace where the S
 emptyDirs and a read-only root are mounted as the kubelet mounts them, as the pod's user
 (runAsUser 10001, fsGroup 10001 as a supplementary group, no capabilities), with the environment
 the kubelet builds (the image's ENV, then envFrom the ConfigMap and the Secret, then env) and the
-image's ENTRYPOINT. Only the cluster's host names change: they point at this machine's PostgreSQL
-and at moto's S3, forwarded into the pod's network on the ports the manifests name."""
+image's ENTRYPOINT. Only the cluster's host names change: they point at a PostgreSQL and at moto's
+S3, forwarded into the pod's network on the ports the manifests name. Both speak TLS only, with
+certificates a CA made here signed for the address the pod reaches them at, and that CA is the
+ca-secret.yaml the pod mounts: the ConfigMap's sslmode=verify-full and https are checked for real."""
 
 from __future__ import annotations
 
@@ -28,8 +30,9 @@ import psycopg
 import pyarrow.parquet as pq
 import pytest
 import yaml
-from _cluster import POSTGRES_ADMIN, REPO, MotoS3, NetnsHost, tool, wait_for
+from _cluster import REPO, MotoS3, NetnsHost, tool, wait_for
 from _raw import PENDULUM, RawSession, open_message
+from _tls import Authority, TlsPostgres
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from jitdyn.key_files import PLACEHOLDER_PREFIX
@@ -87,8 +90,15 @@ def operator_secret(*, api_key: str) -> dict[str, str]:
     return values
 
 
+def operator_ca_secret(ca: Path) -> dict[str, str]:
+    """ca-secret.yaml's stringData with the CA's certificate in place of the placeholder."""
+    values = dict(_manifest("ca-secret.yaml")["stringData"])
+    assert values["ca.crt"].startswith(PLACEHOLDER_PREFIX)
+    return {**values, "ca.crt": ca.read_text()}
+
+
 def _pod_environment(
-    container: Mapping[str, Any], *, config: Mapping[str, str], secret: Mapping[str, str]
+    container: Mapping[str, Any], *, config: Mapping[str, str], secret_values: Mapping[str, Mapping[str, str]]
 ) -> dict[str, str]:
     """The kubelet's order: the image's ENV, envFrom in the order listed, then env (each wins over
     what came before)."""
@@ -99,10 +109,10 @@ def _pod_environment(
         "HOSTNAME": "jitdyn-7c9d5b6f4-x2x9q",
         **image_env,
     }
-    sources = {"configMapRef": config, "secretRef": secret}
     for source in container.get("envFrom", []):
-        ((kind, _),) = source.items()
-        environment.update({k: v for k, v in sources[kind].items() if _ENV_NAME.fullmatch(k)})
+        ((kind, reference),) = source.items()
+        values = config if kind == "configMapRef" else secret_values[reference["name"]]
+        environment.update({k: v for k, v in values.items() if _ENV_NAME.fullmatch(k)})
     environment.update({e["name"]: e["value"] for e in container.get("env", [])})
     return environment
 
@@ -136,12 +146,12 @@ def _empty_dir(path: Path, *, fs_group: int) -> None:
 
 
 @contextmanager
-def _postgres_for(url: str) -> Iterator[None]:
+def _postgres_for(url: str, *, admin_conninfo: str) -> Iterator[None]:
     """The role and database the ConfigMap's index URL names, made fresh and dropped afterwards."""
-    parts = re.fullmatch(r"postgresql\+psycopg://(\w+)@[^/]+/(\w+)", url)
+    parts = re.fullmatch(r"postgresql\+psycopg://(\w+)@[^/]+/(\w+)(\?.*)?", url)
     assert parts, url
-    role, database = parts.groups()
-    with psycopg.connect(POSTGRES_ADMIN, autocommit=True, connect_timeout=3) as admin:
+    role, database, _ = parts.groups()
+    with psycopg.connect(admin_conninfo, autocommit=True, connect_timeout=3) as admin:
         admin.execute(f'DROP DATABASE IF EXISTS "{database}" WITH (FORCE)')
         if admin.execute("SELECT 1 FROM pg_roles WHERE rolname = %s", (role,)).fetchone() is None:
             admin.execute(f'CREATE ROLE "{role}" LOGIN')
@@ -221,7 +231,11 @@ def _mount_script(
 
 @contextmanager
 def run_pod(
-    workdir: Path, host: NetnsHost, *, config: Mapping[str, str], secret: Mapping[str, str]
+    workdir: Path,
+    host: NetnsHost,
+    *,
+    config: Mapping[str, str],
+    secret_values: Mapping[str, Mapping[str, str]],
 ) -> Iterator[Pod]:
     """deployment.yaml's pod: its volumes made, its container started; stopped afterwards."""
     spec = _manifest("deployment.yaml")["spec"]["template"]["spec"]
@@ -234,15 +248,16 @@ def run_pod(
     for mount in container["volumeMounts"]:
         source = workdir / "volumes" / mount["name"]
         source.parent.mkdir(exist_ok=True)
-        if "secret" in volumes[mount["name"]]:
-            _secret_volume(source, volumes[mount["name"]], secret, fs_group=fs_group)
+        volume = volumes[mount["name"]]
+        if "secret" in volume:
+            _secret_volume(source, volume, secret_values[volume["secret"]["secretName"]], fs_group=fs_group)
         else:
             _empty_dir(source, fs_group=fs_group)
         mounts[mount["mountPath"]] = (source, bool(mount.get("readOnly")))
     _, entrypoint, _ = _image()
     command = [*(container.get("command") or entrypoint), *container.get("args", [])]
     command[0] = tool(command[0])  # the image's `jitdyn` is this checkout's
-    environment = _pod_environment(container, config=config, secret=secret)
+    environment = _pod_environment(container, config=config, secret_values=secret_values)
     run_as = [
         tool("setpriv"),
         f"--reuid={uid}",
@@ -307,12 +322,15 @@ def _point_at(config: Mapping[str, str], host: NetnsHost) -> dict[str, str]:
     return pointed
 
 
-def _serving(address: str, service: str) -> bool:
-    """The readiness probe: gRPC health of `service`."""
+def _probe(pod: Pod, probe: Mapping[str, Any]) -> bool:
+    """One of the container's `grpc:` probes, as the kubelet asks it: the pod's IP, the probe's port
+    and service (none: ""), its timeoutSeconds (1 s when not given)."""
+    address = f"{pod.address.rsplit(':', 1)[0]}:{probe['grpc']['port']}"
     with grpc.insecure_channel(address) as channel:
         try:
             answer = health_pb2_grpc.HealthStub(channel).Check(
-                health_pb2.HealthCheckRequest(service=service), timeout=1
+                health_pb2.HealthCheckRequest(service=probe["grpc"].get("service", "")),
+                timeout=probe.get("timeoutSeconds", 1),
             )
         except grpc.RpcError:
             return False
@@ -339,22 +357,26 @@ def test_the_deployment_starts_as_a_kubelet_runs_it_and_serves_an_authenticated_
         pytest.skip(f"the pod's user may not read {', '.join(map(str, unreadable))}")
     config = _point_at(_manifest("configmap.yaml")["data"], netns_host)
     index_port = int(re.search(r"@[^:/]+:(\d+)/", config["JITDYN_INDEX_URL"]).group(1))  # type: ignore[union-attr]
-    netns_host.forward(index_port, to=5432)
     api_key = secrets.token_urlsafe(32)
-    secret = operator_secret(api_key=api_key)
+    # The CA of ca-secret.yaml, and the certificate it signed for where the pod reaches PostgreSQL
+    # and S3 (the host's end of the pod network), and for loopback (this test's own connections).
+    pki = Authority.make(tmp_path / "pki")
+    services = pki.issue("services", hosts=[netns_host.host_ip, "127.0.0.1"])
+    secret_values = {"jitdyn": operator_secret(api_key=api_key), "jitdyn-ca": operator_ca_secret(pki.ca)}
     bucket = config["JITDYN_DATA_ROOT"].removeprefix("s3://").split("/", 1)[0]
     with (
-        MotoS3.start(workdir=tmp_path / "moto") as store,
-        _postgres_for(config["JITDYN_INDEX_URL"]),
+        TlsPostgres.start(services) as postgres,
+        MotoS3.start(workdir=tmp_path / "moto", tls=(services.cert, services.key, pki.ca)) as store,
+        _postgres_for(config["JITDYN_INDEX_URL"], admin_conninfo=postgres.admin),
     ):
+        netns_host.forward(index_port, to=postgres.port)
         store.filesystem().create_dir(bucket)
         netns_host.forward(int(config["AWS_ENDPOINT_URL"].rsplit(":", 1)[1]), to=store.port)
-        with run_pod(tmp_path, netns_host, config=config, secret=secret) as pod:
-            wait_for(
-                lambda: _serving(pod.address, "jitdyn.v1.DynamicsService"),
-                timeout=30,
-                what="the readiness probe did not pass",
-            )
+        with run_pod(tmp_path, netns_host, config=config, secret_values=secret_values) as pod:
+            for kind in ("startupProbe", "readinessProbe", "livenessProbe"):
+                wait_for(
+                    lambda k=kind: _probe(pod, container[k]), timeout=30, what=f"the {kind} did not pass"
+                )
             status = Path(f"/proc/{pod.process.pid}/status").read_text()
             uids = re.search(r"^Uid:\s+(\d+)", status, re.MULTILINE).group(1)  # type: ignore[union-attr]
             groups = re.search(r"^Groups:\s*(.*)$", status, re.MULTILINE).group(1)  # type: ignore[union-attr]
@@ -367,8 +389,14 @@ def test_the_deployment_starts_as_a_kubelet_runs_it_and_serves_an_authenticated_
             for k in range(20):
                 session.send(k)
             location = session.close().summary.location
-        print(f"pod ran as uid {uids}, groups {groups}; session stored at {location}")
+            with psycopg.connect(postgres.admin) as admin:
+                tls = admin.execute(
+                    "SELECT count(*), bool_and(s.ssl) FROM pg_stat_ssl s JOIN pg_stat_activity a USING (pid) "
+                    "WHERE a.usename = 'jitdyn'"
+                ).fetchone()
+        print(f"pod ran as uid {uids}, groups {groups}; {tls} TLS connections; session stored at {location}")
         assert (uids, groups.split()) == ("10001", ["10001"])
+        assert tls is not None and tls[0] >= 1 and tls[1] is True
         assert location.startswith(f"{config['JITDYN_DATA_ROOT']}/frames/")
         table = pq.read_table(location.removeprefix("s3://"), filesystem=store.filesystem(), columns=["seq"])
         assert sorted(set(table.column("seq").to_pylist())) == list(range(20))
