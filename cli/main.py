@@ -152,8 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     what.add_argument("file", nargs="?", type=Path, help="the MJCF file")
     what.add_argument(
         "--myo",
-        choices=("myoelbow", "myohand"),
-        help="pack a MyoSuite model from myo-sim with its meshes (needs jitdyn[myo])",
+        metavar="NAME",
+        help="pack the MyoSuite model NAME from myo-sim with its meshes (needs jitdyn[myo]): myoelbow, "
+        "myohand, myolegs, myolegs_osl, ...; `--myo list` lists every one that compiles (no server needed)",
     )
     register.add_argument(
         "--name", help="name to register under (default: the file's stem, or the --myo name)"
@@ -377,6 +378,18 @@ def _models(args: argparse.Namespace, settings: Settings) -> int:
             f"timestep={model.timestep:g}s{'  builtin' if model.builtin else ''}  tags={','.join(model.tags)}"
         )
 
+    if args.models_command == "register" and args.myo:
+        require_extra("myo_sim", what="myo-sim (MyoSuite models)", extra="myo")
+        from jitdyn.client.myo import registrable_myo_models, resolve_myo_name
+
+        if args.myo.strip().lower() == "list":
+            for myo in registrable_myo_models():
+                print(myo.line())
+            return 0
+        try:
+            args.myo = resolve_myo_name(args.myo)
+        except ValueError as error:
+            raise SettingError(f"--myo: {error}") from None
     address = settings.server or DEFAULT_SERVER
     with Client(address) as client:
         try:
@@ -409,12 +422,14 @@ def _register(client: Any, args: argparse.Namespace, show: Callable[[Any], None]
     tags: list[str] = args.tag
     description: str = args.description
     if args.myo:
-        require_extra("myo_sim", what="myo-sim (MyoSuite models)", extra="myo")
         from importlib.metadata import version as package_version
 
         from jitdyn.client.myo import pack_myo_model
 
-        mjcf, assets = pack_myo_model(args.myo)
+        try:
+            mjcf, assets = pack_myo_model(args.myo)
+        except ValueError as error:
+            raise FailedPrecondition(str(error)) from None
         name = args.name or args.myo
         tags = tags or ["myosuite"]
         description = description or f"MyoSuite {args.myo}, packed from myo-sim {package_version('myo-sim')}"
