@@ -41,7 +41,7 @@ from jitdyn.settings import (
     positive_int,
     resolve,
 )
-from jitdyn.vocabulary import EstimatorKind, Scenario, SessionStatus, parse
+from jitdyn.vocabulary import Clock, EstimatorKind, Scenario, SessionStatus, parse
 
 __all__ = ["DEFAULT_SERVER", "EXIT_ERROR", "EXIT_USAGE", "build_parser", "main"]
 
@@ -180,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
         "demo",
         help="a simulated REALTIME session over an emulated network",
         description="Drive a simulated research object (truth simulated by MuJoCo here) through an emulated "
-        "network against a local in-process server (or --server), show progress, and print a summary.",
+        "network against a local in-process server (or --server), show progress, and print a summary. A "
+        "model whose REALTIME session the server refuses runs LOCKSTEP instead (see --clock).",
     )
     demo.add_argument(
         "--model",
@@ -225,6 +226,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
     )
     demo.add_argument("--seed", type=int, default=0, help="seed of the emulated network and the start state")
+    demo.add_argument(
+        "--clock",
+        choices=tuple(clock.lower() for clock in Clock),
+        help="realtime: ticks on the server's clock, over the emulated network; lockstep: each frame "
+        "answered as it is sent (loss emulated as skipped ticks). Default: realtime, or lockstep, "
+        "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
+        "MyoSuite model such as myolegs_osl)",
+    )
 
     sessions = leaf(
         commands,
@@ -478,6 +487,7 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
         loss=args.loss,
         seed=args.seed,
         estimator=parse(EstimatorKind, args.estimator, argument="--estimator"),
+        clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
     )
     progress = sys.stderr.isatty()
     if settings.server:
