@@ -16,14 +16,17 @@ myo-sim, MuJoCo and this module).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
 import os
 import posixpath
 import re
 import sys
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, TextIO
@@ -160,14 +163,34 @@ def pack_myo_model(name: str) -> tuple[str, dict[str, bytes]]:
 
     if name in myo_sim._composed_models():
         postures = myo_sim.list_postures(name)
-        with warnings.catch_warnings():
-            # myo-sim's own composition warns about attaching with an empty prefix; handled below.
-            warnings.filterwarnings("ignore", "Attaching a spec with an empty prefix", UserWarning)
+        # myo-sim's own composition warns about attaching with an empty prefix; handled below.
+        with _empty_prefix_unsaid():
             spec = myo_sim.load_spec(name, build_kwargs={"postures": True} if postures else None)
         return _pack_spec(spec, name)
     if name in myo_sim.REGISTRY:
         return _pack_file(Path(myo_sim.get_xml_path(name)))
     raise ValueError(f"no myo-sim model is named {name!r}; models: {', '.join(myo_model_names())}")
+
+
+_EMPTY_PREFIX = "Attaching a spec with an empty prefix"
+
+
+@contextlib.contextmanager
+def _empty_prefix_unsaid() -> Iterator[None]:
+    """Meanwhile, MuJoCo's warning about a spec attached with an empty prefix is not said, neither as
+    a Python warning nor on the `jitdyn.mujoco` log (jitdyn.mujoco_log): packing handles it."""
+
+    def other(record: logging.LogRecord) -> bool:
+        return _EMPTY_PREFIX not in record.getMessage()
+
+    log = logging.getLogger("jitdyn.mujoco")
+    log.addFilter(other)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", _EMPTY_PREFIX, UserWarning)
+            yield
+    finally:
+        log.removeFilter(other)
 
 
 class _Assets:
@@ -298,8 +321,7 @@ def _pack_spec(spec: Any, name: str) -> tuple[str, dict[str, bytes]]:
     spec.meshdir = ""
     spec.texturedir = ""
     spec.assets = dict(assets.data)  # to_xml compiles the spec first, from these
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "Attaching a spec with an empty prefix", UserWarning)
+    with _empty_prefix_unsaid():
         mjcf = spec.to_xml()
     if renamed:
         mjcf = _class_unclassed_elements(mjcf)
