@@ -2,7 +2,8 @@
 
 A session the server refuses REALTIME (a big MyoSuite model's tick does not fit its dt, or the
 machine has no core free) runs LOCKSTEP instead unless a clock was asked for: each frame is
-answered as it is sent, and a frame the network loses is a skipped tick, answered PREDICTED.
+answered as it is sent, and a frame the network loses is a skipped tick, answered PREDICTED
+(docs/decisions/0166).
 
 The truth is simulated by MuJoCo on the client side; frames reach the server through a seeded
 delaying sender (latency, jitter, loss), so some arrive after their tick's deadline: the server
