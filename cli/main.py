@@ -41,7 +41,7 @@ from jitdyn.settings import (
     positive_int,
     resolve,
 )
-from jitdyn.vocabulary import EstimatorKind, Scenario, SessionStatus, parse
+from jitdyn.vocabulary import Clock, EstimatorKind, Scenario, SessionStatus, parse
 
 __all__ = ["DEFAULT_SERVER", "EXIT_ERROR", "EXIT_USAGE", "build_parser", "main"]
 
@@ -152,8 +152,9 @@ def build_parser() -> argparse.ArgumentParser:
     what.add_argument("file", nargs="?", type=Path, help="the MJCF file")
     what.add_argument(
         "--myo",
-        choices=("myoelbow", "myohand"),
-        help="pack a MyoSuite model from myo-sim with its meshes (needs jitdyn[myo])",
+        metavar="NAME",
+        help="pack the MyoSuite model NAME from myo-sim with its meshes (needs jitdyn[myo]): myoelbow, "
+        "myohand, myolegs, myolegs_osl, ...; `--myo list` lists every one that compiles (no server needed)",
     )
     register.add_argument(
         "--name", help="name to register under (default: the file's stem, or the --myo name)"
@@ -179,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
         "demo",
         help="a simulated REALTIME session over an emulated network",
         description="Drive a simulated research object (truth simulated by MuJoCo here) through an emulated "
-        "network against a local in-process server (or --server), show progress, and print a summary.",
+        "network against a local in-process server (or --server), show progress, and print a summary. A "
+        "model whose REALTIME session the server refuses runs LOCKSTEP instead (see --clock).",
     )
     demo.add_argument(
         "--model",
@@ -224,6 +226,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
     )
     demo.add_argument("--seed", type=int, default=0, help="seed of the emulated network and the start state")
+    demo.add_argument(
+        "--clock",
+        choices=tuple(clock.lower() for clock in Clock),
+        help="realtime: ticks on the server's clock, over the emulated network; lockstep: each frame "
+        "answered as it is sent (loss emulated as skipped ticks). Default: realtime, or lockstep, "
+        "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
+        "MyoSuite model such as myolegs_osl)",
+    )
 
     sessions = leaf(
         commands,
@@ -377,6 +387,18 @@ def _models(args: argparse.Namespace, settings: Settings) -> int:
             f"timestep={model.timestep:g}s{'  builtin' if model.builtin else ''}  tags={','.join(model.tags)}"
         )
 
+    if args.models_command == "register" and args.myo:
+        require_extra("myo_sim", what="myo-sim (MyoSuite models)", extra="myo")
+        from jitdyn.client.myo import registrable_myo_models, resolve_myo_name
+
+        if args.myo.strip().lower() == "list":
+            for myo in registrable_myo_models():
+                print(myo.line())
+            return 0
+        try:
+            args.myo = resolve_myo_name(args.myo)
+        except ValueError as error:
+            raise SettingError(f"--myo: {error}") from None
     address = settings.server or DEFAULT_SERVER
     with Client(address) as client:
         try:
@@ -409,12 +431,14 @@ def _register(client: Any, args: argparse.Namespace, show: Callable[[Any], None]
     tags: list[str] = args.tag
     description: str = args.description
     if args.myo:
-        require_extra("myo_sim", what="myo-sim (MyoSuite models)", extra="myo")
         from importlib.metadata import version as package_version
 
         from jitdyn.client.myo import pack_myo_model
 
-        mjcf, assets = pack_myo_model(args.myo)
+        try:
+            mjcf, assets = pack_myo_model(args.myo)
+        except ValueError as error:
+            raise FailedPrecondition(str(error)) from None
         name = args.name or args.myo
         tags = tags or ["myosuite"]
         description = description or f"MyoSuite {args.myo}, packed from myo-sim {package_version('myo-sim')}"
@@ -463,6 +487,7 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
         loss=args.loss,
         seed=args.seed,
         estimator=parse(EstimatorKind, args.estimator, argument="--estimator"),
+        clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
     )
     progress = sys.stderr.isatty()
     if settings.server:

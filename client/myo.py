@@ -8,20 +8,38 @@ Static models ("myoelbow", ...) are packed from their XML files, numbers kept as
 myo-sim composes with MjSpec ("myohand", ...) are written out by MuJoCo (`MjSpec.to_xml`), which
 keeps 6 significant digits. Either way the registry compiles the same nq, nv, nu, na, qpos0 and body
 masses as myo-sim does (tests/registry/test_myo.py).
+
+`registrable_myo_models()` lists the models that pack and compile here, found by packing and
+compiling every model myo-sim names (a minute; kept in the user's cache folder per version of
+myo-sim, MuJoCo and this module).
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import json
+import logging
+import os
 import posixpath
 import re
+import sys
 import warnings
 import xml.etree.ElementTree as ET
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import defusedxml.ElementTree as DET
 
-__all__ = ["myo_model_names", "pack_myo_model"]
+__all__ = [
+    "MyoModel",
+    "myo_model_names",
+    "pack_myo_model",
+    "registrable_myo_models",
+    "resolve_myo_name",
+]
 
 _MESHDIR_ELEMENTS = frozenset({"mesh", "skin", "hfield", "flexcomp"})
 _NAMED_BY_FILE = frozenset({"mesh", "skin", "hfield", "texture"})
@@ -38,6 +56,103 @@ def myo_model_names() -> list[str]:
     return sorted(set(myo_sim._composed_models()) | set(myo_sim.REGISTRY))
 
 
+@dataclass(frozen=True)
+class MyoModel:
+    """A myo-sim model that packs and compiles: its name, the other names myo-sim gives the same
+    content, and its dimensions."""
+
+    name: str
+    aliases: tuple[str, ...]
+    nq: int
+    nv: int
+    nu: int
+    na: int
+
+    def line(self) -> str:
+        """One line of `jitdyn models register --myo list`."""
+        also = f" (also {', '.join(self.aliases)})" if self.aliases else ""
+        return f"{self.name:<18} nq={self.nq} nv={self.nv} nu={self.nu} na={self.na}{also}"
+
+
+def registrable_myo_models(
+    *, cache_dir: Path | None = None, progress: TextIO | None = sys.stderr
+) -> list[MyoModel]:
+    """The myo-sim models that pack and compile here, by name, each content once.
+
+    Every name myo-sim knows is packed (`pack_myo_model`) and compiled by MuJoCo; names that pack
+    the same content are one model, named by the shortest "myo..." name. The answer is read from
+    `cache_dir` (default: $XDG_CACHE_HOME/jitdyn or ~/.cache/jitdyn) when it was found with the
+    same myo-sim, MuJoCo and this module, else found now (a minute) and written there; a note goes
+    to `progress` then.
+    """
+    directory = cache_dir or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "jitdyn"
+    cache = directory / f"myo-models-{_discovery_key()}.json"
+    try:
+        return [MyoModel(**{**m, "aliases": tuple(m["aliases"])}) for m in json.loads(cache.read_text())]
+    except (OSError, ValueError, TypeError, KeyError):
+        pass
+    if progress is not None:
+        print(f"finding the myo-sim models that compile (once; cached in {directory})", file=progress)
+    models = _discover_myo_models()
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        cache.write_text(json.dumps([asdict(m) for m in models], indent=1))
+    except OSError:
+        pass  # an unwritable cache only costs the next call the same minute
+    return models
+
+
+def resolve_myo_name(text: str, *, cache_dir: Path | None = None) -> str:
+    """The myo-sim name `text` means (names are matched ignoring case: "myoHand" is "myohand").
+
+    Raises:
+      ValueError: no myo-sim model is called so; the message lists those that compile.
+    """
+    name = text.strip().lower()
+    if name in myo_model_names():
+        return name
+    models = registrable_myo_models(cache_dir=cache_dir)
+    raise ValueError(
+        f"no myo-sim model is named {text!r}; models that compile: {', '.join(m.name for m in models)} "
+        "(`jitdyn models register --myo list` shows them with their other names)"
+    )
+
+
+def _discovery_key() -> str:
+    """What the list of compiling models depends on: myo-sim's and MuJoCo's versions and this code."""
+    from importlib.metadata import version
+
+    import mujoco
+
+    code = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:12]
+    return f"{version('myo-sim')}-{mujoco.__version__}-{code}"
+
+
+def _discover_myo_models() -> list[MyoModel]:
+    """Pack and compile every model myo-sim names; group the names by the content they pack."""
+    import mujoco
+
+    from jitdyn.registry import content_id
+
+    by_content: dict[str, list[str]] = {}
+    compiled: dict[str, mujoco.MjModel] = {}
+    for name in myo_model_names():
+        try:
+            mjcf, assets = pack_myo_model(name)
+            key = content_id(mjcf, assets)
+            if key not in compiled:
+                compiled[key] = mujoco.MjModel.from_xml_string(mjcf, assets)
+        except (ValueError, RuntimeError, OSError):
+            continue  # myo-sim cannot build it, it cannot be packed, or MuJoCo does not compile it
+        by_content.setdefault(key, []).append(name)
+    models = []
+    for key, names in by_content.items():
+        names.sort(key=lambda n: (not n.startswith("myo"), len(n), n))
+        m = compiled[key]
+        models.append(MyoModel(names[0], tuple(sorted(names[1:])), m.nq, m.nv, m.nu, m.na))
+    return sorted(models, key=lambda m: m.name)
+
+
 def pack_myo_model(name: str) -> tuple[str, dict[str, bytes]]:
     """The MJCF of the myo-sim model `name` (e.g. "myoelbow", "myohand") and its assets.
 
@@ -48,14 +163,34 @@ def pack_myo_model(name: str) -> tuple[str, dict[str, bytes]]:
 
     if name in myo_sim._composed_models():
         postures = myo_sim.list_postures(name)
-        with warnings.catch_warnings():
-            # myo-sim's own composition warns about attaching with an empty prefix; handled below.
-            warnings.filterwarnings("ignore", "Attaching a spec with an empty prefix", UserWarning)
+        # myo-sim's own composition warns about attaching with an empty prefix; handled below.
+        with _empty_prefix_unsaid():
             spec = myo_sim.load_spec(name, build_kwargs={"postures": True} if postures else None)
         return _pack_spec(spec, name)
     if name in myo_sim.REGISTRY:
         return _pack_file(Path(myo_sim.get_xml_path(name)))
     raise ValueError(f"no myo-sim model is named {name!r}; models: {', '.join(myo_model_names())}")
+
+
+_EMPTY_PREFIX = "Attaching a spec with an empty prefix"
+
+
+@contextlib.contextmanager
+def _empty_prefix_unsaid() -> Iterator[None]:
+    """Meanwhile, MuJoCo's warning about a spec attached with an empty prefix is not said, neither as
+    a Python warning nor on the `jitdyn.mujoco` log (jitdyn.mujoco_log): packing handles it."""
+
+    def other(record: logging.LogRecord) -> bool:
+        return _EMPTY_PREFIX not in record.getMessage()
+
+    log = logging.getLogger("jitdyn.mujoco")
+    log.addFilter(other)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", _EMPTY_PREFIX, UserWarning)
+            yield
+    finally:
+        log.removeFilter(other)
 
 
 class _Assets:
@@ -186,8 +321,7 @@ def _pack_spec(spec: Any, name: str) -> tuple[str, dict[str, bytes]]:
     spec.meshdir = ""
     spec.texturedir = ""
     spec.assets = dict(assets.data)  # to_xml compiles the spec first, from these
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", "Attaching a spec with an empty prefix", UserWarning)
+    with _empty_prefix_unsaid():
         mjcf = spec.to_xml()
     if renamed:
         mjcf = _class_unclassed_elements(mjcf)

@@ -1,5 +1,10 @@
 """`jitdyn demo`: one REALTIME session of a simulated research object over an emulated network.
 
+A session the server refuses REALTIME (a big MyoSuite model's tick does not fit its dt, or the
+machine has no core free) runs LOCKSTEP instead unless a clock was asked for: each frame is
+answered as it is sent, and a frame the network loses is a skipped tick, answered PREDICTED
+(docs/decisions/0166).
+
 The truth is simulated by MuJoCo on the client side; frames reach the server through a seeded
 delaying sender (latency, jitter, loss), so some arrive after their tick's deadline: the server
 answers those ticks PREDICTED by its estimator and CORRECTED when the frame comes. The summary
@@ -10,18 +15,29 @@ goes to stderr, and only when it is a terminal.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
 import mujoco
 import numpy as np
 
-from jitdyn.client import Client, FrameData, Rejection, SessionOptions, Summary, SyncSample, TickResult
+from jitdyn.client import (
+    Client,
+    FrameData,
+    Rejection,
+    Session,
+    SessionOptions,
+    Summary,
+    SyncSample,
+    TickResult,
+)
+from jitdyn.errors import ResourceExhausted
 from jitdyn.experiments.netem import DelayedSender, NetworkProfile
-from jitdyn.experiments.progress import progress_bar
+from jitdyn.experiments.progress import ProgressBar, progress_bar
 from jitdyn.experiments.truth import truth_model
 from jitdyn.storage.summary import format_counts
 from jitdyn.vocabulary import Channel, Clock, EstimatorKind, Output, Scenario, Source
@@ -42,6 +58,9 @@ class DemoSettings:
     loss: float = 0.05
     seed: int = 0
     estimator: EstimatorKind = EstimatorKind.UKF
+    # None: REALTIME, or LOCKSTEP (said so) when the server refuses the REALTIME session for its
+    # cost or its machine's load, as it does a big MyoSuite model's.
+    clock: Clock | None = None
 
 
 def _start_pose(model: mujoco.MjModel, rng: np.random.Generator) -> np.ndarray:
@@ -74,11 +93,7 @@ def run_demo(
 
     `local_data`: the data folder of a server this process runs, so that the stored file is named
     by its path here; None for a remote server, whose data folder is its own."""
-    truth: list[np.ndarray] = []
-    results: dict[int, TickResult] = {}
-    corrected: list[TickResult] = []
-    rejections: list[Rejection] = []
-    syncs: list[SyncSample] = []
+    answers = _Answers()
     with Client(address) as client:
         client.wait_ready()
         ref, model = truth_model(client, settings.model, data=local_data, address=address)
@@ -87,113 +102,205 @@ def run_demo(
         mujoco.mj_forward(model, data)
         pendulum = ref.builtin and ref.name.startswith("pendulum")
         dt = settings.dt or (0.05 if pendulum else 10 * model.opt.timestep)
-        steps = max(1, round(dt / model.opt.timestep))
         ticks = max(1, round(settings.seconds / dt))
-        profile = NetworkProfile(latency=settings.latency, jitter=settings.jitter, loss=settings.loss)
         scenario = settings.scenario or (Scenario.PASSIVE if ref.builtin else None)
-        controlled = scenario is Scenario.CONTROLLED
         options = SessionOptions(
             model_id=ref.id,
             scenario=scenario,
             dt=dt,
-            clock=Clock.REALTIME,
+            clock=settings.clock or Clock.REALTIME,
             estimator={"estimator": settings.estimator},
             measured=(Channel.QPOS, Channel.QVEL, Channel.CTRL)
-            if controlled
+            if scenario is Scenario.CONTROLLED
             else (Channel.QPOS, Channel.QVEL),
             outputs=(Output.INVERSE_DYNAMICS,),
         )
-        session = client.open_session(options)
+        session, clock = _open(client, options, settings, out)
         chosen = "" if scenario else f" ({session.opened.scenario_reason})"
+        lockstep = clock is Clock.LOCKSTEP
         print(
             f"session {session.opened.session_id}: {ref.name} v{ref.version} ({model.nv} dof), "
-            f"{session.opened.scenario.lower()}{chosen}, dt {dt * 1e3:g} ms, {ticks} ticks, estimator "
-            f"{settings.estimator}, grace {session.opened.grace * 1e3:g} ms",
+            f"{session.opened.scenario.lower()}{chosen}, dt {dt * 1e3:g} ms, {ticks} ticks"
+            f"{', LOCKSTEP' if lockstep else ''}, estimator {settings.estimator}, grace "
+            f"{session.opened.grace * 1e3:g} ms",
             file=out,
         )
-        expectation = _expectation(
-            settings, grace=session.opened.grace, history=session.opened.history, dt=dt
-        )
-        if expectation:
-            print(expectation, file=out)
-        print(
-            f"network: latency {settings.latency * 1e3:g} ms, jitter {settings.jitter * 1e3:g} ms, "
-            f"loss {settings.loss:.0%} (seeded {settings.seed})",
-            file=out,
-        )
-
-        def collect(answers: list[TickResult | Rejection | SyncSample]) -> None:
-            for answer in answers:
-                if isinstance(answer, TickResult):
-                    if answer.source == Source.CORRECTED:
-                        corrected.append(answer)
-                    else:
-                        results[answer.seq] = answer
-                elif isinstance(answer, Rejection):
-                    rejections.append(answer)
-                else:
-                    syncs.append(answer)
-
+        simulation = _Truth(model, data, dt=dt, controlled=scenario is Scenario.CONTROLLED)
         bar = progress_bar(total=ticks, desc="ticks answered", unit="tick", enabled=progress)
-        lost = 0
-        with DelayedSender(session.send, profile, seed=settings.seed) as network:
-            for k in range(ticks):
-                if k % 20 == 0:
-                    session.sync()
-                # Frame k is measured at k * dt on the session clock.
-                wait = k * dt - session.now()
-                if wait > 0:
-                    time.sleep(wait)
-                ctrl = np.zeros(model.nu)
-                truth.append(np.concatenate([data.qpos, data.qvel]).copy())
-                frame = FrameData(
-                    seq=k,
-                    t=k * dt,
-                    qpos=data.qpos.copy(),
-                    qvel=data.qvel.copy(),
-                    ctrl=ctrl if controlled else None,
-                )
-                if not math.isfinite(network.submit(frame)):
-                    lost += 1
-                data.ctrl[:] = ctrl
-                for _ in range(steps):
-                    mujoco.mj_step(model, data)
-                collect(session.poll())
-                bar.update(min(len(results), ticks) - bar.n)
-        # Every tick is answered by its deadline, and every frame that arrived by a result or a
-        # rejection; wait for the last ones, then close (answers that come during `close` are not read).
-        deadline = time.monotonic() + 2.0 + 4 * dt
-
-        def waiting() -> bool:
-            from_frames = len(corrected) + len(rejections)
-            from_frames += sum(1 for r in results.values() if r.source == Source.MEASURED)
-            return from_frames < ticks - lost or any(k not in results for k in range(ticks))
-
-        while waiting() and time.monotonic() < deadline:
-            collect(session.poll())
-            time.sleep(dt / 4)
+        if lockstep:
+            print(
+                f"network: loss {settings.loss:.0%} as skipped ticks (seeded {settings.seed}); LOCKSTEP "
+                "answers each frame as it is sent, so latency and jitter are not emulated",
+                file=out,
+            )
+            _run_lockstep(session, simulation, answers, ticks=ticks, settings=settings, bar=bar)
+        else:
+            expectation = _expectation(
+                settings, grace=session.opened.grace, history=session.opened.history, dt=dt
+            )
+            if expectation:
+                print(expectation, file=out)
+            print(
+                f"network: latency {settings.latency * 1e3:g} ms, jitter {settings.jitter * 1e3:g} ms, "
+                f"loss {settings.loss:.0%} (seeded {settings.seed})",
+                file=out,
+            )
+            _run_realtime(session, simulation, answers, ticks=ticks, settings=settings, bar=bar)
         summary = session.close()
-        bar.update(min(len(results), ticks) - bar.n)
+        bar.update(min(len(answers.results), ticks) - bar.n)
         bar.close()
         # Ticks the server's clock answered between the last frame and `close`.
-        for seq in [seq for seq in results if seq >= ticks]:
-            del results[seq]
+        for seq in [seq for seq in answers.results if seq >= ticks]:
+            del answers.results[seq]
     return _report(
         settings=settings,
         model=model,
         dt=dt,
         ticks=ticks,
-        lost=lost,
-        truth=truth,
-        results=results,
-        corrected=corrected,
-        rejections=rejections,
-        syncs=syncs,
+        lost=answers.lost,
+        truth=simulation.truth,
+        results=answers.results,
+        corrected=answers.corrected,
+        rejections=answers.rejections,
+        syncs=answers.syncs,
         summary=summary,
         out=out,
         address=address,
         local_data=local_data,
+        lockstep=lockstep,
     )
+
+
+def _open(
+    client: Client, options: SessionOptions, settings: DemoSettings, out: TextIO
+) -> tuple[Session, Clock]:
+    """Open the session, and say on which clock; with no --clock, a REALTIME session the server
+    refuses (its tick does not fit dt, or the machine has no core free for it) is opened LOCKSTEP
+    instead, saying why."""
+    try:
+        return client.open_session(options), Clock(options.clock)
+    except ResourceExhausted as error:
+        if settings.clock is not None:
+            raise
+        print(
+            f"the server refused a REALTIME session ({error}); running it LOCKSTEP instead, every frame "
+            "answered as it is sent (give --clock realtime to be refused instead)",
+            file=out,
+        )
+    return client.open_session(dataclasses.replace(options, clock=Clock.LOCKSTEP)), Clock.LOCKSTEP
+
+
+@dataclass
+class _Answers:
+    """What the server answered, sorted by kind; `lost`: frames the emulated network dropped."""
+
+    results: dict[int, TickResult] = field(default_factory=dict)
+    corrected: list[TickResult] = field(default_factory=list)
+    rejections: list[Rejection] = field(default_factory=list)
+    syncs: list[SyncSample] = field(default_factory=list)
+    lost: int = 0
+
+    def collect(self, answers: list[TickResult | Rejection | SyncSample]) -> None:
+        for answer in answers:
+            if isinstance(answer, TickResult):
+                if answer.source == Source.CORRECTED:
+                    self.corrected.append(answer)
+                else:
+                    self.results[answer.seq] = answer
+            elif isinstance(answer, Rejection):
+                self.rejections.append(answer)
+            else:
+                self.syncs.append(answer)
+
+
+class _Truth:
+    """The simulated body: frame k is its state at k * dt, then it steps on to tick k + 1."""
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, *, dt: float, controlled: bool) -> None:
+        self.model, self.data, self.dt, self.controlled = model, data, dt, controlled
+        self.steps = max(1, round(dt / model.opt.timestep))
+        self.truth: list[np.ndarray] = []
+
+    def frame(self, k: int) -> FrameData:
+        """Frame k, the state now; records it as the truth of tick k."""
+        ctrl = np.zeros(self.model.nu)
+        self.truth.append(np.concatenate([self.data.qpos, self.data.qvel]).copy())
+        return FrameData(
+            seq=k,
+            t=k * self.dt,
+            qpos=self.data.qpos.copy(),
+            qvel=self.data.qvel.copy(),
+            ctrl=ctrl if self.controlled else None,
+        )
+
+    def step(self) -> None:
+        """On to the next tick, with zero controls."""
+        self.data.ctrl[:] = 0.0
+        for _ in range(self.steps):
+            mujoco.mj_step(self.model, self.data)
+
+
+def _run_realtime(
+    session: Session,
+    simulation: _Truth,
+    answers: _Answers,
+    *,
+    ticks: int,
+    settings: DemoSettings,
+    bar: ProgressBar,
+) -> None:
+    """Send frame k at k * dt through the emulated network; then wait for the last answers."""
+    dt = simulation.dt
+    profile = NetworkProfile(latency=settings.latency, jitter=settings.jitter, loss=settings.loss)
+    with DelayedSender(session.send, profile, seed=settings.seed) as network:
+        for k in range(ticks):
+            if k % 20 == 0:
+                session.sync()
+            # Frame k is measured at k * dt on the session clock.
+            wait = k * dt - session.now()
+            if wait > 0:
+                time.sleep(wait)
+            if not math.isfinite(network.submit(simulation.frame(k))):
+                answers.lost += 1
+            simulation.step()
+            answers.collect(session.poll())
+            bar.update(min(len(answers.results), ticks) - bar.n)
+    # Every tick is answered by its deadline, and every frame that arrived by a result or a
+    # rejection; wait for the last ones, then close (answers that come during `close` are not read).
+    deadline = time.monotonic() + 2.0 + 4 * dt
+
+    def waiting() -> bool:
+        from_frames = len(answers.corrected) + len(answers.rejections)
+        from_frames += sum(1 for r in answers.results.values() if r.source == Source.MEASURED)
+        return from_frames < ticks - answers.lost or any(k not in answers.results for k in range(ticks))
+
+    while waiting() and time.monotonic() < deadline:
+        answers.collect(session.poll())
+        time.sleep(dt / 4)
+
+
+def _run_lockstep(
+    session: Session,
+    simulation: _Truth,
+    answers: _Answers,
+    *,
+    ticks: int,
+    settings: DemoSettings,
+    bar: ProgressBar,
+) -> None:
+    """Send each frame and wait for its answer; a frame the network loses (seeded) is a skipped
+    tick, which the server answers PREDICTED."""
+    rng = np.random.default_rng(settings.seed)
+    for k in range(ticks):
+        frame = simulation.frame(k)
+        if rng.random() < settings.loss:
+            answers.lost += 1
+            answer = session.skip(k)
+        else:
+            answer = session.send_frame(frame)
+        answers.collect([answer])
+        simulation.step()
+        bar.update(min(len(answers.results), ticks) - bar.n)
 
 
 def _report(
@@ -212,6 +319,7 @@ def _report(
     out: TextIO,
     address: str,
     local_data: Path | None,
+    lockstep: bool,
 ) -> dict[str, object]:
     nq = model.nq
     by_source: dict[str, int] = {}
@@ -257,9 +365,9 @@ def _report(
         ranges = ", ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in zip(lo, hi, strict=True))
         lines.append(f"qfrc_inverse range per dof (N m): {ranges}")
     if delays.size:
-        lines.append(
-            f"server deadline-to-send: median {np.median(delays):.2f} ms, max {np.max(delays):.2f} ms"
-        )
+        # A LOCKSTEP tick has no deadline: it is answered once its frame is in.
+        what = "frame-to-answer (LOCKSTEP)" if lockstep else "deadline-to-send"
+        lines.append(f"server {what}: median {np.median(delays):.2f} ms, max {np.max(delays):.2f} ms")
     if syncs:
         best = min(syncs, key=lambda s: s.round_trip)
         lines.append(

@@ -8,6 +8,7 @@ content id. What cannot be found says, in one line, why and what to do (docs/dec
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import mujoco
@@ -20,23 +21,25 @@ from jitdyn.settings import parse_model_reference
 
 __all__ = ["truth_model"]
 
-_MYO_NAMES = ("myoelbow", "myohand")
-
 
 def _myo_source(ref: ModelRef) -> tuple[str, dict[str, bytes]] | None:
     """The MJCF and assets of a MyoSuite model packed again from myo-sim, when myo-sim is installed
-    and packs the very content registered."""
+    and packs the very content registered. The myo-sim names tried are those in the model's name or
+    description (`models register --myo` writes "MyoSuite NAME, ..."), longest first."""
     if "myosuite" not in ref.tags:
         return None
     try:
-        from jitdyn.client.myo import pack_myo_model
+        from jitdyn.client.myo import myo_model_names, pack_myo_model
+
+        names = myo_model_names()
     except ImportError:
         return None
-    for name in sorted(_MYO_NAMES, key=lambda n: n not in (ref.name + ref.description).lower()):
+    words = set(re.findall(r"[a-z0-9_]+", f"{ref.name} {ref.description}".lower()))
+    for name in sorted(words.intersection(names), key=lambda n: (-len(n), n)):
         try:
             mjcf, assets = pack_myo_model(name)
-        except (ImportError, ValueError):
-            return None
+        except ValueError:
+            continue
         if content_id(mjcf, assets) == ref.id:
             return mjcf, assets
     return None

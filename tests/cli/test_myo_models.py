@@ -1,0 +1,129 @@
+"""MyoSuite's big models end to end, as a user runs them (issue 31, must-have 3): `jitdyn models
+register --myo NAME` of myolegs_osl, myoHand and myolegs against a real server, `jitdyn demo --model
+NAME` of each to completion (LOCKSTEP, said so: their REALTIME tick does not fit their dt), and
+`sessions plot` and `sessions render` of the hand's session. Short demos, few ticks: the legs' UKF
+tick takes half a second here."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from _cli import jitdyn
+
+pytest.importorskip("myo_sim")
+
+# name typed, name registered, nv, demo length (5 ticks of 10 model timesteps each), and whether
+# its REALTIME tick is over half its dt by the server's estimate (the legs': 38 and 69 ms against
+# 5 and 10 ms), so that the demo always runs it LOCKSTEP; the hand's is refused only on a busy machine.
+MODELS = [
+    ("myolegs_osl", "myolegs_osl", 29, "50ms", True),
+    ("myoHand", "myohand", 23, "100ms", False),
+    ("myolegs", "myolegs", 34, "100ms", True),
+]
+
+
+def ok(result: subprocess.CompletedProcess[str]) -> subprocess.CompletedProcess[str]:
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    return result
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    """XDG_CACHE_HOME of the commands: the list of myo-sim models is found once, in this module."""
+    return {"XDG_CACHE_HOME": str(tmp_path_factory.mktemp("cache"))}
+
+
+@pytest.fixture(scope="module")
+def demos(server: Any) -> dict[str, str]:
+    """The session id of each model's demo, filled in by test_a_big_myosuite_model_registers_and_demos."""
+    return {}
+
+
+@pytest.mark.parametrize(("typed", "name", "nv", "seconds", "too_costly"), MODELS)
+def test_a_big_myosuite_model_registers_and_demos(
+    server: Any, demos: dict[str, str], typed: str, name: str, nv: int, seconds: str, too_costly: bool
+) -> None:
+    registered = ok(jitdyn("models", "register", "--myo", typed, "--server", server.address))
+    assert re.search(rf"^registered: sha256:[0-9a-f]{{64}}  {name} v1  nq=\d+ nv={nv} ", registered.stdout), (
+        registered.stdout
+    )
+    demo = ok(jitdyn("demo", "--model", name, "--seconds", seconds, "--server", server.address))
+    # Refused REALTIME (its cost, or a busy machine), it says why and runs LOCKSTEP.
+    refused = re.search(
+        r"^the server refused a REALTIME session \(.+\); running it LOCKSTEP", demo.stdout, re.MULTILINE
+    )
+    assert refused or not too_costly, demo.stdout
+    clock = ", LOCKSTEP" if refused else ""
+    session = re.search(
+        rf"^session (\S+): {name} v1 \({nv} dof\), driven \(.+\), dt \d+ ms, 5 ticks{clock}, ",
+        demo.stdout,
+        re.MULTILINE,
+    )
+    assert session, demo.stdout
+    assert re.search(r"answers received for 5 of the 5 ticks", demo.stdout), demo.stdout
+    assert re.search(r"ticks +\d+ +measured +\d+ +predicted +\d+", demo.stdout), demo.stdout
+    demos[name] = session.group(1)
+
+
+def test_a_demo_asked_for_realtime_is_refused_in_one_line(server: Any) -> None:
+    ok(jitdyn("models", "register", "--myo", "myolegs_osl", "--server", server.address))
+    result = jitdyn("demo", "--model", "myolegs_osl", "--clock", "realtime", "--server", server.address)
+    assert result.returncode == 1, result.stdout + result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("jitdyn demo: ResourceExhausted: "), result.stderr
+
+
+def test_the_hands_session_plots_and_renders(server: Any, demos: dict[str, str], tmp_path: Path) -> None:
+    if "myohand" not in demos:
+        pytest.skip("the myohand demo did not run")
+    session, data = demos["myohand"], str(server.services.data_root)
+    plotted = ok(jitdyn("sessions", "plot", session, "--data", data, cwd=tmp_path))
+    assert plotted.stdout == f"plotted {session} to {session}.png\n"
+    assert (tmp_path / f"{session}.png").stat().st_size > 50_000
+    out = tmp_path / "frame.png"
+    rendered = ok(
+        jitdyn(
+            "sessions",
+            "render",
+            session,
+            "--data",
+            data,
+            "--out",
+            str(out),
+            "--frame",
+            "40ms",
+            env={"MUJOCO_GL": "osmesa"},
+        )
+    )
+    assert re.search(r"myohand v1, DRIVEN (LOCKSTEP|REALTIME), COMPLETE, ticks \d+", rendered.stderr), (
+        rendered.stderr
+    )
+    PIL = pytest.importorskip("PIL.Image")
+    with PIL.open(out) as image:
+        pixels = np.asarray(image.convert("RGB"), dtype=np.float64)
+    # The hand and the MyoSuite scene's meshes and textures, not a blank frame.
+    assert pixels.std() > 20, pixels.std()
+
+
+def test_myo_list_needs_no_server_and_an_unknown_name_gets_the_names(cache: dict[str, str]) -> None:
+    listed = ok(jitdyn("models", "register", "--myo", "list", env=cache))
+    names = [line.split()[0] for line in listed.stdout.splitlines()]
+    assert {"myoelbow", "myohand", "myolegs", "myolegs_osl"} <= set(names), listed.stdout
+    assert re.search(
+        r"^myohand +nq=23 nv=23 nu=39 na=39 \(also hand, myohand_r\)$", listed.stdout, re.MULTILINE
+    )
+    unknown = jitdyn("models", "register", "--myo", "myoknee", "--server", "127.0.0.1:1", env=cache)
+    assert unknown.returncode == 2, unknown.stdout + unknown.stderr
+    expected = (
+        f"jitdyn models register: --myo: no myo-sim model is named 'myoknee'; models that compile: "
+        f"{', '.join(names)} (`jitdyn models register --myo list` shows them with their other names)"
+    )
+    assert unknown.stderr.strip().splitlines() == [expected]
+    help_text = ok(jitdyn("models", "register", "--help")).stdout
+    assert "--myo list" in " ".join(help_text.split())
