@@ -1,5 +1,6 @@
 """`jitdyn experiments --quick` end to end against an in-process server: every report file is there
-and every number in it is finite."""
+and every number in it is finite. The whole run (about a minute) is marked slow, to keep CI's run
+short; CI runs the thesis' two tables the same way (`pytest -m slow tests/experiments` runs all)."""
 
 from __future__ import annotations
 
@@ -32,6 +33,24 @@ def _numbers(cells: list[str]) -> list[float]:
     return out
 
 
+def _finite(path: Path) -> None:
+    assert not [c for c in _cells(path) if "np." in c], f"{path.name} holds numpy reprs, not numbers"
+    numbers = _numbers(_cells(path))
+    assert numbers, f"{path.name} holds no numbers"
+    bad = [x for x in numbers if not math.isfinite(x)]
+    assert not bad, f"{path.name} holds non-finite numbers {bad[:5]}"
+
+
+def test_the_thesis_tables_run_quick_with_finite_numbers(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert main(["table_4_4", "table_4_6", "--quick", "--no-progress", "--out", str(out)]) == 0
+    assert {p.stem for p in out.glob("*.csv")} == {"table_4_4", "table_4_6"}
+    for path in out.glob("*.csv"):
+        _finite(path)
+    assert len(list(out.glob("*.png"))) >= 2
+
+
+@pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_quick_run_writes_every_table_and_plot_with_finite_numbers(tmp_path: Path) -> None:
     out = tmp_path / "out"
@@ -69,11 +88,7 @@ def test_quick_run_writes_every_table_and_plot_with_finite_numbers(tmp_path: Pat
     }
     assert len(pngs) >= 12
     for path in csvs:
-        assert not [c for c in _cells(path) if "np." in c], f"{path.name} holds numpy reprs, not numbers"
-        numbers = _numbers(_cells(path))
-        assert numbers, f"{path.name} holds no numbers"
-        bad = [x for x in numbers if not math.isfinite(x)]
-        assert not bad, f"{path.name} holds non-finite numbers {bad[:5]}"
+        _finite(path)
     for path in pngs:
         assert path.stat().st_size > 1000
 

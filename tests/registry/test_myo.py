@@ -119,6 +119,7 @@ def test_the_models_offered_include_the_hand_the_elbow_and_the_legs(
             pack_myo_model(left_out)
 
 
+@pytest.mark.slow  # 15 s: every myo-sim model compiled again in the registry
 def test_every_model_offered_compiles_in_the_registry(registrable: tuple[list[MyoModel], Path]) -> None:
     models, _ = registrable
     for myo in models:  # 13 sandboxed compiles: 18 s on the 2-core machine
