@@ -72,6 +72,9 @@ class RawSession:
     def close(self) -> dynamics_pb2.SessionClosed:
         self._requests.put(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
         response = self.next()
+        while response.WhichOneof("payload") == "moving":
+            self.moves.append(response.moving)
+            response = self.next()
         assert response.WhichOneof("payload") == "closed", response
         self._requests.put(None)
         return response.closed
