@@ -11,7 +11,7 @@ frame's qpos and qvel, the estimate, qacc, qfrc_inverse, the covariance diagonal
 state (6 values each), NIS and timings, on a smooth trajectory so that compression sees realistic
 data. "append" is what the event loop pays per frame; "durable" counts until the last frame is
 fsynced. Target: >= 100k frames/s. The many-sessions case compares one group committer for all the
-sessions of a process (DESIGN.md, Scale: one fsync per commit window) against one per session.
+sessions of a process (one fsync per commit window: docs/decisions/0040-group-commit-window.md) against one per session.
 `--close` measures what the server pays when a slow session ends: the compaction of a log of many
 tiny group commits, on a thread beside a thread that wakes every millisecond as the event loop does.
 `--record-path` sets what a record costs the server, the tick's `append` and its share of the

@@ -1,4 +1,4 @@
-"""The numbers the thesis reports (reference/thesis-experiments.md, chapter 4), transcribed once so
+"""The numbers the thesis reports (its chapter 4), transcribed once so
 that every report prints them beside ours. Typos of the printed thesis are kept as printed where
 they are numbers, and noted where we read them otherwise.
 """

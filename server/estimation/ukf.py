@@ -11,7 +11,7 @@ divergence guard, the adaptive noise, the forecast combination, the estimate.
     estimator.advance(ctrl=None)                                      # a tick with its frame
     posterior = estimator.update(Measurement(qpos=q1, qvel=v1))      # posterior.nis
 
-The scenarios are the thesis' (reference/thesis-experiments.md):
+The scenarios are the thesis' (experiments/thesis.py holds its numbers):
 - PASSIVE, x = [q, qd]: the sigma points move under the model's own forces, no control.
 - CONTROLLED, x = [q, qd, qdd]: the control of the tick acts; qdd of a propagated point is the
   qacc MuJoCo computed in its last physics step (the qdd it started with plays no part).

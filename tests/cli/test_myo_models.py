@@ -1,4 +1,4 @@
-"""MyoSuite's big models end to end, as a user runs them (issue 31, must-have 3): `jitdyn models
+"""MyoSuite's big models end to end, as a user runs them: `jitdyn models
 register --myo NAME` of myolegs_osl, myoHand and myolegs against a real server, `jitdyn demo --model
 NAME` of each to completion (LOCKSTEP, said so: their REALTIME tick does not fit their dt), and
 `sessions plot` and `sessions render` of the hand's session. Short demos, few ticks: the legs' UKF

@@ -1,4 +1,4 @@
-"""Bound resume tokens through real replicas (issue 32, must-have 5): a token is the session's, its
+"""Bound resume tokens through real replicas: a token is the session's, its
 tenant's and its lease epoch's, and expires; a forged, altered, other tenant's, expired or stale
 token is refused PERMISSION_DENIED with a line that names what was wrong and never repeats the
 token; each resume's `opened` hands the SDK the next token, so a session resumes twice in a row

@@ -1,5 +1,5 @@
 """SessionRecorder: what is appended is what the Parquet file holds, with the layout, encodings and
-metadata of DESIGN.md; group commit and durable_seq; the lifecycle; the index row."""
+metadata of the stored session (storage/columns.py); group commit and durable_seq; the lifecycle; the index row."""
 
 from __future__ import annotations
 

@@ -54,7 +54,7 @@ class _ScenarioEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Scenario.Val
 
 class Scenario(_Scenario, metaclass=_ScenarioEnumTypeWrapper):
     """How the forces that act on the model are known to the estimator. The scenarios are those of the
-    thesis jitdyn comes from (reference/thesis-experiments.md).
+    thesis jitdyn comes from (its numbers: experiments/thesis.py).
     """
 
 SCENARIO_UNSPECIFIED: Scenario.ValueType  # 0
