@@ -211,6 +211,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--seconds", type=float, default=8.0, help="length of each run (default 8)")
     args = parser.parse_args(argv)
+    if args.committers < 1 or min(args.sessions) < args.committers:
+        parser.error(f"--sessions must be at least --committers ({args.committers}), each at least 1")
+    if min(args.rates) <= 0 or args.seconds <= 0:
+        parser.error("--rates and --seconds must be positive")
     print(
         f"{args.committers} committers, a window every {1e3 * MAX_WINDOW:.0f} ms each; "
         f"PostgreSQL CPU read from /proc, WAL from pg_current_wal_lsn()"
