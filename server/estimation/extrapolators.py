@@ -20,10 +20,15 @@ import numpy as np
 
 from jitdyn.vocabulary import EstimatorKind
 
-__all__ = ["EXTRAPOLATORS", "extrapolate", "mean_velocity", "velocity"]
+__all__ = ["EXTRAPOLATORS", "extrapolate", "mean_velocity", "moved", "velocity"]
 
 # The extrapolators, in the forecast combination's order after MODEL.
 EXTRAPOLATORS = (EstimatorKind.STATIC, EstimatorKind.CONSTANT_VELOCITY, EstimatorKind.CONSTANT_ACCELERATION)
+
+
+def _accelerating(qd0: np.ndarray, qdd0: np.ndarray, t: float | np.ndarray) -> np.ndarray:
+    """CONSTANT_ACCELERATION's mean velocity over t: qd0 + qdd0 t / 2."""
+    return qd0 + 0.5 * t * qdd0
 
 
 def _check(kind: EstimatorKind) -> None:
@@ -41,7 +46,7 @@ def mean_velocity(
         return np.zeros(np.broadcast_shapes(np.shape(qd0), np.shape(t)))
     if kind == EstimatorKind.CONSTANT_VELOCITY:
         return np.asarray(qd0)
-    return np.asarray(qd0 + 0.5 * t * qdd0)
+    return np.asarray(_accelerating(qd0, qdd0, t))
 
 
 def velocity(kind: EstimatorKind, qd0: np.ndarray, qdd0: np.ndarray, t: float | np.ndarray) -> np.ndarray:
@@ -52,18 +57,28 @@ def velocity(kind: EstimatorKind, qd0: np.ndarray, qdd0: np.ndarray, t: float | 
     return np.broadcast_to(qd0, np.broadcast_shapes(np.shape(qd0), np.shape(t))).copy()
 
 
+def moved(
+    q0: np.ndarray, qd0: np.ndarray, qdd0: np.ndarray, t: float | np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(q, qd, qdd) of every extrapolator, in EXTRAPOLATORS' order on a new axis before the last
+    ((..., 3, nv)), in flat coordinates: one pass for the forecast's scoring of every probe."""
+    shape = np.broadcast_shapes(np.shape(q0), np.shape(t))
+    q, qd, qdd = np.empty((3, *shape[:-1], 3, shape[-1]))
+    q[..., 0, :] = q0
+    q[..., 1, :] = q0 + qd0 * t
+    q[..., 2, :] = q0 + _accelerating(qd0, qdd0, t) * t
+    qd[..., 0, :] = qd[..., 1, :] = qd0
+    qd[..., 2, :] = qd0 + qdd0 * t
+    qdd[..., :2, :] = 0.0
+    qdd[..., 2, :] = qdd0
+    return q, qd, qdd
+
+
 def extrapolate(
     kind: EstimatorKind, q0: np.ndarray, qd0: np.ndarray, qdd0: np.ndarray, t: float | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(q, qd, qdd) t seconds on from (q0, qd0, qdd0), in flat coordinates (hinge and slide joints)."""
-    if kind == EstimatorKind.STATIC:
-        _check(kind)
-        shape = np.broadcast_shapes(np.shape(q0), np.shape(t))
-        return np.broadcast_to(q0, shape).copy(), velocity(kind, qd0, qdd0, t), np.zeros(shape)
-    q = q0 + mean_velocity(kind, qd0, qdd0, t) * t
-    qdd = (
-        np.broadcast_to(qdd0, q.shape).copy()
-        if kind == EstimatorKind.CONSTANT_ACCELERATION
-        else np.zeros(q.shape)
-    )
-    return q, velocity(kind, qd0, qdd0, t), qdd
+    _check(kind)
+    k = EXTRAPOLATORS.index(kind)
+    q, qd, qdd = moved(q0, qd0, qdd0, t)
+    return q[..., k, :].copy(), qd[..., k, :].copy(), qdd[..., k, :].copy()

@@ -76,7 +76,7 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from jitdyn.server.estimation.extrapolators import EXTRAPOLATORS, extrapolate
+from jitdyn.server.estimation.extrapolators import EXTRAPOLATORS, moved
 from jitdyn.server.estimation.interface import SHARED_WITH_EARLIER
 from jitdyn.server.estimation.matching import K, MotionMatcher
 
@@ -566,8 +566,7 @@ class ForecastCombiner:
         q0, v0, a0 = row[c.q0], row[c.v0], row[c.a0]
         q, v, a = np.empty((3, len(self._predictors), self._nv))
         q[0], v[0], a[0] = row[c.qpos], row[c.qvel], row[c.qacc]
-        for p, kind in enumerate(EXTRAPOLATORS, start=1):
-            q[p], v[p], a[p] = extrapolate(kind, q0, v0, a0, t)
+        q[1:4], v[1:4], a[1:4] = moved(q0, v0, a0, t)
         learned = self._learned(self._table[i : i + 1], self._marks[i : i + 1, _AGE])
         if learned is not None:
             q[4], v[4], a[4] = (x[0] for x in learned)
@@ -610,8 +609,7 @@ class ForecastCombiner:
         positions = np.empty((ages.size, len(self._predictors), self._nv))  # the q of `_predictions`
         velocities = np.empty_like(positions)
         positions[:, 0], velocities[:, 0] = rows[:, c.qpos], rows[:, c.qvel]
-        for p, kind in enumerate(EXTRAPOLATORS, start=1):
-            positions[:, p], velocities[:, p], _ = extrapolate(kind, q0, v0, a0, t)
+        positions[:, 1:4], velocities[:, 1:4], _ = moved(q0, v0, a0, t)
         if learned is not None:
             positions[:, 4] = learned[0]
             matched = ages[~np.isnan(rows[:, c.match_ticks][:, 0])]
