@@ -7,7 +7,9 @@ state before that tick, applies the frame, replays the later ticks with the inpu
 replay uses the same inputs in the same order, the estimator ends exactly where a run in which the
 frame came on time would be. A REALTIME session waits for frames that come late instead: the
 estimator runs each tick once, in tick order, when its frame comes or its wait is over, and the
-ticks it has not reached are answered by a glance ahead (docs/decisions/0007).
+ticks it has not reached are answered by a glance ahead (docs/decisions/0007); a frame later than
+its wait replays only its own tick at once, and the rest of the replay is caught up over the ticks
+that follow (docs/decisions/0167).
 
 Calls are synchronous and CPU-bound, one at a time: LOCKSTEP sessions run them in a worker thread,
 REALTIME sessions on the event loop (their deadlines are its timers).
@@ -169,6 +171,10 @@ class SessionRuntime:
         self._waits = wait_for_late
         self._lateness: deque[int] = deque(maxlen=_LATENESS_KEPT)
         self._wait = 0
+        # The last tick a late frame's replay left for the catch-up: a session that waits runs only
+        # the late tick when its frame comes, and the ticks after it _CATCH_UP a tick more than the
+        # clock asks, frame or not (docs/decisions/0167-spread-replays.md).
+        self._owed = -1
 
     @property
     def history(self) -> int:
@@ -224,6 +230,8 @@ class SessionRuntime:
         last = seq
         if frame is None and self._initialised:
             last = min(seq - self._wait, self._frontier + _CATCH_UP - 1)
+        elif self._frontier <= self._owed:
+            last = min(seq, self._frontier + _CATCH_UP)
         estimate = self._run_through(last)
         ahead = 0.0
         if self._frontier <= seq:
@@ -407,11 +415,16 @@ class SessionRuntime:
         elif frame.seq >= self._frontier:
             corrected = self._run_through(frame.seq)  # it was waiting: the ticks before it, then it
         else:
-            # The timewarp: back to the state before it, and every tick the estimator ran since.
+            # The timewarp: back to the state before it, and every tick the estimator ran since;
+            # a session that waits runs the late tick now and leaves the rest to the catch-up.
             ran = self._frontier
             self._restore(target.before)
             self._frontier = frame.seq
-            corrected = self._run_through(ran - 1, answer=frame.seq)
+            if self._waits:
+                corrected = self._run_through(frame.seq)
+                self._owed = max(self._owed, ran - 1)
+            else:
+                corrected = self._run_through(ran - 1, answer=frame.seq)
         if self._stale_since is not None and frame.seq <= self._stale_since:
             self._stale_since = None  # every skipped tick was just replayed properly
         # Ticks answered since this one was due, itself included: 1 = just missed its deadline.
@@ -437,12 +450,13 @@ class SessionRuntime:
         return seq - self._frontier + 1 if seq >= self._frontier else self._frontier - seq
 
     def replay_cost(self, seq: int) -> int:
-        """Ticks of the estimator a late frame for `seq` adds to those every tick runs once: the
-        timewarp's replay of the ticks run since it, none when its tick was waiting (the ticks up
-        to it run now instead of later) or when it restarts a behind estimator."""
+        """Ticks of the estimator a late frame for `seq` adds now to those every tick runs once:
+        the timewarp's replay of the ticks run since it (only its own tick in a session that waits:
+        the rest are caught up over the ticks that follow), none when its tick was waiting (the
+        ticks up to it run now instead of later) or when it restarts a behind estimator."""
         if self._restarts_from(seq) or seq >= self._frontier:
             return 0
-        return self._frontier - seq
+        return 1 if self._waits else self._frontier - seq
 
     def _restarts_from(self, seq: int) -> bool:
         """Whether a late frame for `seq` restarts the estimator: it is behind (a stall outlasted
