@@ -175,6 +175,8 @@ class SessionRuntime:
         # the late tick when its frame comes, and the ticks after it _CATCH_UP a tick more than the
         # clock asks, frame or not (docs/decisions/0167-spread-replays.md).
         self._owed = -1
+        # s of the last `advance` that caught up a replay's ticks: replay work, not the tick's own.
+        self.caught_up = 0.0
 
     @property
     def history(self) -> int:
@@ -232,7 +234,10 @@ class SessionRuntime:
             last = min(seq - self._wait, self._frontier + _CATCH_UP - 1)
         elif self._frontier <= self._owed:
             last = min(seq, self._frontier + _CATCH_UP)
+        owed = max(0, min(last, self._owed) - self._frontier + 1)
+        ran, run_started = max(1, last - self._frontier + 1), time.perf_counter_ns()
         estimate = self._run_through(last)
+        self.caught_up = (time.perf_counter_ns() - run_started) * 1e-9 * owed / ran
         ahead = 0.0
         if self._frontier <= seq:
             ahead = (seq - self._frontier + 1) * self._dt

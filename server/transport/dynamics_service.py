@@ -411,13 +411,23 @@ class _Stream:
             cpu = time.thread_time()
             outcome = self.runtime.advance(frame, horizon=self.horizon())
             if self.ticket is not None:
-                self.ticket.observe(outcome.compute_us / 1e6, cpu=time.thread_time() - cpu)
+                self._observe_tick(outcome.compute_us / 1e6, cpu=time.thread_time() - cpu)
         response = Response(result=self.record_result(outcome, arrived=due))
         lateness = max(0.0, self.clock.now() - self.deadline(outcome.seq))
         self._m_lateness.observe(lateness)
         if self.ticket is not None:
             self.ticket.admission.observe_lateness(lateness)
         return response
+
+    def _observe_tick(self, seconds: float, *, cpu: float) -> None:
+        """The tick's cost for admission: what it spent catching up a late frame's replay
+        (docs/decisions/0167) is the replay's, not the session's own tick."""
+        assert self.ticket is not None
+        caught_up = min(self.runtime.caught_up, seconds)
+        if caught_up > 0.0:
+            self.ticket.admission.observe_replay(caught_up)
+        own = 1.0 - caught_up / seconds if seconds > 0.0 else 1.0
+        self.ticket.observe(seconds - caught_up, cpu=cpu * own)
 
     def catch_up(self) -> list[Response]:
         """REALTIME: when the loop reaches a session more than a tick late, skip (answer not at all)

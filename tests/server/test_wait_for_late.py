@@ -222,11 +222,12 @@ def test_a_replay_runs_only_the_late_tick_and_the_rest_is_caught_up_over_the_nex
             on_time_estimates[k] = on_time.advance(frames[k]).estimate
 
         runtime, estimator = _runtime(model, case, pool, wait=True)
-        runs_per_tick = []
+        runs_per_tick, caught_up = [], []
         for k in range(ticks):
             before = estimator.ticks
             runtime.advance(None if k in delayed else frames[k])
             runs_per_tick.append(estimator.ticks - before)
+            caught_up.append(runtime.caught_up)
             if k - late in delayed:
                 seq = k - late
                 assert runtime.replay_cost(seq) == 1
@@ -239,6 +240,11 @@ def test_a_replay_runs_only_the_late_tick_and_the_rest_is_caught_up_over_the_nex
                 np.testing.assert_array_equal(corrected.estimate.state, expected.state)
                 np.testing.assert_array_equal(corrected.estimate.covariance, expected.covariance)
         assert max(runs_per_tick) <= 3, runs_per_tick  # its own tick and _CATCH_UP more
+        # The time a tick spent on a replay's ticks is told apart (admission counts it as replay):
+        # none before the first late frame, some on the tick after each.
+        first = min(delayed) + late
+        assert caught_up[:first] == [0.0] * first
+        assert all(caught_up[seq + late + 1] > 0.0 for seq in delayed), caught_up
         state, covariance = _state(estimator)
         on_time_state, on_time_covariance = _state(on_time_estimator)
         np.testing.assert_array_equal(state, on_time_state)
