@@ -4,7 +4,7 @@
 Everything it needs but a C++ compiler comes from pyproject.toml's build requirements: pybind11,
 Eigen's headers (cmeel-eigen) and the pinned mujoco wheel, whose headers it compiles against and
 whose libmujoco it links; the package metadata is pyproject.toml's. Why pybind11 and setuptools:
-docs/decisions/0150-native-engine-build.md.
+docs/decisions/0150-native-engine.md.
 """
 
 from __future__ import annotations

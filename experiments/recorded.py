@@ -9,7 +9,7 @@ Four motions from three recordings by three measuring systems, read at run time 
 data (nothing of them is copied into this repository). From biomdp 0.11.2's (MIT licence, by its
 authors; `pip install --no-deps biomdp==0.11.2`):
 - "cmj", a countermovement jump (Vicon, 200 Hz), below;
-- "isen_gait" and "isen_tasks", from tests/datasets/iSen_angles.csv: the sagittal hip and knee
+- "isen_gait" and "isen_tasks", from biomdp/tests/datasets/iSen_angles.csv: the sagittal hip and knee
   angles of both legs measured by iSen inertial sensors at 100 Hz over 36 s. From 26 s to the end
   the subject steps in a steady rhythm (a cycle of about 0.75 s): "isen_gait", repetitive. From 7
   to 25 s the legs do a sequence of different movements, none repeated in the same way:
@@ -35,7 +35,7 @@ tests/data of site-packages):
 The jump:
 
 The recording: biomdp 0.11.2 (MIT licence, by its authors; `pip install --no-deps biomdp==0.11.2`)
-ships a Vicon export, tests/datasets/vicon_CMJ_kinem_kinet_emg.csv, whose "Model Outputs" block
+ships a Vicon export, biomdp/tests/datasets/vicon_CMJ_kinem_kinet_emg.csv, whose "Model Outputs" block
 holds joint angles at 200 Hz. We read it at run time from the installed package (nothing of it is
 copied into this repository) and take AngArtHip_R, AngArtKnee_R and AngArtAnkle_R, component x
 (flexion, degrees), leaving out the first 3 frames, whose signs flip. Every second sample gives

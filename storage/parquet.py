@@ -157,7 +157,7 @@ def _atomic_writer(path: Path, schema: pa.Schema) -> Iterator[pq.ParquetWriter]:
     that replaces `path` (fsync, rename, fsync of the folder) once the block ends without error. A
     reader sees the old file or the whole new one, never a part."""
     tmp = path.with_name(f".{path.name}.tmp")
-    # Readable by the server's user only, whatever the umask (DESIGN: Security and limits).
+    # Readable by the server's user only, whatever the umask (README.md, Security and limits).
     with os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "wb") as f:
         with pq.ParquetWriter(
             f,

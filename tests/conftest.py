@@ -17,7 +17,7 @@ import pytest
 from jitdyn.mujoco_log import route_mujoco_messages
 
 # MuJoCo's warnings go to logging, as in the server and the CLI, not to MUJOCO_LOG.TXT in the
-# folder pytest runs from (tests/test_cli_contract.py checks that none is written).
+# folder pytest runs from (tests/cli/test_first_contact.py checks that none is written).
 route_mujoco_messages()
 
 

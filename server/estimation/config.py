@@ -183,7 +183,8 @@ def preset_values(
 ) -> dict[str, SettingValue]:
     """Every setting of `preset` (every name of SETTING_FIELDS) for this model and scenario.
 
-    THESIS: the thesis' chapter 4 exactly (experiments/thesis.py): Merwe points, alpha 0.001, beta 2, P0 0.2 I,
+    THESIS: the thesis' chapter 4 exactly (experiments/thesis.py runs it; docs/experiments.md
+    gives its tables beside the thesis' own): Merwe points, alpha 0.001, beta 2, P0 0.2 I,
     R 0.01 I; kappa = 3 - n (n = state dimension: 3 - 2 dof passive and external, 3 - 3 dof
     controlled) for pendulum-like models and 0 for the others (`is_pendulum_like`); Q variance 0.1
     passive, 0.2 controlled (5 for models that are not pendulum-like: the biped), 50 external.

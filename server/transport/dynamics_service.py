@@ -647,7 +647,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             return await self._open(request)
         except JitdynError as error:
             # Logged too: a balancer may not pass the status on (HAProxy 2.6 resets the stream
-            # instead, docs/decisions/0121-refusals-through-haproxy.md), and the operator should know.
+            # instead, docs/decisions/0121-refusals-through-a-balancer.md), and the operator should know.
             resume = " (a resume)" if first.open.HasField("resume") else ""
             _log.info("an open%s was refused: %s: %s", resume, error.code.name, error)
             await abort(context, error)

@@ -1,7 +1,7 @@
 """The initial index: models and sessions.
 
 Written out table by table rather than from storage.schema, so that later changes to the schema
-module never rewrite what this revision created (tests/storage/test_migrations.py checks that the
+module never rewrite what this revision created (tests/storage/test_session_index.py checks that the
 migrations and storage.schema agree).
 
 Revision ID: 0001
