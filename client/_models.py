@@ -269,12 +269,14 @@ class TickResult:
     late_compute: bool = False  # answered on time without the estimator (an overloaded server)
     adapted: bool = False  # the adaptive noise model moved R or Q by more than a tenth
     absorbed: bool = False  # a NIS window far out: the filter widened its covariance
-    # FORECAST_COMBINED over a gap: the weights of MODEL, STATIC, CONSTANT_VELOCITY and
-    # CONSTANT_ACCELERATION in the answer; None when the filter answered alone.
+    # FORECAST_COMBINED over a gap: the weight of each predictor in the answer, in the order
+    # `forecast_predictors` names them; None when the filter answered alone.
     forecast_weights: tuple[float, ...] | None = None
     # The scenario of the filter that answered (DRIVEN after a wrong PASSIVE model was absorbed);
     # None for dead reckoning.
     scenario: Scenario | None = None
+    # The names of the predictors `forecast_weights` weighs ("MODEL", "STATIC", ..., "LEARNED").
+    forecast_predictors: tuple[str, ...] | None = None
 
     @classmethod
     def from_message(cls, result: dynamics_pb2.Result, *, received_at: float) -> TickResult:
@@ -317,6 +319,7 @@ class TickResult:
             adapted=result.adapted,
             absorbed=result.absorbed,
             forecast_weights=tuple(result.forecast_weights) if result.forecast_weights else None,
+            forecast_predictors=tuple(result.forecast_predictors) if result.forecast_predictors else None,
             scenario=from_proto(Scenario, result.scenario, argument="result.scenario"),
         )
 

@@ -32,7 +32,13 @@ URL = re.compile(r"\w+://\S+")
 @cache
 def held() -> tuple[frozenset[str], frozenset[str]]:
     """The repository's files and folders (relative, POSIX)."""
-    listed = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=ROOT, capture_output=True, text=True, check=True)
+    listed = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     files = frozenset(listed.stdout.split())
     folders = {str(parent) for f in files for parent in Path(f).parents if str(parent) != "."}
     return files, frozenset(folders)
@@ -68,7 +74,9 @@ def texts(name: str, source: str) -> list[tuple[int, str]]:
         return _python_prose(source)
     if name.endswith((".cc", ".h", ".proto", ".pyi")):
         marker = "#" if name.endswith(".pyi") else "//"
-        return [(n, line.split(marker, 1)[1]) for n, line in enumerate(source.splitlines(), 1) if marker in line]
+        return [
+            (n, line.split(marker, 1)[1]) for n, line in enumerate(source.splitlines(), 1) if marker in line
+        ]
     return [(n, line.split("#", 1)[1]) for n, line in enumerate(source.splitlines(), 1) if "#" in line]
 
 
@@ -129,7 +137,9 @@ def test_the_check_finds_a_dead_path_and_passes_a_living_one() -> None:
     assert exists("jitdyn/server/transport/app.py", "scripts/wheel_smoke.py")
     assert exists("../runtime/session.py", "server/estimation/ukf.py")
     assert exists("docs/decisions/", "README.md")
-    assert not exists("docs/decisions/0121-refusals-through-haproxy.md", "server/transport/dynamics_service.py")
+    assert not exists(
+        "docs/decisions/0121-refusals-through-haproxy.md", "server/transport/dynamics_service.py"
+    )
     assert not exists("server/nowhere/", "README.md")
     found = [m.group(1) for m in PATH.finditer("see estimation/forecast.py, docs/decisions/ and x.py or a/b")]
     assert found == ["estimation/forecast.py", "docs/decisions/"], found

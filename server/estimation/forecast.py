@@ -7,7 +7,8 @@ filter without its mixing)::
     forecasts.observe(z_qpos, z_qvel, mean_qpos=q, mean_qvel=qd, act=act, force=f, rate=None)
     answer = forecasts.forecast()               # over a gap: CombinedForecast(weights, qpos, ...) or None
 
-The predictors, from the last frame and the filter's last posterior:
+The predictors, from the last frame and the filter's last posterior (each a named family of
+estimation/predictors.py, where a new one is added):
 - MODEL: the posterior mean rolled out by the process model under its estimated force (the force
   held, or ramped with its rate under the integrated random walk): the physics' forecast;
 - STATIC, CONSTANT_VELOCITY, CONSTANT_ACCELERATION: IEEE 1278's extrapolators from the last frame
@@ -76,9 +77,10 @@ import mujoco
 import mujoco.batch
 import numpy as np
 
-from jitdyn.server.estimation.extrapolators import EXTRAPOLATORS, moved
+from jitdyn.server.estimation import predictors
 from jitdyn.server.estimation.interface import SHARED_WITH_EARLIER
 from jitdyn.server.estimation.matching import K, MotionMatcher
+from jitdyn.server.estimation.predictors import FAMILIES, Family, Probes
 
 __all__ = [
     "LEARNED",
@@ -89,9 +91,10 @@ __all__ = [
     "ForecastCombiner",
 ]
 
-# The predictors' order in weights (Result.forecast_weights), and the learned one after them.
-PREDICTORS: Final = ("MODEL", *(str(kind.value) for kind in EXTRAPOLATORS))
-LEARNED: Final = "LEARNED"
+# The predictors' order in weights (Result.forecast_weights), and the learned one after them: the
+# families of estimation/predictors.py.
+PREDICTORS: Final = predictors.names(FAMILIES)
+LEARNED: Final = predictors.LEARNED.names[0]
 # Samples a horizon needs before its weights answer; fading memory of the error covariances
 # (weight of the past per sample 0.8: about 5 scored forecasts per horizon, so that the weights
 # follow the regime of the motion just before a gap; measured in docs/experiments.md).
@@ -124,7 +127,6 @@ MAX_NOVELTY: Final = 1e3
 # (fading weight 1) instead of weighing 1 - FORGETTING. Measured at 1.5, 2, 2.5 and 3
 # (docs/decisions/0028-forecast-regime-change.md).
 SURPRISE: Final = 2.0
-_STATIC: Final = 1
 
 # Columns of the probes' integer marks.
 _ORIGIN: Final = 0  # tick of the frame the probe starts from
@@ -146,6 +148,7 @@ class CombinedForecast:
     qacc: np.ndarray
     var_q: np.ndarray
     var_qd: np.ndarray
+    predictors: tuple[str, ...] = PREDICTORS  # the weights' names, in their order
 
 
 @dataclass(frozen=True)
@@ -215,7 +218,7 @@ class ForecastCombiner:
     """See the module docstring. process: the filter's process model (warm start off, actuation
     off for DRIVEN), whose qfrc_applied is the estimated force; horizon: ticks scored (the longest
     gap whose weights are learnt; a longer gap uses the last horizon's); learner: add the LEARNED
-    predictor."""
+    predictor; families: the predictors (estimation/predictors.py), FAMILIES unless given."""
 
     # The live probes, rows [0, n) oldest first: their vectors (_Columns) and integer marks.
     _table: np.ndarray  # (capacity, width)
@@ -229,6 +232,7 @@ class ForecastCombiner:
         steps_per_tick: int,
         horizon: int,
         learner: bool = False,
+        families: tuple[Family, ...] = FAMILIES,
     ) -> None:
         if int(process.nq) != int(process.nv):
             raise ValueError("the forecast combination needs nq == nv (no ball or free joints)")
@@ -241,7 +245,13 @@ class ForecastCombiner:
         self._nv = int(process.nv)
         self._na = int(process.na)
         self._matcher = MotionMatcher(nv=self._nv, dt=self._dt, horizon=self._horizon) if learner else None
-        self._predictors = PREDICTORS + ((LEARNED,) if learner else ())
+        self._families = families + ((predictors.LEARNED,) if learner else ())
+        self._predictors = predictors.names(self._families)
+        # Which predictors learn from the session's frames (no weight before LEARNED_SAMPLES real
+        # matches, no vote on a regime change); STATIC, which the novelty guard measures from.
+        self._learned_mask = np.array([f.learned for f in self._families for _ in f.names], dtype=bool)
+        self._fixed = np.flatnonzero(~self._learned_mask)
+        self._static = self._predictors.index("STATIC")
         self._columns = _Columns.of(int(process.nq), self._nv, self._na, K if learner else 0)
         # Scoring probes alive at once, and the last frame's (twice, for a second frame of a tick).
         self._n = 0
@@ -405,7 +415,7 @@ class ForecastCombiner:
             weights = self._weights[h] = self._solve_weights(h)
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
-        scale = _novelty(q, self._cov[h])
+        scale = _novelty(q, self._cov[h], self._static)
         if scale is not None:
             weights = self._solve_weights(h, scale)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd, scale)
@@ -416,6 +426,7 @@ class ForecastCombiner:
             qacc=weights @ a,
             var_q=var_q,
             var_qd=var_qd,
+            predictors=self._predictors,
         )
 
     def _answer_covariance(
@@ -502,9 +513,9 @@ class ForecastCombiner:
             C = scale[:, None] * C * scale[None, :]
         if self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES:
             return _min_variance_weights(C)
-        k = len(PREDICTORS)
+        fixed = self._fixed
         weights = np.zeros(len(self._predictors))
-        weights[:k] = _min_variance_weights(C[:k, :k])
+        weights[fixed] = _min_variance_weights(C[fixed[:, None], fixed[None, :]])
         return weights
 
     def _match(self, i: int) -> None:
@@ -518,6 +529,36 @@ class ForecastCombiner:
             row[c.match_ticks], row[c.match_weights] = np.nan, 0.0
         else:
             row[c.match_ticks], row[c.match_weights] = found.ticks, found.weights
+
+    def _probes(
+        self,
+        rows: np.ndarray,
+        ages: np.ndarray,
+        learned: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    ) -> Probes:
+        """Table rows (S, width) at ages (S,) as the predictors read them."""
+        c = self._columns
+        return Probes(
+            qpos=rows[:, c.qpos],
+            qvel=rows[:, c.qvel],
+            qacc=rows[:, c.qacc],
+            q0=rows[:, c.q0],
+            v0=rows[:, c.v0],
+            a0=rows[:, c.a0],
+            t=(ages * self._dt)[:, None],
+            learned=learned,
+        )
+
+    def _predict(self, probes: Probes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(S, P, nv) each: every predictor's qpos, qvel, qacc, family by family."""
+        S = probes.t.shape[0]
+        q, v, a = np.empty((3, S, len(self._predictors), self._nv))
+        start = 0
+        for family in self._families:
+            end = start + len(family.names)
+            q[:, start:end], v[:, start:end], a[:, start:end] = family.predict(probes)
+            start = end
+        return q, v, a
 
     def _learned(
         self, rows: np.ndarray, ages: np.ndarray
@@ -561,16 +602,9 @@ class ForecastCombiner:
 
     def _predictions(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(P, nv) each: every predictor's qpos, qvel, qacc for probe i at its age."""
-        c, row = self._columns, self._table[i]
-        t = int(self._marks[i, _AGE]) * self._dt
-        q0, v0, a0 = row[c.q0], row[c.v0], row[c.a0]
-        q, v, a = np.empty((3, len(self._predictors), self._nv))
-        q[0], v[0], a[0] = row[c.qpos], row[c.qvel], row[c.qacc]
-        q[1:4], v[1:4], a[1:4] = moved(q0, v0, a0, t)
-        learned = self._learned(self._table[i : i + 1], self._marks[i : i + 1, _AGE])
-        if learned is not None:
-            q[4], v[4], a[4] = (x[0] for x in learned)
-        return q, v, a
+        rows, ages = self._table[i : i + 1], self._marks[i : i + 1, _AGE]
+        q, v, a = self._predict(self._probes(rows, ages, self._learned(rows, ages)))
+        return q[0], v[0], a[0]
 
     def _reckon(self) -> None:
         """Reckon the waiting scorings, in order, the LEARNED continuations of all of them in one
@@ -579,7 +613,7 @@ class ForecastCombiner:
         if not pending or self._matcher is None:
             return
         c, rows = self._columns, np.concatenate([p.rows for p in pending])
-        q, v, _ = self._matcher.follow(
+        q, v, a = self._matcher.follow(
             rows[:, c.match_ticks],
             rows[:, c.match_weights],
             np.concatenate([p.ages for p in pending]),
@@ -589,7 +623,7 @@ class ForecastCombiner:
         start = 0
         for p in pending:
             end = start + p.ages.size
-            self._score(p.rows, p.ages, p.qpos, p.qvel, (q[start:end], v[start:end]))
+            self._score(p.rows, p.ages, p.qpos, p.qvel, (q[start:end], v[start:end], a[start:end]))
             start = end
 
     def _score(
@@ -598,25 +632,17 @@ class ForecastCombiner:
         ages: np.ndarray,
         qpos: np.ndarray,
         qvel: np.ndarray,
-        learned: tuple[np.ndarray, np.ndarray] | None,
+        learned: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     ) -> None:
         """Scoring probes, their rows (S, width) and ages (S,) (which all differ), against a frame's
         qpos (the weights) and qpos and qvel (the answer's covariance); learned: the LEARNED
-        predictor's qpos and qvel (S, nv) each, with the learned predictor."""
+        predictor's qpos, qvel and qacc (S, nv) each, with the learned predictor."""
         c = self._columns
-        t = (ages * self._dt)[:, None]
-        q0, v0, a0 = rows[:, c.q0], rows[:, c.v0], rows[:, c.a0]
-        positions = np.empty((ages.size, len(self._predictors), self._nv))  # the q of `_predictions`
-        velocities = np.empty_like(positions)
-        positions[:, 0], velocities[:, 0] = rows[:, c.qpos], rows[:, c.qvel]
-        positions[:, 1:4], velocities[:, 1:4], _ = moved(q0, v0, a0, t)
+        positions, velocities, _ = self._predict(self._probes(rows, ages, learned))
         if learned is not None:
-            positions[:, 4] = learned[0]
             matched = ages[~np.isnan(rows[:, c.match_ticks][:, 0])]
             np.add.at(self._learned_count, matched, 1.0)
         errors = positions - qpos[None, None, :]  # (S, P, nv)
-        if learned is not None:
-            velocities[:, 4] = learned[1]
         verrors = velocities - qvel[None, None, :]  # the qd of `_predictions`, against the frame's
         finite = np.isfinite(errors).all(axis=(1, 2)) & np.isfinite(verrors).all(axis=(1, 2))
         if not finite.all():
@@ -649,9 +675,9 @@ class ForecastCombiner:
         every one of PREDICTORS' error variances above SURPRISE^2 times its scored past's at that
         age, once the age has MIN_SAMPLES scores (a predictor scored exact, past 0, is surprised by
         any error)."""
-        k = len(PREDICTORS)
-        now = np.diagonal(cov, axis1=1, axis2=2)[:, :k]
-        past = np.diagonal(self._cov[ages], axis1=1, axis2=2)[:, :k]
+        fixed = self._fixed
+        now = np.diagonal(cov, axis1=1, axis2=2)[:, fixed]
+        past = np.diagonal(self._cov[ages], axis1=1, axis2=2)[:, fixed]
         surprised: np.ndarray = (self._count[ages] >= MIN_SAMPLES) & np.all(
             now > SURPRISE * SURPRISE * past, axis=1
         )
@@ -673,16 +699,16 @@ _FADING: Final = np.array(
 )
 
 
-def _novelty(q: np.ndarray, C: np.ndarray) -> np.ndarray | None:
+def _novelty(q: np.ndarray, C: np.ndarray, static: int) -> np.ndarray | None:
     """(P,) the novelty guard's factors on the predictors' errors at a gap, or None where none is
     novel: a predictor whose departure from STATIC now (the RMS over dofs of q_p - q_STATIC)
     exceeds NOVELTY times the RMS departure of its scored past at this horizon (e_p - e_STATIC,
     from the pooled covariance: C_pp + C_ss - 2 C_ps) has its errors taken as larger by the ratio
     of the two over NOVELTY, at most MAX_NOVELTY (STATIC never departs)."""
-    now = np.mean(np.square(q - q[_STATIC]), axis=1)
-    limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) + C[_STATIC, _STATIC] - 2.0 * C[:, _STATIC], 0.0)
+    now = np.mean(np.square(q - q[static]), axis=1)
+    limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) + C[static, static] - 2.0 * C[:, static], 0.0)
     novel = now > limit
-    novel[_STATIC] = False
+    novel[static] = False
     if not novel.any():
         return None
     scale = np.ones(q.shape[0])

@@ -142,6 +142,7 @@ class Foresight:
             state=frozen,
             covariance=read_only(_scaled(estimate.covariance, answer, nv)),
             forecast_weights=tuple(float(w) for w in answer.weights),
+            forecast_predictors=answer.predictors,
         )
 
     def gap_nis(

@@ -79,6 +79,8 @@ class Estimate:
     # Over a gap with Forecast.COMBINED: the weights of the predictors that answered, in
     # estimation/forecast.py's PREDICTORS order; None when the filter answered alone.
     forecast_weights: tuple[float, ...] | None = None
+    # The predictors those weights are of, by name (estimation/predictors.py), in their order.
+    forecast_predictors: tuple[str, ...] | None = None
     # The scenario of the filter that answered: a PASSIVE session's becomes DRIVEN when a wrong
     # model is absorbed (estimation/switch.py).
     scenario: str = ""

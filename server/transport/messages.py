@@ -71,6 +71,8 @@ def result_message(
             result.scenario = common_pb2.Scenario.ValueType(to_proto(Scenario(estimate.scenario)))
         if estimate.forecast_weights is not None and outcome.source == Source.PREDICTED:
             result.forecast_weights[:] = estimate.forecast_weights
+            if estimate.forecast_predictors is not None:
+                result.forecast_predictors[:] = estimate.forecast_predictors
     if durable_seq is not None:
         result.durable_seq = durable_seq
     return result

@@ -139,7 +139,8 @@ class Preset(enum.StrEnum):
     """The source of the settings a session leaves unset (jitdyn.v1.Preset)."""
 
     JITDYN = "JITDYN"  # sound at any state dimension, adaptive where the force is unknown
-    THESIS = "THESIS"  # the thesis' chapter 4 exactly (experiments/thesis.py; its tables: docs/experiments.md)
+    # The thesis' chapter 4 exactly (experiments/thesis.py; its tables: docs/experiments.md).
+    THESIS = "THESIS"
 
 
 class SigmaScheme(enum.StrEnum):

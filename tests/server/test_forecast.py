@@ -32,6 +32,7 @@ from jitdyn.server.estimation.forecast import (
 )
 from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.estimation.predictors import FAMILIES, Probes
 from jitdyn.server.estimation.propagate import process_model
 from jitdyn.server.estimation.ukf import UnscentedFilter
 
@@ -373,6 +374,49 @@ def test_a_motion_of_constant_acceleration_is_answered_by_constant_acceleration(
         np.testing.assert_allclose(answer.qvel, v, atol=1e-5)
 
 
+class _Bouncing:
+    """A predictor the combination does not ship, added as a user would add one: a family with a
+    name and a prediction from what a probe holds (estimation/predictors.py). It knows the test's
+    motion: q0 - v0 t, the velocity reversed."""
+
+    names = ("REVERSED",)
+    learned = False
+
+    def predict(self, probes: Probes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q = probes.q0 - probes.v0 * probes.t
+        v = -np.broadcast_to(probes.v0, q.shape)
+        return q[:, None, :], v[:, None, :], np.zeros_like(q)[:, None, :]
+
+
+def test_a_predictor_is_one_family_and_one_registration() -> None:
+    """A combiner given one more family weighs it beside the shipped ones, under its name: on a
+    motion only it foresees (each frame's velocity points away from where the body goes) it takes
+    the weight. Two predictors of one name are refused."""
+    model = _pendulum(1)
+    dt = 0.05
+    families = (*FAMILIES, _Bouncing())
+    combiner = ForecastCombiner(model, dt=dt, steps_per_tick=10, horizon=3, families=families)
+    assert combiner.predictors == (*PREDICTORS, "REVERSED")
+
+    def truth(k: int) -> tuple[np.ndarray, np.ndarray]:
+        # Moves at +0.4 rad/s, while its frames say -0.4: what REVERSED alone extrapolates exactly.
+        return np.array([0.1 + 0.4 * k * dt]), np.array([-0.4])
+
+    frames = 30
+    for k in range(frames):
+        if k:
+            combiner.advance()
+        q, v = truth(k)
+        combiner.observe(q, v, mean_qpos=q, mean_qvel=v, act=np.zeros(0), force=np.zeros(1), rate=None)
+    combiner.advance()
+    answer = combiner.forecast()
+    assert answer is not None and answer.predictors == combiner.predictors
+    assert answer.weights[-1] > 0.999, answer.weights
+    np.testing.assert_allclose(answer.qpos, truth(frames)[0], atol=1e-6)
+    with pytest.raises(ValueError, match="unique"):
+        ForecastCombiner(model, dt=dt, steps_per_tick=10, horizon=3, families=(*FAMILIES, *FAMILIES))
+
+
 def test_a_predictor_departing_far_beyond_its_scored_past_weighs_less_over_a_gap() -> None:
     """A swing (0.2 sin 4t rad) scored for 2 s: CONSTANT_ACCELERATION forecasts it best at every
     horizon and the scored weights are mostly its own. The last frame before the gap has the
@@ -550,12 +594,15 @@ def test_a_default_session_reports_which_predictors_answered_a_gap(client: Any) 
                 assert isinstance(result, TickResult) and result.source == "PREDICTED"
                 assert result.forecast_weights is not None
                 assert len(result.forecast_weights) == len(PREDICTORS) + 1  # and LEARNED
+                # The wire names them, in the weights' order.
+                assert result.forecast_predictors == (*PREDICTORS, "LEARNED")
                 assert abs(sum(result.forecast_weights) - 1.0) < 1e-9
                 np.testing.assert_array_equal(result.filter_state[: model.nq], result.qpos)
                 weights.append(result.forecast_weights)
             else:
                 result = session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
                 assert isinstance(result, TickResult) and result.forecast_weights is None
+                assert result.forecast_predictors is None
         assert weights
 
 

@@ -308,9 +308,9 @@ class _ForecastEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Forecast.Val
     LEARNED: motion matching over the session's own frames of the last 20 s (what followed the
     past moments most like the last frame). Over a gap of h ticks it answers the combination of
     the five with the least error variance at h on the recent frames (weights >= 0 summing to 1;
-    fading memory of about 5 scored forecasts per horizon); `Result.forecast_weights` says which
-    predictors answered and how much. Until a horizon has 3 scores, and in a gap longer than 0.5 s
-    beyond it, the filter answers. The answer's unknown force (in `filter_state`, and so
+    fading memory of about 5 scored forecasts per horizon); `Result.forecast_weights` says how much
+    each predictor weighs, and `Result.forecast_predictors` names them. Until a horizon has 3
+    scores, and in a gap longer than 0.5 s beyond it, the filter answers. The answer's unknown force (in `filter_state`, and so
     `qfrc_inverse`) is the inverse dynamics of the forecast q, qd and qdd; the filter's own mean
     and covariance go on predicting unchanged.
     """
@@ -333,9 +333,9 @@ IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION from the last fr
 LEARNED: motion matching over the session's own frames of the last 20 s (what followed the
 past moments most like the last frame). Over a gap of h ticks it answers the combination of
 the five with the least error variance at h on the recent frames (weights >= 0 summing to 1;
-fading memory of about 5 scored forecasts per horizon); `Result.forecast_weights` says which
-predictors answered and how much. Until a horizon has 3 scores, and in a gap longer than 0.5 s
-beyond it, the filter answers. The answer's unknown force (in `filter_state`, and so
+fading memory of about 5 scored forecasts per horizon); `Result.forecast_weights` says how much
+each predictor weighs, and `Result.forecast_predictors` names them. Until a horizon has 3
+scores, and in a gap longer than 0.5 s beyond it, the filter answers. The answer's unknown force (in `filter_state`, and so
 `qfrc_inverse`) is the inverse dynamics of the forecast q, qd and qdd; the filter's own mean
 and covariance go on predicting unchanged.
 """

@@ -848,6 +848,7 @@ class Result(_message.Message):
     FORECAST_WEIGHTS_FIELD_NUMBER: _builtins.int
     SCENARIO_FIELD_NUMBER: _builtins.int
     RESUME_TOKEN_FIELD_NUMBER: _builtins.int
+    FORECAST_PREDICTORS_FIELD_NUMBER: _builtins.int
     seq: _builtins.int
     """The tick index."""
     t: _builtins.float
@@ -967,8 +968,15 @@ class Result(_message.Message):
     def forecast_weights(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
         """FORECAST_COMBINED, a PREDICTED tick answered by the combination: the weight (0 to 1, summing to
         1) of each predictor in `qpos`, `qvel`, `qacc` and the [q, qd] block of `filter_state`, in the
-        order MODEL, STATIC, CONSTANT_VELOCITY, CONSTANT_ACCELERATION, LEARNED (see `Forecast`). Empty
-        when the filter answered alone.
+        order `forecast_predictors` names them (today MODEL, STATIC, CONSTANT_VELOCITY,
+        CONSTANT_ACCELERATION, then LEARNED; see `Forecast`). Empty when the filter answered alone.
+        """
+
+    @_builtins.property
+    def forecast_predictors(self) -> _containers.RepeatedScalarFieldContainer[_builtins.str]:
+        """The names of the predictors `forecast_weights` weighs, one per weight and in the same order
+        ("MODEL", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION", "LEARNED" today; a server may
+        add others). Set whenever `forecast_weights` is; empty otherwise.
         """
 
     def __init__(
@@ -1002,10 +1010,11 @@ class Result(_message.Message):
         forecast_weights: _abc.Iterable[_builtins.float] | None = ...,
         scenario: _common_pb2.Scenario.ValueType = ...,
         resume_token: _builtins.str = ...,
+        forecast_predictors: _abc.Iterable[_builtins.str] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "durable_seq", b"durable_seq", "nis", b"nis"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "absorbed", b"absorbed", "actuator_force", b"actuator_force", "adapted", b"adapted", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "forecast_weights", b"forecast_weights", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "resume_token", b"resume_token", "scenario", b"scenario", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq", "_nis", b"_nis", "absorbed", b"absorbed", "actuator_force", b"actuator_force", "adapted", b"adapted", "compute_us", b"compute_us", "covariance", b"covariance", "covariance_diagonal", b"covariance_diagonal", "durable_seq", b"durable_seq", "filter_state", b"filter_state", "forecast_predictors", b"forecast_predictors", "forecast_weights", b"forecast_weights", "frame_delay", b"frame_delay", "frame_received", b"frame_received", "horizon", b"horizon", "late_compute", b"late_compute", "late_ticks", b"late_ticks", "nis", b"nis", "qacc", b"qacc", "qacc_forward", b"qacc_forward", "qfrc_inverse", b"qfrc_inverse", "qpos", b"qpos", "qvel", b"qvel", "receive_to_send_us", b"receive_to_send_us", "reinitialised", b"reinitialised", "resume_token", b"resume_token", "scenario", b"scenario", "sensordata", b"sensordata", "seq", b"seq", "source", b"source", "t", b"t"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__durable_seq: _TypeAlias = _typing.Literal["durable_seq"]  # noqa: Y015
     _WhichOneofArgType__durable_seq: _TypeAlias = _typing.Literal["_durable_seq", b"_durable_seq"]  # noqa: Y015
