@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from jitdyn.cli.extras import MissingExtra, require_extra
-from jitdyn.cli.limits import add_limit_arguments, limit_settings
 from jitdyn.errors import FailedPrecondition, JitdynError, Unavailable
 from jitdyn.registry.builtins import BUILTIN_NAMES
 from jitdyn.settings import (
@@ -124,13 +123,12 @@ def build_parser() -> argparse.ArgumentParser:
         command.set_defaults(**{_LEAF: command})
         return command
 
-    serve = leaf(
+    leaf(
         commands,
         "serve",
         help="run the server",
         description="Run the jitdyn server until Ctrl-C or SIGTERM.",
     )
-    add_limit_arguments(serve)
 
     models = leaf(
         commands,
@@ -367,7 +365,7 @@ def _serve(args: argparse.Namespace, settings: Settings) -> int:
 
     if settings.workers is None:  # the CPUs shared among the processes (jitdyn.settings.default_workers)
         settings = dataclasses.replace(settings, workers=default_workers(settings.processes))
-    config = _server_config(settings, **limit_settings(args, os.environ))
+    config = _server_config(settings)
     if settings.processes > 1:
         from jitdyn.server.transport.processes import run_processes
 

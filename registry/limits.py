@@ -13,6 +13,7 @@ import dataclasses
 import math
 
 from jitdyn.errors import ResourceExhausted
+from jitdyn.settings import DEFAULTS
 
 __all__ = [
     "DEFAULT_COMPILE_TIMEOUT",
@@ -27,16 +28,17 @@ __all__ = [
 DEFAULT_MAX_MJCF_BYTES = 8 * 1024 * 1024
 DEFAULT_MAX_ASSETS = 1000
 DEFAULT_MAX_ASSET_BYTES = 64 * 1024 * 1024
-DEFAULT_COMPILE_TIMEOUT = 10.0
+DEFAULT_COMPILE_TIMEOUT = DEFAULTS.compile_timeout
 DEFAULT_MAX_NV = 500
-DEFAULT_MAX_COMPILED_BYTES = 64 * 1024 * 1024
-DEFAULT_COMPILE_MEMORY_BYTES = 4 * 1024 * 1024 * 1024
-DEFAULT_CACHE_BYTES = 512 * 1024 * 1024
-DEFAULT_MAX_MODELS_PER_TENANT = 1000
-DEFAULT_MAX_TENANT_BYTES = 4 * 1024 * 1024 * 1024
+# The limits `jitdyn serve` has a flag for: their defaults are those settings' (jitdyn.settings).
+DEFAULT_MAX_COMPILED_BYTES = DEFAULTS.max_compiled_bytes
+DEFAULT_COMPILE_MEMORY_BYTES = DEFAULTS.compile_memory_bytes
+DEFAULT_CACHE_BYTES = DEFAULTS.model_cache_bytes
+DEFAULT_MAX_MODELS_PER_TENANT = DEFAULTS.max_models_per_tenant
+DEFAULT_MAX_TENANT_BYTES = DEFAULTS.max_tenant_bytes
 
 
-# The `jitdyn serve` flags of the limits that have one (cli/limits.py).
+# The `jitdyn serve` flags of the limits that have one (jitdyn.settings, group LIMITS).
 _FLAGS = {
     "compile_timeout": "--compile-timeout",
     "max_compiled_bytes": "--max-compiled-bytes",

@@ -18,6 +18,7 @@ import math
 from dataclasses import dataclass
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
+from jitdyn.settings import DEFAULTS
 
 __all__ = ["DEFAULT_STREAM_LIMITS", "IdleTimeout", "LateTimeout", "StreamLimits"]
 
@@ -51,11 +52,12 @@ class StreamLimits:
         of opens) ends no one; the session admitted first is never ended.
     """
 
-    max_history_bytes: int = 256 * 1024 * 1024
-    max_clock_offset: float = 5.0
-    idle_timeout: float = 60.0
-    max_tick_share: float = 0.5
-    late_timeout: float = 10.0
+    # The defaults are those of `jitdyn serve`'s settings (jitdyn.settings).
+    max_history_bytes: int = DEFAULTS.max_history_bytes
+    max_clock_offset: float = DEFAULTS.max_clock_offset
+    idle_timeout: float = DEFAULTS.idle_timeout
+    max_tick_share: float = DEFAULTS.max_tick_share
+    late_timeout: float = DEFAULTS.late_timeout
 
     def __post_init__(self) -> None:
         for name in (

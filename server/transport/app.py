@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import ipaddress
 import logging
 import os
@@ -159,6 +160,22 @@ class ServerConfig:
             "drain_grace": settings.drain_grace,
             "stall_report": settings.stall_report,
             "nice": settings.nice,
+            "stream_limits": StreamLimits(
+                max_history_bytes=settings.max_history_bytes,
+                max_clock_offset=settings.max_clock_offset,
+                idle_timeout=settings.idle_timeout,
+                max_tick_share=settings.max_tick_share,
+                late_timeout=settings.late_timeout,
+            ),
+            "registry_limits": dataclasses.replace(
+                DEFAULT_LIMITS,
+                compile_timeout=settings.compile_timeout,
+                max_compiled_bytes=settings.max_compiled_bytes,
+                compile_memory_bytes=settings.compile_memory_bytes,
+                cache_bytes=settings.model_cache_bytes,
+                max_models_per_tenant=settings.max_models_per_tenant,
+                max_tenant_bytes=settings.max_tenant_bytes,
+            ),
             "session_limits": SessionLimits(
                 max_sessions=settings.max_sessions,
                 max_sessions_per_tenant=settings.max_sessions_per_tenant,

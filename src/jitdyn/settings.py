@@ -26,7 +26,9 @@ from pathlib import Path
 from typing import Any, Final, TypeVar
 
 __all__ = [
+    "DEFAULTS",
     "ENV_PREFIX",
+    "LIMITS",
     "Setting",
     "SettingError",
     "Settings",
@@ -38,6 +40,7 @@ __all__ = [
     "parse_duration",
     "parse_model_reference",
     "parse_seconds",
+    "parse_size",
     "positive_int",
     "resolve",
     "settings_for",
@@ -127,6 +130,19 @@ def checked(
     return parse
 
 
+_SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kmg]?)(?:i?b)?\s*$", re.IGNORECASE)
+_MIB: Final = 1024 * 1024
+
+
+def parse_size(text: str) -> int:
+    """'64MiB', '2GiB', '512k', '1000' -> bytes (k, M and G are powers of 1024)."""
+    match = _SIZE.match(text)
+    value = int(float(match.group(1)) * 1024 ** " kmg".index(match.group(2).lower() or " ")) if match else 0
+    if value < 1:
+        raise ValueError(f"expected a positive size like 64MiB, 2GiB or 1000000, got {text!r}")
+    return value
+
+
 positive_int = checked(int, lambda value: value >= 1, "a whole number >= 1")
 _count = checked(int, lambda value: value >= 0, "a whole number >= 0")
 _fraction = checked(float, lambda value: 0.0 < value <= 1.0, "a number in (0, 1]")
@@ -188,6 +204,7 @@ class Setting:
     metavar: str | None
     is_flag: bool  # a switch: `--insecure` takes no value
     default_text: str | None  # the default as the help says it, when str(default) will not do
+    group: str | None  # the heading its flag is listed under in --help, if not the command's own
 
 
 def setting(
@@ -202,6 +219,7 @@ def setting(
     default_factory: Callable[[], Any] | None = None,
     default_text: str | None = None,
     switch: bool = False,
+    group: str | None = None,
 ) -> Any:
     """A field of `Settings`: see the module docstring. Returns a dataclasses.field."""
     metadata = {
@@ -214,6 +232,7 @@ def setting(
             "metavar": metavar,
             "switch": switch,
             "default_text": default_text,
+            "group": group,
         }
     }
     if default_factory is not None:
@@ -229,6 +248,38 @@ def _serve_address(default: str | None, help: str) -> Any:
 def _serve_file(help: str) -> Any:
     """A file `serve` reads, none by default."""
     return setting(None, parse=_path, commands=("serve",), metavar="FILE", help=help)
+
+
+# The limits that protect a server from its clients: per session (server/runtime/limits.py) and per
+# model and tenant (registry/limits.py), which take their defaults from these settings. Every refusal
+# names the flag that raises its limit.
+LIMITS: Final = "limits per session, model and tenant"
+
+
+def _limit_size(default: int, help: str) -> Any:
+    return setting(
+        default,
+        parse=parse_size,
+        commands=("serve",),
+        metavar="SIZE",
+        default_text=f"{default // _MIB}MiB",
+        group=LIMITS,
+        help=help,
+    )
+
+
+def _limit_seconds(default: float, help: str) -> Any:
+    return setting(
+        default,
+        parse=checked(
+            parse_seconds, lambda value: value > 0, "a duration > 0, like 60s, 500ms or 60 (seconds)"
+        ),
+        commands=("serve",),
+        metavar="DURATION",
+        default_text=f"{default:g}s",
+        group=LIMITS,
+        help=help,
+    )
 
 
 def _quota(help: str) -> Any:
@@ -406,6 +457,46 @@ class Settings:
         "sessions' ticks. Lowering it needs CAP_SYS_NICE (root); without it the server says so and "
         "runs at the priority it was started with",
     )
+    max_history_bytes: int = _limit_size(
+        256 * _MIB, "memory of one session's late-frame history (ticks x state size)"
+    )
+    max_clock_offset: float = _limit_seconds(
+        5.0, "how far a REALTIME client's clock may be from the session's"
+    )
+    idle_timeout: float = _limit_seconds(
+        60.0, "how long a session may send nothing (no frame, sync or skip) before it is ended"
+    )
+    max_tick_share: float = setting(
+        0.5,
+        parse=checked(float, lambda value: value > 0, "a number > 0, like 0.5"),
+        commands=("serve",),
+        metavar="F",
+        group=LIMITS,
+        help="largest share of dt a REALTIME tick's cost, estimated at open, may take",
+    )
+    late_timeout: float = _limit_seconds(
+        10.0,
+        "how long a REALTIME session told in band that its answers may go late may stay so; then it is "
+        "ended and stored, so that the sessions admitted before it are on time again (the first "
+        "admitted is never ended)",
+    )
+    compile_timeout: float = _limit_seconds(
+        10.0, "how long a model may take to compile (the whole exchange with the compile worker)"
+    )
+    max_compiled_bytes: int = _limit_size(64 * _MIB, "memory of one compiled model")
+    compile_memory_bytes: int = _limit_size(4096 * _MIB, "address space of a compile worker (RLIMIT_AS)")
+    model_cache_bytes: int = _limit_size(
+        512 * _MIB, "memory of the compiled models kept (least recently used dropped)"
+    )
+    max_models_per_tenant: int = setting(
+        1000,
+        parse=positive_int,
+        commands=("serve",),
+        metavar="N",
+        group=LIMITS,
+        help="models (versions) one tenant may register",
+    )
+    max_tenant_bytes: int = _limit_size(4096 * _MIB, "MJCF and asset bytes one tenant may store")
     stall_report: float = setting(
         0.1,
         parse=checked(parse_duration, lambda value: value >= 0, "a duration >= 0, like 100ms"),
@@ -430,11 +521,12 @@ def _setting(f: dataclasses.Field[Any]) -> Setting:
         metavar=spec["metavar"],
         is_flag=spec["switch"],
         default_text=spec["default_text"],
+        group=spec["group"],
     )
 
 
 SETTINGS: Final[tuple[Setting, ...]] = tuple(_setting(f) for f in dataclasses.fields(Settings))
-_DEFAULTS: Final = Settings()
+DEFAULTS: Final = Settings()
 
 
 def settings_for(command: str) -> Iterator[Setting]:
@@ -443,7 +535,7 @@ def settings_for(command: str) -> Iterator[Setting]:
 
 
 def _default_text(s: Setting) -> str:
-    value = getattr(_DEFAULTS, s.name)
+    value = getattr(DEFAULTS, s.name)
     if s.default_text is not None:
         return s.default_text
     if value is None:
@@ -454,15 +546,20 @@ def _default_text(s: Setting) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser, command: str) -> None:
-    """Put the flags of `command`'s settings on `parser`, defaults SUPPRESSed (see `resolve`)."""
+    """Put the flags of `command`'s settings on `parser`, defaults SUPPRESSed (see `resolve`); a
+    setting of a group under that group's heading."""
+    groups: dict[str, argparse._ArgumentGroup] = {}
     for s in settings_for(command):
         text = f"{s.help} (env {s.env}; default {_default_text(s)})".replace("%", "%%")
+        target: argparse.ArgumentParser | argparse._ArgumentGroup = parser
+        if s.group is not None:
+            target = groups.get(s.group) or groups.setdefault(s.group, parser.add_argument_group(s.group))
         if s.is_flag:
-            parser.add_argument(
+            target.add_argument(
                 s.flag, dest=s.name, action="store_true", default=argparse.SUPPRESS, help=text
             )
         else:
-            parser.add_argument(
+            target.add_argument(
                 s.flag,
                 dest=s.name,
                 type=argparse_type(s.parse, s.name),

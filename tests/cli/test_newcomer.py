@@ -253,11 +253,13 @@ def test_an_ambiguous_prefix_lists_the_candidates(sessions_data: tuple[Path, lis
 
 
 def test_the_limit_flags_show_a_metavar_and_their_variable() -> None:
-    from jitdyn.cli.limits import _LIMITS
+    from jitdyn.settings import LIMITS, settings_for
 
     help_text = " ".join(jitdyn("serve", "--help").stdout.split())
-    for limit in _LIMITS:
-        assert f"{limit.flag} {limit.unit.metavar} " in help_text, limit.flag
+    limits = [s for s in settings_for("serve") if s.group == LIMITS]
+    assert len(limits) == 11 and f"{LIMITS}:" in help_text
+    for limit in limits:
+        assert f"{limit.flag} {limit.metavar} " in help_text, limit.flag
         assert f"(env {limit.env}; default " in help_text, limit.flag
     assert "--idle-timeout DURATION how long a session may send nothing" in help_text
     assert "--max-history-bytes SIZE" in help_text and "IDLE_TIMEOUT (default" not in help_text
