@@ -8,6 +8,7 @@ import datetime
 import json
 import math
 import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -147,3 +148,18 @@ def test_without_the_lab_extra_it_says_which_to_install(
     assert "Traceback" not in result.stderr
     assert "needs mcap (MCAP files), which is not installed: pip install 'jitdyn[lab]'" in result.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_preview_draws_the_file_from_its_channels(exported: Path, tmp_path: Path) -> None:
+    script = Path(__file__).resolve().parents[2] / "scripts" / "mcap_preview.py"
+    out = tmp_path / "preview.png"
+    drawn = subprocess.run(
+        [sys.executable, str(script), str(exported), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert drawn.returncode == 0, drawn.stderr
+    assert drawn.stdout.strip() == f"drew {exported} to {out}"
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
