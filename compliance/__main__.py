@@ -40,11 +40,13 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--api-key",
         default=os.environ.get("JITDYN_API_KEY"),
+        metavar="KEY",
         help="the key every call carries (authorization: Bearer KEY); without it the auth cases are skipped",
     )
     parser.add_argument(
         "--other-api-key",
         default=os.environ.get("JITDYN_OTHER_API_KEY"),
+        metavar="KEY",
         help="a key of another tenant, for the case that tenants do not see each other's sessions",
     )
     parser.add_argument(
@@ -55,7 +57,9 @@ def _parser() -> argparse.ArgumentParser:
         help="how long a REALTIME open the server refuses for its load (RESOURCE_EXHAUSTED) is tried "
         "again before its case is skipped (default 30)",
     )
-    parser.add_argument("--ca-file", type=Path, help="PEM of the CA to trust: speak TLS to the server")
+    parser.add_argument(
+        "--ca-file", type=Path, metavar="FILE", help="PEM of the CA to trust: speak TLS to the server"
+    )
     parser.add_argument(
         "-q", "--quiet", action="store_true", help="print the table only, not each case as it ends"
     )

@@ -70,7 +70,8 @@ def _(ctx: Context) -> str:
 
 
 @case(
-    "sessions.stored", "a closed session is stored COMPLETE with the summary `closed` gave; paging is checked"
+    "sessions.stored",
+    "a closed session is stored COMPLETE with the summary `closed` gave, and ListSessions lists it",
 )
 def _(ctx: Context) -> str:
     with ctx.wire.stream() as stream:
