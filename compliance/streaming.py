@@ -219,7 +219,7 @@ def _realtime(ctx: Context) -> tuple[Stream, float]:
             grace = answer.opened.grace
             check(abs(grace - _RT_GRACE) < 1e-9, f"grace {_RT_GRACE} asked, {grace} in force")
             return stream, start
-        stream.__exit__()
+        stream.close()
         if not isinstance(answer, Ended) or answer.code != Code.RESOURCE_EXHAUSTED:
             raise CaseFailed(f"a REALTIME open was answered {answer}")
         ctx.provoked.add(answer.code.name)
@@ -266,8 +266,11 @@ def _(ctx: Context) -> str:
     check((late, "PREDICTED") in answers, f"tick {late}, its frame late, was not answered PREDICTED when due")
     check((lost, "PREDICTED") in answers, f"tick {lost}, its frame lost, was not answered PREDICTED")
     check((lost, "CORRECTED") not in answers, f"tick {lost}, whose frame never came, was CORRECTED")
-    measured_ticks = [s for s in range(ticks) if (s, "MEASURED") in answers]
-    check(len(measured_ticks) >= ticks - 4, f"only ticks {measured_ticks} of {ticks} on-time frames MEASURED")
+    # A frame sent on time may still reach a busy server after its deadline: then CORRECTED.
+    sent = [s for s in range(ticks) if s not in (late, lost)]
+    unused = [s for s in sent if (s, "MEASURED") not in answers and (s, "CORRECTED") not in answers]
+    check(not unused, f"ticks {unused}, their frames sent on time, were neither MEASURED nor CORRECTED")
+    check(any((s, "MEASURED") in answers for s in sent), "no frame sent on time was answered MEASURED")
     if (late, "CORRECTED") in answers:
         got = f"CORRECTED after {answers[late, 'CORRECTED'].late_ticks} ticks"
     else:

@@ -180,13 +180,17 @@ class Stream:
     def cancel(self) -> None:
         self._call.cancel()
 
+    def close(self) -> None:
+        """End the call (a half-close, then a cancel) and its reader; safe twice."""
+        self.half_close()
+        self._call.cancel()
+        self._reader.join(timeout=5.0)
+
     def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.half_close()
-        self._call.cancel()
-        self._reader.join(timeout=5.0)
+        self.close()
 
 
 def _short(message: Any) -> str:
