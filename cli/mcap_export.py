@@ -185,14 +185,15 @@ def _vectors(
 
 
 def _frames(session: _Session, times_of: Mapping[int, int]) -> Iterator[tuple[int, dict[str, Any]]]:
-    """The measured frame of each tick that had one, on time or late."""
+    """The measured frame of each tick that had one used, on time or late (a rejected frame is on
+    /jitdyn/rejections, not here)."""
     table = session.table
-    frames = table.filter(pc.is_valid(table["frame_qpos"]))
+    frames = table.filter(pc.and_(pc.equal(table["kind"], "result"), pc.is_valid(table["frame_qpos"])))
     found = _named(session, frames, ("frame_qpos", "frame_qvel", "frame_qacc", "frame_ctrl"))
     seen: set[int] = set()
     for i, seq in enumerate(frames["seq"].to_pylist()):
-        if seq in seen or seq not in times_of:
-            continue  # a rejected duplicate, or a tick never answered (a frame rejected too old)
+        if seq in seen:
+            continue  # the frame of a tick answered again (CORRECTED after CORRECTED)
         seen.add(seq)
         message: dict[str, Any] = {"timestamp": _stamp(times_of[seq]), "seq": seq}
         for column, (names, matrix) in found.items():

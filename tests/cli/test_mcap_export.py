@@ -163,3 +163,39 @@ def test_the_preview_draws_the_file_from_its_channels(exported: Path, tmp_path: 
     assert drawn.returncode == 0, drawn.stderr
     assert drawn.stdout.strip() == f"drew {exported} to {out}"
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_rejections_and_corrections_of_a_lockstep_session(client: Any, server: Any, tmp_path: Path) -> None:
+    from jitdyn.client import FrameData, Rejection, SessionOptions, TickResult
+
+    with client.open_session(SessionOptions(model_name="pendulum_2", dt=0.05)) as s:
+        assert isinstance(s.send_frame(FrameData(seq=0, t=0.0, qpos=[0.1, 0.2], qvel=[0.0, 0.0])), TickResult)
+        s.skip(1)
+        late = s.send_frame(FrameData(seq=1, t=0.05, qpos=[0.11, 0.19], qvel=[0.0, 0.0]))
+        assert isinstance(late, TickResult) and late.source == "CORRECTED"
+        bad = s.send_frame(FrameData(seq=2, t=0.1, qpos=[math.nan, 0.2], qvel=[0.0, 0.0]))
+        assert isinstance(bad, Rejection)
+        s.send_frame(FrameData(seq=2, t=0.1, qpos=[0.12, 0.18], qvel=[0.0, 0.0]))
+        session_id = s.opened.session_id
+    out = tmp_path / "s.mcap"
+    data = str(server.services.data_root)
+    ok(jitdyn("sessions", "export", session_id, "--format", "mcap", "--out", str(out), "--data", data))
+    _, by_topic, _ = read(out)
+    assert [m["reason"] for _, _, m in by_topic["/jitdyn/rejections"]] == ["NOT_FINITE"]
+    assert [(m["seq"], m["source"], m["corrected"]) for _, _, m in by_topic["/jitdyn/source"]] == [
+        (0, "MEASURED", False),
+        (1, "PREDICTED", True),
+        (2, "MEASURED", False),
+    ]
+    # The latest answer of tick 1 is its correction, at the frame's angles; each used frame once.
+    assert [m["source"] for _, _, m in by_topic["/jitdyn/joint_states"]] == [
+        "MEASURED",
+        "CORRECTED",
+        "MEASURED",
+    ]
+    assert by_topic["/jitdyn/joint_states"][1][2]["qpos"]["value"] == [0.11, 0.19]
+    assert [m["qpos"]["value"] for _, _, m in by_topic["/jitdyn/frames"]] == [
+        [0.1, 0.2],
+        [0.11, 0.19],
+        [0.12, 0.18],
+    ]
