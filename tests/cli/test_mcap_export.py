@@ -168,34 +168,42 @@ def test_the_preview_draws_the_file_from_its_channels(exported: Path, tmp_path: 
 def test_rejections_and_corrections_of_a_lockstep_session(client: Any, server: Any, tmp_path: Path) -> None:
     from jitdyn.client import FrameData, Rejection, SessionOptions, TickResult
 
-    with client.open_session(SessionOptions(model_name="pendulum_2", dt=0.05)) as s:
-        assert isinstance(s.send_frame(FrameData(seq=0, t=0.0, qpos=[0.1, 0.2], qvel=[0.0, 0.0])), TickResult)
+    def frame(seq: int, q: float) -> FrameData:
+        return FrameData(seq=seq, t=seq * 0.05, qpos=[q, -q], qvel=[0.0, 0.0])
+
+    with client.open_session(SessionOptions(model_name="pendulum_2", dt=0.05, history=2)) as s:
+        assert isinstance(s.send_frame(frame(0, 0.1)), TickResult)
         s.skip(1)
-        late = s.send_frame(FrameData(seq=1, t=0.05, qpos=[0.11, 0.19], qvel=[0.0, 0.0]))
+        late = s.send_frame(frame(1, 0.11))
         assert isinstance(late, TickResult) and late.source == "CORRECTED"
         bad = s.send_frame(FrameData(seq=2, t=0.1, qpos=[math.nan, 0.2], qvel=[0.0, 0.0]))
         assert isinstance(bad, Rejection)
-        s.send_frame(FrameData(seq=2, t=0.1, qpos=[0.12, 0.18], qvel=[0.0, 0.0]))
+        assert isinstance(s.send_frame(frame(2, 0.12)), TickResult)
+        for seq in (3, 4, 5):
+            s.skip(seq)
+        too_old = s.send_frame(frame(3, 0.13))  # stored with its values, never used
+        assert isinstance(too_old, Rejection) and too_old.reason == "TOO_OLD"
         session_id = s.opened.session_id
     out = tmp_path / "s.mcap"
     data = str(server.services.data_root)
     ok(jitdyn("sessions", "export", session_id, "--format", "mcap", "--out", str(out), "--data", data))
     _, by_topic, _ = read(out)
-    assert [m["reason"] for _, _, m in by_topic["/jitdyn/rejections"]] == ["NOT_FINITE"]
+    assert [(m["seq"], m["reason"]) for _, _, m in by_topic["/jitdyn/rejections"]] == [
+        (2, "NOT_FINITE"),
+        (3, "TOO_OLD"),
+    ]
     assert [(m["seq"], m["source"], m["corrected"]) for _, _, m in by_topic["/jitdyn/source"]] == [
         (0, "MEASURED", False),
         (1, "PREDICTED", True),
         (2, "MEASURED", False),
+        (3, "PREDICTED", False),
+        (4, "PREDICTED", False),
+        (5, "PREDICTED", False),
     ]
-    # The latest answer of tick 1 is its correction, at the frame's angles; each used frame once.
-    assert [m["source"] for _, _, m in by_topic["/jitdyn/joint_states"]] == [
-        "MEASURED",
-        "CORRECTED",
-        "MEASURED",
-    ]
-    assert by_topic["/jitdyn/joint_states"][1][2]["qpos"]["value"] == [0.11, 0.19]
-    assert [m["qpos"]["value"] for _, _, m in by_topic["/jitdyn/frames"]] == [
-        [0.1, 0.2],
-        [0.11, 0.19],
-        [0.12, 0.18],
-    ]
+    # The latest answer of tick 1 is its correction, at its frame's angles.
+    states = by_topic["/jitdyn/joint_states"]
+    assert [m["source"] for _, _, m in states] == ["MEASURED", "CORRECTED", "MEASURED", *["PREDICTED"] * 3]
+    assert states[1][2]["qpos"]["value"] == [0.11, -0.11]
+    # The frames the ticks used, once each: not the rejected ones.
+    used = [(m["seq"], m["qpos"]["value"]) for _, _, m in by_topic["/jitdyn/frames"]]
+    assert used == [(0, [0.1, -0.1]), (1, [0.11, -0.11]), (2, [0.12, -0.12])]
