@@ -280,9 +280,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="an aligned table (default), CSV with a header, or JSON lines (one object per row)",
     )
     squery.add_argument("--out", type=Path, help="write the result to this file instead of stdout")
-    sexport = leaf(session_commands, "export", "sessions", help="export one session as CSV or OpenSim .sto")
+    sexport = leaf(
+        session_commands,
+        "export",
+        "sessions",
+        help="export one session as CSV, OpenSim .sto or MCAP (Foxglove)",
+        description="Write one stored session for tools outside jitdyn. csv: every stored row, one "
+        "column per array element. sto: OpenSim's storage file, one row per tick (a correction "
+        "replaces its prediction). mcap: the file Foxglove opens: joint states, forces, frames, "
+        "sources and lateness as time series, and every body's pose at each tick (MuJoCo's forward "
+        "kinematics on the stored model) as 3D frame transforms on /tf (needs jitdyn[lab]).",
+    )
     sexport.add_argument("session_id")
-    sexport.add_argument("--format", choices=("csv", "sto"), default="csv")
+    sexport.add_argument("--format", choices=("csv", "sto", "mcap"), default="csv")
     sexport.add_argument("--out", type=Path, help="output file (default <session id>.<format>)")
     splot = leaf(
         session_commands,

@@ -137,6 +137,17 @@ def _render(args: argparse.Namespace, settings: Settings) -> int:
     return 0
 
 
+def _export_mcap(args: argparse.Namespace, *, data_root: Path, engine: sa.Engine) -> None:
+    from jitdyn.cli.mcap_export import export_mcap
+
+    exported = export_mcap(
+        args.session_id, data_root=data_root, engine=engine, out=args.out or Path(f"{args.session_id}.mcap")
+    )
+    channels = ", ".join(f"{topic} {count}" for topic, count in exported.counts.items())
+    print(f"messages by channel: {channels}", file=sys.stderr)
+    print(f"exported {args.session_id} as mcap to {exported.path}")
+
+
 def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
     if args.sessions_command == "query":
         # Checked before reading anything: the query needs DuckDB, an extra.
@@ -145,6 +156,8 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
         require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
     elif args.sessions_command == "render":
         require_extra("PIL", what="Pillow (frames and captions)", extra="render")
+    elif args.sessions_command == "export" and args.format == "mcap":
+        require_extra("mcap", what="mcap (MCAP files)", extra="lab")
     engine = _engine(settings)
     if args.sessions_command == "render":
         return _render(args, settings)
@@ -194,6 +207,8 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
         for note in plotted.notes:
             print(note, file=sys.stderr)
         print(f"plotted {args.session_id} to {plotted.path}")
+    elif args.format == "mcap":
+        _export_mcap(args, data_root=data_root, engine=engine)
     else:
         from jitdyn.storage.export import export_session
 

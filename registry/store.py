@@ -15,10 +15,12 @@ from pathlib import Path
 
 import sqlalchemy as sa
 
+from jitdyn.errors import FailedPrecondition
+from jitdyn.storage.index import SessionRow
 from jitdyn.storage.layout import write_durably
 from jitdyn.storage.schema import model_blobs
 
-__all__ = ["blob_path", "fetch_blob", "publish_blob", "read_blob", "write_blob"]
+__all__ = ["blob_path", "fetch_blob", "publish_blob", "read_blob", "session_model", "write_blob"]
 
 _MJCF = "model.xml"
 _ASSETS = "assets/"
@@ -111,3 +113,19 @@ def read_blob(data_root: Path, relative: str) -> tuple[str, dict[str, bytes]]:
             if name.startswith(_ASSETS)
         }
     return mjcf, assets
+
+
+def session_model(engine: sa.Engine, data_root: Path, row: SessionRow) -> tuple[str, dict[str, bytes]]:
+    """The MJCF and assets of a stored session's model: the data folder's copy, else the index's
+    (cached in the data folder on the way). FailedPrecondition when neither holds it."""
+    try:
+        return read_blob(data_root, blob_path(row.model_id))
+    except FileNotFoundError:
+        pass
+    fetched = fetch_blob(engine, data_root, row.model_id)
+    if fetched is None:
+        raise FailedPrecondition(
+            f"the model of session {row.session_id} ({row.model_name} v{row.model_version}, {row.model_id}) "
+            f"is neither in the index nor in {data_root.resolve()}"
+        )
+    return read_blob(data_root, fetched)

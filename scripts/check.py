@@ -32,6 +32,7 @@ RUFF_PATHS = [
     "storage",
     "experiments",
     "cli",
+    "compliance",
     "models",
     "tests",
     "benchmarks",

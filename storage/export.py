@@ -31,14 +31,23 @@ from jitdyn.storage.index import SessionIndex
 from jitdyn.storage.stored import read_stored
 from jitdyn.vocabulary import Source, to_proto
 
-__all__ = ["FORMATS", "SOURCE_LEGEND", "element_names", "export_session"]
+__all__ = [
+    "FORMATS",
+    "SOURCE_CODES",
+    "SOURCE_LEGEND",
+    "atomic_write",
+    "element_names",
+    "export_session",
+    "export_target",
+    "latest_results",
+]
 
 FORMATS: Final = ("csv", "sto")
 # Source as numbers in .sto, whose columns are all numeric: the proto's enum values.
-_SOURCE_CODES: Final = {source: float(to_proto(source)) for source in Source}
+SOURCE_CODES: Final = {source: float(to_proto(source)) for source in Source}
 # A .sto holds numbers only: the header says what the codes of the `source` column mean (a
 # key=value line, which OpenSim keeps as metadata).
-SOURCE_LEGEND: Final = "source=" + ", ".join(f"{code:g} {name}" for name, code in _SOURCE_CODES.items())
+SOURCE_LEGEND: Final = "source=" + ", ".join(f"{code:g} {name}" for name, code in SOURCE_CODES.items())
 # The estimate columns of .sto after time, coordinates and qfrc_inverse, in this order.
 _STO_ESTIMATES: Final = (
     "qvel",
@@ -67,7 +76,8 @@ def element_names(column: str, metadata: dict[str, Any], length: int) -> list[st
     return [str(i) for i in range(length)]
 
 
-def _atomic_write(out: Path, write: Any) -> None:
+def atomic_write(out: Path, write: Any) -> None:
+    """`write(path)` into a temporary file beside `out`, renamed to `out` when it returns."""
     tmp = out.with_name(f".{out.name}.tmp")
     try:
         write(tmp)
@@ -88,10 +98,10 @@ def _csv(table: pa.Table, metadata: dict[str, Any], out: Path) -> None:
         for j, element in enumerate(element_names(name, metadata, matrix.shape[1])):
             columns[f"{name}_{element}"] = pa.array(matrix[:, j], mask=missing)
     flat = pa.table(columns)
-    _atomic_write(out, lambda p: pacsv.write_csv(flat, p, pacsv.WriteOptions(quoting_style="needed")))
+    atomic_write(out, lambda p: pacsv.write_csv(flat, p, pacsv.WriteOptions(quoting_style="needed")))
 
 
-def _latest_results(table: pa.Table) -> pa.Table:
+def latest_results(table: pa.Table) -> pa.Table:
     """One result per seq, the last one appended (a correction comes after what it corrects),
     ordered by seq."""
     results = table.filter(pc.equal(table["kind"], "result"))
@@ -108,7 +118,7 @@ def _format(value: float) -> str:
 
 
 def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> None:
-    ticks = _latest_results(table)
+    ticks = latest_results(table)
     headers: list[str] = ["time"]
     blocks: list[npt.NDArray[np.float64]] = [ticks["t"].to_numpy().reshape(-1, 1)]
     qpos = list_matrix(ticks["qpos"])
@@ -123,7 +133,7 @@ def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> Non
         headers += [f"{column}_{e}" for e in element_names(column, metadata, matrix.shape[1])]
         blocks.append(matrix)
     nis = ticks["nis"].to_numpy(zero_copy_only=False).astype(np.float64)
-    codes = {source.value: code for source, code in _SOURCE_CODES.items()}
+    codes = {source.value: code for source, code in SOURCE_CODES.items()}
     source = np.array([codes.get(s, math.nan) for s in ticks["source"].to_pylist()])
     headers += ["nis", "source"]
     blocks += [nis.reshape(-1, 1), source.reshape(-1, 1)]
@@ -138,10 +148,11 @@ def _sto(table: pa.Table, metadata: dict[str, Any], out: Path, name: str) -> Non
             f.write("\t".join(headers) + "\n")
             f.writelines("\t".join(_format(v) for v in row) + "\n" for row in data)
 
-    _atomic_write(out, write)
+    atomic_write(out, write)
 
 
-def _target(out: Path, session_id: str, fmt: str) -> Path:
+def export_target(out: Path, session_id: str, fmt: str) -> Path:
+    """The file to write: `out`, or `<id>.<fmt>` in it when it is a folder."""
     if out.is_dir():
         return out / f"{session_id}.{fmt}"
     if not out.parent.is_dir():
@@ -175,7 +186,7 @@ def export_session(
     metadata, table = read_stored(
         row, data_root=data_root, environ=os.environ if environ is None else environ, purpose="export"
     )
-    target = _target(out, session_id, fmt)
+    target = export_target(out, session_id, fmt)
     if fmt == "csv":
         _csv(table, metadata, target)
     else:

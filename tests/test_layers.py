@@ -2,6 +2,7 @@
 
     cli > experiments > client > server (transport > runtime > estimation) > registry, storage
         > jitdyn.v1, jitdyn.errors, jitdyn.checksum
+    compliance > jitdyn.v1 (the conformance suite speaks the contract only: no server, no SDK)
 
 Every import statement counts, those inside functions too: a lazy import is still a dependency.
 The modules are found through the installed package (`jitdyn.__path__` and its subpackages), so
@@ -35,6 +36,7 @@ LAYERS = {
     "jitdyn.client": "client",
     "jitdyn.experiments": "experiments",
     "jitdyn.cli": "cli",
+    "jitdyn.compliance": "compliance",
 }
 _BELOW_SERVER = {"contract", "registry", "storage"}
 # What each layer may import of ours (besides itself).
@@ -49,6 +51,7 @@ ALLOWED = {
     "client": {"contract", "registry"},
     "experiments": _BELOW_SERVER | {"server", "estimation", "runtime", "transport", "client"},
     "cli": set(LAYERS.values()),
+    "compliance": {"contract"},
 }
 # Third-party packages a layer must not import: estimation and the runtime know nothing of the wire.
 FORBIDDEN_EXTERNAL = {
@@ -124,6 +127,7 @@ def test_the_installed_package_is_the_whole_tree() -> None:
         "jitdyn.storage.recorder",
         "jitdyn.registry.registry",
         "jitdyn.v1.dynamics_pb2",
+        "jitdyn.compliance.streaming",
     ):
         assert expected in MODULES
     assert all(layer_of(name) is not None for name in MODULES)
@@ -221,6 +225,12 @@ def _strongly_connected(graph: dict[str, set[str]]) -> list[list[str]]:
             "client may not import experiments",
         ),
         ("jitdyn.errors", "from jitdyn.storage import layout", "contract may not import storage"),
+        (
+            "jitdyn.compliance.wire",
+            "from jitdyn.server.transport import app",
+            "compliance may not import transport",
+        ),
+        ("jitdyn.compliance.suite", "from jitdyn.client import Client", "compliance may not import client"),
     ],
 )
 def test_the_check_catches_an_upward_import(tmp_path: Path, module: str, source: str, expected: str) -> None:
