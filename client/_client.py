@@ -49,6 +49,7 @@ from jitdyn.client._transport import (
     channel_options,
     explain_open_error,
     status_error,
+    unbatched,
 )
 from jitdyn.client._transport import root_certificates as root_certificates_of
 from jitdyn.errors import FailedPrecondition, JitdynError, NoAnswer, error_for_status
@@ -151,10 +152,11 @@ class Session(SessionCore):
 
     def _read(self, call: Iterator[dynamics_pb2.StreamSessionResponse], generation: int) -> None:
         try:
-            for response in call:
+            for message in call:
                 received_at = time.monotonic()
-                self._pong(received_at, response)
-                self._responses.put((generation, (received_at, response)))
+                for response in unbatched(message):
+                    self._pong(received_at, response)
+                    self._responses.put((generation, (received_at, response)))
         except grpc.RpcError as error:
             self._responses.put((generation, error))
         finally:

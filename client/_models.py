@@ -183,6 +183,8 @@ class SessionOptions:
             outputs=[common_pb2.Output.ValueType(to_proto(cast(Output, o))) for o in self.outputs],
             horizon=dynamics_pb2.Horizon.ValueType(to_proto(cast(Horizon, self.horizon))),
             estimator=settings_message(self.estimator),
+            # The SDK reads StreamSessionResponse.results (client/_transport.py: unbatched).
+            accept_result_batches=True,
             grace=self.grace,
             history=self.history,
         )

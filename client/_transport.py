@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from enum import Enum, auto
 from typing import Any, Final
 
 import grpc
 
 from jitdyn.errors import InvalidArgument, JitdynError, error_for_status
+from jitdyn.v1 import dynamics_pb2
 
 __all__ = [
     "CHANNEL_OPTIONS",
@@ -25,6 +26,7 @@ __all__ = [
     "channel_options",
     "root_certificates",
     "status_error",
+    "unbatched",
 ]
 
 MAX_MESSAGE_BYTES = 128 * 1024 * 1024
@@ -154,3 +156,15 @@ def explain_open_error(error: JitdynError) -> JitdynError:
 def auth_metadata(api_key: str | None) -> tuple[tuple[str, str], ...]:
     """The call metadata that carries `api_key`; none without one."""
     return (("authorization", f"Bearer {api_key}"),) if api_key else ()
+
+
+def unbatched(
+    response: dynamics_pb2.StreamSessionResponse,
+) -> Iterator[dynamics_pb2.StreamSessionResponse]:
+    """A server message as the messages it stands for: each result of a batch (`results`, which
+    the SDK accepts at open) as if it had come alone, in order; any other message as it is."""
+    if response.WhichOneof("payload") != "results":
+        yield response
+        return
+    for result in response.results.results:
+        yield dynamics_pb2.StreamSessionResponse(result=result)

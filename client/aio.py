@@ -46,6 +46,7 @@ from jitdyn.client._transport import (
     channel_options,
     explain_open_error,
     status_error,
+    unbatched,
 )
 from jitdyn.client._transport import root_certificates as root_certificates_of
 from jitdyn.errors import FailedPrecondition, JitdynError, NoAnswer, error_for_status
@@ -177,20 +178,19 @@ class AsyncSession(SessionCore):
         """One stream's answers into the queue, until it ends (None), breaks, or says `moving`."""
         try:
             while True:
-                response = await call.read()
-                if not isinstance(response, dynamics_pb2.StreamSessionResponse):
+                message = await call.read()
+                if not isinstance(message, dynamics_pb2.StreamSessionResponse):
                     return None  # grpc.aio.EOF
                 received_at = time.monotonic()
-                self._pong(received_at, response)
-                kind = response.WhichOneof("payload")
-                if kind == "moving":
-                    return response.moving
-                elif kind == "overloaded":
-                    self._ledger.warned(response.overloaded)
-                    continue
-                elif kind == "result" and not self._ledger.fresh(response.result, current=call is self._call):
-                    continue
-                self._responses.put_nowait((received_at, response))
+                for response in unbatched(message):
+                    self._pong(received_at, response)
+                    kind = response.WhichOneof("payload")
+                    if kind == "moving":
+                        return response.moving
+                    elif kind == "overloaded":
+                        self._ledger.warned(response.overloaded)
+                    elif kind != "result" or self._ledger.fresh(response.result, current=call is self._call):
+                        self._responses.put_nowait((received_at, response))
         except grpc.RpcError as error:
             return error
         except asyncio.CancelledError:

@@ -59,6 +59,28 @@ _log = logging.getLogger(__name__)
 _SLOW_STEP_GRACE: Final = 2.5e-3  # s
 
 Response = dynamics_pb2.StreamSessionResponse
+# What a held CORRECTED result goes out with (`_Stream.write`).
+_FLUSHING: Final = frozenset({"result", "closed", "moving"})
+
+
+def _batched(responses: tuple[Response, ...]) -> list[Response]:
+    """`responses` with each run of results as one message (StreamSessionResponse.results)."""
+    out: list[Response] = []
+    run: list[Response] = []
+    for response in (*responses, None):
+        if response is not None and response.WhichOneof("payload") == "result":
+            run.append(response)
+            continue
+        if len(run) == 1:
+            out.append(run[0])
+        elif run:
+            out.append(Response(results=dynamics_pb2.ResultBatch(results=[r.result for r in run])))
+        run = []
+        if response is not None:
+            out.append(response)
+    return out
+
+
 _Context = grpc.aio.ServicerContext[dynamics_pb2.StreamSessionRequest, Response]
 
 # REALTIME: how far ahead of the clock a frame may arrive and wait for its tick.
@@ -124,22 +146,37 @@ class _Stream:
         self.replay_until = -math.inf
         # Responses come from the request loop, the REALTIME clock and a drain's `moving`.
         self._write_lock = asyncio.Lock()
+        # REALTIME: late frames' CORRECTED results wait for the next write of a due tick and go in
+        # it, one message when the client takes batches (OpenSession.accept_result_batches).
+        self.batches = False
+        self._held: list[Response] = []
         self._overload_checked = self._overload_told = -math.inf
         self._late_since: float | None = None  # monotonic s since every check found it unaffordable
         self._token_issued = time.monotonic()  # when the client's newest resume token was made
 
-    async def write(self, context: _Context, *responses: Response) -> None:
+    async def write(self, context: _Context, *responses: Response, due: bool = False) -> None:
         """Send `responses` in order, as one batch: the request loop and the REALTIME clock each
         compute their answers in tick order, and a batch split across two holds of the lock would
         let the other writer's newer tick overtake the rest of it (the first answer to tick 58
-        after tick 59's). The lock is FIFO, and batches queue in the order they were computed."""
+        after tick 59's). The lock is FIFO, and batches queue in the order they were computed.
+        Held CORRECTED results go first in the next batch that answers a tick, closes or moves the
+        session, or that the clock writes at a deadline (`due`)."""
+        if self._held and (due or any(r.WhichOneof("payload") in _FLUSHING for r in responses)):
+            responses, self._held = (*self._held, *responses), []
         notice = self.overload_notice()
         self.renew_token(responses)
         async with self._write_lock:
-            for response in responses:
+            for response in _batched(responses) if self.batches else responses:
                 await context.write(response)
             if notice is not None:
                 await context.write(notice)
+
+    def hold(self, responses: list[Response]) -> list[Response]:
+        """REALTIME: keep a late frame's CORRECTED result for the next due tick's write (a tick is
+        one write); what else there is goes now."""
+        kept = [r for r in responses if r.WhichOneof("payload") == "result"]
+        self._held.extend(kept)
+        return [r for r in responses if r.WhichOneof("payload") != "result"]
 
     def renew_token(self, responses: tuple[Response, ...]) -> None:
         """Hand the client a fresh resume token on the first result among `responses` once its
@@ -281,7 +318,8 @@ class _Stream:
             self.ticket.observe_replay(
                 time.perf_counter() - started, cpu=time.thread_time() - cpu_started, ticks=runs
             )
-        return [Response(result=self.record_result(outcome, arrived=arrived))]
+        corrected = [Response(result=self.record_result(outcome, arrived=arrived))]
+        return self.hold(corrected) if self.plan.clock == Clock.REALTIME else corrected
 
     def _wait_for_tick(self, frame: FrameIn) -> list[Response]:
         """REALTIME: keep a frame for the next or a later tick until its time, then answer what is due."""
@@ -514,8 +552,8 @@ class _RealtimeClock:
         self._context = context
         self._wakeup = Alarm.of(asyncio.get_running_loop()).wakeup()
 
-    async def write(self, *responses: Response) -> None:
-        await self._stream.write(self._context, *responses)
+    async def write(self, *responses: Response, due: bool = False) -> None:
+        await self._stream.write(self._context, *responses, due=due)
 
     def due(self) -> float:
         """When to wake: a tick whose frame is here waits only for its own time; one without, for
@@ -550,7 +588,7 @@ class _RealtimeClock:
                 responses = stream.on_deadline(stream.deadline(seq))
             else:
                 responses = []  # a clock probe moved the deadline later
-            await self.write(*skipped, *responses)
+            await self.write(*skipped, *responses, due=True)
 
 
 class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
@@ -585,6 +623,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         if first is None:
             return
         stream, opened = await self._accept(first, context)
+        stream.batches = first.open.accept_result_batches
         # A stream that ends without `close` was left by its client (cancelled, vanished, or just
         # stopped sending) or cut by a stopping server: stored as ABANDONED. Everything from here on
         # is inside the try, so that a cancel arriving while `opened` is written still stores the

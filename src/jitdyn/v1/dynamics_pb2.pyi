@@ -188,6 +188,7 @@ class StreamSessionResponse(_message.Message):
     CLOSED_FIELD_NUMBER: _builtins.int
     MOVING_FIELD_NUMBER: _builtins.int
     OVERLOADED_FIELD_NUMBER: _builtins.int
+    RESULTS_FIELD_NUMBER: _builtins.int
     @_builtins.property
     def opened(self) -> Global___SessionOpened:
         """The session is open."""
@@ -220,6 +221,13 @@ class StreamSessionResponse(_message.Message):
         every few seconds.
         """
 
+    @_builtins.property
+    def results(self) -> Global___ResultBatch:
+        """Several results in one message, in order: only to a client that set
+        `OpenSession.accept_result_batches`. A REALTIME late frame's CORRECTED result waits for the
+        next tick that is due and goes with it, so that a tick is one write.
+        """
+
     def __init__(
         self,
         *,
@@ -230,16 +238,41 @@ class StreamSessionResponse(_message.Message):
         closed: Global___SessionClosed | None = ...,
         moving: Global___Moving | None = ...,
         overloaded: Global___Overloaded | None = ...,
+        results: Global___ResultBatch | None = ...,
     ) -> None: ...
-    _HasFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "overloaded", b"overloaded", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
+    _HasFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "overloaded", b"overloaded", "payload", b"payload", "rejected", b"rejected", "result", b"result", "results", b"results", "sync", b"sync"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "overloaded", b"overloaded", "payload", b"payload", "rejected", b"rejected", "result", b"result", "sync", b"sync"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["closed", b"closed", "moving", b"moving", "opened", b"opened", "overloaded", b"overloaded", "payload", b"payload", "rejected", b"rejected", "result", b"result", "results", b"results", "sync", b"sync"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
-    _WhichOneofReturnType_payload: _TypeAlias = _typing.Literal["opened", "result", "rejected", "sync", "closed", "moving", "overloaded"]  # noqa: Y015
+    _WhichOneofReturnType_payload: _TypeAlias = _typing.Literal["opened", "result", "rejected", "sync", "closed", "moving", "overloaded", "results"]  # noqa: Y015
     _WhichOneofArgType_payload: _TypeAlias = _typing.Literal["payload", b"payload"]  # noqa: Y015
     def WhichOneof(self, oneof_group: _WhichOneofArgType_payload) -> _WhichOneofReturnType_payload | None: ...
 
 Global___StreamSessionResponse: _TypeAlias = StreamSessionResponse  # noqa: Y015
+
+@_typing.final
+class ResultBatch(_message.Message):
+    """Results that travel together (`StreamSessionResponse.results`), each as it would alone."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    RESULTS_FIELD_NUMBER: _builtins.int
+    @_builtins.property
+    def results(self) -> _containers.RepeatedCompositeFieldContainer[Global___Result]:
+        """In the order they would have come one by one: a CORRECTED result before the due tick's."""
+
+    def __init__(
+        self,
+        *,
+        results: _abc.Iterable[Global___Result] | None = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["results", b"results"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___ResultBatch: _TypeAlias = ResultBatch  # noqa: Y015
 
 @_typing.final
 class Overloaded(_message.Message):
@@ -408,6 +441,7 @@ class OpenSession(_message.Message):
     GRACE_FIELD_NUMBER: _builtins.int
     HISTORY_FIELD_NUMBER: _builtins.int
     RESUME_FIELD_NUMBER: _builtins.int
+    ACCEPT_RESULT_BATCHES_FIELD_NUMBER: _builtins.int
     model_id: _builtins.str
     """A registered model by content id ("sha256:...")."""
     model_name: _builtins.str
@@ -433,6 +467,11 @@ class OpenSession(_message.Message):
     history: _builtins.int
     """How many ticks back a late frame is still applied (timewarp); older frames are rejected
     TOO_OLD. 0: 50 ticks. At most 10000.
+    """
+    accept_result_batches: _builtins.bool
+    """The client reads `StreamSessionResponse.results`: the server may then send a REALTIME late
+    frame's CORRECTED result with the next due tick's, in one message. Unset, every result comes
+    alone, as it always has.
     """
     @_builtins.property
     def inline_model(self) -> _model_registry_pb2.RegisterModelRequest:
@@ -483,10 +522,11 @@ class OpenSession(_message.Message):
         grace: _builtins.float = ...,
         history: _builtins.int = ...,
         resume: Global___Resume | None = ...,
+        accept_result_batches: _builtins.bool = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["estimator", b"estimator", "inline_model", b"inline_model", "model", b"model", "model_id", b"model_id", "model_name", b"model_name", "resume", b"resume", "subject", b"subject"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["clock", b"clock", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "horizon", b"horizon", "inline_model", b"inline_model", "measured", b"measured", "model", b"model", "model_id", b"model_id", "model_name", b"model_name", "model_version", b"model_version", "outputs", b"outputs", "resume", b"resume", "scenario", b"scenario", "subject", b"subject"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["accept_result_batches", b"accept_result_batches", "clock", b"clock", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "horizon", b"horizon", "inline_model", b"inline_model", "measured", b"measured", "model", b"model", "model_id", b"model_id", "model_name", b"model_name", "model_version", b"model_version", "outputs", b"outputs", "resume", b"resume", "scenario", b"scenario", "subject", b"subject"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType_model: _TypeAlias = _typing.Literal["model_id", "model_name", "inline_model"]  # noqa: Y015
     _WhichOneofArgType_model: _TypeAlias = _typing.Literal["model", b"model"]  # noqa: Y015
