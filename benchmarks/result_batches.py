@@ -97,7 +97,7 @@ def _round(
         threading.Thread(
             target=_session,
             args=(address,),
-            kwargs=dict(accept=accept, late=late, ticks=ticks, run=run, lock=lock),
+            kwargs={"accept": accept, "late": late, "ticks": ticks, "run": run, "lock": lock},
         )
         for _ in range(sessions)
     ]
@@ -120,7 +120,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=3, help="rounds of each arm, alternated (default 3)")
     args = parser.parse_args(argv)
     per_tick: dict[bool, list[float]] = {True: [], False: []}
-    print(f"# {args.sessions} pendulum_2 PASSIVE REALTIME sessions at 20 Hz, every other frame {args.late} ticks late")
+    print(
+        f"# {args.sessions} pendulum_2 PASSIVE REALTIME sessions at 20 Hz, every other frame {args.late} ticks late"
+    )
     print("round  arm          server us/result  messages/result  results  corrected")
     with local_server(["--processes", "1"]) as (address, pid):
         for r in range(1, args.rounds + 1):
