@@ -67,7 +67,9 @@ def _session(address: str, *, accept: bool, late: int, ticks: int, run: _Run, lo
             time.sleep(max(0.0, start + (k + late * (k % 2)) * DT + 0.005 - time.monotonic()))
             qpos = [0.3 * np.cos(0.2 * k), 0.1 * np.sin(0.3 * k)]
             requests.put(
-                dynamics_pb2.StreamSessionRequest(frame=dynamics_pb2.Frame(seq=k, t=k * DT, qpos=qpos))
+                dynamics_pb2.StreamSessionRequest(
+                    frame=dynamics_pb2.Frame(seq=k, t=k * DT, qpos=qpos, qvel=[0.0, 0.0])
+                )
             )
         requests.put(dynamics_pb2.StreamSessionRequest(close=dynamics_pb2.CloseSession()))
         reader.join(timeout=60)
