@@ -5,6 +5,7 @@ refused saying why; a session the server finds it can no longer serve on time is
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import re
 import signal
@@ -212,30 +213,33 @@ def test_the_door_refuses_an_open_priced_a_moment_ago_without_looking_up_its_mod
 
 
 def test_late_frames_wait_while_their_replays_keep_a_late_process_behind(tmp_path: Path) -> None:
-    """Two pendulum_3 sessions whose every frame comes 24 ticks late, past the longest wait (8
-    ticks), half-way between two deadlines: each is replayed (the timewarp, 16 ticks of the native
-    engine, about 2 ms), within its session's half-tick budget at the price its replays measured,
-    and the two sessions' replays take more than a tenth of the process's time (REPLAY_SHARE). While
-    the process is stopped for 100 ms every 50 ticks (the machine taking its CPU), its answers go
-    late, and late frames are refused until it catches up; on the old rule every replay fitted its
-    own session and was applied. (12 ticks late, sent on the deadlines, the replays took 8 % and the
-    rule never held on a machine where the native engine is quick.)"""
+    """Pendulum_3 sessions whose every frame comes 24 ticks late, past the longest wait (8 ticks),
+    half-way between two deadlines: each is replayed, its own tick at once and the rest caught up
+    over the ticks that follow (docs/decisions/0167), within its session's budget at the price its
+    replays measured, and the sessions' replays and catch-ups take more than a tenth of the
+    process's time (REPLAY_SHARE). While the process is stopped for 100 ms every 50 ticks (the
+    machine taking its CPU), its answers go late, and late frames are refused until it catches up;
+    on the old rule every replay fitted its own session and was applied. (Two sessions sufficed
+    while a replay ran its 16 ticks at once: spread, a frame costs about three ticks, so it takes
+    six sessions to pass the share.)"""
     from jitdyn.client import Rejection
 
     server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "1.0")
-    dt, late = 0.025, 24
+    dt, late, count = 0.025, 24, 6
     replayed, waiting = 0, []
     try:
         with Client(server.address, timeout=30) as client:
             options = SessionOptions(model_name="pendulum_3", dt=dt, clock="REALTIME", scenario="CONTROLLED")
-            with client.open_session(options) as first, client.open_session(options) as second:
+            with contextlib.ExitStack() as stack:
+                sessions = [stack.enter_context(client.open_session(options)) for _ in range(count)]
+                first = sessions[0]
                 for k in range(400):  # 8 s
                     time.sleep(max(0.0, (k + late + 0.5) * dt - first.now()))
                     if k >= 100 and k % 50 == 0:
                         os.kill(server.process.pid, signal.SIGSTOP)
                         time.sleep(0.1)
                         os.kill(server.process.pid, signal.SIGCONT)
-                    for session in (first, second):
+                    for session in sessions:
                         session.send(
                             FrameData(seq=k, t=k * dt, qpos=[0.0] * 3, qvel=[0.0] * 3, ctrl=[0.0] * 3)
                         )
