@@ -37,6 +37,7 @@ from jitdyn.client import (
 )
 from jitdyn.errors import ResourceExhausted
 from jitdyn.experiments.netem import DelayedSender, NetworkProfile
+from jitdyn.experiments.objects import qpos_limits
 from jitdyn.experiments.progress import ProgressBar, progress_bar
 from jitdyn.experiments.truth import truth_model
 from jitdyn.storage.summary import format_counts
@@ -70,14 +71,10 @@ def _start_pose(model: mujoco.MjModel, rng: np.random.Generator) -> np.ndarray:
     qpos = model.qpos0.copy()
     delta = rng.uniform(0.3, 0.8, model.nv) * np.sign(rng.standard_normal(model.nv))
     mujoco.mj_integratePos(model, qpos, delta, 1.0)
-    for j in range(model.njnt):
-        if model.jnt_limited[j] and model.jnt_type[j] in (
-            mujoco.mjtJoint.mjJNT_HINGE,
-            mujoco.mjtJoint.mjJNT_SLIDE,
-        ):
-            lo, hi = model.jnt_range[j]
-            adr = model.jnt_qposadr[j]
-            qpos[adr] = np.clip(qpos[adr], lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))
+    lo, hi = qpos_limits(model)
+    bounded = np.isfinite(lo)
+    margin = 0.1 * (hi[bounded] - lo[bounded])
+    qpos[bounded] = np.clip(qpos[bounded], lo[bounded] + margin, hi[bounded] - margin)
     return np.asarray(qpos, dtype=np.float64)
 
 
