@@ -40,6 +40,8 @@ from jitdyn.experiments.netem import DelayedSender, NetworkProfile
 from jitdyn.experiments.objects import qpos_limits
 from jitdyn.experiments.progress import ProgressBar, progress_bar
 from jitdyn.experiments.truth import truth_model
+from jitdyn.registry.info import joint_types
+from jitdyn.storage.records import FORCE_UNITS, dof_units
 from jitdyn.storage.summary import format_counts
 from jitdyn.vocabulary import Channel, Clock, EstimatorKind, Output, Scenario, Source
 
@@ -331,7 +333,6 @@ def _report(
         for r in results.values()
         if r.source == Source.PREDICTED and first_frame < r.seq < len(truth)
     ]
-    torques = np.array([r.qfrc_inverse for r in results.values() if r.qfrc_inverse.size])
     delays = np.array([r.receive_to_send_us for r in results.values()]) / 1e3
     extra = summary.ticks - ticks
     lines = [
@@ -353,14 +354,14 @@ def _report(
         "ticks and once in each of predicted and corrected"
     )
     if predicted_errors:
+        unit = " or ".join(sorted(set(dof_units(joint_types(model))), reverse=True)) or "rad"
         lines.append(
-            f"predicted ticks after the first frame: |q error| vs truth median {np.median(predicted_errors):.2e} rad, "
-            f"max {np.max(predicted_errors):.2e} rad"
+            f"predicted ticks after the first frame: |q error| vs truth median {np.median(predicted_errors):.2e} "
+            f"{unit}, max {np.max(predicted_errors):.2e} {unit}"
         )
-    if torques.size:
-        lo, hi = torques.min(axis=0), torques.max(axis=0)
-        ranges = ", ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in zip(lo, hi, strict=True))
-        lines.append(f"qfrc_inverse range per dof (N m): {ranges}")
+    forces = _force_ranges(model, [*results.values(), *(c for c in corrected if c.seq < ticks)], ticks)
+    if forces:
+        lines.append(forces)
     if delays.size:
         # A LOCKSTEP tick has no deadline: it is answered once its frame is in.
         what = "frame-to-answer (LOCKSTEP)" if lockstep else "deadline-to-send"
@@ -392,6 +393,27 @@ def _report(
         "location": location,
         "predicted_errors": predicted_errors,
     }
+
+
+def _force_ranges(model: mujoco.MjModel, answers: list[TickResult], ticks: int) -> str:
+    """The range of qfrc_inverse of each dof over every answer of the session's ticks: the first
+    answer of each tick and its correction, as the stored frames hold both. A correction is
+    answered from the late frame itself, whose measured motion can ask forces far beyond the
+    prediction's: a range of the first answers alone would not be the one a query of the store
+    gives."""
+    torques = np.array([r.qfrc_inverse for r in answers if r.qfrc_inverse.size])
+    if not torques.size:
+        return ""
+    units = [FORCE_UNITS[unit] for unit in dof_units(joint_types(model))]
+    ranges = ", ".join(
+        f"[{a:+.2f}, {b:+.2f}] {unit}"
+        for a, b, unit in zip(torques.min(axis=0), torques.max(axis=0), units, strict=True)
+    )
+    corrections = sum(1 for r in answers if r.source == Source.CORRECTED)
+    return (
+        f"qfrc_inverse range per dof over the {len(torques)} answers of the {ticks} ticks "
+        f"({corrections} of them corrections, as stored): {ranges}"
+    )
 
 
 def _expectation(settings: DemoSettings, *, grace: float, history: int, dt: float) -> str:

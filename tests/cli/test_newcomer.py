@@ -495,3 +495,34 @@ def test_demo_of_a_model_registered_in_the_data_folder(tmp_path: Path) -> None:
     counts = summary_counts(result.stdout)
     assert counts["ticks"] >= 20 and counts["predicted"] + counts["measured"] >= 20, result.stdout
     assert re.search(r"predicted ticks after the first frame: \|q error\| vs truth median", result.stdout)
+
+
+# -- the demo's summary: forces in the units of each dof, over the answers the store holds ------------
+
+
+def test_the_demos_force_ranges_are_the_stored_ones_in_each_dofs_unit(server: Any) -> None:
+    out = jitdyn(
+        "demo", "--model", "biped", "--seconds", "1s", "--clock", "realtime", "--server", server.address
+    )
+    assert out.returncode == 0, out.stderr
+    session_id = re.search(r"^session (\S+):", out.stdout, re.MULTILINE)
+    ranges = re.search(
+        r"^qfrc_inverse range per dof over .*?\((\d+) of them corrections, as stored\): (.*)$",
+        out.stdout,
+        re.MULTILINE,
+    )
+    assert session_id and ranges, out.stdout
+    assert int(ranges.group(1)) > 0, "no tick was corrected: the test proves nothing"
+    printed = re.findall(r"\[([-+\d.]+), ([-+\d.]+)\] (N m|N)(?:,|$)", ranges.group(2))
+    # root_x, root_z (slides: N), then each leg's hip (hinge: N m) and absorber (slide: N).
+    assert [unit for *_, unit in printed] == ["N", "N", "N m", "N", "N m", "N"], ranges.group(2)
+    bounds = ", ".join(f"min(qfrc_inverse[{i}]) lo{i}, max(qfrc_inverse[{i}]) hi{i}" for i in range(1, 7))
+    sql = (
+        f"SELECT {bounds} FROM frames WHERE session_id = '{session_id.group(1)}' AND kind = 'result' "
+        "AND seq < 100"
+    )
+    stored = jitdyn("sessions", "query", sql, "--format", "json", "--data", str(server.services.data_root))
+    assert stored.returncode == 0, stored.stderr
+    row = json.loads(stored.stdout)
+    for i, (lo, hi, _) in enumerate(printed, start=1):
+        assert (float(lo), float(hi)) == (round(row[f"lo{i}"], 2), round(row[f"hi{i}"], 2)), (i, printed, row)
