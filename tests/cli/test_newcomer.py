@@ -526,3 +526,44 @@ def test_the_demos_force_ranges_are_the_stored_ones_in_each_dofs_unit(server: An
     row = json.loads(stored.stdout)
     for i, (lo, hi, _) in enumerate(printed, start=1):
         assert (float(lo), float(hi)) == (round(row[f"lo{i}"], 2), round(row[f"hi{i}"], 2)), (i, printed, row)
+
+
+# -- files that are not UTF-8 MJCF, a missing mesh ----------------------------------------------------
+
+
+def test_a_file_that_is_not_text_is_one_line(server: Any, tmp_path: Path) -> None:
+    png = tmp_path / "arm.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    result = jitdyn("models", "register", str(png), "--server", server.address)
+    assert one_line_error(result, 1) == (
+        f"jitdyn models register: InvalidArgument: {str(png)!r} is not UTF-8 text (byte 0x89 at offset 0), "
+        "and no XML declaration names its encoding: an MJCF file is XML text"
+    )
+
+
+def test_an_mjcf_in_the_encoding_its_declaration_names_registers(server: Any, tmp_path: Path) -> None:
+    latin = tmp_path / "bras.xml"
+    latin.write_bytes(
+        '<?xml version="1.0" encoding="ISO-8859-1"?>\n<!-- le bras gauche, épaule fixe -->\n'
+        '<mujoco model="bras"><worldbody><body><joint name="coude" type="hinge"/>'
+        '<geom size=".1" mass="1"/></body></worldbody></mujoco>\n'.encode("iso-8859-1")
+    )
+    result = jitdyn("models", "register", str(latin), "--server", server.address)
+    assert result.returncode == 0, result.stderr
+    assert re.match(r"registered: sha256:\w+  bras v1  nq=1 ", result.stdout), result.stdout
+
+
+def test_a_missing_mesh_says_where_it_looked_and_names_asset_dir(server: Any, tmp_path: Path) -> None:
+    arm = tmp_path / "arm.xml"
+    arm.write_text(
+        '<mujoco><asset><mesh name="upper" file="meshes/upper.stl"/></asset>\n<worldbody><body>'
+        '<joint type="hinge"/><geom type="mesh" mesh="upper"/></body></worldbody></mujoco>',
+        encoding="utf-8",
+    )
+    result = jitdyn("models", "register", str(arm), "--server", server.address)
+    assert one_line_error(result, 1) == (
+        f"jitdyn models register: InvalidArgument: mesh 'upper' (line 1) names the file 'meshes/upper.stl', "
+        f"which is not in the MJCF's folder {str(tmp_path)!r} (looked for "
+        f"{str(tmp_path / 'meshes/upper.stl')!r}); give the folder that holds the model's files with "
+        "--asset-dir DIR"
+    )
