@@ -70,6 +70,23 @@ _seconds = checked(
 )
 
 
+def _word(kind: type[Any], flag: str, *, lower: bool) -> dict[str, Any]:
+    """`type=` and `metavar=` of an option that takes a member of the vocabulary's `kind`, in any
+    case, as the SDK takes it (jitdyn.vocabulary.parse); shown in the case the help writes it."""
+    names = [member.name.lower() if lower else member.name for member in kind]
+
+    def convert(text: str) -> Any:
+        try:
+            return parse(kind, text, argument=flag)
+        except JitdynError:
+            raise argparse.ArgumentTypeError(
+                f"expected one of {', '.join(names)} (in any case), got {text!r}"
+            ) from None
+
+    convert.__name__ = flag
+    return {"type": convert, "metavar": "{" + ",".join(names) + "}"}
+
+
 @dataclass(frozen=True)
 class ModelRef:
     """What `models show` was given: a content id, or a name and a version (0: the newest)."""
@@ -192,10 +209,23 @@ def build_parser() -> argparse.ArgumentParser:
         "data folder (default pendulum_3)",
     )
     demo.add_argument(
+        "--mjcf",
+        type=Path,
+        metavar="FILE",
+        help="with --server, the MJCF file --model was registered from, which the demo simulates its truth "
+        "with (default: the model's copy in --data, built-ins and MyoSuite models need none)",
+    )
+    demo.add_argument(
+        "--asset-dir",
+        type=Path,
+        metavar="DIR",
+        help="folder of the files --mjcf names, as for `models register` (default: the MJCF's folder)",
+    )
+    demo.add_argument(
         "--scenario",
-        choices=tuple(scenario.lower() for scenario in Scenario),
-        help="default passive for a built-in model, else the server's choice for the model (driven for "
-        "one with actuators)",
+        **_word(Scenario, "--scenario", lower=True),
+        help="what moves the body, as the filter models it (any case): default passive for a built-in "
+        "model, else the server's choice for the model (driven for one with actuators)",
     )
     for flag, parse_text, kind, default, text in (
         (
@@ -223,12 +253,23 @@ def build_parser() -> argparse.ArgumentParser:
             help=text,
         )
     demo.add_argument(
-        "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
+        "--estimator",
+        default=EstimatorKind.UKF,
+        **_word(EstimatorKind, "--estimator", lower=False),
+        help="what answers a tick whose frame is late or lost (any case): UKF, the Unscented Kalman Filter "
+        "on the model's dynamics (default); STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION, dead "
+        "reckoning from the last frames, for comparison",
     )
-    demo.add_argument("--seed", type=int, default=0, help="seed of the emulated network and the start state")
+    demo.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the emulated network's latency and loss and of the start state (default 0): the "
+        "same seed sends the same frames at the same times",
+    )
     demo.add_argument(
         "--clock",
-        choices=tuple(clock.lower() for clock in Clock),
+        **_word(Clock, "--clock", lower=True),
         help="realtime: ticks on the server's clock, over the emulated network; lockstep: each frame "
         "answered as it is sent (loss emulated as skipped ticks). Default: realtime, or lockstep, "
         "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
@@ -477,22 +518,30 @@ def _register(client: Any, args: argparse.Namespace, show: Callable[[Any], None]
 
 def _demo(args: argparse.Namespace, settings: Settings) -> int:
     from jitdyn.experiments.demo import DemoSettings, run_demo
+    from jitdyn.experiments.truth import TruthSources
 
     demo = DemoSettings(
         model=args.model,
-        scenario=parse(Scenario, args.scenario, argument="--scenario") if args.scenario else None,
+        scenario=args.scenario,
         seconds=args.seconds,
         latency=args.latency,
         jitter=args.jitter,
         loss=args.loss,
         seed=args.seed,
-        estimator=parse(EstimatorKind, args.estimator, argument="--estimator"),
-        clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
+        estimator=args.estimator,
+        clock=args.clock,
     )
     progress = sys.stderr.isatty()
     if settings.server:
-        run_demo(settings.server, demo, out=sys.stdout, progress=progress, local_data=None)
+        # A folder on this machine may hold the model's MJCF (a `jitdyn serve` beside the demo's).
+        data = settings.data.resolve() if settings.data.is_dir() else None
+        sources = TruthSources(data=data, mjcf=args.mjcf, asset_dir=args.asset_dir)
+        run_demo(settings.server, demo, out=sys.stdout, progress=progress, local_data=None, sources=sources)
         return 0
+    if args.mjcf or args.asset_dir:
+        raise SettingError(
+            "--mjcf and --asset-dir go with --server: the local server's models are in its --data"
+        )
     from jitdyn.server.transport.background import BackgroundServer
 
     data = settings.data.resolve()

@@ -39,7 +39,7 @@ from jitdyn.errors import ResourceExhausted
 from jitdyn.experiments.netem import DelayedSender, NetworkProfile
 from jitdyn.experiments.objects import qpos_limits
 from jitdyn.experiments.progress import ProgressBar, progress_bar
-from jitdyn.experiments.truth import truth_model
+from jitdyn.experiments.truth import TruthSources, truth_model
 from jitdyn.registry.info import joint_types
 from jitdyn.storage.records import FORCE_UNITS, dof_units
 from jitdyn.storage.summary import format_counts
@@ -87,15 +87,19 @@ def run_demo(
     out: TextIO,
     progress: bool = True,
     local_data: Path | None = None,
+    sources: TruthSources | None = None,
 ) -> dict[str, object]:
     """Run the demo session against the server at `address`; print and return its summary.
 
     `local_data`: the data folder of a server this process runs, so that the stored file is named
-    by its path here; None for a remote server, whose data folder is its own."""
+    by its path here; None for a remote server, whose data folder is its own. `sources`: where
+    the model's MJCF is looked for (default: `local_data`'s store)."""
     answers = _Answers()
     with Client(address) as client:
         client.wait_ready()
-        ref, model = truth_model(client, settings.model, data=local_data, address=address)
+        ref, model = truth_model(
+            client, settings.model, sources or TruthSources(data=local_data), address=address
+        )
         data = mujoco.MjData(model)
         data.qpos[:] = _start_pose(model, np.random.default_rng(settings.seed))
         mujoco.mj_forward(model, data)

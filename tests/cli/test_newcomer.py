@@ -567,3 +567,87 @@ def test_a_missing_mesh_says_where_it_looked_and_names_asset_dir(server: Any, tm
         f"{str(tmp_path / 'meshes/upper.stl')!r}); give the folder that holds the model's files with "
         "--asset-dir DIR"
     )
+
+
+# -- the demo of a model registered from a file, against a server; its start pose ---------------------
+
+# An elbow whose range starts at its rest pose, as myoelbow's: a start moved below it is outside.
+ELBOW = """<mujoco model="elbow">
+  <compiler angle="radian"/>
+  <worldbody><body pos="0 0 1"><joint name="elbow" type="hinge" axis="0 1 0" range="0 2.27" damping="0.5"/>
+    <geom type="capsule" size=".03" fromto="0 0 0 .3 0 0" mass="1"/></body></worldbody>
+</mujoco>
+"""
+
+
+def test_the_demo_runs_a_model_the_server_holds_inside_its_range(server: Any, tmp_path: Path) -> None:
+    mjcf = tmp_path / "elbow.xml"
+    mjcf.write_text(ELBOW, encoding="utf-8")
+    registered = jitdyn("models", "register", str(mjcf), "--server", server.address)
+    assert registered.returncode == 0, registered.stderr
+    demo = [
+        "demo",
+        "--model",
+        "elbow",
+        "--seconds",
+        "0.3s",
+        "--clock",
+        "lockstep",
+        "--server",
+        server.address,
+    ]
+    refused = jitdyn(*demo, cwd=tmp_path)
+    assert one_line_error(refused, 1) == (
+        f"jitdyn demo: FailedPrecondition: elbow v1 is registered at {server.address}, but the demo simulates "
+        "its truth here and has no copy of its MJCF: give the file it was registered from (--mjcf FILE, "
+        "with --asset-dir for its assets), or run the demo on the data folder that holds it (--data DIR)"
+    )
+    data = str(server.services.data_root)
+    sessions = []
+    for extra in (["--mjcf", str(mjcf)], ["--data", data]):
+        result = jitdyn(*demo, *extra, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        sessions.append(re.search(r"^session (\S+):", result.stdout, re.MULTILINE).group(1))  # type: ignore[union-attr]
+    ids = ", ".join(f"'{s}'" for s in sessions)
+    sql = f"SELECT frame_qpos[1] AS q FROM frames WHERE session_id IN ({ids}) AND seq = 0"
+    starts = jitdyn("sessions", "query", sql, "--format", "json", "--data", data)
+    assert starts.returncode == 0, starts.stderr
+    for line in starts.stdout.splitlines():
+        assert 0.0 <= json.loads(line)["q"] <= 2.27, starts.stdout
+    other = tmp_path / "other.xml"
+    other.write_text(ELBOW.replace('damping="0.5"', 'damping="0.6"'), encoding="utf-8")
+    wrong = jitdyn(*demo, "--mjcf", str(other), cwd=tmp_path)
+    assert "is not the content registered as elbow v1: its id is sha256:" in one_line_error(wrong, 1)
+
+
+# -- one casing everywhere, help that explains --------------------------------------------------------
+
+
+def test_the_demo_takes_its_words_in_any_case(server: Any) -> None:
+    for scenario, estimator, clock in (
+        ("PASSIVE", "ukf", "LockStep"),
+        ("passive", "Constant_Velocity", "lockstep"),
+    ):
+        result = jitdyn(
+            "demo", "--seconds", "0.2s", "--model", "pendulum_1", "--server", server.address,
+            "--scenario", scenario, "--estimator", estimator, "--clock", clock,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr
+        assert f"passive, dt 50 ms, 4 ticks, LOCKSTEP, estimator {estimator.upper()}" in result.stdout
+    bad = jitdyn("demo", "--scenario", "hovering")
+    assert one_line_error(bad, 2) == (
+        "jitdyn demo: error: argument --scenario: expected one of passive, controlled, external, driven "
+        "(in any case), got 'hovering'"
+    )
+
+
+def test_every_demo_option_has_help() -> None:
+    import argparse
+
+    from jitdyn.cli.main import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    demo = commands.choices["demo"]
+    silent = [a.option_strings[0] for a in demo._actions if a.option_strings and not a.help]
+    assert silent == [], silent
