@@ -101,6 +101,16 @@ def _model_ref(text: str) -> ModelRef:
     return ModelRef(model_id=model_id, name=name, version=version)
 
 
+def _installed_version() -> str:
+    """jitdyn's version, as the installed package's metadata says."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("jitdyn")
+    except PackageNotFoundError:  # run from a checkout that is not installed
+        return "(not installed)"
+
+
 def _common() -> argparse.ArgumentParser:
     """Options of every parser, top-level and leaves alike."""
     common = argparse.ArgumentParser(add_help=False)
@@ -124,6 +134,12 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=_EPILOG,
         description="Cloud, just-in-time MuJoCo dynamics of biomechanical models over gRPC, with "
         "Unscented Kalman Filter latency compensation and anonymised Parquet storage.",
+    )
+    parser.add_argument(
+        "--version",
+        action="version",
+        version=f"jitdyn {_installed_version()}",
+        help="print jitdyn's version and exit",
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -295,7 +311,12 @@ def build_parser() -> argparse.ArgumentParser:
         "query`); late: ticks whose frame came after the tick was answered, so that it was corrected "
         "(results with late_ticks > 0); a frame too late to be used at all is rejected TOO_OLD instead.",
     )
-    slist.add_argument("--model", help="only this model name")
+    slist.add_argument(
+        "--model",
+        type=argparse_type(_model_ref, "model"),
+        metavar="MODEL",
+        help="only sessions of this model: NAME (every version), NAME:VERSION or sha256:ID",
+    )
     slist.add_argument("--status", choices=tuple(status.value for status in SessionStatus))
     slist.add_argument(
         "--limit",
@@ -376,7 +397,7 @@ def _add_render(
         description="Replay one stored session with MuJoCo's offscreen renderer: the model moving as the "
         "server answered it, the measured pose beside it as a translucent blue ghost, and the source of "
         "each tick (MEASURED, PREDICTED, CORRECTED when its frame came late) in a caption. Videos play in "
-        "real time, decimated to at most 30 (MP4) or 20 (GIF) frames a second. Needs jitdyn[render] and "
+        "real time, decimated to at most 30 (MP4) or 12.5 (GIF, at 3/4 size in 192 colours, for a small file) frames a second. Needs jitdyn[render] and "
         "an offscreen GL library: libosmesa6 (Debian) for osmesa.",
     )
     render.add_argument("session_id")
@@ -583,6 +604,39 @@ def _experiments(argv: list[str], *, verbose: bool) -> int:
     return int(experiments_main(argv, verbose=verbose) or 0)
 
 
+def _action_first(argv: list[str], parser: argparse.ArgumentParser) -> list[str]:
+    """`argv` with a group's action moved before the options given ahead of it: `sessions --limit 2
+    list` as `sessions list --limit 2`, since argparse reads the action's options only after it."""
+    groups = _subcommands(parser)
+    for start, word in enumerate(argv):
+        if word in groups:
+            break
+    else:
+        return argv
+    group = groups[argv[start]]
+    actions = _subcommands(group)
+    takes_value = {
+        option: action.nargs != 0
+        for leaf in (group, *actions.values())
+        for action in leaf._actions
+        for option in action.option_strings
+    }
+    i = start + 1
+    while i < len(argv) and argv[i].startswith("-") and argv[i] != "--":
+        i += 2 if takes_value.get(argv[i], False) else 1
+    if i == start + 1 or i >= len(argv) or argv[i] not in actions:
+        return argv
+    return [*argv[: start + 1], argv[i], *argv[start + 1 : i], *argv[i + 1 :]]
+
+
+def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """The parsers of `parser`'s subcommands by name; {} for a leaf."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    return {}
+
+
 def _did_you_mean(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
     """' (did you mean --latency?)' for a mistyped option the parser has one close to."""
     known = [option for action in parser._actions for option in action.option_strings]
@@ -649,7 +703,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except KeyboardInterrupt:
             return 130
     parser = build_parser()
-    args, unknown = parser.parse_known_args(argv)
+    args, unknown = parser.parse_known_args(_action_first(argv, parser))
     if unknown:
         leaf: argparse.ArgumentParser = getattr(args, _LEAF, parser)
         leaf.error(f"unrecognized arguments: {' '.join(unknown)}{_did_you_mean(leaf, unknown)}")

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _cli import jitdyn
+from _cli import jitdyn, listed
 
 from jitdyn.errors import JitdynError
 
@@ -217,9 +217,9 @@ def test_verbose_puts_no_migration_lines_before_a_listing(sessions_data: tuple[P
 
 def test_sessions_list_prints_the_scenario_as_stored(sessions_data: tuple[Path, list[str]]) -> None:
     data, ids = sessions_data
-    listing = jitdyn("sessions", "list", "--data", str(data)).stdout
-    line = next(line for line in listing.splitlines() if line.startswith(ids[0]))
-    assert re.search(r" pendulum_1 v1  PASSIVE +LOCKSTEP +ticks", line), line
+    listing = listed(jitdyn("sessions", "list", "--limit", "500", "--data", str(data)).stdout)
+    (row,) = [row for row in listing if row["id"] == ids[0]]
+    assert (row["model"], row["scenario"], row["clock"]) == ("pendulum_1 v1", "PASSIVE", "LOCKSTEP"), row
 
 
 def test_a_session_id_prefix_is_accepted(sessions_data: tuple[Path, list[str]], tmp_path: Path) -> None:
@@ -473,8 +473,8 @@ def test_demo_of_a_model_whose_mjcf_is_not_here_says_why(server: Any, tmp_path: 
     result = jitdyn("demo", "--model", "swing", "--server", server.address)
     assert one_line_error(result, 1) == (
         f"jitdyn demo: FailedPrecondition: swing v1 is registered at {server.address}, but the demo simulates "
-        "its truth here and has no copy of its MJCF: run the demo without --server, on the data folder that "
-        "holds it (--data DIR)"
+        "its truth here and has no copy of its MJCF: give the file it was registered from (--mjcf FILE, "
+        "with --asset-dir for its assets), or run the demo on the data folder that holds it (--data DIR)"
     )
     unknown = jitdyn("demo", "--model", "no_such_model:2", "--server", server.address)
     assert one_line_error(unknown, 1).startswith("jitdyn demo: NotFound: ")
@@ -596,12 +596,6 @@ def test_the_demo_runs_a_model_the_server_holds_inside_its_range(server: Any, tm
         "--server",
         server.address,
     ]
-    refused = jitdyn(*demo, cwd=tmp_path)
-    assert one_line_error(refused, 1) == (
-        f"jitdyn demo: FailedPrecondition: elbow v1 is registered at {server.address}, but the demo simulates "
-        "its truth here and has no copy of its MJCF: give the file it was registered from (--mjcf FILE, "
-        "with --asset-dir for its assets), or run the demo on the data folder that holds it (--data DIR)"
-    )
     data = str(server.services.data_root)
     sessions = []
     for extra in (["--mjcf", str(mjcf)], ["--data", data]):
@@ -651,3 +645,130 @@ def test_every_demo_option_has_help() -> None:
     demo = commands.choices["demo"]
     silent = [a.option_strings[0] for a in demo._actions if a.option_strings and not a.help]
     assert silent == [], silent
+
+
+# -- the version, options before the action, the sessions table, render by prefix ---------------------
+
+
+def test_the_version_is_the_installed_packages() -> None:
+    from importlib.metadata import version
+
+    result = jitdyn("--version")
+    assert (result.returncode, result.stdout) == (0, f"jitdyn {version('jitdyn')}\n"), result.stderr
+
+
+def test_an_actions_options_go_before_it_too(sessions_data: tuple[Path, list[str]]) -> None:
+    data, ids = sessions_data
+    for args in (
+        ["--limit", "2", "list"],
+        ["--limit=2", "--data", str(data), "list"],
+        ["-v", "--limit", "2", "list"],
+    ):
+        result = jitdyn("sessions", *args, "--data", str(data))
+        assert result.returncode == 0, result.stderr
+        assert [row["id"] for row in listed(result.stdout)] == ids[::-1][:2], result.stdout
+
+
+def test_sessions_list_has_a_header_and_takes_a_version(server: Any, tmp_path: Path) -> None:
+    from jitdyn.client import Client, FrameData, SessionOptions
+
+    long_name = "a_model_with_a_name_longer_than_the_column_was"
+    mjcf = tmp_path / f"{long_name}.xml"
+    with Client(server.address, timeout=30) as client:
+        for damping in (0.21, 0.22):  # two versions of one name
+            mjcf.write_text(ELBOW.replace('damping="0.5"', f'damping="{damping}"'), encoding="utf-8")
+            assert jitdyn("models", "register", str(mjcf), "--server", server.address).returncode == 0
+            with client.open_session(
+                SessionOptions(model_name=long_name, dt=0.05, clock="LOCKSTEP")
+            ) as session:
+                session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0]))
+    data = str(server.services.data_root)
+    table = jitdyn("sessions", "list", "--data", data).stdout
+    header, _, *rows = table.splitlines()
+    assert header.split() == [
+        "id", "started", "status", "model", "scenario", "clock", "ticks", "measured", "predicted", "corrected",
+        "rejected", "late",
+    ]  # fmt: skip
+    # Every column starts where its header does, however long a model's name.
+    for name in ("status", "scenario", "clock"):
+        column = header.index(name)
+        assert all(row[column - 2 : column] == "  " and row[column] != " " for row in rows[:3]), (name, table)
+    assert {len(row) for row in rows} == {len(header)}, table  # the counts right-aligned under theirs
+    for reference, versions in ((f"{long_name}:2", ["v2"]), (long_name, ["v2", "v1"])):
+        shown = listed(jitdyn("sessions", "list", "--model", reference, "--data", data).stdout)
+        assert [row["model"].split()[-1] for row in shown] == versions, shown
+    none = jitdyn("sessions", "list", "--model", f"{long_name}:3", "--data", data)
+    assert none.returncode == 0 and none.stdout == "", none.stdout
+    assert none.stderr.startswith("no sessions match; the stored sessions are of "), none.stderr
+    assert f"{long_name} v1, {long_name} v2" in none.stderr
+
+
+def test_render_takes_an_id_prefix(sessions_data: tuple[Path, list[str]], tmp_path: Path) -> None:
+    data, ids = sessions_data
+    out = tmp_path / "frame.png"
+    result = jitdyn("sessions", "render", ids[0][:8], "--out", str(out), "--data", str(data))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == f"rendered {ids[0]} to {out}"
+    assert out.stat().st_size > 0
+
+
+# -- the registry: unknown names list the known ones; a new version keeps its tags --------------------
+
+
+def test_an_unknown_model_lists_the_models_there_are(server: Any) -> None:
+    result = jitdyn("models", "show", "pendulum_4", "--server", server.address)
+    message = one_line_error(result, 1)
+    assert message.startswith(
+        "jitdyn models show: NotFound: no model is named 'pendulum_4'; the registered models are "
+    ), message
+    assert "biped, " in message and "pendulum_1, pendulum_2, pendulum_3" in message
+
+
+def test_a_new_version_keeps_the_tags_of_the_last(server: Any, tmp_path: Path) -> None:
+    mjcf = tmp_path / "tagged_arm.xml"
+    tags: list[str] = []
+    for damping, given in ((0.31, ["--tag", "lab", "--tag", "arm"]), (0.32, []), (0.33, ["--tag", "v3"])):
+        mjcf.write_text(ELBOW.replace('damping="0.5"', f'damping="{damping}"'), encoding="utf-8")
+        result = jitdyn("models", "register", str(mjcf), *given, "--server", server.address)
+        assert result.returncode == 0, result.stderr
+        tags.append(result.stdout.split("tags=")[1].strip())
+    assert tags == ["lab,arm", "lab,arm", "v3"], tags
+
+
+def test_experiments_help_gives_the_exit_codes_and_the_environment() -> None:
+    help_text = jitdyn("experiments", "--help", preamble=BASE_INSTALL).stdout
+    assert (
+        "exit codes: 0 done (report.md written in --out), 1 an experiment or the server failed" in help_text
+    )
+    environment = help_text[help_text.index("environment:\n") :]
+    for name in ("JITDYN_SERVER", "JITDYN_SECRET", "JITDYN_SECRET_FILE", "MUJOCO_GL"):
+        assert name in environment, help_text
+
+
+def test_the_readme_tells_a_first_sdk_session_what_it_needs(server: Any) -> None:
+    import dataclasses
+
+    from jitdyn.client import Client, FrameData, Opened, Rejection, SessionOptions
+
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("What else a first session needs to know:") : readme.index("### Async")]
+    said = " ".join(section.split())
+    assert "`send_frame` and `skip` return a `TickResult` or a `Rejection`" in said
+    assert '`model_name="arm"` opens the newest version of `arm`; `model_version=2` pins one' in said
+    quoted = re.search(r'rejected BAD_SHAPE \("(.+?)"\)', said)
+    assert quoted and 'measured=["QPOS", "QVEL", "QACC"]' in said, said
+    named = re.findall(
+        r"`(\w+)`", said[said.index("`s.opened` is") : said.index("The calls that change nothing")]
+    )
+    fields = {field.name for field in dataclasses.fields(Opened)}
+    assert len(named) >= 8 and set(named) <= fields | {"s", "opened"}, set(named) - fields
+    with Client(server.address, timeout=30) as client:
+        options = SessionOptions(model_name="pendulum_1", scenario="PASSIVE", dt=0.05)
+        with client.open_session(options) as session:
+            answer = session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0], qacc=[1.0]))
+        assert isinstance(answer, Rejection) and answer.reason == "BAD_SHAPE", answer
+        assert quoted.group(1) in answer.message, answer.message
+        measured = dataclasses.replace(options, measured=["QPOS", "QVEL", "QACC"])
+        with client.open_session(measured) as session:
+            answer = session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0], qacc=[1.0]))
+        assert not isinstance(answer, Rejection), answer
