@@ -401,10 +401,9 @@ def _report(
 
 def _force_ranges(model: mujoco.MjModel, answers: list[TickResult], ticks: int) -> str:
     """The range of qfrc_inverse of each dof over every answer of the session's ticks: the first
-    answer of each tick and its correction, as the stored frames hold both. A correction is
-    answered from the late frame itself, whose measured motion can ask forces far beyond the
-    prediction's: a range of the first answers alone would not be the one a query of the store
-    gives."""
+    answer of each tick and its correction, as the stored frames hold both. A correction comes
+    from the late frame itself, whose motion can ask far larger forces than the prediction did
+    (docs/decisions/0182)."""
     torques = np.array([r.qfrc_inverse for r in answers if r.qfrc_inverse.size])
     if not torques.size:
         return ""

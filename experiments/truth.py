@@ -1,7 +1,7 @@
 """The model the demo simulates its truth with: the registered model a session opens, compiled here
 from its MJCF. A built-in comes with jitdyn; another is read from the registry's store in a local
 data folder, or packed again from myo-sim for a MyoSuite model, and must have the registered
-content id. What cannot be found says, in one line, why and what to do (docs/decisions/0141).
+content id. What cannot be found says, in one line, why and what to do (docs/decisions/0141, 0181).
 
     ref, model = truth_model(client, "myoelbow", data=Path("jitdyn-data"), address=address)
 """
