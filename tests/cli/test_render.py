@@ -262,3 +262,20 @@ def test_a_mujoco_gl_that_cannot_render_offscreen_is_named() -> None:
         InvalidArgument, match=r"^MUJOCO_GL in the environment must be osmesa or egl .*, got 'glx'$"
     ):
         choose_gl(None, {"MUJOCO_GL": "glx"})
+
+
+def test_an_elbow_is_seen_in_profile_with_the_arm_before_its_skeleton() -> None:
+    from jitdyn.cli.scene import session_view
+    from jitdyn.client.myo import pack_myo_model
+    from jitdyn.registry import builtin_model_path
+
+    model = mujoco.MjModel.from_xml_string(*pack_myo_model("myoelbow"))
+    view = session_view(model, np.linspace(0.3, 1.5, 20)[:, None])
+    assert view.azimuth in (0.0, 180.0), view  # along the elbow's axis, x
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    camera_x = view.center[0] - view.distance(45.0, 4 / 3) * np.cos(np.radians(view.azimuth))
+    torso = data.xpos[model.body("torso").id]
+    assert abs(camera_x - view.center[0]) < abs(camera_x - torso[0]), (camera_x, view.center, torso)
+    pendulum = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
+    assert session_view(pendulum, np.zeros((2, 3))).azimuth == 90.0  # the pendulums' swing, as before
