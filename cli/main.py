@@ -19,6 +19,7 @@ import difflib
 import logging
 import os
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -332,9 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
         "query",
         "sessions",
         help="run SQL with DuckDB over the frames (view `frames`) and the index (table `sessions`)",
-        description="Run SQL with DuckDB (needs jitdyn[query]) over the stored frames (view `frames`, one "
-        "row per answer: a tick answered PREDICTED and later CORRECTED has two rows) and the index "
-        "(table `sessions`).",
+        description=_query_description(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     squery.add_argument("sql", help='e.g. "SELECT source, count(*) FROM frames GROUP BY source"')
     squery.add_argument(
@@ -381,6 +381,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     experiments.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
+
+
+def _query_description() -> str:
+    """`sessions query --help`: the tables, then every column of `frames` with its unit."""
+    from jitdyn.storage.columns import FRAME_COLUMN_NOTES
+
+    intro = (
+        "Run SQL with DuckDB (needs jitdyn[query]) over the stored frames (view `frames`, one row per "
+        "answer: a tick answered PREDICTED and later CORRECTED has two rows), the index (table "
+        "`sessions`) and the names and units of the arrays' elements (table `coordinates`: session_id, "
+        "vector 'qpos' for frame_qpos and qpos or 'dof' for the nv-long arrays, i as DuckDB indexes a "
+        "list from 1, name, joint, unit rad or m, force_unit N m or N). Name a joint's values with "
+        '"SELECT c.name, f.qfrc_inverse[c.i] FROM frames f JOIN coordinates c USING (session_id) '
+        "WHERE c.vector = 'dof'\"."
+    )
+    width = max(len(name) for name in FRAME_COLUMN_NOTES)
+    columns = "\n".join(f"  {name:<{width}}  {note}" for name, note in FRAME_COLUMN_NOTES.items())
+    return f"{textwrap.fill(intro, 100)}\n\ncolumns of `frames` (unit: meaning):\n{columns}"
 
 
 def _add_render(

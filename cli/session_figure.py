@@ -22,7 +22,7 @@ from matplotlib.axes import Axes
 from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
-from jitdyn.cli.joints import Joint
+from jitdyn.storage.joints import Joint
 from jitdyn.storage.records import FORCE_UNITS
 from jitdyn.storage.timeline import Timeline
 from jitdyn.vocabulary import Source

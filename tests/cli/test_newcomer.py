@@ -772,3 +772,48 @@ def test_the_readme_tells_a_first_sdk_session_what_it_needs(server: Any) -> None
         with client.open_session(measured) as session:
             answer = session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0], qacc=[1.0]))
         assert not isinstance(answer, Rejection), answer
+
+
+# -- the frames' arrays named, their columns' units documented ----------------------------------------
+
+
+def test_every_frames_column_is_explained_with_its_unit(sessions_data: tuple[Path, list[str]]) -> None:
+    from jitdyn.storage.columns import FRAME_COLUMN_NOTES
+
+    data, _ = sessions_data
+    described = jitdyn("sessions", "query", "DESCRIBE frames", "--format", "json", "--data", str(data))
+    assert described.returncode == 0, described.stderr
+    columns = [json.loads(line)["column_name"] for line in described.stdout.splitlines()]
+    assert columns == list(FRAME_COLUMN_NOTES), set(columns) ^ set(FRAME_COLUMN_NOTES)
+    help_text = jitdyn("sessions", "query", "--help").stdout
+    assert "  frame_delay          s: REALTIME, the frame's arrival after its tick's deadline" in help_text
+    assert "(table `coordinates`:" in help_text
+
+
+def test_coordinates_name_each_element_of_the_arrays_with_its_unit(server: Any) -> None:
+    from jitdyn.client import Client, FrameData, SessionOptions
+
+    options = SessionOptions(model_name="biped", scenario="PASSIVE", dt=0.01, clock="LOCKSTEP")
+    with Client(server.address, timeout=30) as client, client.open_session(options) as session:
+        session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.0, 0.9, 0.3, 0.0, -0.3, 0.0], qvel=[0.0] * 6))
+    sql = (
+        "SELECT c.vector, c.i, c.name, c.unit, c.force_unit, f.frame_qpos[c.i] AS q FROM frames f "
+        f"JOIN coordinates c USING (session_id) WHERE session_id = '{session.opened.session_id}' "
+        "AND f.seq = 0 ORDER BY c.vector DESC, c.i"
+    )
+    result = jitdyn("sessions", "query", sql, "--format", "json", "--data", str(server.services.data_root))
+    assert result.returncode == 0, result.stderr
+    rows = [json.loads(line) for line in result.stdout.splitlines()]
+    names = ["root_x", "root_z", "left_hip", "left_absorber", "right_hip", "right_absorber"]
+    assert [(r["vector"], r["name"]) for r in rows] == [("qpos", n) for n in names] + [
+        ("dof", n) for n in names
+    ]
+    assert [r["q"] for r in rows[:6]] == [0.0, 0.9, 0.3, 0.0, -0.3, 0.0]
+    assert [(r["unit"], r["force_unit"]) for r in rows[6:]] == [
+        ("m", "N"), ("m", "N"), ("rad", "N m"), ("m", "N"), ("rad", "N m"), ("m", "N"),
+    ]  # fmt: skip
+
+
+def test_the_readme_says_how_long_the_suite_takes() -> None:
+    readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert "The default run takes about 12 to 16 minutes on a 2-core machine." in readme
