@@ -91,7 +91,8 @@ ID_COLUMNS: Final[tuple[pa.Field, ...]] = (
 FRAME_SCHEMA: Final = pa.schema([*ID_COLUMNS, *LOG_SCHEMA])
 
 # What each column of the `frames` view holds, with its unit: `sessions query --help` prints these.
-# The arrays' elements are named, with their units, by the `coordinates` table (storage.query).
+# The arrays' elements are named, with their units, by the `coordinates` table (storage.query,
+# docs/decisions/0183).
 FRAME_COLUMN_NOTES: Final = {
     "session_id": "the session",
     "model_name": "the model's name",
