@@ -318,7 +318,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="MODEL",
         help="only sessions of this model: NAME (every version), NAME:VERSION or sha256:ID",
     )
-    slist.add_argument("--status", choices=tuple(status.value for status in SessionStatus))
+    slist.add_argument(
+        "--status",
+        **_word(SessionStatus, "--status", lower=False),
+        help="only sessions that ended so (any case)",
+    )
     slist.add_argument(
         "--limit",
         type=argparse_type(positive_int, "limit"),
