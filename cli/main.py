@@ -19,6 +19,7 @@ import difflib
 import logging
 import os
 import sys
+import textwrap
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +70,23 @@ _seconds = checked(
 )
 
 
+def _word(kind: type[Any], flag: str, *, lower: bool) -> dict[str, Any]:
+    """`type=` and `metavar=` of an option that takes a member of the vocabulary's `kind`, in any
+    case, as the SDK takes it (jitdyn.vocabulary.parse); shown in the case the help writes it."""
+    names = [member.name.lower() if lower else member.name for member in kind]
+
+    def convert(text: str) -> Any:
+        try:
+            return parse(kind, text, argument=flag)
+        except JitdynError:
+            raise argparse.ArgumentTypeError(
+                f"expected one of {', '.join(names)} (in any case), got {text!r}"
+            ) from None
+
+    convert.__name__ = flag
+    return {"type": convert, "metavar": "{" + ",".join(names) + "}"}
+
+
 @dataclass(frozen=True)
 class ModelRef:
     """What `models show` was given: a content id, or a name and a version (0: the newest)."""
@@ -81,6 +99,16 @@ class ModelRef:
 def _model_ref(text: str) -> ModelRef:
     model_id, name, version = parse_model_reference(text)
     return ModelRef(model_id=model_id, name=name, version=version)
+
+
+def _installed_version() -> str:
+    """jitdyn's version, as the installed package's metadata says."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("jitdyn")
+    except PackageNotFoundError:  # run from a checkout that is not installed
+        return "(not installed)"
 
 
 def _common() -> argparse.ArgumentParser:
@@ -106,6 +134,12 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=_EPILOG,
         description="Cloud, just-in-time MuJoCo dynamics of biomechanical models over gRPC, with "
         "Unscented Kalman Filter latency compensation and anonymised Parquet storage.",
+    )
+    parser.add_argument(
+        "--version",
+        action="version",
+        version=f"jitdyn {_installed_version()}",
+        help="print jitdyn's version and exit",
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -190,10 +224,23 @@ def build_parser() -> argparse.ArgumentParser:
         "data folder (default pendulum_3)",
     )
     demo.add_argument(
+        "--mjcf",
+        type=Path,
+        metavar="FILE",
+        help="with --server, the MJCF file --model was registered from, which the demo simulates its truth "
+        "with (default: the model's copy in --data, built-ins and MyoSuite models need none)",
+    )
+    demo.add_argument(
+        "--asset-dir",
+        type=Path,
+        metavar="DIR",
+        help="folder of the files --mjcf names, as for `models register` (default: the MJCF's folder)",
+    )
+    demo.add_argument(
         "--scenario",
-        choices=tuple(scenario.lower() for scenario in Scenario),
-        help="default passive for a built-in model, else the server's choice for the model (driven for "
-        "one with actuators)",
+        **_word(Scenario, "--scenario", lower=True),
+        help="what moves the body, as the filter models it (any case): default passive for a built-in "
+        "model, else the server's choice for the model (driven for one with actuators)",
     )
     for flag, parse_text, kind, default, text in (
         (
@@ -221,12 +268,23 @@ def build_parser() -> argparse.ArgumentParser:
             help=text,
         )
     demo.add_argument(
-        "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
+        "--estimator",
+        default=EstimatorKind.UKF,
+        **_word(EstimatorKind, "--estimator", lower=False),
+        help="what answers a tick whose frame is late or lost (any case): UKF, the Unscented Kalman Filter "
+        "on the model's dynamics (default); STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION, dead "
+        "reckoning from the last frames, for comparison",
     )
-    demo.add_argument("--seed", type=int, default=0, help="seed of the emulated network and the start state")
+    demo.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the emulated network's latency and loss and of the start state (default 0): the "
+        "same seed sends the same frames at the same times",
+    )
     demo.add_argument(
         "--clock",
-        choices=tuple(clock.lower() for clock in Clock),
+        **_word(Clock, "--clock", lower=True),
         help="realtime: ticks on the server's clock, over the emulated network; lockstep: each frame "
         "answered as it is sent (loss emulated as skipped ticks). Default: realtime, or lockstep, "
         "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
@@ -252,8 +310,17 @@ def build_parser() -> argparse.ArgumentParser:
         "query`); late: ticks whose frame came after the tick was answered, so that it was corrected "
         "(results with late_ticks > 0); a frame too late to be used at all is rejected TOO_OLD instead.",
     )
-    slist.add_argument("--model", help="only this model name")
-    slist.add_argument("--status", choices=tuple(status.value for status in SessionStatus))
+    slist.add_argument(
+        "--model",
+        type=argparse_type(_model_ref, "model"),
+        metavar="MODEL",
+        help="only sessions of this model: NAME (every version), NAME:VERSION or sha256:ID",
+    )
+    slist.add_argument(
+        "--status",
+        **_word(SessionStatus, "--status", lower=False),
+        help="only sessions that ended so (any case)",
+    )
     slist.add_argument(
         "--limit",
         type=argparse_type(positive_int, "limit"),
@@ -268,9 +335,8 @@ def build_parser() -> argparse.ArgumentParser:
         "query",
         "sessions",
         help="run SQL with DuckDB over the frames (view `frames`) and the index (table `sessions`)",
-        description="Run SQL with DuckDB (needs jitdyn[query]) over the stored frames (view `frames`, one "
-        "row per answer: a tick answered PREDICTED and later CORRECTED has two rows) and the index "
-        "(table `sessions`).",
+        description=_query_description(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     squery.add_argument("sql", help='e.g. "SELECT source, count(*) FROM frames GROUP BY source"')
     squery.add_argument(
@@ -329,6 +395,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _query_description() -> str:
+    """`sessions query --help`: the tables, then every column of `frames` with its unit."""
+    from jitdyn.storage.columns import FRAME_COLUMN_NOTES
+
+    intro = (
+        "Run SQL with DuckDB (needs jitdyn[query]) over the stored frames (view `frames`, one row per "
+        "answer: a tick answered PREDICTED and later CORRECTED has two rows), the index (table "
+        "`sessions`) and the names and units of the arrays' elements (table `coordinates`: session_id, "
+        "vector 'qpos' for frame_qpos and qpos or 'dof' for the nv-long arrays, i as DuckDB indexes a "
+        "list from 1, name, joint, unit rad or m, force_unit N m or N). Name a joint's values with "
+        '"SELECT c.name, f.qfrc_inverse[c.i] FROM frames f JOIN coordinates c USING (session_id) '
+        "WHERE c.vector = 'dof'\"."
+    )
+    width = max(len(name) for name in FRAME_COLUMN_NOTES)
+    columns = "\n".join(f"  {name:<{width}}  {note}" for name, note in FRAME_COLUMN_NOTES.items())
+    return f"{textwrap.fill(intro, 100)}\n\ncolumns of `frames` (unit: meaning):\n{columns}"
+
+
 def _add_render(
     session_commands: argparse._SubParsersAction[argparse.ArgumentParser],
     leaf: Callable[..., argparse.ArgumentParser],
@@ -343,7 +427,7 @@ def _add_render(
         description="Replay one stored session with MuJoCo's offscreen renderer: the model moving as the "
         "server answered it, the measured pose beside it as a translucent blue ghost, and the source of "
         "each tick (MEASURED, PREDICTED, CORRECTED when its frame came late) in a caption. Videos play in "
-        "real time, decimated to at most 30 (MP4) or 20 (GIF) frames a second. Needs jitdyn[render] and "
+        "real time, decimated to at most 30 (MP4) or 12.5 (GIF, at 3/4 size in 192 colours, for a small file) frames a second. Needs jitdyn[render] and "
         "an offscreen GL library: libosmesa6 (Debian) for osmesa.",
     )
     render.add_argument("session_id")
@@ -485,22 +569,30 @@ def _register(client: Any, args: argparse.Namespace, show: Callable[[Any], None]
 
 def _demo(args: argparse.Namespace, settings: Settings) -> int:
     from jitdyn.experiments.demo import DemoSettings, run_demo
+    from jitdyn.experiments.truth import TruthSources
 
     demo = DemoSettings(
         model=args.model,
-        scenario=parse(Scenario, args.scenario, argument="--scenario") if args.scenario else None,
+        scenario=args.scenario,
         seconds=args.seconds,
         latency=args.latency,
         jitter=args.jitter,
         loss=args.loss,
         seed=args.seed,
-        estimator=parse(EstimatorKind, args.estimator, argument="--estimator"),
-        clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
+        estimator=args.estimator,
+        clock=args.clock,
     )
     progress = sys.stderr.isatty()
     if settings.server:
-        run_demo(settings.server, demo, out=sys.stdout, progress=progress, local_data=None)
+        # A folder on this machine may hold the model's MJCF (a `jitdyn serve` beside the demo's).
+        data = settings.data.resolve() if settings.data.is_dir() else None
+        sources = TruthSources(data=data, mjcf=args.mjcf, asset_dir=args.asset_dir)
+        run_demo(settings.server, demo, out=sys.stdout, progress=progress, local_data=None, sources=sources)
         return 0
+    if args.mjcf or args.asset_dir:
+        raise SettingError(
+            "--mjcf and --asset-dir go with --server: the local server's models are in its --data"
+        )
     from jitdyn.server.transport.background import BackgroundServer
 
     data = settings.data.resolve()
@@ -540,6 +632,39 @@ def _experiments(argv: list[str], *, verbose: bool) -> int:
     require_extra("matplotlib", what="matplotlib (plots)", extra="experiments")
     require_extra("myo_sim", what="myo-sim (the MyoSuite objects)", extra="experiments")
     return int(experiments_main(argv, verbose=verbose) or 0)
+
+
+def _action_first(argv: list[str], parser: argparse.ArgumentParser) -> list[str]:
+    """`argv` with a group's action moved before the options given ahead of it: `sessions --limit 2
+    list` as `sessions list --limit 2`, since argparse reads the action's options only after it."""
+    groups = _subcommands(parser)
+    for start, word in enumerate(argv):
+        if word in groups:
+            break
+    else:
+        return argv
+    group = groups[argv[start]]
+    actions = _subcommands(group)
+    takes_value = {
+        option: action.nargs != 0
+        for leaf in (group, *actions.values())
+        for action in leaf._actions
+        for option in action.option_strings
+    }
+    i = start + 1
+    while i < len(argv) and argv[i].startswith("-") and argv[i] != "--":
+        i += 2 if takes_value.get(argv[i], False) else 1
+    if i == start + 1 or i >= len(argv) or argv[i] not in actions:
+        return argv
+    return [*argv[: start + 1], argv[i], *argv[start + 1 : i], *argv[i + 1 :]]
+
+
+def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """The parsers of `parser`'s subcommands by name; {} for a leaf."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    return {}
 
 
 def _did_you_mean(parser: argparse.ArgumentParser, unknown: list[str]) -> str:
@@ -608,7 +733,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except KeyboardInterrupt:
             return 130
     parser = build_parser()
-    args, unknown = parser.parse_known_args(argv)
+    args, unknown = parser.parse_known_args(_action_first(argv, parser))
     if unknown:
         leaf: argparse.ArgumentParser = getattr(args, _LEAF, parser)
         leaf.error(f"unrecognized arguments: {' '.join(unknown)}{_did_you_mean(leaf, unknown)}")

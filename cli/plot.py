@@ -22,9 +22,9 @@ from typing import Final
 
 import sqlalchemy as sa
 
-from jitdyn.cli.joints import Joint, choose_joints, stored_joints
 from jitdyn.errors import FailedPrecondition, InvalidArgument, NotFound
 from jitdyn.storage.index import SessionIndex, SessionRow
+from jitdyn.storage.joints import Joint, choose_joints, stored_joints
 from jitdyn.storage.stored import read_stored
 from jitdyn.storage.summary import format_counts
 from jitdyn.storage.timeline import TIMELINE_COLUMNS, Timeline, session_timeline

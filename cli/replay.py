@@ -33,8 +33,13 @@ from jitdyn.vocabulary import Source
 __all__ = ["MAX_FPS", "main", "replay", "video_stride"]
 
 # Frames a second of a video at most: an MP4 plays 30 smoothly; a GIF counts in hundredths of a
-# second, and browsers slow down delays under 20 ms, so 20 (50 ms a frame).
-MAX_FPS: Final = {".mp4": 30.0, ".gif": 20.0}
+# second and stores every frame whole but for its changed box, so 12.5 (80 ms a frame) keeps a 10 s
+# GIF small (docs/decisions/0180).
+MAX_FPS: Final = {".mp4": 30.0, ".gif": 12.5}
+# A GIF's frames are scaled by this, and drawn in one palette of this many colours, without
+# dithering: unchanged pixels then stay identical from frame to frame and are not stored again.
+_GIF_SCALE: Final = 0.75
+_GIF_COLORS: Final = 192
 # Colours of the sources, as in `sessions plot` (matplotlib's tab:blue, tab:orange, tab:green).
 _COLORS: Final = {
     Source.MEASURED: (31, 119, 180),
@@ -155,9 +160,32 @@ def _write_png(path: Path, frames: Iterator[Pixels], fps: float) -> None:
 def _write_gif(path: Path, frames: Iterator[Pixels], fps: float) -> None:
     from PIL import Image
 
-    first = Image.fromarray(next(frames))
-    rest = (Image.fromarray(pixels) for pixels in frames)
-    first.save(path, format="GIF", save_all=True, append_images=rest, duration=1000 / fps, loop=0)
+    def scaled(pixels: Pixels) -> Image.Image:
+        image = Image.fromarray(pixels)
+        size = (round(image.width * _GIF_SCALE), round(image.height * _GIF_SCALE))
+        return image.resize(size, Image.Resampling.LANCZOS)
+
+    first = scaled(next(frames))
+    # The palette of the first frame and the sources' colours, which a later caption shows.
+    sample = Image.new("RGB", (first.width, first.height + 3 * 8))
+    sample.paste(first)
+    for i, color in enumerate(_COLORS.values()):
+        sample.paste(color, (0, first.height + 8 * i, first.width, first.height + 8 * (i + 1)))
+    palette = sample.quantize(colors=_GIF_COLORS, method=Image.Quantize.MEDIANCUT)
+
+    def paletted(image: Image.Image) -> Image.Image:
+        return image.quantize(palette=palette, dither=Image.Dither.NONE)
+
+    rest = (paletted(scaled(pixels)) for pixels in frames)
+    paletted(first).save(
+        path,
+        format="GIF",
+        save_all=True,
+        append_images=rest,
+        duration=round(1000 / fps),
+        loop=0,
+        optimize=True,
+    )
 
 
 def _write_mp4(path: Path, frames: Iterator[Pixels], fps: float) -> None:

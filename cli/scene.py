@@ -51,16 +51,19 @@ class View:
     half: npt.NDArray[np.float64]  # (3,)
     lowest: float
     follow: bool
+    # MuJoCo's camera azimuth (degrees): 90 looks along +y; 0 and 180 along +x and -x.
+    azimuth: float = 90.0
 
     @property
     def radius(self) -> float:
         return float(np.linalg.norm(self.half))
 
     def distance(self, fovy_degrees: float, aspect: float) -> float:
-        """How far a camera looking along +y must stand for the box to fill most of its frame."""
+        """How far the camera must stand for the box to fill most of its frame."""
+        across, depth = (self.half[0], self.half[1]) if self.azimuth == 90.0 else (self.half[1], self.half[0])
         tan_y = math.tan(math.radians(fovy_degrees) / 2)
-        fit = max(self.half[2] / tan_y, self.half[0] / (tan_y * aspect))
-        return 1.15 * float(fit) + 0.5 * float(self.half[1])
+        fit = max(self.half[2] / tan_y, across / (tan_y * aspect))
+        return 1.15 * float(fit) + 0.5 * float(depth)
 
 
 def _moving(model: mujoco.MjModel) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.intp]]:
@@ -107,7 +110,23 @@ def session_view(model: mujoco.MjModel, poses: npt.NDArray[np.float64], *, sampl
         center, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-3)
     lowest = float(np.percentile(bottoms, 1.0 if len(bottoms) >= 100 else 0.0)) if bottoms else math.nan
     lowest = lowest if np.isfinite(lowest) else float(center[2] - half[2])
-    return View(center=center, half=half, lowest=lowest, follow=follow)
+    return View(center=center, half=half, lowest=lowest, follow=follow, azimuth=_azimuth(model, center))
+
+
+def _azimuth(model: mujoco.MjModel, center: npt.NDArray[np.float64]) -> float:
+    """Look along the hinges' axes, where the motion is seen in profile: along y (the pendulums',
+    the biped's) unless they point along x (a MyoSuite elbow's); then from the side the moving
+    bodies are on, so that they stand in front of the rest (the arm before its skeleton's torso)."""
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    hinges = model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE
+    axes = np.abs(data.xaxis[hinges]).sum(axis=0)
+    if not (hinges.any() and axes[0] > axes[1] and axes[0] > axes[2]):
+        return 90.0
+    moving, _ = _moving(model)
+    still = ~moving & (model.geom_type != mujoco.mjtGeom.mjGEOM_PLANE)
+    rest = float(data.geom_xpos[still, 0].mean()) if still.any() else float(center[0])
+    return 0.0 if center[0] < rest else 180.0
 
 
 def _add_sky(spec: mujoco.MjSpec) -> None:
@@ -230,7 +249,7 @@ class SessionScene:
         self._camera.lookat[:] = view.center
         aspect = self._size[0] / self._size[1]
         self._camera.distance = view.distance(float(model.vis.global_.fovy), aspect)
-        self._camera.azimuth, self._camera.elevation = 90.0, -12.0
+        self._camera.azimuth, self._camera.elevation = view.azimuth, -12.0
         # A floating base (the biped) walks away from where it started: the camera follows its root.
         self._view = view
         self._font = _font(_FONT_SIZE)

@@ -22,7 +22,8 @@ from matplotlib.axes import Axes
 from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
-from jitdyn.cli.joints import Joint
+from jitdyn.storage.joints import Joint
+from jitdyn.storage.records import FORCE_UNITS
 from jitdyn.storage.timeline import Timeline
 from jitdyn.vocabulary import Source
 
@@ -283,7 +284,7 @@ def _joint_force(ax: Axes, timeline: Timeline, joint: Joint, picks: _Picks) -> N
             fontsize=8,
         )
     units = set(joint.dof_units)
-    unit = {"rad": "N m", "m": "N"}.get(units.pop(), "") if len(units) == 1 else ""
+    unit = FORCE_UNITS.get(units.pop(), "") if len(units) == 1 else ""
     ax.set_ylabel(f"qfrc_inverse{f' ({unit})' if unit else ''}", fontsize=8)
 
 

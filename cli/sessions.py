@@ -15,9 +15,11 @@ import datetime
 import json
 import math
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from operator import attrgetter
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Final, TextIO
 
 import sqlalchemy as sa
 
@@ -25,9 +27,9 @@ from jitdyn.cli.extras import require_extra
 from jitdyn.errors import FailedPrecondition, NotFound
 from jitdyn.settings import Settings
 from jitdyn.storage.db import default_index_url, open_index
-from jitdyn.storage.index import SessionIndex, SessionRow
+from jitdyn.storage.index import MAX_PAGE_SIZE, SessionIndex, SessionRow
 from jitdyn.storage.root import is_uri
-from jitdyn.storage.summary import format_counts
+from jitdyn.storage.summary import COUNTS, format_counts
 
 __all__ = ["format_table", "run_sessions_command"]
 
@@ -50,6 +52,53 @@ def _where(location: str, data_root: Path) -> str:
     if not location or is_uri(location):
         return location
     return str((data_root / location).resolve())
+
+
+@dataclass(frozen=True)
+class _Column:
+    header: str
+    value: Callable[[SessionRow], Any]
+
+
+# `sessions list`'s columns; the counts are those of storage.summary.COUNTS, as the demo prints them.
+_LIST_COLUMNS: Final = (
+    _Column("id", lambda row: row.session_id),
+    _Column("started", lambda row: f"{row.started_at:%Y-%m-%d %H:%M:%S}"),
+    _Column("status", lambda row: row.status),
+    _Column("model", lambda row: f"{row.model_name} v{row.model_version}"),
+    _Column("scenario", lambda row: row.scenario),
+    _Column("clock", lambda row: row.clock),
+    *(_Column(label, attrgetter(f"summary.{name}")) for label, name, _ in COUNTS),
+)
+
+
+def _list(engine: sa.Engine, args: argparse.Namespace) -> None:
+    """The sessions as a table with a header, newest first; a filter that matches none says which
+    models the index has sessions of."""
+    wanted = args.model
+    index = SessionIndex(engine)
+    rows, _ = index.list(
+        tenant="",
+        model_name=wanted.name or None if wanted else None,
+        model_version=wanted.version or None if wanted else None,
+        model_id=wanted.model_id or None if wanted else None,
+        status=args.status,
+        page_size=args.limit,
+    )
+    if rows:
+        table = [[column.value(row) for column in _LIST_COLUMNS] for row in rows]
+        print("\n".join(format_table([column.header for column in _LIST_COLUMNS], table)))
+        return
+    if wanted is None and args.status is None:
+        print("no sessions", file=sys.stderr)
+        return
+    everything, _ = index.list(tenant="", page_size=MAX_PAGE_SIZE)
+    models = sorted({f"{row.model_name} v{row.model_version}" for row in everything})
+    some = (
+        f"the newest {MAX_PAGE_SIZE} sessions" if len(everything) == MAX_PAGE_SIZE else "the stored sessions"
+    )
+    held = f"{some} are of {', '.join(models)}" if models else "no session is stored"
+    print(f"no sessions match; {held}", file=sys.stderr)
 
 
 def _line(row: SessionRow) -> str:
@@ -159,21 +208,16 @@ def run_sessions_command(args: argparse.Namespace, settings: Settings) -> int:
     elif args.sessions_command == "export" and args.format == "mcap":
         require_extra("mcap", what="mcap (MCAP files)", extra="lab")
     engine = _engine(settings)
-    if args.sessions_command == "render":
-        return _render(args, settings)
     data_root: Path = settings.data
-    if args.sessions_command in ("show", "export", "plot"):
+    if args.sessions_command in ("show", "export", "plot", "render"):
         # The start of an id will do, as for a git commit, when only one session's id starts so;
         # an id nobody's starts with is left to the command, which says it is not there.
         with contextlib.suppress(NotFound):
             args.session_id = SessionIndex(engine).complete_id(args.session_id, tenant="")
+    if args.sessions_command == "render":
+        return _render(args, settings)
     if args.sessions_command == "list":
-        index = SessionIndex(engine)
-        rows, _ = index.list(tenant="", model_name=args.model, status=args.status, page_size=args.limit)
-        if not rows:
-            print("no sessions", file=sys.stderr)
-        for row in rows:
-            print(_line(row))
+        _list(engine, args)
     elif args.sessions_command == "show":
         row = SessionIndex(engine).get(args.session_id, tenant="")
         print(_line(row))

@@ -37,8 +37,11 @@ from jitdyn.client import (
 )
 from jitdyn.errors import ResourceExhausted
 from jitdyn.experiments.netem import DelayedSender, NetworkProfile
+from jitdyn.experiments.objects import qpos_limits
 from jitdyn.experiments.progress import ProgressBar, progress_bar
-from jitdyn.experiments.truth import truth_model
+from jitdyn.experiments.truth import TruthSources, truth_model
+from jitdyn.registry.info import joint_types
+from jitdyn.storage.records import FORCE_UNITS, dof_units
 from jitdyn.storage.summary import format_counts
 from jitdyn.vocabulary import Channel, Clock, EstimatorKind, Output, Scenario, Source
 
@@ -70,14 +73,10 @@ def _start_pose(model: mujoco.MjModel, rng: np.random.Generator) -> np.ndarray:
     qpos = model.qpos0.copy()
     delta = rng.uniform(0.3, 0.8, model.nv) * np.sign(rng.standard_normal(model.nv))
     mujoco.mj_integratePos(model, qpos, delta, 1.0)
-    for j in range(model.njnt):
-        if model.jnt_limited[j] and model.jnt_type[j] in (
-            mujoco.mjtJoint.mjJNT_HINGE,
-            mujoco.mjtJoint.mjJNT_SLIDE,
-        ):
-            lo, hi = model.jnt_range[j]
-            adr = model.jnt_qposadr[j]
-            qpos[adr] = np.clip(qpos[adr], lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))
+    lo, hi = qpos_limits(model)
+    bounded = np.isfinite(lo)
+    margin = 0.1 * (hi[bounded] - lo[bounded])
+    qpos[bounded] = np.clip(qpos[bounded], lo[bounded] + margin, hi[bounded] - margin)
     return np.asarray(qpos, dtype=np.float64)
 
 
@@ -88,15 +87,19 @@ def run_demo(
     out: TextIO,
     progress: bool = True,
     local_data: Path | None = None,
+    sources: TruthSources | None = None,
 ) -> dict[str, object]:
     """Run the demo session against the server at `address`; print and return its summary.
 
     `local_data`: the data folder of a server this process runs, so that the stored file is named
-    by its path here; None for a remote server, whose data folder is its own."""
+    by its path here; None for a remote server, whose data folder is its own. `sources`: where
+    the model's MJCF is looked for (default: `local_data`'s store)."""
     answers = _Answers()
     with Client(address) as client:
         client.wait_ready()
-        ref, model = truth_model(client, settings.model, data=local_data, address=address)
+        ref, model = truth_model(
+            client, settings.model, sources or TruthSources(data=local_data), address=address
+        )
         data = mujoco.MjData(model)
         data.qpos[:] = _start_pose(model, np.random.default_rng(settings.seed))
         mujoco.mj_forward(model, data)
@@ -334,7 +337,6 @@ def _report(
         for r in results.values()
         if r.source == Source.PREDICTED and first_frame < r.seq < len(truth)
     ]
-    torques = np.array([r.qfrc_inverse for r in results.values() if r.qfrc_inverse.size])
     delays = np.array([r.receive_to_send_us for r in results.values()]) / 1e3
     extra = summary.ticks - ticks
     lines = [
@@ -356,14 +358,14 @@ def _report(
         "ticks and once in each of predicted and corrected"
     )
     if predicted_errors:
+        unit = " or ".join(sorted(set(dof_units(joint_types(model))), reverse=True)) or "rad"
         lines.append(
-            f"predicted ticks after the first frame: |q error| vs truth median {np.median(predicted_errors):.2e} rad, "
-            f"max {np.max(predicted_errors):.2e} rad"
+            f"predicted ticks after the first frame: |q error| vs truth median {np.median(predicted_errors):.2e} "
+            f"{unit}, max {np.max(predicted_errors):.2e} {unit}"
         )
-    if torques.size:
-        lo, hi = torques.min(axis=0), torques.max(axis=0)
-        ranges = ", ".join(f"[{a:+.2f}, {b:+.2f}]" for a, b in zip(lo, hi, strict=True))
-        lines.append(f"qfrc_inverse range per dof (N m): {ranges}")
+    forces = _force_ranges(model, [*results.values(), *(c for c in corrected if c.seq < ticks)], ticks)
+    if forces:
+        lines.append(forces)
     if delays.size:
         # A LOCKSTEP tick has no deadline: it is answered once its frame is in.
         what = "frame-to-answer (LOCKSTEP)" if lockstep else "deadline-to-send"
@@ -395,6 +397,26 @@ def _report(
         "location": location,
         "predicted_errors": predicted_errors,
     }
+
+
+def _force_ranges(model: mujoco.MjModel, answers: list[TickResult], ticks: int) -> str:
+    """The range of qfrc_inverse of each dof over every answer of the session's ticks: the first
+    answer of each tick and its correction, as the stored frames hold both. A correction comes
+    from the late frame itself, whose motion can ask far larger forces than the prediction did
+    (docs/decisions/0182)."""
+    torques = np.array([r.qfrc_inverse for r in answers if r.qfrc_inverse.size])
+    if not torques.size:
+        return ""
+    units = [FORCE_UNITS[unit] for unit in dof_units(joint_types(model))]
+    ranges = ", ".join(
+        f"[{a:+.2f}, {b:+.2f}] {unit}"
+        for a, b, unit in zip(torques.min(axis=0), torques.max(axis=0), units, strict=True)
+    )
+    corrections = sum(1 for r in answers if r.source == Source.CORRECTED)
+    return (
+        f"qfrc_inverse range per dof over the {len(torques)} answers of the {ticks} ticks "
+        f"({corrections} of them corrections, as stored): {ranges}"
+    )
 
 
 def _expectation(settings: DemoSettings, *, grace: float, history: int, dt: float) -> str:

@@ -37,6 +37,7 @@ __all__ = [
     "UnstableSimulation",
     "load_source",
     "make_object",
+    "qpos_limits",
 ]
 
 
@@ -101,6 +102,19 @@ _INSTABILITY_WARNINGS = tuple(
         mujoco.mjtWarning.mjWARN_BADQACC,
     )
 )
+
+
+def qpos_limits(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """(nq,) lower and upper bounds of each qpos coordinate: the range of a limited hinge or slide
+    joint, else -inf and inf (ball and free joints' coordinates, unlimited joints)."""
+    lo = np.full(model.nq, -np.inf)
+    hi = np.full(model.nq, np.inf)
+    # jnt_type holds numpy ints, which never equal the mjtJoint enum: compare them as ints.
+    scalar = np.isin(model.jnt_type, [int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)])
+    bounded = scalar & model.jnt_limited.astype(bool)
+    addresses = model.jnt_qposadr[bounded]
+    lo[addresses], hi[addresses] = model.jnt_range[bounded].T
+    return lo, hi
 
 
 class UnstableSimulation(RuntimeError):
@@ -241,16 +255,7 @@ class ResearchObject(ABC):
         return np.where(limited, np.clip(u, lo, hi), u)
 
     def _qpos_limits(self) -> tuple[np.ndarray, np.ndarray]:
-        lo = np.full(self.nq, -np.inf)
-        hi = np.full(self.nq, np.inf)
-        for j in range(self.model.njnt):
-            if self.model.jnt_limited[j] and self.model.jnt_type[j] in (
-                mujoco.mjtJoint.mjJNT_HINGE,
-                mujoco.mjtJoint.mjJNT_SLIDE,
-            ):
-                a = self.model.jnt_qposadr[j]
-                lo[a], hi[a] = self.model.jnt_range[j]
-        return lo, hi
+        return qpos_limits(self.model)
 
     def _computed_torque(self, qpos: np.ndarray, qvel: np.ndarray, qacc_desired: np.ndarray) -> np.ndarray:
         """Generalized forces that give `qacc_desired` at (qpos, qvel): M qacc + bias, by mj_inverse."""

@@ -35,7 +35,7 @@ __all__ = [
 ]
 
 # Small PNGs: the docs commit them.
-_DPI = 72
+_DPI = 144
 
 _Item = TypeVar("_Item")
 _Label = TypeVar("_Label", bound=str)  # a run's name in a plot's legend
@@ -185,6 +185,13 @@ def _finish(fig: matplotlib.figure.Figure, path: Path) -> None:
         image.convert("RGB").quantize(colors=256).save(path, format="PNG", optimize=True)
 
 
+def _unit(trace: Trace, dof: int, block: str) -> str:
+    """The unit of `block` (q, qd, qdd) of one dof: rad, rad/s, rad/s² on a rotation, m... on a
+    translation; "rad or m" when the trace does not say."""
+    unit = trace.dof_units[dof] if dof < len(trace.dof_units) else "rad or m"
+    return unit + {"q": "", "qd": "/s", "qdd": "/s²"}[block] if "or" not in unit else unit
+
+
 def plot_estimates(
     traces: Mapping[_Label, Trace], path: Path, *, title: str, joints: Sequence[int] | None = None
 ) -> None:
@@ -197,7 +204,7 @@ def plot_estimates(
     blocks = ("q", "qd", "qdd")[: first.nx // first.nv]
     rows = list(joints) if joints is not None else list(range(first.nv))
     fig, axes = _pyplot().subplots(
-        len(rows), len(blocks), figsize=(3.2 * len(blocks), 1.7 * len(rows) + 0.6), squeeze=False
+        len(rows), len(blocks), figsize=(3.6 * len(blocks), 2.0 * len(rows) + 0.7), squeeze=False
     )
     styles = ("--", ":", "-.")
     # With the control fed from the estimate (CONTROLLED), every run moves its own way: each run's
@@ -229,10 +236,11 @@ def plot_estimates(
                     trace.t, estimate[:, joint], styles[i % len(styles)], color=color, lw=1.0, label=label
                 )
             name = first.joint_names[joint] if joint < len(first.joint_names) else str(joint)
-            ax.set_title(f"{name}: {block}", fontsize=8)
-            ax.tick_params(labelsize=7)
+            ax.set_title(f"{name}: {block}", fontsize=9)
+            ax.set_ylabel(f"{block} ({_unit(first, joint, block)})", fontsize=8)
+            ax.tick_params(labelsize=8)
             if r == len(rows) - 1:
-                ax.set_xlabel("t (s)", fontsize=7)
+                ax.set_xlabel("t (s)", fontsize=8)
     axes[0][0].legend(fontsize=6, loc="best")
     fig.suptitle(title, fontsize=9)
     _finish(fig, path)
@@ -240,14 +248,14 @@ def plot_estimates(
 
 def plot_error_over_time(traces: Mapping[_Label, Trace], path: Path, *, title: str, joint: int) -> None:
     """|q error| of one joint over time, log scale (the thesis' figure 4.15 for myoHand's 23rd joint)."""
-    fig, ax = _pyplot().subplots(figsize=(6, 2.8))
+    fig, ax = _pyplot().subplots(figsize=(7, 3.6))
     for label, trace in traces.items():
         truth, estimate = trace.component("q")
         err = np.abs(truth[:, joint] - estimate[:, joint])
         ax.semilogy(trace.t, np.maximum(err, 1e-12), lw=1.0, label=label)
-    name = next(iter(traces.values())).joint_names[joint]
+    first = next(iter(traces.values()))
     ax.set_xlabel("t (s)")
-    ax.set_ylabel(f"|q error| {name}")
+    ax.set_ylabel(f"|q error| of {first.joint_names[joint]} ({_unit(first, joint, 'q')})")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=7)
     _finish(fig, path)
@@ -262,7 +270,7 @@ def plot_gap_errors(
     marks: Sequence[float] = (),
 ) -> None:
     """RMS q error against the time since the last frame, one line per estimator (log scale)."""
-    fig, ax = _pyplot().subplots(figsize=(5.5, 3.2))
+    fig, ax = _pyplot().subplots(figsize=(7, 4))
     for label, profile in profiles.items():
         hs = sorted(profile)
         ax.semilogy(
@@ -289,7 +297,7 @@ def plot_bars(
     log: bool = False,
 ) -> None:
     """Grouped bars: one group per model, one bar per series (e.g. per worker count)."""
-    fig, ax = _pyplot().subplots(figsize=(max(4.5, 1.1 * len(groups) + 2), 3.2))
+    fig, ax = _pyplot().subplots(figsize=(max(6, 1.3 * len(groups) + 2.5), 4))
     width = 0.8 / max(1, len(series))
     x = np.arange(len(groups))
     for i, (label, values) in enumerate(series.items()):

@@ -46,7 +46,14 @@ def parser() -> argparse.ArgumentParser:
             f"experiments (default: all, in this order):\n{lines}\n\n"
             "Without --server, an in-process server is started on a loopback port (and, for fig_4_16, one "
             "per worker count); its stored sessions go to --data (default: a temporary folder, removed "
-            "after)."
+            "after).\n\n"
+            "environment:\n"
+            "  JITDYN_SERVER       the server to run against, as --server (a flag wins)\n"
+            "  JITDYN_SECRET       hex HMAC key of the in-process server's subject pseudonyms; without it,\n"
+            "                      JITDYN_SECRET_FILE or ~/.config/jitdyn/secret.key, created at first start\n"
+            "  MUJOCO_GL           MuJoCo's GL backend: one MuJoCo cannot start with is a usage error\n\n"
+            "exit codes: 0 done (report.md written in --out), 1 an experiment or the server failed (one line\n"
+            "on stderr says why), 2 usage error, 130 interrupted"
         ),
     )
     p.add_argument("names", nargs="*", metavar="NAME", help="experiments to run (default: all)")

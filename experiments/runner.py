@@ -24,6 +24,8 @@ from jitdyn.experiments.netem import PERFECT, NetworkProfile, Schedule, gap_sche
 from jitdyn.experiments.objects import ResearchObject, TrueState, UnstableSimulation
 from jitdyn.experiments.progress import progress_bar
 from jitdyn.experiments.recorded import research_object
+from jitdyn.registry.info import joint_types
+from jitdyn.storage.records import dof_units
 from jitdyn.vocabulary import Channel, Clock, EstimatorKind, Output, Preset, Scenario
 
 __all__ = ["ModelCache", "RunSpec", "Trace", "estimate_of", "run_lockstep"]
@@ -92,6 +94,7 @@ class Trace:
     stopped: tuple[float, str] | None = (
         None  # (t, why) when the truth became unstable and the run ended early
     )
+    dof_units: tuple[str, ...] = ()  # (nv,) "rad" or "m" (storage.records.dof_units); () unknown
 
     @property
     def nx(self) -> int:
@@ -307,6 +310,7 @@ def run_lockstep(
         nq=nq,
         nv=nv,
         joint_names=tuple(opened.model.joint_names),
+        dof_units=dof_units(joint_types(obj.model)),
         settings=dict(opened.estimator),
         measurement_dim=len(measured_channels) * nv,
         t=np.arange(ticks) * dt,

@@ -1,7 +1,7 @@
 """The model the demo simulates its truth with: the registered model a session opens, compiled here
 from its MJCF. A built-in comes with jitdyn; another is read from the registry's store in a local
 data folder, or packed again from myo-sim for a MyoSuite model, and must have the registered
-content id. What cannot be found says, in one line, why and what to do (docs/decisions/0141).
+content id. What cannot be found says, in one line, why and what to do (docs/decisions/0141, 0181).
 
     ref, model = truth_model(client, "myoelbow", data=Path("jitdyn-data"), address=address)
 """
@@ -9,6 +9,7 @@ content id. What cannot be found says, in one line, why and what to do (docs/dec
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
@@ -19,7 +20,33 @@ from jitdyn.registry import builtin_model_path, content_id
 from jitdyn.registry.store import blob_path, read_blob
 from jitdyn.settings import parse_model_reference
 
-__all__ = ["truth_model"]
+__all__ = ["TruthSources", "truth_model"]
+
+
+@dataclass(frozen=True)
+class TruthSources:
+    """Where the demo looks for a registered model's MJCF besides the built-ins and myo-sim."""
+
+    # A data folder whose registry store may hold it: the server's, or one on this machine.
+    data: Path | None = None
+    # The MJCF file the model was registered from, and the folder of its assets (default: its own).
+    mjcf: Path | None = None
+    asset_dir: Path | None = None
+
+
+def _file_source(ref: ModelRef, sources: TruthSources) -> tuple[str, dict[str, bytes]] | None:
+    """The MJCF and assets of `sources.mjcf`, which must be the content registered as `ref`."""
+    if sources.mjcf is None:
+        return None
+    from jitdyn.client.assets import read_model_files
+
+    mjcf, assets = read_model_files(sources.mjcf, asset_dir=sources.asset_dir)
+    if content_id(mjcf, assets) != ref.id:
+        raise InvalidArgument(
+            f"--mjcf {sources.mjcf} is not the content registered as {ref.name} v{ref.version}: its id is "
+            f"{content_id(mjcf, assets)}, the registered one {ref.id} (another version, or other assets?)"
+        )
+    return mjcf, assets
 
 
 def _myo_source(ref: ModelRef) -> tuple[str, dict[str, bytes]] | None:
@@ -46,26 +73,28 @@ def _myo_source(ref: ModelRef) -> tuple[str, dict[str, bytes]] | None:
 
 
 def truth_model(
-    client: Client, reference: str, *, data: Path | None, address: str
+    client: Client, reference: str, sources: TruthSources, *, address: str
 ) -> tuple[ModelRef, mujoco.MjModel]:
     """The registered model `reference` names (see parse_model_reference), and the MjModel of its
-    MJCF. `data`: a local data folder whose registry store may hold it (None for a remote server).
+    MJCF, looked for in `sources`, then in myo-sim.
 
     Raises NotFound for a model the server does not have, FailedPrecondition when its MJCF is not
-    to be had here."""
+    to be had here, InvalidArgument for a --mjcf file of other content."""
     model_id, name, version = parse_model_reference(reference)
     ref = client.get_model(model_id=model_id, name=name, version=version)
     if ref.builtin:
         return ref, mujoco.MjModel.from_xml_path(str(builtin_model_path(ref.name)))
-    source = None
-    if data is not None and (data / blob_path(ref.id)).is_file():
-        source = read_blob(data, blob_path(ref.id))
+    source = _file_source(ref, sources)
+    # A content id names one content wherever it is stored: any data folder's copy will do.
+    if source is None and sources.data is not None and (sources.data / blob_path(ref.id)).is_file():
+        source = read_blob(sources.data, blob_path(ref.id))
     source = source or _myo_source(ref)
     if source is None:
+        looked = f", nor in {sources.data}" if sources.data is not None else ""
         raise FailedPrecondition(
             f"{ref.name} v{ref.version} is registered at {address}, but the demo simulates its truth here "
-            "and has no copy of its MJCF: run the demo without --server, on the data folder that holds it "
-            "(--data DIR)"
+            f"and has no copy of its MJCF{looked}: give the file it was registered from (--mjcf FILE, "
+            "with --asset-dir for its assets), or run the demo on the data folder that holds it (--data DIR)"
         )
     mjcf, assets = source
     try:

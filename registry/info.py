@@ -26,6 +26,7 @@ __all__ = [
     "check_name",
     "check_tag",
     "describe_model",
+    "joint_types",
     "stored_defaults",
 ]
 
@@ -137,6 +138,11 @@ class ModelInfo(ModelShape):
 
 def _name_of(model: mujoco.MjModel, kind: mujoco.mjtObj, index: int, fallback: str) -> str:
     return mujoco.mj_id2name(model, kind, index) or f"{fallback}{index}"
+
+
+def joint_types(model: mujoco.MjModel) -> tuple[JointType, ...]:
+    """The type of each of the model's joints, in its order."""
+    return tuple(_JOINT_TYPES[int(t)] for t in model.jnt_type)
 
 
 def describe_model(model: mujoco.MjModel) -> ModelShape:

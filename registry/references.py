@@ -25,7 +25,7 @@ import defusedxml.ElementTree as DET
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
 
-__all__ = ["CheckedModel", "asset_key", "check_asset_names", "check_model"]
+__all__ = ["CheckedModel", "MissingAsset", "asset_key", "check_asset_names", "check_model"]
 
 # tinyxml2, MuJoCo's XML parser, refuses documents nested deeper than this.
 _MAX_DEPTH = 500
@@ -36,6 +36,15 @@ _MESHDIR_ELEMENTS = frozenset({"mesh", "skin", "hfield", "flexcomp"})
 _TEXTUREDIR_ELEMENTS = frozenset({"texture"})
 _DIR_ATTRIBUTES = ("assetdir", "meshdir", "texturedir")
 _LISTED_ASSETS = 10
+
+
+class MissingAsset(InvalidArgument):
+    """A file reference that names no asset: `referrer` (an element, where it is) refers to
+    `name`, the asset MuJoCo would read first."""
+
+    def __init__(self, message: str, *, referrer: str, name: str) -> None:
+        super().__init__(message)
+        self.referrer, self.name = referrer, name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -270,9 +279,11 @@ class _Checker:
             how = f" ({directory_setting} {directory!r} + {name!r})" if directory else f" (from {value!r})"
         others = [other for other in dict.fromkeys(candidates[1:]) if other != candidates[0]]
         nor = f"; nor is {' or '.join(repr(other) for other in others)}" if others else ""
-        raise InvalidArgument(
+        raise MissingAsset(
             f"{self._where(placed)} attribute {attribute} refers to file {candidates[0]!r}{how}, which is not "
-            f"among the request's assets{nor} ({self._listing()})"
+            f"among the request's assets{nor} ({self._listing()})",
+            referrer=self._where(placed),
+            name=candidates[0],
         )
 
     def _parse_asset(self, name: str) -> _Document:

@@ -60,6 +60,7 @@ DEFAULT_PAGE_SIZE = 50
 MAX_PAGE_SIZE = 1000
 # Concurrent registrations of one name race for its next version; the loser re-reads and retries.
 _INSERT_ATTEMPTS = 20
+_LISTED_NAMES = 12
 _LISTED_VERSIONS = 20
 _BUILTIN_TENANT = ""
 _NO_METADATA = ModelMetadata()
@@ -169,6 +170,21 @@ class ModelRegistry(Closeable):
             return own
         return sa.or_(own, sa.and_(models.c.builtin == sa.true(), models.c.tenant == _BUILTIN_TENANT))
 
+    def _names_listed(self, tenant: str) -> str:
+        """'the registered models are a, b, ... (12 in all)': the names `tenant` sees, for a
+        message about a name that is not one of them."""
+        with self._engine.connect() as connection:
+            names = list(
+                connection.execute(
+                    sa.select(models.c.name).where(self._visible(tenant)).distinct().order_by(models.c.name)
+                ).scalars()
+            )
+        if not names:
+            return "no model is registered"
+        shown = ", ".join(names[:_LISTED_NAMES])
+        more = f", ... ({len(names)} in all: jitdyn models list)" if len(names) > _LISTED_NAMES else ""
+        return f"the registered models are {shown}{more}"
+
     @staticmethod
     def _info(row: sa.Row[Any]) -> ModelInfo:
         described = json.loads(row.description_json)
@@ -263,7 +279,7 @@ class ModelRegistry(Closeable):
                         tenant=tenant,
                         builtin=builtin,
                         shape=shape,
-                        metadata=metadata,
+                        metadata=self._with_earlier_tags(connection, tenant, name, latest, metadata),
                         blob=blob,
                         size=size,
                     )
@@ -277,6 +293,20 @@ class ModelRegistry(Closeable):
         raise RuntimeError(
             f"could not register model {name!r}: {_INSERT_ATTEMPTS} concurrent registrations won the race first"
         )
+
+    def _with_earlier_tags(
+        self, connection: sa.Connection, tenant: str, name: str, latest: int | None, metadata: ModelMetadata
+    ) -> ModelMetadata:
+        """`metadata`, with the tags of version `latest` of `name` when it gives none: a new
+        version of a model is still what its tags said (registering with tags replaces them)."""
+        if not latest or metadata.tags:
+            return metadata
+        tags = connection.execute(
+            sa.select(models.c.tags).where(
+                models.c.tenant == tenant, models.c.name == name, models.c.version == latest
+            )
+        ).scalar_one()
+        return dataclasses.replace(metadata, tags=tuple(tags.split()))
 
     def _check_quota(
         self, connection: sa.Connection, tenant: str, mjcf: str, assets: Mapping[str, bytes]
@@ -399,7 +429,7 @@ class ModelRegistry(Closeable):
                 .order_by(models.c.version.desc())
             ).all()
         if not rows:
-            raise NotFound(f"no model is named {name!r}")
+            raise NotFound(f"no model is named {name!r}; {self._names_listed(tenant)}")
         if version == 0:
             return self._info(rows[0])
         for row in rows:

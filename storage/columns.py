@@ -22,6 +22,7 @@ from jitdyn.storage.records import SessionHeader, TickRecord
 __all__ = [
     "ARRAY_FIELDS",
     "FLOAT_LIST",
+    "FRAME_COLUMN_NOTES",
     "FRAME_SCHEMA",
     "ID_COLUMNS",
     "LOG_SCHEMA",
@@ -88,6 +89,47 @@ ID_COLUMNS: Final[tuple[pa.Field, ...]] = (
 )
 
 FRAME_SCHEMA: Final = pa.schema([*ID_COLUMNS, *LOG_SCHEMA])
+
+# What each column of the `frames` view holds, with its unit: `sessions query --help` prints these.
+# The arrays' elements are named, with their units, by the `coordinates` table (storage.query,
+# docs/decisions/0183).
+FRAME_COLUMN_NOTES: Final = {
+    "session_id": "the session",
+    "model_name": "the model's name",
+    "kind": "result (an answer) or rejected (a frame refused)",
+    "seq": "the tick, from 0",
+    "source": "MEASURED, PREDICTED or CORRECTED; empty for a rejected frame",
+    "t": "s: the tick's time on the client's clock, since the session's start",
+    "server_time": "s: when the server answered, on its clock, since the session's start",
+    "frame_received": "the tick's frame was there when it was answered",
+    "frame_t": "s: the frame's own client time",
+    "late_ticks": "ticks: a CORRECTED result's count of ticks answered since it was due, itself included; 0 else",
+    "frame_delay": "s: REALTIME, the frame's arrival after its tick's deadline, server clock (< 0: early)",
+    "nis": "the filter's normalised innovation squared (no unit)",
+    "reinitialised": "the divergence guard restarted the filter at this tick",
+    "late_compute": "answered without the estimator, the server overloaded (null: not stored then)",
+    "compute_us": "us: the server's compute time of the answer",
+    "receive_to_send_us": "us: from the arrival of what made the answer (or the tick's deadline) to its send",
+    "reject_reason": "a rejected frame's reason (BAD_SHAPE, TOO_OLD, ...)",
+    "reject_message": "the server's words for it",
+    "frame_qpos": "(nq) the frame's qpos: rad or m per coordinates.unit, quaternions unitless",
+    "frame_qvel": "(nv) the frame's qvel: rad/s or m/s",
+    "frame_qacc": "(nv) the frame's qacc: rad/s^2 or m/s^2",
+    "frame_ctrl": "(nu) the frame's controls, in the actuators' units",
+    "frame_sensordata": "(nsensordata) the frame's sensor values, in the sensors' units",
+    "qpos": "(nq) the answered qpos",
+    "qvel": "(nv) the answered qvel",
+    "qacc": "(nv) the answered qacc",
+    "qfrc_inverse": "(nv) inverse dynamics' generalized force: N m on a rotation, N on a translation",
+    "qacc_forward": "(nv) forward dynamics' qacc under the answered state",
+    "actuator_force": "(nu) the actuators' forces",
+    "sensordata": "(nsensordata) the answered sensor values",
+    "covariance_diagonal": "(state) the filter's variances, in the squared units of its state",
+    "filter_state": "(state) the filter's state [q, qd] or [q, qd, qdd] (or with the force)",
+    "forecast_weights": "(4) a gap's weights of MODEL, STATIC, CONSTANT_VELOCITY, CONSTANT_ACCELERATION",
+    "model": "the Hive partition: the model's name",
+    "date": "the Hive partition: the session's start date (UTC)",
+}
 
 _GETTERS: Final = {f.name: operator.attrgetter(f.name) for f in SCALAR_FIELDS} | {
     name: operator.attrgetter(name) for name in ARRAY_FIELDS

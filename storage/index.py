@@ -277,6 +277,7 @@ class SessionIndex:
         *,
         tenant: str,
         model_name: str | None = None,
+        model_version: int | None = None,
         model_id: str | None = None,
         scenario: Scenario | str | None = None,
         pseudonym: str | None = None,
@@ -303,6 +304,7 @@ class SessionIndex:
             )
         filters = {
             "model_name": model_name,
+            "model_version": model_version,
             "model_id": model_id,
             "scenario": scenario,
             "pseudonym": pseudonym,
@@ -316,6 +318,8 @@ class SessionIndex:
         query = sa.select(sessions).where(c.tenant == tenant)
         if model_name is not None:
             query = query.where(c.model_name == model_name)
+        if model_version is not None:
+            query = query.where(c.model_version == model_version)
         if model_id is not None:
             query = query.where(c.model_id == model_id)
         if scenario is not None:

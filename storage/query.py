@@ -1,5 +1,5 @@
 """SQL over the stored sessions with DuckDB: the tenant's Parquet files as `frames`, its index rows
-as `sessions`.
+as `sessions`, and the names and units of the elements of frames' arrays as `coordinates`.
 
     table = run_query(
         "SELECT s.subject_pseudonym, max(list_max(f.qfrc_inverse)) FROM frames f "
@@ -33,9 +33,12 @@ import sqlalchemy as sa
 from jitdyn.errors import InvalidArgument, Unavailable
 from jitdyn.storage.columns import FRAME_SCHEMA
 from jitdyn.storage.index import SessionIndex, SessionRow
+from jitdyn.storage.joints import stored_joints
+from jitdyn.storage.parquet import read_metadata
+from jitdyn.storage.records import FORCE_UNITS
 from jitdyn.storage.root import is_uri, open_location
 
-__all__ = ["SESSIONS_SCHEMA", "run_query", "sessions_table"]
+__all__ = ["COORDINATES_SCHEMA", "SESSIONS_SCHEMA", "coordinates_table", "run_query", "sessions_table"]
 
 _log = logging.getLogger(__name__)
 
@@ -70,6 +73,20 @@ SESSIONS_SCHEMA: Final = pa.schema(
     ]
 )
 _PARTITIONS: Final = (pa.field("model", pa.string()), pa.field("date", pa.date32()))
+# One row per element of a session's arrays: `vector` 'qpos' (frame_qpos, qpos: nq) or 'dof' (qvel,
+# qacc, qfrc_inverse, ...: nv); `i` as DuckDB indexes a list, from 1. `unit` of the coordinate (its
+# rates per s and s^2; '' for a quaternion's), `force_unit` of a dof's generalized force.
+COORDINATES_SCHEMA: Final = pa.schema(
+    [
+        pa.field("session_id", pa.string()),
+        pa.field("vector", pa.string()),
+        pa.field("i", pa.int32()),
+        pa.field("name", pa.string()),
+        pa.field("joint", pa.string()),
+        pa.field("unit", pa.string()),
+        pa.field("force_unit", pa.string()),
+    ]
+)
 
 
 def sessions_table(rows: Sequence[SessionRow]) -> pa.Table:
@@ -107,6 +124,44 @@ def sessions_table(rows: Sequence[SessionRow]) -> pa.Table:
         for name, value in values.items():
             columns[name].append(value)
     return pa.table(columns, schema=SESSIONS_SCHEMA)
+
+
+def coordinates_table(metadata: Sequence[dict[str, Any]]) -> pa.Table:
+    """The `coordinates` rows of the sessions whose files' metadata (storage.parquet) is given."""
+    rows: list[dict[str, Any]] = []
+    for meta in metadata:
+        session = meta.get("session_id", "")
+        for joint in stored_joints(meta):
+            units = joint.dof_units
+            for k, (position, name) in enumerate(zip(joint.qpos, joint.qpos_names, strict=True)):
+                # A free joint's x, y, z are metres; quaternion components have no unit.
+                unit = units[0] if len(joint.qpos) == 1 else "m" if k < 3 and len(joint.qpos) == 7 else ""
+                rows.append({"session_id": session, "vector": "qpos", "i": position + 1, "name": name,
+                             "joint": joint.name, "unit": unit, "force_unit": ""})  # fmt: skip
+            for dof, name, unit in zip(joint.dofs, joint.dof_names, units, strict=True):
+                rows.append({"session_id": session, "vector": "dof", "i": dof + 1, "name": name,
+                             "joint": joint.name, "unit": unit, "force_unit": FORCE_UNITS.get(unit, "")})  # fmt: skip
+    return pa.Table.from_pylist(rows, schema=COORDINATES_SCHEMA)
+
+
+def _session_metadata(
+    rows: Sequence[SessionRow], *, data_root: Path, environ: Mapping[str, str]
+) -> list[dict[str, Any]]:
+    """The metadata of each session's Parquet file that can be read; a missing one is left out (its
+    frames are too)."""
+    found = []
+    for row in rows:
+        if not row.location:
+            continue
+        try:
+            if is_uri(row.location):
+                filesystem, path = open_location(row.location, data=data_root, environ=environ)
+                found.append(read_metadata(path, filesystem=filesystem))
+            else:
+                found.append(read_metadata(data_root / row.location))
+        except (OSError, InvalidArgument):
+            continue
+    return found
 
 
 def _sql_string(text: str) -> str:
@@ -162,7 +217,9 @@ def _root_datasets(rows: Sequence[SessionRow], *, data_root: Path, environ: Mapp
     return pads.dataset(datasets) if datasets else None
 
 
-def _connect(*, sessions: pa.Table, files: list[str], dataset: Any = None) -> duckdb.DuckDBPyConnection:
+def _connect(
+    *, sessions: pa.Table, coordinates: pa.Table, files: list[str], dataset: Any = None
+) -> duckdb.DuckDBPyConnection:
     con = duckdb.connect(
         ":memory:",
         config={"autoinstall_known_extensions": False, "autoload_known_extensions": False},
@@ -171,6 +228,7 @@ def _connect(*, sessions: pa.Table, files: list[str], dataset: Any = None) -> du
         # Otherwise a query could read any Python variable in scope by naming it.
         con.execute("SET python_enable_replacements = false")
         con.register("sessions", sessions)
+        con.register("coordinates", coordinates)
         empty = pa.schema([*FRAME_SCHEMA, *_PARTITIONS]).empty_table()
         con.register("_empty_frames", empty)
         if dataset is not None:
@@ -213,12 +271,16 @@ def run_query(
     without a result (CREATE VIEW) gives an empty table, a write gives DuckDB's count of rows written.
     """
     rows = SessionIndex(engine).all_sessions(tenant=tenant)
+    env = os.environ if environ is None else environ
+    tables = {
+        "sessions": sessions_table(rows),
+        "coordinates": coordinates_table(_session_metadata(rows, data_root=data_root, environ=env)),
+    }
     if any(is_uri(row.location) for row in rows):
-        env = os.environ if environ is None else environ
         dataset = _root_datasets(rows, data_root=data_root, environ=env)
-        con = _connect(sessions=sessions_table(rows), files=[], dataset=dataset)
+        con = _connect(**tables, files=[], dataset=dataset)
     else:
-        con = _connect(sessions=sessions_table(rows), files=_frame_files(rows, data_root))
+        con = _connect(**tables, files=_frame_files(rows, data_root))
     try:
         relation = con.sql(sql)
         if relation is None:

@@ -24,6 +24,7 @@ from jitdyn.vocabulary import Clock, JointType, Scenario, SessionStatus
 
 __all__ = [
     "FINAL_STATUSES",
+    "FORCE_UNITS",
     "JOINT_WIDTHS",
     "KINDS",
     "SessionHeader",
@@ -151,6 +152,10 @@ def dof_units(joint_types: tuple[JointType, ...]) -> tuple[str, ...]:
         else:
             units.append("rad")
     return tuple(units)
+
+
+# The unit of a generalized force along a dof of each unit (dof_units).
+FORCE_UNITS: Final = {"rad": "N m", "m": "N"}
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

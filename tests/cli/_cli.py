@@ -26,3 +26,14 @@ def jitdyn(
         timeout=300,
         check=False,
     )
+
+
+def listed(table: str) -> list[dict[str, str]]:
+    """The rows of `jitdyn sessions list`'s table (a header, a rule, the rows) by column header."""
+    lines = table.splitlines()
+    spans, start = [], 0
+    for dashes in lines[1].split("  "):
+        spans.append((start, start + len(dashes)))
+        start += len(dashes) + 2
+    headers = [lines[0][a:b].strip() for a, b in spans]
+    return [{h: line[a:b].strip() for h, (a, b) in zip(headers, spans, strict=True)} for line in lines[2:]]

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _cli import jitdyn
+from _cli import jitdyn, listed
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -250,8 +250,9 @@ def test_demo_summary_and_sessions_list_agree(demo_run: tuple[str, str, Path]) -
     out, _, data = demo_run
     counts = re.search(r"server's summary, as `jitdyn sessions list` shows it: (ticks .*)", out)
     assert counts, out
-    listing = ok(jitdyn("sessions", "list", "--data", str(data)))
-    assert counts.group(1) in listing, (counts.group(1), listing)
+    (row,) = listed(ok(jitdyn("sessions", "list", "--data", str(data))))
+    said = dict(re.findall(r"(\w+) +(\d+)", counts.group(1)))
+    assert said == {name: row[name] for name in said} and len(said) == 6, (said, row)
     assert "counts once in ticks and once in each of predicted and corrected" in out
 
 
@@ -281,14 +282,13 @@ def test_the_readme_query_counts_ticks_as_the_index_does(demo_run: tuple[str, st
             io.StringIO(ok(jitdyn("sessions", "query", sql.group(1), "--format", "csv", "--data", str(data))))
         )
     )
-    listing = ok(jitdyn("sessions", "list", "--data", str(data)))
-    ticks = int(re.search(r"ticks +(\d+)", listing).group(1))  # type: ignore[union-attr]
-    assert sum(int(r["ticks"]) for r in rows) == ticks, (rows, listing)
+    (listing,) = listed(ok(jitdyn("sessions", "list", "--data", str(data))))
+    assert sum(int(r["ticks"]) for r in rows) == int(listing["ticks"]), (rows, listing)
 
 
 def test_sto_export_has_a_legend_of_source(demo_run: tuple[str, str, Path], tmp_path: Path) -> None:
     _, _, data = demo_run
-    session_id = ok(jitdyn("sessions", "list", "--data", str(data))).split()[0]
+    session_id = listed(ok(jitdyn("sessions", "list", "--data", str(data))))[0]["id"]
     ok(
         jitdyn(
             "sessions",

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _cli import jitdyn
+from _cli import jitdyn, listed
 
 from jitdyn.errors import JitdynError
 
@@ -217,9 +217,9 @@ def test_verbose_puts_no_migration_lines_before_a_listing(sessions_data: tuple[P
 
 def test_sessions_list_prints_the_scenario_as_stored(sessions_data: tuple[Path, list[str]]) -> None:
     data, ids = sessions_data
-    listing = jitdyn("sessions", "list", "--data", str(data)).stdout
-    line = next(line for line in listing.splitlines() if line.startswith(ids[0]))
-    assert re.search(r" pendulum_1 v1  PASSIVE +LOCKSTEP +ticks", line), line
+    listing = listed(jitdyn("sessions", "list", "--limit", "500", "--data", str(data)).stdout)
+    (row,) = [row for row in listing if row["id"] == ids[0]]
+    assert (row["model"], row["scenario"], row["clock"]) == ("pendulum_1 v1", "PASSIVE", "LOCKSTEP"), row
 
 
 def test_a_session_id_prefix_is_accepted(sessions_data: tuple[Path, list[str]], tmp_path: Path) -> None:
@@ -475,8 +475,8 @@ def test_demo_of_a_model_whose_mjcf_is_not_here_says_why(server: Any, tmp_path: 
     result = jitdyn("demo", "--model", "swing", "--server", server.address)
     assert one_line_error(result, 1) == (
         f"jitdyn demo: FailedPrecondition: swing v1 is registered at {server.address}, but the demo simulates "
-        "its truth here and has no copy of its MJCF: run the demo without --server, on the data folder that "
-        "holds it (--data DIR)"
+        "its truth here and has no copy of its MJCF: give the file it was registered from (--mjcf FILE, "
+        "with --asset-dir for its assets), or run the demo on the data folder that holds it (--data DIR)"
     )
     unknown = jitdyn("demo", "--model", "no_such_model:2", "--server", server.address)
     assert one_line_error(unknown, 1).startswith("jitdyn demo: NotFound: ")
@@ -497,3 +497,326 @@ def test_demo_of_a_model_registered_in_the_data_folder(tmp_path: Path) -> None:
     counts = summary_counts(result.stdout)
     assert counts["ticks"] >= 20 and counts["predicted"] + counts["measured"] >= 20, result.stdout
     assert re.search(r"predicted ticks after the first frame: \|q error\| vs truth median", result.stdout)
+
+
+# -- the demo's summary: forces in the units of each dof, over the answers the store holds ------------
+
+
+def test_the_demos_force_ranges_are_the_stored_ones_in_each_dofs_unit(server: Any) -> None:
+    out = jitdyn(
+        "demo", "--model", "biped", "--seconds", "1s", "--clock", "realtime", "--server", server.address
+    )
+    assert out.returncode == 0, out.stderr
+    session_id = re.search(r"^session (\S+):", out.stdout, re.MULTILINE)
+    ranges = re.search(
+        r"^qfrc_inverse range per dof over .*?\((\d+) of them corrections, as stored\): (.*)$",
+        out.stdout,
+        re.MULTILINE,
+    )
+    assert session_id and ranges, out.stdout
+    assert int(ranges.group(1)) > 0, "no tick was corrected: the test proves nothing"
+    printed = re.findall(r"\[([-+\d.]+), ([-+\d.]+)\] (N m|N)(?:,|$)", ranges.group(2))
+    # root_x, root_z (slides: N), then each leg's hip (hinge: N m) and absorber (slide: N).
+    assert [unit for *_, unit in printed] == ["N", "N", "N m", "N", "N m", "N"], ranges.group(2)
+    bounds = ", ".join(f"min(qfrc_inverse[{i}]) lo{i}, max(qfrc_inverse[{i}]) hi{i}" for i in range(1, 7))
+    sql = (
+        f"SELECT {bounds} FROM frames WHERE session_id = '{session_id.group(1)}' AND kind = 'result' "
+        "AND seq < 100"
+    )
+    stored = jitdyn("sessions", "query", sql, "--format", "json", "--data", str(server.services.data_root))
+    assert stored.returncode == 0, stored.stderr
+    row = json.loads(stored.stdout)
+    for i, (lo, hi, _) in enumerate(printed, start=1):
+        assert (float(lo), float(hi)) == (round(row[f"lo{i}"], 2), round(row[f"hi{i}"], 2)), (i, printed, row)
+
+
+# -- files that are not UTF-8 MJCF, a missing mesh ----------------------------------------------------
+
+
+def test_a_file_that_is_not_text_is_one_line(server: Any, tmp_path: Path) -> None:
+    png = tmp_path / "arm.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    result = jitdyn("models", "register", str(png), "--server", server.address)
+    assert one_line_error(result, 1) == (
+        f"jitdyn models register: InvalidArgument: {str(png)!r} is not UTF-8 text (byte 0x89 at offset 0), "
+        "and no XML declaration names its encoding: an MJCF file is XML text"
+    )
+
+
+def test_an_mjcf_in_the_encoding_its_declaration_names_registers(server: Any, tmp_path: Path) -> None:
+    latin = tmp_path / "bras.xml"
+    latin.write_bytes(
+        '<?xml version="1.0" encoding="ISO-8859-1"?>\n<!-- le bras gauche, épaule fixe -->\n'
+        '<mujoco model="bras"><worldbody><body><joint name="coude" type="hinge"/>'
+        '<geom size=".1" mass="1"/></body></worldbody></mujoco>\n'.encode("iso-8859-1")
+    )
+    result = jitdyn("models", "register", str(latin), "--server", server.address)
+    assert result.returncode == 0, result.stderr
+    assert re.match(r"registered: sha256:\w+  bras v1  nq=1 ", result.stdout), result.stdout
+
+
+def test_a_missing_mesh_says_where_it_looked_and_names_asset_dir(server: Any, tmp_path: Path) -> None:
+    arm = tmp_path / "arm.xml"
+    arm.write_text(
+        '<mujoco><asset><mesh name="upper" file="meshes/upper.stl"/></asset>\n<worldbody><body>'
+        '<joint type="hinge"/><geom type="mesh" mesh="upper"/></body></worldbody></mujoco>',
+        encoding="utf-8",
+    )
+    result = jitdyn("models", "register", str(arm), "--server", server.address)
+    assert one_line_error(result, 1) == (
+        f"jitdyn models register: InvalidArgument: mesh 'upper' (line 1) names the file 'meshes/upper.stl', "
+        f"which is not in the MJCF's folder {str(tmp_path)!r} (looked for "
+        f"{str(tmp_path / 'meshes/upper.stl')!r}); give the folder that holds the model's files with "
+        "--asset-dir DIR"
+    )
+
+
+# -- the demo of a model registered from a file, against a server; its start pose ---------------------
+
+# An elbow whose range starts at its rest pose, as myoelbow's: a start moved below it is outside.
+ELBOW = """<mujoco model="elbow">
+  <compiler angle="radian"/>
+  <worldbody><body pos="0 0 1"><joint name="elbow" type="hinge" axis="0 1 0" range="0 2.27" damping="0.5"/>
+    <geom type="capsule" size=".03" fromto="0 0 0 .3 0 0" mass="1"/></body></worldbody>
+</mujoco>
+"""
+
+
+def test_the_demo_runs_a_model_the_server_holds_inside_its_range(server: Any, tmp_path: Path) -> None:
+    mjcf = tmp_path / "elbow.xml"
+    mjcf.write_text(ELBOW, encoding="utf-8")
+    registered = jitdyn("models", "register", str(mjcf), "--server", server.address)
+    assert registered.returncode == 0, registered.stderr
+    demo = [
+        "demo",
+        "--model",
+        "elbow",
+        "--seconds",
+        "0.3s",
+        "--clock",
+        "lockstep",
+        "--server",
+        server.address,
+    ]
+    data = str(server.services.data_root)
+    sessions = []
+    for extra in (["--mjcf", str(mjcf)], ["--data", data]):
+        result = jitdyn(*demo, *extra, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        sessions.append(re.search(r"^session (\S+):", result.stdout, re.MULTILINE).group(1))  # type: ignore[union-attr]
+    ids = ", ".join(f"'{s}'" for s in sessions)
+    sql = f"SELECT frame_qpos[1] AS q FROM frames WHERE session_id IN ({ids}) AND seq = 0"
+    starts = jitdyn("sessions", "query", sql, "--format", "json", "--data", data)
+    assert starts.returncode == 0, starts.stderr
+    for line in starts.stdout.splitlines():
+        assert 0.0 <= json.loads(line)["q"] <= 2.27, starts.stdout
+    other = tmp_path / "other.xml"
+    other.write_text(ELBOW.replace('damping="0.5"', 'damping="0.6"'), encoding="utf-8")
+    wrong = jitdyn(*demo, "--mjcf", str(other), cwd=tmp_path)
+    assert "is not the content registered as elbow v1: its id is sha256:" in one_line_error(wrong, 1)
+
+
+# -- one casing everywhere, help that explains --------------------------------------------------------
+
+
+def test_the_demo_takes_its_words_in_any_case(server: Any) -> None:
+    for scenario, estimator, clock in (
+        ("PASSIVE", "ukf", "LockStep"),
+        ("passive", "Constant_Velocity", "lockstep"),
+    ):
+        result = jitdyn(
+            "demo", "--seconds", "0.2s", "--model", "pendulum_1", "--server", server.address,
+            "--scenario", scenario, "--estimator", estimator, "--clock", clock,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr
+        assert f"passive, dt 50 ms, 4 ticks, LOCKSTEP, estimator {estimator.upper()}" in result.stdout
+    bad = jitdyn("demo", "--scenario", "hovering")
+    assert one_line_error(bad, 2) == (
+        "jitdyn demo: error: argument --scenario: expected one of passive, controlled, external, driven "
+        "(in any case), got 'hovering'"
+    )
+
+
+def test_every_demo_option_has_help() -> None:
+    import argparse
+
+    from jitdyn.cli.main import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    demo = commands.choices["demo"]
+    silent = [a.option_strings[0] for a in demo._actions if a.option_strings and not a.help]
+    assert silent == [], silent
+
+
+# -- the version, options before the action, the sessions table, render by prefix ---------------------
+
+
+def test_the_version_is_the_installed_packages() -> None:
+    from importlib.metadata import version
+
+    result = jitdyn("--version")
+    assert (result.returncode, result.stdout) == (0, f"jitdyn {version('jitdyn')}\n"), result.stderr
+
+
+def test_an_actions_options_go_before_it_too(sessions_data: tuple[Path, list[str]]) -> None:
+    data, _ = sessions_data
+    after = jitdyn("sessions", "list", "--limit", "2", "--status", "complete", "--data", str(data))
+    assert after.returncode == 0 and len(listed(after.stdout)) == 2, after.stdout + after.stderr
+    for args in (
+        ["--limit", "2", "--status", "COMPLETE", "list"],
+        ["--limit=2", "--data", str(data), "--status", "Complete", "list"],
+        ["-v", "--limit", "2", "list", "--status", "complete"],
+    ):
+        before = jitdyn("sessions", *args, "--data", str(data))
+        assert (before.returncode, before.stdout) == (0, after.stdout), before.stderr
+
+
+def test_sessions_list_has_a_header_and_takes_a_version(server: Any, tmp_path: Path) -> None:
+    from jitdyn.client import Client, FrameData, SessionOptions
+
+    long_name = "a_model_with_a_name_longer_than_the_column_was"
+    mjcf = tmp_path / f"{long_name}.xml"
+    with Client(server.address, timeout=30) as client:
+        for damping in (0.21, 0.22):  # two versions of one name
+            mjcf.write_text(ELBOW.replace('damping="0.5"', f'damping="{damping}"'), encoding="utf-8")
+            assert jitdyn("models", "register", str(mjcf), "--server", server.address).returncode == 0
+            with client.open_session(
+                SessionOptions(model_name=long_name, dt=0.05, clock="LOCKSTEP")
+            ) as session:
+                session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0]))
+    data = str(server.services.data_root)
+    table = jitdyn("sessions", "list", "--data", data).stdout
+    header, _, *rows = table.splitlines()
+    assert header.split() == [
+        "id", "started", "status", "model", "scenario", "clock", "ticks", "measured", "predicted", "corrected",
+        "rejected", "late",
+    ]  # fmt: skip
+    # Every column starts where its header does, however long a model's name.
+    for name in ("status", "scenario", "clock"):
+        column = header.index(name)
+        assert all(row[column - 2 : column] == "  " and row[column] != " " for row in rows[:3]), (name, table)
+    assert {len(row) for row in rows} == {len(header)}, table  # the counts right-aligned under theirs
+    for reference, versions in ((f"{long_name}:2", ["v2"]), (long_name, ["v2", "v1"])):
+        shown = listed(jitdyn("sessions", "list", "--model", reference, "--data", data).stdout)
+        assert [row["model"].split()[-1] for row in shown] == versions, shown
+    none = jitdyn("sessions", "list", "--model", f"{long_name}:3", "--data", data)
+    assert none.returncode == 0 and none.stdout == "", none.stdout
+    assert none.stderr.startswith("no sessions match; the stored sessions are of "), none.stderr
+    assert f"{long_name} v1, {long_name} v2" in none.stderr
+
+
+def test_render_takes_an_id_prefix(sessions_data: tuple[Path, list[str]], tmp_path: Path) -> None:
+    data, ids = sessions_data
+    out = tmp_path / "frame.png"
+    result = jitdyn("sessions", "render", ids[0][:8], "--out", str(out), "--data", str(data))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == f"rendered {ids[0]} to {out}"
+    assert out.stat().st_size > 0
+
+
+# -- the registry: unknown names list the known ones; a new version keeps its tags --------------------
+
+
+def test_an_unknown_model_lists_the_models_there_are(server: Any) -> None:
+    result = jitdyn("models", "show", "pendulum_4", "--server", server.address)
+    message = one_line_error(result, 1)
+    assert message.startswith(
+        "jitdyn models show: NotFound: no model is named 'pendulum_4'; the registered models are "
+    ), message
+    assert "biped, " in message and "pendulum_1, pendulum_2, pendulum_3" in message
+
+
+def test_a_new_version_keeps_the_tags_of_the_last(server: Any, tmp_path: Path) -> None:
+    mjcf = tmp_path / "tagged_arm.xml"
+    tags: list[str] = []
+    for damping, given in ((0.31, ["--tag", "lab", "--tag", "arm"]), (0.32, []), (0.33, ["--tag", "v3"])):
+        mjcf.write_text(ELBOW.replace('damping="0.5"', f'damping="{damping}"'), encoding="utf-8")
+        result = jitdyn("models", "register", str(mjcf), *given, "--server", server.address)
+        assert result.returncode == 0, result.stderr
+        tags.append(result.stdout.split("tags=")[1].strip())
+    assert tags == ["lab,arm", "lab,arm", "v3"], tags
+
+
+def test_experiments_help_gives_the_exit_codes_and_the_environment() -> None:
+    help_text = jitdyn("experiments", "--help", preamble=BASE_INSTALL).stdout
+    assert (
+        "exit codes: 0 done (report.md written in --out), 1 an experiment or the server failed" in help_text
+    )
+    environment = help_text[help_text.index("environment:\n") :]
+    for name in ("JITDYN_SERVER", "JITDYN_SECRET", "JITDYN_SECRET_FILE", "MUJOCO_GL"):
+        assert name in environment, help_text
+
+
+def test_the_readme_tells_a_first_sdk_session_what_it_needs(server: Any) -> None:
+    import dataclasses
+
+    from jitdyn.client import Client, FrameData, Opened, Rejection, SessionOptions
+
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = readme[readme.index("What else a first session needs to know:") : readme.index("### Async")]
+    said = " ".join(section.split())
+    assert "`send_frame` and `skip` return a `TickResult` or a `Rejection`" in said
+    assert '`model_name="arm"` opens the newest version of `arm`; `model_version=2` pins one' in said
+    quoted = re.search(r'rejected BAD_SHAPE \("(.+?)"\)', said)
+    assert quoted and 'measured=["QPOS", "QVEL", "QACC"]' in said, said
+    named = re.findall(
+        r"`(\w+)`", said[said.index("`s.opened` is") : said.index("The calls that change nothing")]
+    )
+    fields = {field.name for field in dataclasses.fields(Opened)}
+    assert len(named) >= 8 and set(named) <= fields | {"s", "opened"}, set(named) - fields
+    with Client(server.address, timeout=30) as client:
+        options = SessionOptions(model_name="pendulum_1", scenario="PASSIVE", dt=0.05)
+        with client.open_session(options) as session:
+            answer = session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0], qacc=[1.0]))
+        assert isinstance(answer, Rejection) and answer.reason == "BAD_SHAPE", answer
+        assert quoted.group(1) in answer.message, answer.message
+        measured = dataclasses.replace(options, measured=["QPOS", "QVEL", "QACC"])
+        with client.open_session(measured) as session:
+            answer = session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.3], qvel=[0.0], qacc=[1.0]))
+        assert not isinstance(answer, Rejection), answer
+
+
+# -- the frames' arrays named, their columns' units documented ----------------------------------------
+
+
+def test_every_frames_column_is_explained_with_its_unit(sessions_data: tuple[Path, list[str]]) -> None:
+    from jitdyn.storage.columns import FRAME_COLUMN_NOTES
+
+    data, _ = sessions_data
+    described = jitdyn("sessions", "query", "DESCRIBE frames", "--format", "json", "--data", str(data))
+    assert described.returncode == 0, described.stderr
+    columns = [json.loads(line)["column_name"] for line in described.stdout.splitlines()]
+    assert columns == list(FRAME_COLUMN_NOTES), set(columns) ^ set(FRAME_COLUMN_NOTES)
+    help_text = jitdyn("sessions", "query", "--help").stdout
+    assert "  frame_delay          s: REALTIME, the frame's arrival after its tick's deadline" in help_text
+    assert "(table `coordinates`:" in help_text
+
+
+def test_coordinates_name_each_element_of_the_arrays_with_its_unit(server: Any) -> None:
+    from jitdyn.client import Client, FrameData, SessionOptions
+
+    options = SessionOptions(model_name="biped", scenario="PASSIVE", dt=0.01, clock="LOCKSTEP")
+    with Client(server.address, timeout=30) as client, client.open_session(options) as session:
+        session.send_frame(FrameData(seq=0, t=0.0, qpos=[0.0, 0.9, 0.3, 0.0, -0.3, 0.0], qvel=[0.0] * 6))
+    sql = (
+        "SELECT c.vector, c.i, c.name, c.unit, c.force_unit, f.frame_qpos[c.i] AS q FROM frames f "
+        f"JOIN coordinates c USING (session_id) WHERE session_id = '{session.opened.session_id}' "
+        "AND f.seq = 0 ORDER BY c.vector DESC, c.i"
+    )
+    result = jitdyn("sessions", "query", sql, "--format", "json", "--data", str(server.services.data_root))
+    assert result.returncode == 0, result.stderr
+    rows = [json.loads(line) for line in result.stdout.splitlines()]
+    names = ["root_x", "root_z", "left_hip", "left_absorber", "right_hip", "right_absorber"]
+    assert [(r["vector"], r["name"]) for r in rows] == [("qpos", n) for n in names] + [
+        ("dof", n) for n in names
+    ]
+    assert [r["q"] for r in rows[:6]] == [0.0, 0.9, 0.3, 0.0, -0.3, 0.0]
+    assert [(r["unit"], r["force_unit"]) for r in rows[6:]] == [
+        ("m", "N"), ("m", "N"), ("rad", "N m"), ("m", "N"), ("rad", "N m"), ("m", "N"),
+    ]  # fmt: skip
+
+
+def test_the_readme_says_how_long_the_suite_takes() -> None:
+    readme = " ".join((ROOT / "README.md").read_text(encoding="utf-8").split())
+    assert "The default run takes about 12 to 16 minutes on a 2-core machine." in readme

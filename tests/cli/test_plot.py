@@ -221,7 +221,7 @@ def test_a_failed_session_still_plots_with_its_status(stored: Stored, tmp_path: 
 
 
 def test_the_first_joints_by_default_or_those_named_in_order() -> None:
-    from jitdyn.cli.joints import MAX_SHOWN, choose_joints, stored_joints
+    from jitdyn.storage.joints import MAX_SHOWN, choose_joints, stored_joints
 
     names = [f"j{i}" for i in range(MAX_SHOWN + 2)]
     joints = stored_joints({"joint_names": names, "joint_types": ["hinge"] * len(names)})
@@ -306,8 +306,8 @@ def big_table(ticks: int, nq: int) -> pa.Table:
 
 
 def test_a_long_session_is_decimated_and_says_so_with_nothing_lost() -> None:
-    from jitdyn.cli.joints import stored_joints
     from jitdyn.cli.session_figure import decimation, draw_session
+    from jitdyn.storage.joints import stored_joints
     from jitdyn.storage.timeline import session_timeline
 
     timeline = session_timeline(big_table(120_000, 2))

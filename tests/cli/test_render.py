@@ -103,18 +103,36 @@ def test_the_caption_says_what_answered_the_tick(stored: Stored, tmp_path: Path)
 def test_a_gif_has_a_frame_every_drawn_tick_and_says_it_was_decimated(stored: Stored, tmp_path: Path) -> None:
     out = tmp_path / "realtime.gif"
     result = ok(render(stored.realtime, "--data", str(stored.data), "--out", str(out)))
-    # Ticks of 25 ms are 40 a second; a GIF shows at most 20: every 2nd tick, 50 ms each. (The
+    # Ticks of 25 ms are 40 a second; a GIF shows at most 12.5: every 4th tick, 100 ms each. (The
     # server's clock ends the session a tick or two after the 30 frames sent.)
     said = re.search(
-        r"decimated: every 2 ticks one frame, (\d+) frames of (\d+) ticks, at 20 frames a second",
+        r"decimated: every 4 ticks one frame, (\d+) frames of (\d+) ticks, at 10 frames a second",
         result.stderr,
     )
     assert said, result.stderr
     frames, ticks = int(said[1]), int(said[2])
-    assert ticks >= 30 and frames == (ticks + 1) // 2, (frames, ticks)
+    assert ticks >= 30 and frames == (ticks + 3) // 4, (frames, ticks)
     with PIL.open(out) as gif:
-        assert gif.n_frames == frames and gif.info["duration"] == 50
-        assert gif.size == (640, 480)
+        assert gif.n_frames == frames and gif.info["duration"] == 100
+        assert gif.size == (480, 360)
+
+
+def test_a_ten_second_gif_is_small(server: Any, tmp_path: Path) -> None:
+    from jitdyn.registry import builtin_model_path
+
+    model = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
+    data = mujoco.MjData(model)
+    data.qpos[:] = [0.8, -0.4, 0.3]
+    options = SessionOptions(model_name="pendulum_3", scenario="PASSIVE", dt=0.05, clock="LOCKSTEP")
+    with Client(server.address, timeout=60) as client, client.open_session(options) as session:
+        for k in range(200):
+            session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=data.qpos, qvel=data.qvel))
+            mujoco.mj_step(model, data, round(0.05 / model.opt.timestep))
+    out = tmp_path / "ten.gif"
+    ok(render(session.opened.session_id, "--data", str(server.services.data_root), "--out", str(out)))
+    with PIL.open(out) as gif:
+        assert gif.n_frames == 100 and gif.info["duration"] == 100, (gif.n_frames, gif.info)  # every 2nd tick
+    assert out.stat().st_size < 1_000_000, out.stat().st_size
 
 
 def test_an_mp4_of_a_failed_session_plays_in_real_time(stored: Stored, tmp_path: Path) -> None:
@@ -244,3 +262,20 @@ def test_a_mujoco_gl_that_cannot_render_offscreen_is_named() -> None:
         InvalidArgument, match=r"^MUJOCO_GL in the environment must be osmesa or egl .*, got 'glx'$"
     ):
         choose_gl(None, {"MUJOCO_GL": "glx"})
+
+
+def test_an_elbow_is_seen_in_profile_with_the_arm_before_its_skeleton() -> None:
+    from jitdyn.cli.scene import session_view
+    from jitdyn.client.myo import pack_myo_model
+    from jitdyn.registry import builtin_model_path
+
+    model = mujoco.MjModel.from_xml_string(*pack_myo_model("myoelbow"))
+    view = session_view(model, np.linspace(0.3, 1.5, 20)[:, None])
+    assert view.azimuth in (0.0, 180.0), view  # along the elbow's axis, x
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    camera_x = view.center[0] - view.distance(45.0, 4 / 3) * np.cos(np.radians(view.azimuth))
+    torso = data.xpos[model.body("torso").id]
+    assert abs(camera_x - view.center[0]) < abs(camera_x - torso[0]), (camera_x, view.center, torso)
+    pendulum = mujoco.MjModel.from_xml_path(str(builtin_model_path("pendulum_3")))
+    assert session_view(pendulum, np.zeros((2, 3))).azimuth == 90.0  # the pendulums' swing, as before

@@ -201,3 +201,44 @@ def test_the_xsens_sensors_must_hold_a_walk(tmp_path: Path) -> None:
     short.write_text("\n".join(lines[:1000]), encoding="utf-8")
     with pytest.raises(ValueError, match=r"short.txt must hold a finite walk of 10 s or more, got 8.3 s"):
         load_xsens((short, short))
+
+
+# An elbow (qpos0 0, range [0, 2.27] as myoelbow's) and a slider whose range is narrower than the
+# demo's smallest move; a free joint, which has no range.
+_LIMITED = """
+<mujoco>
+  <compiler angle="radian"/>
+  <worldbody>
+    <body pos="0 0 1"><joint name="elbow" type="hinge" axis="0 1 0" range="0 2.27"/>
+      <geom type="capsule" size=".03" fromto="0 0 0 0 0 -.3" mass="1"/></body>
+    <body pos="1 0 1"><joint name="slider" type="slide" axis="0 0 1" range="-0.1 0.1"/>
+      <geom size=".05" mass="1"/></body>
+    <body pos="2 0 1"><freejoint/><geom size=".05" mass="1"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_qpos_limits_are_the_ranges_of_limited_hinges_and_slides() -> None:
+    import mujoco
+
+    from jitdyn.experiments.objects import qpos_limits
+
+    lo, hi = qpos_limits(mujoco.MjModel.from_xml_string(_LIMITED))
+    np.testing.assert_allclose(lo[:2], [0.0, -0.1])
+    np.testing.assert_allclose(hi[:2], [2.27, 0.1])
+    assert np.all(np.isneginf(lo[2:])) and np.all(np.isposinf(hi[2:]))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_the_demos_start_pose_keeps_inside_the_joint_ranges(seed: int) -> None:
+    import mujoco
+
+    from jitdyn.experiments.demo import _start_pose
+
+    model = mujoco.MjModel.from_xml_string(_LIMITED)
+    qpos = _start_pose(model, np.random.default_rng(seed))
+    assert 0.227 - 1e-12 <= qpos[0] <= 2.27 * 0.9 + 1e-12, qpos[0]
+    assert -0.08 - 1e-12 <= qpos[1] <= 0.08 + 1e-12, qpos[1]
+    assert not np.allclose(qpos[2:], model.qpos0[2:])  # the free joint moved, on its manifold
+    np.testing.assert_allclose(np.linalg.norm(qpos[5:9]), 1.0)
