@@ -1,4 +1,4 @@
-"""The layering of README.md (Layout), read from the imports of the installed `jitdyn` package.
+"""The layering of docs/architecture.md (The parts), read from the imports of the installed `jitdyn` package.
 
     cli > experiments > client > server (transport > runtime > estimation) > registry, storage
         > jitdyn.v1, jitdyn.errors, jitdyn.checksum

@@ -274,9 +274,9 @@ def test_the_clock_offset_is_explained(demo_run: tuple[str, str, Path]) -> None:
 
 def test_the_readme_query_counts_ticks_as_the_index_does(demo_run: tuple[str, str, Path]) -> None:
     _, _, data = demo_run
-    readme = (ROOT / "README.md").read_text(encoding="utf-8")
-    sql = re.search(r"jitdyn sessions query \"(SELECT[^\"]+)\"", readme)
-    assert sql, "the README shows a `jitdyn sessions query` example"
+    page = (ROOT / "docs" / "data.md").read_text(encoding="utf-8")
+    sql = re.search(r"jitdyn sessions query \"(SELECT[^\"]+)\"", page)
+    assert sql, "the manual's data page shows a `jitdyn sessions query` example"
     rows = list(
         csv.DictReader(
             io.StringIO(ok(jitdyn("sessions", "query", sql.group(1), "--format", "csv", "--data", str(data))))
@@ -416,4 +416,4 @@ def test_a_missing_extra_is_named(hidden: str, command: list[str], message: str,
 def test_the_readme_lists_every_setting() -> None:
     from jitdyn.settings import settings_table
 
-    assert settings_table() in (ROOT / "README.md").read_text(encoding="utf-8")
+    assert settings_table() in (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import datetime
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -39,7 +40,9 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str, dict[s
     data = work / "data"
     ok(jitdyn("demo", "--seconds", "2", "--model", "pendulum_2", "--data", str(data), cwd=work))
     listed = ok(jitdyn("sessions", "list", "--data", str(data))).split()
-    session_id = next(word for word in listed if len(word) == 36)
+    session_id = next(
+        word for word in listed if re.fullmatch(r"[0-9a-f]{8}(-[0-9a-f]{4}){3}-[0-9a-f]{12}", word)
+    )
     shown = ok(jitdyn("sessions", "show", session_id, "--data", str(data)))
     details = json.loads(shown[shown.index("{") :])
     details["listed_start"] = " ".join(listed[listed.index(session_id) + 1 : listed.index(session_id) + 3])

@@ -120,9 +120,9 @@ def test_two_replicas_publish_to_one_bucket_that_a_third_machine_reads(
     assert [(r["session_id"], r["model"], r["ticks"], r["last"]) for r in rows] == [
         (session_id, "pendulum_2", ticks, ticks - 1) for session_id, ticks in stored.items()
     ]
-    readme = (REPO / "README.md").read_text(encoding="utf-8")
-    example = re.search(r'jitdyn sessions --index \S+ query \\\n\s*"(SELECT[^"]+)"', readme)
-    assert example, "the README's section on the data root shows a query on S3"
+    page = (REPO / "docs" / "operating" / "replicas.md").read_text(encoding="utf-8")
+    example = re.search(r'jitdyn sessions --index \S+ query \\\n\s*"(SELECT[^"]+)"', page)
+    assert example, "the manual's section on the data root shows a query on S3"
     answer = sessions_cli(index, "query", example.group(1), "--format=json", cwd=machine, env=cli_env)
     assert [json.loads(line) for line in answer.splitlines()] == [
         {"model": "pendulum_2", "sessions": 2, "answers": sum(stored.values())}
