@@ -25,7 +25,13 @@ from typing import Final
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from jitdyn.experiments.prior_sources import RATE, SUBJECTS, digest, fetch_archives, walking_legs
+from jitdyn.experiments.prior_sources import (
+    RATE,
+    SUBJECTS,
+    digest,
+    fetch_archives,
+    walking_legs,
+)
 from jitdyn.server.estimation.extrapolators import moved
 from jitdyn.server.estimation.prior import (
     FEATURE_TIME,
@@ -94,7 +100,7 @@ def score(library: PriorLibrary, legs: list[np.ndarray]) -> tuple[np.ndarray, np
         for i, h in enumerate(HORIZONS):
             t = np.full(anchors.size, h / RATE)
             eq, ev, _ = moved(q0, v0, a0, t[:, None])  # (S, 3, J)
-            pq, pv, _ = follow_library(library, columns, rows, weights, t, q0, v0, a0)
+            pq, pv, _ = follow_library(library, columns, rows, weights, t, (q0, v0, a0))
             errors = np.concatenate([eq, pq[:, None, :]], axis=1) - leg[anchors + h][:, None, columns]
             verrors = np.concatenate([ev, pv[:, None, :]], axis=1) - v[anchors + h][:, None, columns]
             total[i] += np.einsum("spj,sqj->pq", errors, errors)

@@ -35,7 +35,7 @@ from scipy.signal import butter, filtfilt
 
 from jitdyn.experiments.recorded import load_isen, load_xsens
 
-__all__ = ["ARCHIVES", "LOWPASS", "RATE", "SUBJECTS", "fetch_archives", "walking_legs"]
+__all__ = ["ARCHIVES", "LOWPASS", "RATE", "SUBJECTS", "default_cache", "fetch_archives", "walking_legs"]
 
 RATE: Final = 100.0  # Hz, the prior's
 LOWPASS: Final = 10.0  # Hz: a gait analysis' usual cut-off for joint angles
@@ -82,26 +82,40 @@ def digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def walking_legs(archives: dict[str, Path]) -> dict[str, list[np.ndarray]]:
-    """{subject: legs}, each leg (T, 3) hip flexion, knee flexion, ankle dorsiflexion (rad, 100 Hz;
-    NaN for no ankle), low-passed."""
-    isen = load_isen("isen_gait")  # right hip, right knee, left hip, left knee
-    nan = np.full((isen.shape[0], 1), np.nan)
-    legs = {"isen": [np.hstack([isen[:, 0:2], nan]), np.hstack([isen[:, 2:4], nan])]}
-    xsens = load_xsens()
-    legs["xsens"] = [np.hstack([xsens, np.full((xsens.shape[0], 1), np.nan)])]
-    with tarfile.open(archives["gaitkit-1.5.0.tar.gz"]) as tar:
-        for subject, name in _GAITKIT.items():
-            member = tar.extractfile(f"gaitkit-1.5.0/src/gaitkit/data/{name}")
+def default_cache() -> Path:
+    """Where the downloaded sdists are kept unless told: ~/.cache/jitdyn/prior-sources."""
+    return Path.home() / ".cache" / "jitdyn" / "prior-sources"
+
+
+def walking_legs(archives: dict[str, Path], *, only: str | None = None) -> dict[str, list[np.ndarray]]:
+    """{subject: legs} (only: that subject's), each leg (T, 3) hip flexion, knee flexion, ankle
+    dorsiflexion (rad, 100 Hz; NaN for no ankle), low-passed."""
+    wanted = list(SUBJECTS) if only is None else [only]
+    if only is not None and only not in SUBJECTS:
+        raise ValueError(f"no subject {only!r}; the subjects are {', '.join(SUBJECTS)}")
+    legs = {subject: _legs(subject, archives) for subject in wanted}
+    return {subject: [_lowpass(leg) for leg in each] for subject, each in legs.items()}
+
+
+def _legs(subject: str, archives: dict[str, Path]) -> list[np.ndarray]:
+    if subject == "isen":
+        isen = load_isen("isen_gait")  # right hip, right knee, left hip, left knee
+        nan = np.full((isen.shape[0], 1), np.nan)
+        return [np.hstack([isen[:, 0:2], nan]), np.hstack([isen[:, 2:4], nan])]
+    if subject == "xsens":
+        xsens = load_xsens()
+        return [np.hstack([xsens, np.full((xsens.shape[0], 1), np.nan)])]
+    if subject in _GAITKIT:
+        with tarfile.open(archives["gaitkit-1.5.0.tar.gz"]) as tar:
+            member = tar.extractfile(f"gaitkit-1.5.0/src/gaitkit/data/{_GAITKIT[subject]}")
             if member is None:
-                raise FileNotFoundError(f"gaitkit-1.5.0.tar.gz has no {name}")
-            legs[subject] = _gaitkit_legs(json.load(member))
+                raise FileNotFoundError(f"gaitkit-1.5.0.tar.gz has no {_GAITKIT[subject]}")
+            return _gaitkit_legs(json.load(member))
     with tarfile.open(archives["GaitAnalysisToolKit-0.2.0.tar.gz"]) as tar:
         member = tar.extractfile(_MOORE)
         if member is None:
             raise FileNotFoundError(f"GaitAnalysisToolKit-0.2.0.tar.gz has no {_MOORE}")
-        legs["moore"] = [_moore_leg(member.read().decode("utf-8"))]
-    return {subject: [_lowpass(leg) for leg in each] for subject, each in legs.items()}
+        return [_moore_leg(member.read().decode("utf-8"))]
 
 
 def _lowpass(leg: np.ndarray) -> np.ndarray:
@@ -130,7 +144,7 @@ def _sagittal(points: dict[str, np.ndarray]) -> np.ndarray:
 
     def pitch(a: str, b: str) -> np.ndarray:  # angle of b below a, from the downward vertical
         d = points[b] - points[a]
-        return np.arctan2(d[:, 0], -d[:, 1])
+        return np.asarray(np.arctan2(d[:, 0], -d[:, 1]))
 
     thigh, shank = pitch("hip", "knee"), pitch("knee", "ankle")
     foot = points["toe"] - points["heel"]

@@ -24,13 +24,27 @@ Cost: a match is one pass over the library's candidates, O(N F) for N candidates
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
 
 import numpy as np
 
-__all__ = ["FEATURE_TIME", "LAGS", "PRIOR_FILE", "K", "Leg", "PriorLibrary", "PriorMatcher"]
+from jitdyn.roles import JointRole
+
+__all__ = [
+    "FEATURE_TIME",
+    "LAGS",
+    "PRIOR_FILE",
+    "K",
+    "Leg",
+    "PriorLibrary",
+    "PriorMatcher",
+    "legs_of",
+    "library",
+    "prior_without",
+]
 
 PRIOR_FILE: Final = Path(__file__).with_name("human_prior.npz")
 # The feature: angle changes over these lags (s), and the velocity times FEATURE_TIME (s), so that
@@ -40,6 +54,34 @@ FEATURE_TIME: Final = 0.1
 K: Final = 10
 FADE: Final = 0.1
 JOINTS: Final = ("hip", "knee", "ankle")  # the library's columns, as jitdyn.roles names them
+_WITHOUT: Final = "prior.without."
+
+
+def prior_without(tags: tuple[str, ...]) -> tuple[str, ...]:
+    """The subjects a model's tags "prior.without.<subject>" leave out of its prior (a model of a
+    recorded person: that person's recordings never score it)."""
+    return tuple(tag[len(_WITHOUT) :] for tag in tags if tag.startswith(_WITHOUT))
+
+
+@functools.lru_cache(maxsize=8)
+def library(without: tuple[str, ...] = ()) -> PriorLibrary:
+    """The shipped library, `without` those subjects; read once per process and choice."""
+    return PriorLibrary.load(without=without)
+
+
+def legs_of(roles: tuple[JointRole, ...]) -> tuple[Leg, ...]:
+    """The legs of a model's joint roles: one per side with a hip and a knee (an ankle if it has
+    one); a lone hip, knee or ankle is no leg (its motion alone says little of the gait's phase)."""
+    out = []
+    for side in sorted({r.side for r in roles}):
+        by_kind = {r.kind: r for r in roles if r.side == side}
+        if "hip" not in by_kind or "knee" not in by_kind:
+            continue
+        picked = [by_kind.get(kind) for kind in JOINTS]
+        dofs = tuple(-1 if r is None else r.dof for r in picked)
+        signs = tuple(1.0 if r is None else r.sign for r in picked)
+        out.append(Leg(dofs=(dofs[0], dofs[1], dofs[2]), signs=(signs[0], signs[1], signs[2])))
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -209,6 +251,16 @@ class PriorMatcher:
     def legs(self) -> int:
         return len(self._legs)
 
+    @property
+    def library(self) -> PriorLibrary:
+        return self._library
+
+    def scores_at(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The library's pooled covariances (4, 4) of q and qd errors at t seconds (PriorScores), or
+        None when it has none."""
+        scores = self._library.scores
+        return None if scores.seconds.size == 0 else scores.at(t)
+
     def record(self, tick: int, qpos: np.ndarray, qvel: np.ndarray) -> None:
         """The frame of `tick` (nv,) each."""
         row = tick % self._ring
@@ -217,36 +269,48 @@ class PriorMatcher:
 
     def match(self, tick: int) -> tuple[np.ndarray, np.ndarray]:
         """(L, K) library rows and weights of each leg's match for the frame of `tick` (recorded);
-        rows NaN for a leg without one (a lag's frame missing)."""
+        rows NaN when that frame is not recorded. A lag whose frame is missing (a gap less than
+        LAGS' longest ago) is left out of the distance: a session with short gaps still matches."""
         rows = np.full((len(self._legs), K), np.nan)
         weights = np.zeros((len(self._legs), K))
-        wanted = [tick - lag for lag in self._lags]
-        if any(self._stamp[t % self._ring] != t for t in [tick, *wanted]):
+        ring = self._ring
+        if self._stamp[tick % ring] != tick:
             return rows, weights
-        now = self._q[tick % self._ring]
+        present = np.array([self._stamp[(tick - lag) % ring] == tick - lag for lag in self._lags] + [True])
+        now = self._q[tick % ring]
         for i, (dofs, signs) in enumerate(zip(self._dofs, self._signs, strict=True)):
-            feature = np.empty((dofs.size, len(LAGS) + 1))
-            for j, t in enumerate(wanted):
-                feature[:, j] = (self._q[t % self._ring, dofs] - now[dofs]) * signs
-            feature[:, -1] = self._v[tick % self._ring, dofs] * signs * FEATURE_TIME
+            feature = np.zeros((dofs.size, len(LAGS) + 1))
+            for j, lag in enumerate(self._lags):
+                if present[j]:
+                    feature[:, j] = (self._q[(tick - lag) % ring, dofs] - now[dofs]) * signs
+            feature[:, -1] = self._v[tick % ring, dofs] * signs * FEATURE_TIME
             query = (feature / self._library.spread[self._columns[i]]).ravel()
-            found, w = nearest(self._features[i], query)
+            mask = np.tile(present, dofs.size).astype(float)
+            found, w = nearest(self._features[i], query, mask)
             rows[i], weights[i] = self._candidates[i][found], w
         return rows, weights
+
+    def state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The frames a match reads (its ring), for a snapshot: a replay after a rewind matches as
+        the first pass did."""
+        return self._stamp.copy(), self._q.copy(), self._v.copy()
+
+    def restore(self, state: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        self._stamp[:], self._q[:], self._v[:] = state
 
     def follow(
         self,
         rows: np.ndarray,
         weights: np.ndarray,
         ages: np.ndarray,
-        q0: np.ndarray,
-        v0: np.ndarray,
+        anchor: tuple[np.ndarray, np.ndarray, np.ndarray],
         fallback: tuple[np.ndarray, np.ndarray, np.ndarray],
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """qpos, qvel, qacc (S, nv) `ages` (S,) ticks on from frames q0, v0 (S, nv), of S matches
-        (rows, weights (S, L, K)): each leg's dofs from its match (constant velocity where it has
-        none), the others `fallback`'s (S, nv) each."""
+        """qpos, qvel, qacc (S, nv) `ages` (S,) ticks on from frames anchor = (q0, v0, a0) (S, nv)
+        each, of S matches (rows, weights (S, L, K)): each leg's dofs from its match (constant
+        velocity where it has none), the others `fallback`'s (S, nv) each."""
         q, v, a = (np.array(x, dtype=float) for x in fallback)
+        q0, v0, a0 = anchor
         t = np.asarray(ages, dtype=float) * self._dt
         for i, (dofs, signs) in enumerate(zip(self._dofs, self._signs, strict=True)):
             lq, lv, la = follow_library(
@@ -255,17 +319,16 @@ class PriorMatcher:
                 rows[:, i],
                 weights[:, i],
                 t,
-                q0[:, dofs] * signs,
-                v0[:, dofs] * signs,
+                (q0[:, dofs] * signs, v0[:, dofs] * signs, a0[:, dofs] * signs),
             )
             q[:, dofs], v[:, dofs], a[:, dofs] = lq * signs, lv * signs, la * signs
         return q, v, a
 
 
-def nearest(features: np.ndarray, query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The K rows of `features` (N, F) nearest to `query` (F,) and their inverse-distance weights,
-    summing to 1."""
-    d = np.square(features - query).sum(axis=1)
+def nearest(features: np.ndarray, query: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The K rows of `features` (N, F) nearest to `query` (F,) over the components `mask` (F,)
+    weighs 1, and their inverse-distance weights, summing to 1."""
+    d = np.square(features - query) @ mask
     found = d.argpartition(K - 1)[:K]
     w = 1.0 / (d[found] + 1e-3 * float(d[found].min()) + 1e-12)
     return found, w / w.sum()
@@ -277,15 +340,14 @@ def follow_library(
     rows: np.ndarray,
     weights: np.ndarray,
     t: np.ndarray,
-    q0: np.ndarray,
-    v0: np.ndarray,
-    a0: np.ndarray,
+    anchor: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(S, J) q, qd, qdd of S matches (rows, weights (S, K)) t (S,) seconds on from q0, v0, a0
-    (S, J), in the library's signs, over its `columns` (J,): the candidates' displacement between
+    """(S, J) q, qd, qdd of S matches (rows, weights (S, K)) t (S,) seconds on from anchor = (q0,
+    v0, a0) (S, J) each, in the library's signs, over its `columns` (J,): the candidates' displacement between
     the row and t later (linear between rows; a candidate whose clip ends before is dropped), and the
     frame's qd and qdd where they differ from theirs, fading with FADE. No match, or no
     continuation left: constant velocity."""
+    q0, v0, a0 = anchor
     known = ~np.isnan(rows[:, 0])
     start = np.where(np.isnan(rows), 0, rows).astype(np.int64)
     later = start + (t * library.rate)[:, None]
@@ -300,7 +362,7 @@ def follow_library(
     Q, V = library.q[:, columns], library.v[:, columns]
 
     def at(x: np.ndarray) -> np.ndarray:
-        return (1.0 - f) * x[below] + f * x[np.minimum(below + 1, x.shape[0] - 1)]
+        return np.asarray((1.0 - f) * x[below] + f * x[np.minimum(below + 1, x.shape[0] - 1)])
 
     mine = np.where(known[:, None], weights, 0.0)
     v_start = np.einsum("sk,skj->sj", mine, V[start])
