@@ -448,14 +448,15 @@ class ForecastCombiner:
             return None
         if not self._marks[i, _MATCHED]:
             self._match(i)
-        weights = self._weights.get(h)
+        matched = self._prior is None or not np.isnan(self._table[i, self._columns.prior_rows]).all()
+        weights = self._weights.get(h) if matched else self._solve_weights(h, matched=False)
         if weights is None:
             weights = self._weights[h] = self._solve_weights(h)
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
         scale = _novelty(q, self._weighing(h)[0], self._static)
         if scale is not None:
-            weights = self._solve_weights(h, scale)
+            weights = self._solve_weights(h, scale, matched=matched)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd, scale)
         return CombinedForecast(
             weights=weights,
@@ -548,20 +549,25 @@ class ForecastCombiner:
     def _last_origin(self) -> int:
         return -1 if self._anchor is None else self._anchor[2]
 
-    def _solve_weights(self, h: int, scale: np.ndarray | None = None) -> np.ndarray:
+    def _solve_weights(self, h: int, scale: np.ndarray | None = None, *, matched: bool = True) -> np.ndarray:
         """The weights of horizon h; LEARNED's 0 until it has LEARNED_SAMPLES scores from real
         matches there, and with the prior, only its scored predictors weigh until h has MIN_SAMPLES
-        scores of the session's own. scale (P,): the novelty guard's factors on the predictors'
-        errors."""
+        scores of the session's own, and PRIOR 0 when the probe it answers has no match of it (its
+        scores were earned by matches). scale (P,): the novelty guard's factors on the
+        predictors' errors."""
         C = self._weighing(h)[0]
         if scale is not None:
             C = scale[:, None] * C * scale[None, :]
         if self._prior_block is not None and self._count[h] < MIN_SAMPLES:
             allowed = self._prior_block
-        elif self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES:
+        elif matched and (self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES):
             return _min_variance_weights(C)
+        elif self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES:
+            allowed = np.arange(len(self._predictors))
         else:
             allowed = self._fixed
+        if not matched:
+            allowed = allowed[allowed != len(self._predictors) - 1]  # PRIOR is the last
         weights = np.zeros(len(self._predictors))
         weights[allowed] = _min_variance_weights(C[allowed[:, None], allowed[None, :]])
         return weights

@@ -53,6 +53,11 @@ LAGS: Final = (0.05, 0.10, 0.15)
 FEATURE_TIME: Final = 0.1
 K: Final = 10
 FADE: Final = 0.1
+# A moment whose nearest library moment is farther than this (squared, per feature component, in
+# spreads) is not one the prior has seen (a jump's take-off and landing: up to 27; the farthest of
+# every walk scored leaving its person out: 2.4): no match, and the prior answers as constant
+# velocity (docs/decisions/0186-prior-predictor.md).
+FARTHEST: Final = 4.0
 JOINTS: Final = ("hip", "knee", "ankle")  # the library's columns, as jitdyn.roles names them
 _WITHOUT: Final = "prior.without."
 
@@ -269,7 +274,8 @@ class PriorMatcher:
 
     def match(self, tick: int) -> tuple[np.ndarray, np.ndarray]:
         """(L, K) library rows and weights of each leg's match for the frame of `tick` (recorded);
-        rows NaN when that frame is not recorded. A lag whose frame is missing (a gap less than
+        rows NaN when that frame is not recorded or its motion is unlike any the library holds
+        (FARTHEST). A lag whose frame is missing (a gap less than
         LAGS' longest ago) is left out of the distance: a session with short gaps still matches."""
         rows = np.full((len(self._legs), K), np.nan)
         weights = np.zeros((len(self._legs), K))
@@ -286,8 +292,9 @@ class PriorMatcher:
             feature[:, -1] = self._v[tick % ring, dofs] * signs * FEATURE_TIME
             query = (feature / self._library.spread[self._columns[i]]).ravel()
             mask = np.tile(present, dofs.size).astype(float)
-            found, w = nearest(self._features[i], query, mask)
-            rows[i], weights[i] = self._candidates[i][found], w
+            found, w, d = nearest(self._features[i], query, mask)
+            if d <= FARTHEST * mask.sum():
+                rows[i], weights[i] = self._candidates[i][found], w
         return rows, weights
 
     def state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -325,13 +332,17 @@ class PriorMatcher:
         return q, v, a
 
 
-def nearest(features: np.ndarray, query: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def nearest(
+    features: np.ndarray, query: np.ndarray, mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float]:
     """The K rows of `features` (N, F) nearest to `query` (F,) over the components `mask` (F,)
-    weighs 1, and their inverse-distance weights, summing to 1."""
+    weighs 1, their inverse-distance weights (summing to 1), and the nearest one's squared
+    distance."""
     d = np.square(features - query) @ mask
     found = d.argpartition(K - 1)[:K]
-    w = 1.0 / (d[found] + 1e-3 * float(d[found].min()) + 1e-12)
-    return found, w / w.sum()
+    nearest_d = float(d[found].min())
+    w = 1.0 / (d[found] + 1e-3 * nearest_d + 1e-12)
+    return found, w / w.sum(), nearest_d
 
 
 def follow_library(
