@@ -22,7 +22,8 @@ import numpy as np
 
 from jitdyn.experiments.metrics import gap_error_profile
 from jitdyn.experiments.objects import ResearchObject, Scenario
-from jitdyn.experiments.recorded import RECORDINGS, SUBJECT, WALKS, RecordedMotion, research_object
+from jitdyn.experiments.prior_sources import WALKS, recorded_walk
+from jitdyn.experiments.recorded import RECORDINGS, SUBJECT, RecordedMotion, research_object
 from jitdyn.experiments.runner import RunSpec, Trace
 from jitdyn.server.estimation.prior import library
 from jitdyn.vocabulary import EstimatorKind
@@ -54,7 +55,7 @@ def repetitive(recording: str) -> bool:
 
 def prior_used(recording: str) -> str:
     """Which prior answers `recording`: its subjects, and who is left out."""
-    subject = SUBJECT.get(recording)
+    subject = subject_of(recording)
     return library(() if subject is None else (subject,)).describe()
 
 
@@ -91,7 +92,16 @@ class PriorRow:
         return "met" if ratio <= limit else f"missed by {ratio - limit:.3g}"
 
 
+def subject_of(recording: str) -> str | None:
+    """Whose motion `recording` is, as the prior names its people (None: none of them)."""
+    walk = recording.removesuffix("_walk")
+    return walk if walk in WALKS and recording.endswith("_walk") else SUBJECT.get(recording)
+
+
 def _recorded(name: str, *, roles: bool) -> RecordedMotion:
+    subject = subject_of(name)
+    if subject in WALKS:
+        return recorded_walk(subject, roles=roles)
     obj = research_object(name, Scenario.EXTERNAL, roles=roles)
     if not isinstance(obj, RecordedMotion):
         raise TypeError(

@@ -33,9 +33,20 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.signal import butter, filtfilt
 
-from jitdyn.experiments.recorded import load_isen, load_xsens
+from jitdyn.experiments.objects import ModelSource, Scenario
+from jitdyn.experiments.recorded import BODY_MASS, RecordedMotion, chain_mjcf, load_isen, load_xsens
 
-__all__ = ["ARCHIVES", "LOWPASS", "RATE", "SUBJECTS", "default_cache", "fetch_archives", "walking_legs"]
+__all__ = [
+    "ARCHIVES",
+    "LOWPASS",
+    "RATE",
+    "SUBJECTS",
+    "WALKS",
+    "default_cache",
+    "fetch_archives",
+    "recorded_walk",
+    "walking_legs",
+]
 
 RATE: Final = 100.0  # Hz, the prior's
 LOWPASS: Final = 10.0  # Hz: a gait analysis' usual cut-off for joint angles
@@ -54,6 +65,8 @@ SUBJECTS: Final = {
     "stroke": "gaitkit 1.5.0 (MIT): Van Criekinge et al. 2023 (CC-BY 4.0), a stroke survivor, overground",
     "moore": "GaitAnalysisToolKit 0.2.0 (Apache-2.0): Moore et al. 2015 subject 7 (CC0), treadmill",
 }
+# The subjects whose walks are short trials replayed as research objects ("<subject>_walk").
+WALKS: Final = ("fukuchi", "parkinson", "stroke", "moore")
 _GAITKIT: Final = {
     "fukuchi": "example_healthy.json",
     "parkinson": "example_parkinson.json",
@@ -197,3 +210,22 @@ def _moore_leg(text: str) -> np.ndarray:
     markers = {"hip": "RGTRO", "knee": "RLEK", "ankle": "RLM", "heel": "RHEE", "toe": "RMT5"}
     points = {part: data[:, [column[f"{m}.PosX"], column[f"{m}.PosY"]]] for part, m in markers.items()}
     return _sagittal(points)
+
+
+def recorded_walk(
+    subject: str, scenario: Scenario = Scenario.EXTERNAL, *, roles: bool = True
+) -> RecordedMotion:
+    """A walk of WALKS, the right leg's hip, knee and ankle flexion at 100 Hz on the hip-knee-ankle
+    chain (its sdist downloaded by pip when missing); its model leaves its person out of the prior
+    (tag prior.without.<subject>); roles False: its joints say no role."""
+    leg = walking_legs(fetch_archives(default_cache()), only=subject)[subject][-1]
+    name = f"{subject}_leg" if roles else f"{subject}_leg_plain"
+    joints = None if roles else ("upper_r", "lower_r", "foot_r")
+    tags = (f"prior.without.{subject}",) if roles else ()
+    source = ModelSource(name=name, mjcf=chain_mjcf(name=name, joints=joints), builtin=False, tags=tags)
+    obj = RecordedMotion(source, leg, rate=RATE, scenario=scenario)
+    obj.description = (
+        f"walking: the right hip, knee and ankle flexion of {SUBJECTS[subject]} ({obj.seconds:.2f} s, "
+        f"100 Hz) on a de Leva (1996) leg of a {BODY_MASS:g} kg male, hip fixed"
+    )
+    return obj

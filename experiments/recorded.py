@@ -70,14 +70,12 @@ __all__ = [
     "ISEN_COLUMNS",
     "RECORDINGS",
     "SUBJECT",
-    "WALKS",
     "RecordedJump",
     "RecordedMotion",
     "load_isen",
     "load_recording",
     "load_xsens",
     "recorded_isen",
-    "recorded_walk",
     "recording_path",
     "research_object",
     "xsens_path",
@@ -440,53 +438,26 @@ def recorded_xsens(scenario: Scenario = Scenario.EXTERNAL, *, roles: bool = True
 
 # The recorded motions by name, and whether each is repetitive (what a learned predictor can learn).
 RECORDINGS: Final = {"cmj": False, "isen_gait": True, "isen_tasks": False, "xsens_gait": True}
-# The walks of the prior's other sources (experiments/prior_sources.py): short overground and
-# treadmill trials, replayed on the hip-knee-ankle chain.
-WALKS: Final = ("fukuchi", "parkinson", "stroke", "moore")
 # Whose motion each recording is, as the prior of human motion names its subjects: the prior that
 # scores it leaves that person out. The jump's person is not among them (biomdp does not say who
 # jumped; the prior holds no jump).
-SUBJECT: Final = {"isen_gait": "isen", "isen_tasks": "isen", "xsens_gait": "xsens"} | {
-    f"{w}_walk": w for w in WALKS
-}
+SUBJECT: Final = {"isen_gait": "isen", "isen_tasks": "isen", "xsens_gait": "xsens"}
 
 
 def research_object(name: str, scenario: Scenario, *, roles: bool = True) -> ResearchObject:
     """Any research object by name: the simulated ones of experiments/objects.py, or a recorded
-    motion of RECORDINGS or a walk of WALKS ("<subject>_walk"; its package's sdist downloaded by
-    pip when missing). A recorded motion's model says its joints' roles by their names and leaves
-    its own person out of the prior (tag prior.without.<subject>); roles False: its joints named so
-    that they say none (no prior: the session's own history alone)."""
+    motion of RECORDINGS. A recorded motion's model says its joints' roles by their names and
+    leaves its own person out of the prior (tag prior.without.<subject>); roles False: its joints
+    named so that they say none (no prior: the session's own history alone)."""
     if name == "cmj":
         obj: ResearchObject = RecordedJump(scenario, roles=roles)
     elif name in _ISEN_PARTS:
         obj = recorded_isen(name, scenario, roles=roles)
     elif name == "xsens_gait":
         obj = recorded_xsens(scenario, roles=roles)
-    elif name.removesuffix("_walk") in WALKS and name.endswith("_walk"):
-        obj = recorded_walk(name.removesuffix("_walk"), scenario, roles=roles)
     else:
         return make_object(name, scenario)
     subject = SUBJECT.get(name)
     if roles and subject is not None:
         obj.source = dataclasses.replace(obj.source, tags=(f"prior.without.{subject}",))
-    return obj
-
-
-def recorded_walk(
-    subject: str, scenario: Scenario = Scenario.EXTERNAL, *, roles: bool = True
-) -> RecordedMotion:
-    """A walk of WALKS, the right leg's hip, knee and ankle flexion (experiments/prior_sources.py)
-    at 100 Hz on the hip-knee-ankle chain."""
-    from jitdyn.experiments.prior_sources import SUBJECTS, default_cache, fetch_archives, walking_legs
-
-    leg = walking_legs(fetch_archives(default_cache()), only=subject)[subject][-1]
-    name = f"{subject}_leg" if roles else f"{subject}_leg_plain"
-    joints = None if roles else ("upper_r", "lower_r", "foot_r")
-    source = ModelSource(name=name, mjcf=chain_mjcf(name=name, joints=joints), builtin=False)
-    obj = RecordedMotion(source, leg, rate=_ISEN_RATE, scenario=scenario)
-    obj.description = (
-        f"walking: the right hip, knee and ankle flexion of {SUBJECTS[subject]} ({obj.seconds:.2f} s, "
-        f"100 Hz) on a de Leva (1996) leg of a {BODY_MASS:g} kg male, hip fixed"
-    )
     return obj

@@ -130,6 +130,8 @@ MAX_NOVELTY: Final = 1e3
 # (docs/decisions/0028-forecast-regime-change.md).
 SURPRISE: Final = 2.0
 
+Predictions = tuple[np.ndarray, np.ndarray, np.ndarray]
+
 # Columns of the probes' integer marks.
 _ORIGIN: Final = 0  # tick of the frame the probe starts from
 _AGE: Final = 1  # ticks carried forward
@@ -605,33 +607,38 @@ class ForecastCombiner:
         self,
         rows: np.ndarray,
         ages: np.ndarray,
-        learned: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+        learned: Predictions | None,
+        prior: Predictions | None = None,
     ) -> Probes:
-        """Table rows (S, width) at ages (S,) as the predictors read them."""
+        """Table rows (S, width) at ages (S,) as the predictors read them (prior: PRIOR's, when
+        already followed)."""
         c = self._columns
-        t = (ages * self._dt)[:, None]
-        anchor = (rows[:, c.q0], rows[:, c.v0], rows[:, c.a0])
-        prior = None
-        if self._prior is not None:
-            # Dofs of no leg: the session's own history (LEARNED), else constant velocity.
-            fallback = learned or (anchor[0] + anchor[1] * t, anchor[1], np.zeros_like(anchor[1]))
-            shape = (rows.shape[0], self._prior.legs, PRIOR_K)
-            prior_rows, prior_weights = (
-                rows[:, c.prior_rows].reshape(shape),
-                rows[:, c.prior_weights].reshape(shape),
-            )
-            prior = self._prior.follow(prior_rows, prior_weights, ages, anchor, fallback)
         return Probes(
             qpos=rows[:, c.qpos],
             qvel=rows[:, c.qvel],
             qacc=rows[:, c.qacc],
-            q0=anchor[0],
-            v0=anchor[1],
-            a0=anchor[2],
-            t=t,
+            q0=rows[:, c.q0],
+            v0=rows[:, c.v0],
+            a0=rows[:, c.a0],
+            t=(ages * self._dt)[:, None],
             learned=learned,
-            prior=prior,
+            prior=prior if prior is not None else self._followed(rows, ages, learned),
         )
+
+    def _followed(
+        self, rows: np.ndarray, ages: np.ndarray, learned: Predictions | None
+    ) -> Predictions | None:
+        """PRIOR's qpos, qvel, qacc (S, nv) for table rows (S, width) at ages (S,); the dofs of no
+        leg LEARNED's (the session's own history), else constant velocity."""
+        if self._prior is None:
+            return None
+        c = self._columns
+        anchor = (rows[:, c.q0], rows[:, c.v0], rows[:, c.a0])
+        t = (ages * self._dt)[:, None]
+        fallback = learned or (anchor[0] + anchor[1] * t, anchor[1], np.zeros_like(anchor[1]))
+        shape = (rows.shape[0], self._prior.legs, PRIOR_K)
+        matched = (rows[:, c.prior_rows].reshape(shape), rows[:, c.prior_weights].reshape(shape))
+        return self._prior.follow(*matched, ages, anchor, fallback)
 
     def _predict(self, probes: Probes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(S, P, nv) each: every predictor's qpos, qvel, qacc, family by family."""
@@ -697,17 +704,23 @@ class ForecastCombiner:
         if not pending or self._matcher is None:
             return
         c, rows = self._columns, np.concatenate([p.rows for p in pending])
-        q, v, a = self._matcher.follow(
-            rows[:, c.match_ticks],
-            rows[:, c.match_weights],
-            np.concatenate([p.ages for p in pending]),
-            rows[:, c.q0],
-            rows[:, c.v0],
+        ages = np.concatenate([p.ages for p in pending])
+        learned = self._matcher.follow(
+            rows[:, c.match_ticks], rows[:, c.match_weights], ages, rows[:, c.q0], rows[:, c.v0]
         )
+        prior = self._followed(rows, ages, learned)
         start = 0
         for p in pending:
             end = start + p.ages.size
-            self._score(p.rows, p.ages, p.qpos, p.qvel, (q[start:end], v[start:end], a[start:end]))
+            part = slice(start, end)
+            self._score(
+                p.rows,
+                p.ages,
+                p.qpos,
+                p.qvel,
+                (learned[0][part], learned[1][part], learned[2][part]),
+                None if prior is None else (prior[0][part], prior[1][part], prior[2][part]),
+            )
             start = end
 
     def _score(
@@ -716,13 +729,15 @@ class ForecastCombiner:
         ages: np.ndarray,
         qpos: np.ndarray,
         qvel: np.ndarray,
-        learned: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+        learned: Predictions | None,
+        prior: Predictions | None = None,
     ) -> None:
         """Scoring probes, their rows (S, width) and ages (S,) (which all differ), against a frame's
         qpos (the weights) and qpos and qvel (the answer's covariance); learned: the LEARNED
-        predictor's qpos, qvel and qacc (S, nv) each, with the learned predictor."""
+        predictor's qpos, qvel and qacc (S, nv) each, with the learned predictor (prior: PRIOR's,
+        when already followed)."""
         c = self._columns
-        positions, velocities, _ = self._predict(self._probes(rows, ages, learned))
+        positions, velocities, _ = self._predict(self._probes(rows, ages, learned, prior))
         if learned is not None:
             matched = ages[~np.isnan(rows[:, c.match_ticks][:, 0])]
             np.add.at(self._learned_count, matched, 1.0)

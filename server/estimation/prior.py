@@ -239,15 +239,16 @@ class PriorMatcher:
             np.array([s for d, s in zip(leg.dofs, leg.signs, strict=True) if d >= 0]) for leg in legs
         ]
         self._columns = [np.flatnonzero(leg.joints) for leg in legs]
-        # Per leg: the candidates whose clip has all of its joints, and their scaled features.
-        self._candidates, self._features = [], []
+        # Per leg: the candidates whose clip has all of its joints, their scaled features and the
+        # squares of those.
+        self._candidates: list[np.ndarray] = []
+        self._features: list[tuple[np.ndarray, np.ndarray]] = []
         for cols in self._columns:
             has = library.candidate & np.all(np.isfinite(library.q[:, cols]), axis=1)
             rows = np.flatnonzero(has)
             self._candidates.append(rows)
-            self._features.append(
-                (library.features[rows][:, cols] / library.spread[cols]).reshape(rows.size, -1)
-            )
+            scaled = (library.features[rows][:, cols] / library.spread[cols]).reshape(rows.size, -1)
+            self._features.append((scaled, np.square(scaled)))
         self.roled = np.zeros(nv, dtype=bool)
         for dofs in self._dofs:
             self.roled[dofs] = True
@@ -333,12 +334,14 @@ class PriorMatcher:
 
 
 def nearest(
-    features: np.ndarray, query: np.ndarray, mask: np.ndarray
+    features: tuple[np.ndarray, np.ndarray], query: np.ndarray, mask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """The K rows of `features` (N, F) nearest to `query` (F,) over the components `mask` (F,)
-    weighs 1, their inverse-distance weights (summing to 1), and the nearest one's squared
-    distance."""
-    d = np.square(features - query) @ mask
+    """The K rows of features (N, F) (and their squares) nearest to `query` (F,) over the
+    components `mask` (F,) weighs 1, their inverse-distance weights (summing to 1), and the nearest
+    one's squared distance. Two products with the library instead of a difference of it: a match's
+    cost."""
+    f, squares = features
+    d = np.maximum(squares @ mask - 2.0 * (f @ (query * mask)) + float(np.square(query) @ mask), 0.0)
     found = d.argpartition(K - 1)[:K]
     nearest_d = float(d[found].min())
     w = 1.0 / (d[found] + 1e-3 * nearest_d + 1e-12)

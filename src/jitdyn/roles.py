@@ -13,6 +13,7 @@ and no word of another axis (adduction, rotation, inversion, ...), one per joint
 from r/right or l/left in the name; its sign from the name (flexion, extension, plantar...), else
 from its range (a hip's and a knee's larger excursion is flexion, an ankle's plantarflexion), else
 taken as +. Joints with no role are matched by nothing: the session's own history answers them.
+Why tags and names: docs/decisions/0187-joint-roles.md.
 """
 
 from __future__ import annotations
