@@ -1087,6 +1087,10 @@ def fig_4_17(ctx: Context) -> Section:
     )
 
 
+def _limit(limit: float | None) -> str:
+    return "" if limit is None else f"<= {limit:g} x"
+
+
 def prior(ctx: Context) -> Section:
     """The prior of human motion left one subject out (experiments/prior_eval.py)."""
     name = "prior"
@@ -1109,7 +1113,7 @@ def prior(ctx: Context) -> Section:
         Column("which", lambda r: r.best[0]),
         Column("defaults / best", lambda r: r.ratio("defaults")),
         Column("no roles / best", lambda r: r.ratio("no roles")),
-        Column("target", lambda r: f"<= {prior_eval.target(r.recording, r.horizon):g} x"),
+        Column("target", lambda r: _limit(prior_eval.target(r.recording, r.horizon, r.sensors))),
         Column("verdict", lambda r: r.verdict),
     )
     text = (
