@@ -728,6 +728,7 @@ def _foresight_table(runs: Sequence[_GapRun]) -> Table:
     errors = {(r.obj.name, r.sensors, r.label): r.by_gap for r in runs if r.obj.name in RECORDINGS}
     columns = (
         "recording",
+        "prior (subjects)",
         "motion",
         "sensors",
         "horizon (ms)",
