@@ -17,6 +17,7 @@ import mujoco
 import numpy as np
 
 from jitdyn.experiments.objects import load_source
+from jitdyn.experiments.prior_eval import prior_used
 from jitdyn.experiments.recorded import RECORDINGS
 from jitdyn.server.estimation.config import LARGE_STATE
 from jitdyn.server.estimation.forecast import ForecastCombiner
@@ -47,8 +48,9 @@ def target(*, repetitive: bool, sensors: str, gap: float) -> float | None:
 def foresight_rows(
     errors: Mapping[tuple[str, str, str], Mapping[float, float]],
 ) -> list[tuple[object, ...]]:
-    """Per recording, sensors and horizon: the defaults' q error, the best extrapolator's, their
-    ratio, the target and its verdict. errors: (recording, sensors, estimator label) -> {gap: error}."""
+    """Per recording, sensors and horizon: the prior of human motion that answered it (its people,
+    the recording's own left out), the defaults' q error, the best extrapolator's, their ratio, the
+    target and its verdict. errors: (recording, sensors, estimator label) -> {gap: error}."""
     rows: list[tuple[object, ...]] = []
     pairs = sorted(
         {(name, sensors) for name, sensors, _ in errors}, key=lambda p: (list(RECORDINGS).index(p[0]), p[1])
@@ -66,6 +68,7 @@ def foresight_rows(
             rows.append(
                 (
                     name,
+                    prior_used(name),
                     "repetitive" if RECORDINGS[name] else "not repetitive",
                     sensors,
                     round(gap * 1000),

@@ -67,6 +67,7 @@ class ModelSource:
     mjcf: str
     assets: Mapping[str, bytes] = field(default_factory=dict)
     builtin: bool = True  # the server knows it by name; otherwise the client registers it inline
+    tags: tuple[str, ...] = ()  # registered with it: joint roles, the prior's subject left out
 
     def compile(self) -> mujoco.MjModel:
         return mujoco.MjModel.from_xml_string(self.mjcf, dict(self.assets))

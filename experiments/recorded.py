@@ -52,6 +52,7 @@ for a 75 kg subject (the recording does not give the subject's mass).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import importlib.metadata
 import importlib.util
 import math
@@ -68,6 +69,7 @@ __all__ = [
     "COLUMNS",
     "ISEN_COLUMNS",
     "RECORDINGS",
+    "SUBJECT",
     "RecordedJump",
     "RecordedMotion",
     "load_isen",
@@ -223,8 +225,12 @@ def load_recording(path: Path | None = None) -> np.ndarray:
     return np.asarray(np.radians(degrees))
 
 
-def chain_mjcf(body_mass: float = BODY_MASS) -> str:
-    """The hip-knee-ankle chain (see the module docstring); timestep 2 ms."""
+def chain_mjcf(
+    body_mass: float = BODY_MASS, *, name: str = "cmj_leg", joints: tuple[str, str, str] | None = None
+) -> str:
+    """The hip-knee-ankle chain (see the module docstring); timestep 2 ms. joints: other names for
+    its hip, knee and ankle hinges (a model whose joints say no role)."""
+    hip, knee, ankle = joints or ("hip_flexion_r", "knee_flexion_r", "ankle_flexion_r")
 
     def inertial(segment: str, axis: tuple[float, float, float]) -> str:
         return _inertial(segment, axis, body_mass)
@@ -233,19 +239,19 @@ def chain_mjcf(body_mass: float = BODY_MASS) -> str:
     foot = _SEGMENTS["foot"][1]
     # Hip flexion moves the thigh forward (+x): axis -y; knee flexion moves the shank back: +y;
     # ankle dorsiflexion lifts the toes: -y.
-    return f"""<mujoco model="cmj_leg">
+    return f"""<mujoco model="{name}">
   <option timestep="0.002" gravity="0 0 -9.81"/>
   <worldbody>
     <body name="thigh" pos="0 0 1">
-      <joint name="hip_flexion_r" type="hinge" axis="0 -1 0"/>
+      <joint name="{hip}" type="hinge" axis="0 -1 0"/>
       {inertial("thigh", (0.0, 0.0, -1.0))}
       <geom type="capsule" fromto="0 0 0 0 0 -{thigh}" size="0.06" contype="0" conaffinity="0" mass="0"/>
       <body name="shank" pos="0 0 -{thigh}">
-        <joint name="knee_flexion_r" type="hinge" axis="0 1 0"/>
+        <joint name="{knee}" type="hinge" axis="0 1 0"/>
         {inertial("shank", (0.0, 0.0, -1.0))}
         <geom type="capsule" fromto="0 0 0 0 0 -{shank}" size="0.04" contype="0" conaffinity="0" mass="0"/>
         <body name="foot" pos="0 0 -{shank}">
-          <joint name="ankle_flexion_r" type="hinge" axis="0 -1 0"/>
+          <joint name="{ankle}" type="hinge" axis="0 -1 0"/>
           {inertial("foot", (1.0, 0.0, 0.0))}
           <geom type="capsule" fromto="0 0 0 {foot} 0 0" size="0.03" contype="0" conaffinity="0" mass="0"/>
         </body>
@@ -253,7 +259,7 @@ def chain_mjcf(body_mass: float = BODY_MASS) -> str:
     </body>
   </worldbody>
   <actuator>
-    <motor joint="hip_flexion_r"/><motor joint="knee_flexion_r"/><motor joint="ankle_flexion_r"/>
+    <motor joint="{hip}"/><motor joint="{knee}"/><motor joint="{ankle}"/>
   </actuator>
 </mujoco>
 """
@@ -268,22 +274,28 @@ def _inertial(segment: str, axis: tuple[float, float, float], body_mass: float) 
 
 
 def legs_mjcf(
-    body_mass: float = BODY_MASS, *, sides: tuple[str, ...] = ("r", "l"), name: str = "isen_legs"
+    body_mass: float = BODY_MASS,
+    *,
+    sides: tuple[str, ...] = ("r", "l"),
+    name: str = "isen_legs",
+    plain: bool = False,
 ) -> str:
     """Legs ("r", "l") from a fixed pelvis: hip and knee hinges (sagittal), the foot fixed to the
-    shank at a right angle; de Leva's segments (see the module docstring); timestep 2 ms."""
+    shank at a right angle; de Leva's segments (see the module docstring); timestep 2 ms. plain:
+    the hinges named upper_<side> and lower_<side>, names that say no role."""
     thigh, shank, foot = (_SEGMENTS[s][1] for s in ("thigh", "shank", "foot"))
+    hip, knee = ("upper", "lower") if plain else ("hip_flexion", "knee_flexion")
     legs = []
     for side, y in (("r", -0.09), ("l", 0.09)):
         if side not in sides:
             continue
         legs.append(
             f"""    <body name="thigh_{side}" pos="0 {y} 1">
-      <joint name="hip_flexion_{side}" type="hinge" axis="0 -1 0"/>
+      <joint name="{hip}_{side}" type="hinge" axis="0 -1 0"/>
       {_inertial("thigh", (0.0, 0.0, -1.0), body_mass)}
       <geom type="capsule" fromto="0 0 0 0 0 -{thigh}" size="0.06" contype="0" conaffinity="0" mass="0"/>
       <body name="shank_{side}" pos="0 0 -{thigh}">
-        <joint name="knee_flexion_{side}" type="hinge" axis="0 1 0"/>
+        <joint name="{knee}_{side}" type="hinge" axis="0 1 0"/>
         {_inertial("shank", (0.0, 0.0, -1.0), body_mass)}
         <geom type="capsule" fromto="0 0 0 0 0 -{shank}" size="0.04" contype="0" conaffinity="0" mass="0"/>
         <body name="foot_{side}" pos="0 0 -{shank}">
@@ -293,7 +305,7 @@ def legs_mjcf(
       </body>
     </body>"""
         )
-    motors = "".join(f'<motor joint="{j}_flexion_{side}"/>' for side in sides for j in ("hip", "knee"))
+    motors = "".join(f'<motor joint="{j}_{side}"/>' for side in sides for j in (hip, knee))
     body = "\n".join(legs)
     return f"""<mujoco model="{name}">
   <option timestep="0.002" gravity="0 0 -9.81"/>
@@ -379,9 +391,15 @@ class RecordedJump(RecordedMotion):
     """The right leg of the recorded countermovement jump (see the module docstring), 100 Hz frames."""
 
     def __init__(
-        self, scenario: Scenario = Scenario.EXTERNAL, *, dt: float = 0.01, angles: np.ndarray | None = None
+        self,
+        scenario: Scenario = Scenario.EXTERNAL,
+        *,
+        dt: float = 0.01,
+        angles: np.ndarray | None = None,
+        roles: bool = True,
     ) -> None:
-        source = ModelSource(name="cmj_leg", mjcf=chain_mjcf(), builtin=False)
+        name, joints = ("cmj_leg", None) if roles else ("cmj_leg_plain", ("upper_r", "lower_r", "foot_r"))
+        source = ModelSource(name=name, mjcf=chain_mjcf(name=name, joints=joints), builtin=False)
         q = load_recording() if angles is None else np.asarray(angles, dtype=float)
         super().__init__(source, q, rate=_RATE, dt=dt, scenario=scenario)
         self.description = (
@@ -391,9 +409,10 @@ class RecordedJump(RecordedMotion):
         )
 
 
-def recorded_isen(part: str, scenario: Scenario = Scenario.EXTERNAL) -> RecordedMotion:
+def recorded_isen(part: str, scenario: Scenario = Scenario.EXTERNAL, *, roles: bool = True) -> RecordedMotion:
     """A part of the iSen recording ("isen_gait", "isen_tasks") on both legs, 100 Hz frames."""
-    source = ModelSource(name="isen_legs", mjcf=legs_mjcf(), builtin=False)
+    name = "isen_legs" if roles else "isen_legs_plain"
+    source = ModelSource(name=name, mjcf=legs_mjcf(name=name, plain=not roles), builtin=False)
     what = "steady stepping" if part == "isen_gait" else "a sequence of different leg movements"
     obj = RecordedMotion(source, load_isen(part), rate=_ISEN_RATE, scenario=scenario)
     obj.description = (
@@ -404,9 +423,10 @@ def recorded_isen(part: str, scenario: Scenario = Scenario.EXTERNAL) -> Recorded
     return obj
 
 
-def recorded_xsens(scenario: Scenario = Scenario.EXTERNAL) -> RecordedMotion:
+def recorded_xsens(scenario: Scenario = Scenario.EXTERNAL, *, roles: bool = True) -> RecordedMotion:
     """The walk the Xsens sensors recorded (see the module docstring) on one leg, 100 Hz frames."""
-    source = ModelSource(name="xsens_leg", mjcf=legs_mjcf(sides=("r",), name="xsens_leg"), builtin=False)
+    name = "xsens_leg" if roles else "xsens_leg_plain"
+    source = ModelSource(name=name, mjcf=legs_mjcf(sides=("r",), name=name, plain=not roles), builtin=False)
     obj = RecordedMotion(source, load_xsens(), rate=_ISEN_RATE, scenario=scenario)
     obj.description = (
         f"steady walking: hip and knee flexion of one leg (scikit-kinematics 0.10.4, Xsens inertial "
@@ -418,15 +438,26 @@ def recorded_xsens(scenario: Scenario = Scenario.EXTERNAL) -> RecordedMotion:
 
 # The recorded motions by name, and whether each is repetitive (what a learned predictor can learn).
 RECORDINGS: Final = {"cmj": False, "isen_gait": True, "isen_tasks": False, "xsens_gait": True}
+# Whose motion each recording is, as the prior of human motion names its subjects: the prior that
+# scores it leaves that person out. The jump's person is not among them (biomdp does not say who
+# jumped; the prior holds no jump).
+SUBJECT: Final = {"isen_gait": "isen", "isen_tasks": "isen", "xsens_gait": "xsens"}
 
 
-def research_object(name: str, scenario: Scenario) -> ResearchObject:
+def research_object(name: str, scenario: Scenario, *, roles: bool = True) -> ResearchObject:
     """Any research object by name: the simulated ones of experiments/objects.py, or a recorded
-    motion of RECORDINGS (which reads biomdp's files, so only when asked for)."""
+    motion of RECORDINGS. A recorded motion's model says its joints' roles by their names and
+    leaves its own person out of the prior (tag prior.without.<subject>); roles False: its joints
+    named so that they say none (no prior: the session's own history alone)."""
     if name == "cmj":
-        return RecordedJump(scenario)
-    if name in _ISEN_PARTS:
-        return recorded_isen(name, scenario)
-    if name == "xsens_gait":
-        return recorded_xsens(scenario)
-    return make_object(name, scenario)
+        obj: ResearchObject = RecordedJump(scenario, roles=roles)
+    elif name in _ISEN_PARTS:
+        obj = recorded_isen(name, scenario, roles=roles)
+    elif name == "xsens_gait":
+        obj = recorded_xsens(scenario, roles=roles)
+    else:
+        return make_object(name, scenario)
+    subject = SUBJECT.get(name)
+    if roles and subject is not None:
+        obj.source = dataclasses.replace(obj.source, tags=(f"prior.without.{subject}",))
+    return obj

@@ -129,6 +129,7 @@ class ModelCache:
                 mjcf=source.mjcf,
                 assets=source.assets,
                 description=f"MyoSuite {source.name}",
+                tags=source.tags,
             )
             self._ids[source.name] = model.id
         return {"model_id": self._ids[source.name]}

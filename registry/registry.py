@@ -50,6 +50,7 @@ from jitdyn.registry.info import (
 )
 from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
 from jitdyn.registry.store import fetch_blob, publish_blob, read_blob, write_blob
+from jitdyn.roles import joint_roles
 from jitdyn.storage.schema import models
 
 __all__ = ["DEFAULT_PAGE_SIZE", "MAX_PAGE_SIZE", "ModelRegistry"]
@@ -257,6 +258,7 @@ class ModelRegistry(Closeable):
                 self._check_quota(connection, tenant, mjcf, assets)
         model = self._compiler.compile(mjcf, assets)
         shape = describe_model(model)
+        joint_roles(shape.joints, metadata.tags)  # a role tag naming no joint or no role is refused
         blob = write_blob(self._data_root, model_id, mjcf, assets, engine=self._engine)
         size = len(mjcf.encode("utf-8")) + sum(len(data) for data in assets.values())
         with self._cache_lock:

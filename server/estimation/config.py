@@ -24,6 +24,7 @@ import numpy as np
 from jitdyn.errors import InvalidArgument
 from jitdyn.estimator_settings import SETTINGS, SettingValue, check_for_scenario
 from jitdyn.estimator_settings import steps_per_tick as tick_steps
+from jitdyn.roles import JointRole
 from jitdyn.server.estimation.layout import linear_force_applies, state_dimension
 from jitdyn.vocabulary import (
     Channel,
@@ -116,6 +117,11 @@ class EstimatorConfig:
     wrong_model: WrongModel = WrongModel.KEEP
     # Not a setting: the implementation of the filter's algebra (resolve_config: the preset's).
     engine: Engine = Engine.FILTERPY
+    # Not settings: the model's joint roles (jitdyn.roles), which the prior of human motion matches
+    # (estimation/prior.py; none: no prior), and the prior's subjects left out (model tags
+    # "prior.without.<subject>": a recording of that person is never scored by a prior of it).
+    roles: tuple[JointRole, ...] = ()
+    prior_without: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__  # frozen: normalise through the back door, once, here

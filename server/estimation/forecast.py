@@ -80,7 +80,9 @@ import numpy as np
 from jitdyn.server.estimation import predictors
 from jitdyn.server.estimation.interface import SHARED_WITH_EARLIER
 from jitdyn.server.estimation.matching import K, MotionMatcher
-from jitdyn.server.estimation.predictors import FAMILIES, Family, Probes
+from jitdyn.server.estimation.predictors import FAMILIES, PRIOR, Family, Probes
+from jitdyn.server.estimation.prior import K as PRIOR_K
+from jitdyn.server.estimation.prior import PriorMatcher
 
 __all__ = [
     "LEARNED",
@@ -128,6 +130,8 @@ MAX_NOVELTY: Final = 1e3
 # (docs/decisions/0028-forecast-regime-change.md).
 SURPRISE: Final = 2.0
 
+Predictions = tuple[np.ndarray, np.ndarray, np.ndarray]
+
 # Columns of the probes' integer marks.
 _ORIGIN: Final = 0  # tick of the frame the probe starts from
 _AGE: Final = 1  # ticks carried forward
@@ -168,12 +172,15 @@ class _Columns:
     a0: slice
     match_ticks: slice
     match_weights: slice
+    prior_rows: slice  # the prior's match, (legs, PRIOR_K) flattened
+    prior_weights: slice
     width: int
 
     @staticmethod
-    def of(nq: int, nv: int, na: int, k: int) -> _Columns:
+    def of(nq: int, nv: int, na: int, k: int, prior: int = 0) -> _Columns:
         sizes = {"qpos": nq, "qvel": nv, "qacc": nv, "act": na, "force": nv, "rate": nv}
         sizes |= {"q0": nv, "v0": nv, "a0": nv, "match_ticks": k, "match_weights": k}
+        sizes |= {"prior_rows": prior, "prior_weights": prior}
         start, spans = 0, {}
         for name, size in sizes.items():
             spans[name] = slice(start, start + size)
@@ -209,6 +216,8 @@ class CombinerSnapshot:
     # replay rewrites it (estimation/matching.py), so a snapshot does not copy it.
     learner: np.ndarray | None
     learned_count: np.ndarray
+    # The prior's ring of recent frames (estimation/prior.py), when the combiner has the prior.
+    prior: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     # The scorings still waiting; each is shared with the snapshots taken after it came, so a
     # snapshot's own memory is its newest one (SHARED_WITH_EARLIER, server/runtime/limits.py).
     pending: tuple[_Scores, ...] = field(default=(), metadata={SHARED_WITH_EARLIER: True})
@@ -232,6 +241,7 @@ class ForecastCombiner:
         steps_per_tick: int,
         horizon: int,
         learner: bool = False,
+        prior: PriorMatcher | None = None,
         families: tuple[Family, ...] = FAMILIES,
     ) -> None:
         if int(process.nq) != int(process.nv):
@@ -245,19 +255,48 @@ class ForecastCombiner:
         self._nv = int(process.nv)
         self._na = int(process.na)
         self._matcher = MotionMatcher(nv=self._nv, dt=self._dt, horizon=self._horizon) if learner else None
-        self._families = families + ((predictors.LEARNED,) if learner else ())
+        self._prior = prior
+        self._families = families + ((predictors.LEARNED,) if learner else ()) + ((PRIOR,) if prior else ())
         self._predictors = predictors.names(self._families)
         # Which predictors learn from the session's frames (no weight before LEARNED_SAMPLES real
-        # matches, no vote on a regime change); STATIC, which the novelty guard measures from.
+        # matches, no vote on a regime change); which vote on one (neither they nor the prior);
+        # STATIC, which the novelty guard measures from.
         self._learned_mask = np.array([f.learned for f in self._families for _ in f.names], dtype=bool)
         self._fixed = np.flatnonzero(~self._learned_mask)
+        self._voters = np.array(
+            [i for i in self._fixed if self._predictors[i] != PRIOR.names[0]], dtype=np.intp
+        )
         self._static = self._predictors.index("STATIC")
-        self._columns = _Columns.of(int(process.nq), self._nv, self._na, K if learner else 0)
+        self._prior_cols = PRIOR_K * prior.legs if prior is not None else 0
+        self._prior_block, self._prior_mask, self._prior_cov = self._prior_scores(prior)
+        self._columns = _Columns.of(
+            int(process.nq), self._nv, self._na, K if learner else 0, self._prior_cols
+        )
         # Scoring probes alive at once, and the last frame's (twice, for a second frame of a tick).
         self._n = 0
         self._capacity = 0
         self._grow(-(-self._horizon // self._stride) + 3)
         self.reset()
+
+    def _prior_scores(
+        self, prior: PriorMatcher | None
+    ) -> tuple[np.ndarray | None, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """The predictors the prior's scores cover (STATIC, the other extrapolators, PRIOR), their
+        block of (P, P), and its covariances of q and qd errors at every horizon (H + 1, P, P) each;
+        None without the prior or its scores."""
+        P = len(self._predictors)
+        mask = np.zeros((P, P), dtype=bool)
+        if prior is None or prior.scores_at(self._dt) is None:
+            return None, mask, None
+        names = ("STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION", PRIOR.names[0])
+        block = np.array([self._predictors.index(name) for name in names])  # PriorScores' order
+        mask[np.ix_(block, block)] = True
+        C, D = np.zeros((2, self._horizon + 1, P, P))
+        for h in range(1, self._horizon + 1):
+            scored = prior.scores_at(h * self._dt)
+            assert scored is not None
+            C[h][np.ix_(block, block)], D[h][np.ix_(block, block)] = scored
+        return block, mask, (C, D)
 
     @property
     def horizon(self) -> int:
@@ -368,8 +407,9 @@ class ForecastCombiner:
         streak = previous is not None and previous[2] == self._tick - 1
         self._anchor = (np.array(qpos), np.array(qvel), self._tick)
         keep = streak and self._tick % self._stride == 0
-        if self._matcher is not None:
-            self._matcher.record(self._tick, qpos, qvel)
+        for learner in (self._matcher, self._prior):
+            if learner is not None:
+                learner.record(self._tick, qpos, qvel)
         if m + 1 > self._capacity:
             self._grow(2 * self._capacity)
         c, row = self._columns, self._table[m]
@@ -406,18 +446,19 @@ class ForecastCombiner:
             # rest of the gap. The filter answers, its prediction moving on.
             return None
         h = min(int(self._marks[i, _AGE]), self._horizon)
-        if self._count[h] < MIN_SAMPLES:
+        if self._count[h] < MIN_SAMPLES and self._prior is None:
             return None
         if not self._marks[i, _MATCHED]:
             self._match(i)
-        weights = self._weights.get(h)
+        matched = self._prior is None or not np.isnan(self._table[i, self._columns.prior_rows]).all()
+        weights = self._weights.get(h) if matched else self._solve_weights(h, matched=False)
         if weights is None:
             weights = self._weights[h] = self._solve_weights(h)
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
-        scale = _novelty(q, self._cov[h], self._static)
+        scale = _novelty(q, self._weighing(h)[0], self._static)
         if scale is not None:
-            weights = self._solve_weights(h, scale)
+            weights = self._solve_weights(h, scale, matched=matched)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd, scale)
         return CombinedForecast(
             weights=weights,
@@ -442,11 +483,13 @@ class ForecastCombiner:
         novelty guard's factors on the predictors' errors, which the answer's variances take too."""
         if scale is not None:
             S = scale[:, None] * scale[None, :]
-            guarded = (float(w @ (S * self._cov[h]) @ w), float(w @ (S * self._cov_v[h]) @ w))
+            C, D = self._weighing(h)
+            guarded = (float(w @ (S * C) @ w), float(w @ (S * D) @ w))
             return _net_of_noise(guarded[0], noise_q, self._nv), _net_of_noise(guarded[1], noise_qd, self._nv)
         scored = self._variances.get(h)
         if scored is None:
-            scored = self._variances[h] = (float(w @ self._cov[h] @ w), float(w @ self._cov_v[h] @ w))
+            C, D = self._weighing(h)
+            scored = self._variances[h] = (float(w @ C @ w), float(w @ D @ w))
         return _net_of_noise(scored[0], noise_q, self._nv), _net_of_noise(scored[1], noise_qd, self._nv)
 
     def snapshot(self) -> CombinerSnapshot:
@@ -461,6 +504,7 @@ class ForecastCombiner:
             anchor=self._anchor,
             learner=None if self._matcher is None else self._matcher.state(),
             learned_count=self._learned_count.copy(),
+            prior=None if self._prior is None else self._prior.state(),
             pending=self._pending,
         )
 
@@ -479,6 +523,8 @@ class ForecastCombiner:
         self._pending = snap.pending
         if self._matcher is not None and snap.learner is not None:
             self._matcher.restore(snap.learner)
+        if self._prior is not None and snap.prior is not None:
+            self._prior.restore(snap.prior)
         self._weights = {}
         self._variances = {}
 
@@ -505,25 +551,52 @@ class ForecastCombiner:
     def _last_origin(self) -> int:
         return -1 if self._anchor is None else self._anchor[2]
 
-    def _solve_weights(self, h: int, scale: np.ndarray | None = None) -> np.ndarray:
+    def _solve_weights(self, h: int, scale: np.ndarray | None = None, *, matched: bool = True) -> np.ndarray:
         """The weights of horizon h; LEARNED's 0 until it has LEARNED_SAMPLES scores from real
-        matches there. scale (P,): the novelty guard's factors on the predictors' errors."""
-        C = self._cov[h]
+        matches there, and with the prior, only its scored predictors weigh until h has MIN_SAMPLES
+        scores of the session's own, and PRIOR 0 when the probe it answers has no match of it (its
+        scores were earned by matches). scale (P,): the novelty guard's factors on the
+        predictors' errors."""
+        C = self._weighing(h)[0]
         if scale is not None:
             C = scale[:, None] * C * scale[None, :]
-        if self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES:
+        if self._prior_block is not None and self._count[h] < MIN_SAMPLES:
+            allowed = self._prior_block
+        elif matched and (self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES):
             return _min_variance_weights(C)
-        fixed = self._fixed
+        elif self._matcher is None or self._learned_count[h] >= LEARNED_SAMPLES:
+            allowed = np.arange(len(self._predictors))
+        else:
+            allowed = self._fixed
+        if not matched:
+            allowed = allowed[allowed != len(self._predictors) - 1]  # PRIOR is the last
         weights = np.zeros(len(self._predictors))
-        weights[fixed] = _min_variance_weights(C[fixed[:, None], fixed[None, :]])
+        weights[allowed] = _min_variance_weights(C[allowed[:, None], allowed[None, :]])
         return weights
+
+    def _weighing(self, h: int) -> tuple[np.ndarray, np.ndarray]:
+        """The covariances (P, P) of q and qd errors the weights of horizon h come from: the scored
+        ones; with the prior, its scores on other people's walking (PriorScores) over STATIC, the
+        other extrapolators and PRIOR, blended with the session's as a fading memory holds a score
+        made before the session's n: FORGETTING^n of the prior's, the rest the session's
+        (docs/decisions/0186-prior-predictor.md)."""
+        if self._prior_cov is None:
+            return self._cov[h], self._cov_v[h]
+        share = _PRIOR_SHARE[min(int(self._count[h]), _PRIOR_SHARE.size - 1)]
+        block, prior = self._prior_mask, self._prior_cov
+        C = np.where(block, share * prior[0][h] + (1.0 - share) * self._cov[h], self._cov[h])
+        D = np.where(block, share * prior[1][h] + (1.0 - share) * self._cov_v[h], self._cov_v[h])
+        return C, D
 
     def _match(self, i: int) -> None:
         """Probe i's LEARNED match, from its frame (the log holds it: its origin is a frame's tick)."""
         self._marks[i, _MATCHED] = 1
+        c, row = self._columns, self._table[i]
+        if self._prior is not None:
+            rows, weights = self._prior.match(int(self._marks[i, _ORIGIN]))
+            row[c.prior_rows], row[c.prior_weights] = rows.ravel(), weights.ravel()
         if self._matcher is None:
             return
-        c, row = self._columns, self._table[i]
         found = self._matcher.match(int(self._marks[i, _ORIGIN]))
         if found is None:
             row[c.match_ticks], row[c.match_weights] = np.nan, 0.0
@@ -534,9 +607,11 @@ class ForecastCombiner:
         self,
         rows: np.ndarray,
         ages: np.ndarray,
-        learned: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+        learned: Predictions | None,
+        prior: Predictions | None = None,
     ) -> Probes:
-        """Table rows (S, width) at ages (S,) as the predictors read them."""
+        """Table rows (S, width) at ages (S,) as the predictors read them (prior: PRIOR's, when
+        already followed)."""
         c = self._columns
         return Probes(
             qpos=rows[:, c.qpos],
@@ -547,7 +622,23 @@ class ForecastCombiner:
             a0=rows[:, c.a0],
             t=(ages * self._dt)[:, None],
             learned=learned,
+            prior=prior if prior is not None else self._followed(rows, ages, learned),
         )
+
+    def _followed(
+        self, rows: np.ndarray, ages: np.ndarray, learned: Predictions | None
+    ) -> Predictions | None:
+        """PRIOR's qpos, qvel, qacc (S, nv) for table rows (S, width) at ages (S,); the dofs of no
+        leg LEARNED's (the session's own history), else constant velocity."""
+        if self._prior is None:
+            return None
+        c = self._columns
+        anchor = (rows[:, c.q0], rows[:, c.v0], rows[:, c.a0])
+        t = (ages * self._dt)[:, None]
+        fallback = learned or (anchor[0] + anchor[1] * t, anchor[1], np.zeros_like(anchor[1]))
+        shape = (rows.shape[0], self._prior.legs, PRIOR_K)
+        matched = (rows[:, c.prior_rows].reshape(shape), rows[:, c.prior_weights].reshape(shape))
+        return self._prior.follow(*matched, ages, anchor, fallback)
 
     def _predict(self, probes: Probes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(S, P, nv) each: every predictor's qpos, qvel, qacc, family by family."""
@@ -613,17 +704,23 @@ class ForecastCombiner:
         if not pending or self._matcher is None:
             return
         c, rows = self._columns, np.concatenate([p.rows for p in pending])
-        q, v, a = self._matcher.follow(
-            rows[:, c.match_ticks],
-            rows[:, c.match_weights],
-            np.concatenate([p.ages for p in pending]),
-            rows[:, c.q0],
-            rows[:, c.v0],
+        ages = np.concatenate([p.ages for p in pending])
+        learned = self._matcher.follow(
+            rows[:, c.match_ticks], rows[:, c.match_weights], ages, rows[:, c.q0], rows[:, c.v0]
         )
+        prior = self._followed(rows, ages, learned)
         start = 0
         for p in pending:
             end = start + p.ages.size
-            self._score(p.rows, p.ages, p.qpos, p.qvel, (q[start:end], v[start:end], a[start:end]))
+            part = slice(start, end)
+            self._score(
+                p.rows,
+                p.ages,
+                p.qpos,
+                p.qvel,
+                (learned[0][part], learned[1][part], learned[2][part]),
+                None if prior is None else (prior[0][part], prior[1][part], prior[2][part]),
+            )
             start = end
 
     def _score(
@@ -632,13 +729,15 @@ class ForecastCombiner:
         ages: np.ndarray,
         qpos: np.ndarray,
         qvel: np.ndarray,
-        learned: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+        learned: Predictions | None,
+        prior: Predictions | None = None,
     ) -> None:
         """Scoring probes, their rows (S, width) and ages (S,) (which all differ), against a frame's
         qpos (the weights) and qpos and qvel (the answer's covariance); learned: the LEARNED
-        predictor's qpos, qvel and qacc (S, nv) each, with the learned predictor."""
+        predictor's qpos, qvel and qacc (S, nv) each, with the learned predictor (prior: PRIOR's,
+        when already followed)."""
         c = self._columns
-        positions, velocities, _ = self._predict(self._probes(rows, ages, learned))
+        positions, velocities, _ = self._predict(self._probes(rows, ages, learned, prior))
         if learned is not None:
             matched = ages[~np.isnan(rows[:, c.match_ticks][:, 0])]
             np.add.at(self._learned_count, matched, 1.0)
@@ -675,9 +774,9 @@ class ForecastCombiner:
         every one of PREDICTORS' error variances above SURPRISE^2 times its scored past's at that
         age, once the age has MIN_SAMPLES scores (a predictor scored exact, past 0, is surprised by
         any error)."""
-        fixed = self._fixed
-        now = np.diagonal(cov, axis1=1, axis2=2)[:, fixed]
-        past = np.diagonal(self._cov[ages], axis1=1, axis2=2)[:, fixed]
+        voters = self._voters
+        now = np.diagonal(cov, axis1=1, axis2=2)[:, voters]
+        past = np.diagonal(self._cov[ages], axis1=1, axis2=2)[:, voters]
         surprised: np.ndarray = (self._count[ages] >= MIN_SAMPLES) & np.all(
             now > SURPRISE * SURPRISE * past, axis=1
         )
@@ -697,6 +796,11 @@ _FADING: Final = np.array(
     list(itertools.takewhile(lambda d: d != 1.0 - FORGETTING, map(_fading, itertools.count(0.0))))
     + [1.0 - FORGETTING]
 )
+
+
+# The prior's share of the covariances a horizon's weights come from after n scores of the session's
+# own (FORGETTING^n, by Python's scalar power as _FADING; nil from where it no longer counts).
+_PRIOR_SHARE: Final = np.array([FORGETTING**n for n in range(200)] + [0.0])
 
 
 def _novelty(q: np.ndarray, C: np.ndarray, static: int) -> np.ndarray | None:

@@ -23,9 +23,11 @@ from typing import Final
 import mujoco
 import numpy as np
 
+from jitdyn.errors import InvalidArgument
 from jitdyn.server.estimation.config import EstimatorConfig
 from jitdyn.server.estimation.forecast import CombinedForecast, CombinerSnapshot, ForecastCombiner
 from jitdyn.server.estimation.interface import Estimate, Measurement, read_only
+from jitdyn.server.estimation.prior import PriorMatcher, legs_of, library
 from jitdyn.vocabulary import Forecast
 
 __all__ = ["FORECAST_HORIZON", "Foresight", "answer_scale"]
@@ -64,12 +66,21 @@ class Foresight:
 
     def __init__(self, model: mujoco.MjModel, config: EstimatorConfig, *, fblocks: int) -> None:
         self._nq, self._nv, self._fblocks = int(model.nq), int(model.nv), fblocks
+        legs = legs_of(config.roles)
+        prior = None
+        if legs:
+            try:
+                chosen = library(config.prior_without)
+            except ValueError as error:
+                raise InvalidArgument(f"model tag prior.without: {error}") from None
+            prior = PriorMatcher(chosen, legs=legs, nv=self._nv, dt=config.dt)
         self.combiner = ForecastCombiner(
             model,
             dt=config.dt,
             steps_per_tick=config.steps_per_tick,
             horizon=int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9)),
             learner=True,
+            prior=prior,
         )
 
     @classmethod

@@ -31,7 +31,18 @@ import numpy as np
 
 from jitdyn.server.estimation.extrapolators import EXTRAPOLATORS, moved
 
-__all__ = ["FAMILIES", "LEARNED", "Family", "Ieee1278", "Learned", "ModelRollout", "Probes", "names"]
+__all__ = [
+    "FAMILIES",
+    "LEARNED",
+    "PRIOR",
+    "Family",
+    "Ieee1278",
+    "Learned",
+    "ModelRollout",
+    "Prior",
+    "Probes",
+    "names",
+]
 
 Predictions = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -40,7 +51,8 @@ Predictions = tuple[np.ndarray, np.ndarray, np.ndarray]
 class Probes:
     """S probes as the predictors read them: the MODEL rollout's qpos, qvel, qacc (S, nv); the
     anchor q0, v0, a0 (S, nv); t (S, 1) seconds since the anchor's frame; learned: motion
-    matching's (qpos, qvel, qacc) (S, nv) each, when the combiner has the learned predictor."""
+    matching's (qpos, qvel, qacc) (S, nv) each, when the combiner has the learned predictor; prior:
+    the prior of human motion's, when it has that."""
 
     qpos: np.ndarray
     qvel: np.ndarray
@@ -50,6 +62,7 @@ class Probes:
     a0: np.ndarray
     t: np.ndarray
     learned: Predictions | None = None
+    prior: Predictions | None = None
 
 
 class Family(Protocol):
@@ -98,10 +111,27 @@ class Learned:
         return q[:, None, :], v[:, None, :], a[:, None, :]
 
 
+class Prior:
+    """PRIOR: motion matching over other people's walking (estimation/prior.py) for the joints whose
+    role is a hip, knee or ankle; the others as the session's own history (LEARNED) answers them.
+    Its weight before the session has scores of its own comes from its scores on those people
+    (docs/decisions/0186-prior-predictor.md)."""
+
+    names: tuple[str, ...] = ("PRIOR",)
+    learned: bool = False
+
+    def predict(self, probes: Probes) -> Predictions:
+        if probes.prior is None:
+            raise ValueError("the prior predictor needs the combiner's prior matcher")
+        q, v, a = probes.prior
+        return q[:, None, :], v[:, None, :], a[:, None, :]
+
+
 # The families of every combination, in the weights' order; a combiner with the learned predictor
-# adds LEARNED after them.
+# adds LEARNED after them, and one with the prior of human motion PRIOR after that.
 FAMILIES: Final[tuple[Family, ...]] = (ModelRollout(), Ieee1278())
 LEARNED: Final[Family] = Learned()
+PRIOR: Final[Family] = Prior()
 
 
 def names(families: tuple[Family, ...]) -> tuple[str, ...]:

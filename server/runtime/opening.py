@@ -30,10 +30,12 @@ import mujoco
 from jitdyn.errors import FailedPrecondition, InvalidArgument, ResourceExhausted
 from jitdyn.estimator_settings import SETTINGS
 from jitdyn.registry import ModelInfo
+from jitdyn.roles import joint_roles
 from jitdyn.server.estimation.config import EstimatorConfig, default_scenario, resolve_config
 from jitdyn.server.estimation.dynamics import Dynamics
 from jitdyn.server.estimation.factory import make_estimator, measure_cycle
 from jitdyn.server.estimation.interface import Estimator
+from jitdyn.server.estimation.prior import prior_without
 from jitdyn.server.runtime.admission import Ticket
 from jitdyn.server.runtime.costs import snapshot_bytes, tick_cost
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
@@ -286,6 +288,9 @@ class SessionOpener:
             preset=plan.preset,
             measured=plan.measured,
             engine=self._services.engine,
+        )
+        config = dataclasses.replace(
+            config, roles=joint_roles(info.joints, info.tags), prior_without=prior_without(info.tags)
         )
         # REALTIME: admitted (or refused) before anything is built for the session, from a price
         # measured once per model and settings, so that a burst of opens past capacity costs the

@@ -17,6 +17,7 @@ from google.protobuf import timestamp_pb2
 from jitdyn.errors import InvalidArgument
 from jitdyn.registry import ModelInfo, ModelMetadata
 from jitdyn.registry.info import check_metadata
+from jitdyn.roles import joint_roles
 from jitdyn.settings_message import settings_from_message, settings_message
 from jitdyn.v1 import common_pb2, model_registry_pb2
 from jitdyn.vocabulary import JointType, Scenario, from_proto, parse, to_proto
@@ -70,6 +71,7 @@ def model_message(info: ModelInfo) -> model_registry_pb2.Model:
     """The jitdyn.v1.Model of a registered model."""
     created_at = timestamp_pb2.Timestamp()
     created_at.FromDatetime(info.created_at)
+    roles = {role.joint: role for role in joint_roles(info.joints, info.tags)}
     return model_registry_pb2.Model(
         id=info.id,
         name=info.name,
@@ -86,6 +88,8 @@ def model_message(info: ModelInfo) -> model_registry_pb2.Model:
                 range_upper=joint.upper,
                 qpos_address=joint.qpos_address,
                 dof_address=joint.dof_address,
+                role=roles[joint.name].role if joint.name in roles else "",
+                role_source=roles[joint.name].source if joint.name in roles else "",
             )
             for joint in info.joints
         ],

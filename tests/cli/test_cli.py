@@ -159,3 +159,49 @@ def test_serve_names_an_unreachable_data_root_and_why(tmp_path: Path) -> None:
     ), result.stderr
     assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
     assert not (tmp_path / "data").exists()
+
+
+LEG = """<mujoco model="leg_roles">
+  <worldbody><body><joint name="hip_flexion_r" type="hinge" axis="0 -1 0"/><geom size="0.1" mass="1"/>
+    <body pos="0 0 -0.4"><joint name="knee_angle_r" type="hinge" axis="0 1 0" range="-120 5"/><geom size="0.1" mass="1"/>
+      <body pos="0 0 -0.4"><joint name="toe" type="hinge" axis="0 1 0"/><geom size="0.1" mass="1"/></body>
+    </body></body></worldbody>
+</mujoco>
+"""
+
+
+def test_models_show_prints_the_joint_roles_it_inferred_or_was_told(server: Any, tmp_path: Path) -> None:
+    """Roles inferred from names say so (and the knee's sign from its range); a role tag says it
+    instead; a tag naming no joint is refused at registration in one line."""
+    leg = tmp_path / "leg_roles.xml"
+    leg.write_text(LEG)
+    jitdyn("models", "--server", server.address, "register", str(leg))
+    shown = jitdyn("models", "--server", server.address, "show", "leg_roles:1").stdout
+    assert '"role": "hip_flexion_r",\n      "role_source": "inferred from its name"' in shown, shown
+    assert (
+        '"role": "knee_extension_r",\n      "role_source": "inferred from its name, its sign from its range"'
+        in shown
+    )
+    assert '"name": "toe"' in shown and '"role": "",' in shown
+    leg = tmp_path / "leg_declared.xml"
+    leg.write_text(LEG.replace("leg_roles", "leg_declared"))
+    tag = "role.ankle_dorsiflexion_r.toe"
+    jitdyn("models", "--server", server.address, "register", str(leg), "--tag", tag)
+    declared = jitdyn("models", "--server", server.address, "show", "leg_declared:1").stdout
+    assert '"role": "ankle_dorsiflexion_r",\n      "role_source": "declared"' in declared, declared
+    assert '"role": "hip_flexion_r"' not in declared  # declared roles replace the inferred ones
+    leg = tmp_path / "leg_wrong.xml"
+    leg.write_text(LEG.replace("leg_roles", "leg_wrong"))
+    wrong = jitdyn(
+        "models",
+        "--server",
+        server.address,
+        "register",
+        str(leg),
+        "--tag",
+        "role.knee_flexion_r.shin",
+        check=False,
+    )
+    assert wrong.returncode == 1
+    assert "InvalidArgument: tag 'role.knee_flexion_r.shin': the model has no joint 'shin'" in wrong.stderr
+    assert "Traceback" not in wrong.stderr

@@ -84,6 +84,7 @@ def test_quick_run_writes_every_table_and_plot_with_finite_numbers(tmp_path: Pat
         "fig_4_16",
         "fig_4_17",
         "gaps",
+        "prior",
         "network",
     }
     assert len(pngs) >= 12

@@ -66,6 +66,8 @@ class Joint(_message.Message):
     RANGE_UPPER_FIELD_NUMBER: _builtins.int
     QPOS_ADDRESS_FIELD_NUMBER: _builtins.int
     DOF_ADDRESS_FIELD_NUMBER: _builtins.int
+    ROLE_FIELD_NUMBER: _builtins.int
+    ROLE_SOURCE_FIELD_NUMBER: _builtins.int
     name: _builtins.str
     """The joint's name in the MJCF; "joint<i>" when the MJCF leaves it unnamed."""
     type: Global___JointType.ValueType
@@ -80,6 +82,15 @@ class Joint(_message.Message):
     """Index of the joint's first value in qpos."""
     dof_address: _builtins.int
     """Index of the joint's first value in qvel, qacc and qfrc."""
+    role: _builtins.str
+    """What the joint is to the prior of human motion: "hip_flexion_r", "knee_extension_l",
+    "ankle_dorsiflexion_r", ... (a hinge whose positive direction is that motion); empty for none.
+    Declared by a tag "role.<role>.<joint>" at registration, or inferred from the joint's name.
+    """
+    role_source: _builtins.str
+    """How the role is known: "declared", or what it was inferred from ("inferred from its name, its
+    sign from its range"); empty when the joint has no role.
+    """
     def __init__(
         self,
         *,
@@ -90,10 +101,12 @@ class Joint(_message.Message):
         range_upper: _builtins.float = ...,
         qpos_address: _builtins.int = ...,
         dof_address: _builtins.int = ...,
+        role: _builtins.str = ...,
+        role_source: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["dof_address", b"dof_address", "limited", b"limited", "name", b"name", "qpos_address", b"qpos_address", "range_lower", b"range_lower", "range_upper", b"range_upper", "type", b"type"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["dof_address", b"dof_address", "limited", b"limited", "name", b"name", "qpos_address", b"qpos_address", "range_lower", b"range_lower", "range_upper", b"range_upper", "role", b"role", "role_source", b"role_source", "type", b"type"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
