@@ -3,7 +3,7 @@ reads one RenderRequest as JSON on stdin, draws the session tick by tick (cli/sc
 a GIF or one PNG, and answers one JSON object on stdout: {"path", "notes"} or {"error": {"type",
 "message"}}. Progress goes to stderr when it is a terminal.
 
-    python -m jitdyn.cli.replay < request.json
+    python -m jitdyn.cli.render_child < request.json
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from jitdyn.storage.summary import format_counts
 from jitdyn.storage.timeline import TIMELINE_COLUMNS, Timeline, session_timeline
 from jitdyn.vocabulary import Source
 
-__all__ = ["MAX_FPS", "main", "replay", "video_stride"]
+__all__ = ["MAX_FPS", "draw", "main", "video_stride"]
 
 # Frames a second of a video at most: an MP4 plays 30 smoothly; a GIF counts in hundredths of a
 # second, and browsers slow down delays under 20 ms, so 20 (50 ms a frame).
@@ -222,7 +222,7 @@ def _plan(request: RenderRequest, session: _Session) -> tuple[list[int], float, 
     )
 
 
-def replay(request: RenderRequest) -> Rendered:
+def draw(request: RenderRequest) -> Rendered:
     """Draw the session of `request` into `request.out`, written whole or not at all."""
     session = _load(request)
     ticks, fps, note = _plan(request, session)
@@ -254,7 +254,7 @@ def replay(request: RenderRequest) -> Rendered:
 
 def _answer(request_text: str) -> dict[str, Any]:
     try:
-        rendered = replay(RenderRequest.from_json(request_text))
+        rendered = draw(RenderRequest.from_json(request_text))
     except JitdynError as error:
         return {"error": {"type": type(error).__name__, "message": str(error)}}
     except OSError as error:
