@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import secrets
+import signal
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -26,3 +30,36 @@ def jitdyn(
         timeout=300,
         check=False,
     )
+
+
+def one_line_error(result: subprocess.CompletedProcess[str], code: int) -> str:
+    """The one `jitdyn ...` line a failed command prints on stderr, with no traceback."""
+    assert result.returncode == code, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.startswith("jitdyn")]
+    assert len(lines) == 1, result.stderr
+    return lines[0]
+
+
+@contextlib.contextmanager
+def serving(*args: str, data: Path, env: dict[str, str] | None = None) -> Iterator[str]:
+    """`jitdyn serve ARGS` on a free loopback port, one process; yields its address."""
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("JITDYN_")}
+    environ.update(JITDYN_SECRET=secrets.token_hex(32), **(env or {}))
+    command = [sys.executable, "-m", "jitdyn.cli", "serve", "--address", "127.0.0.1:0", "--processes", "1"]
+    process = subprocess.Popen(
+        [*command, "--workers", "1", "--data", str(data), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=environ,
+    )
+    try:
+        assert process.stdout is not None
+        first = process.stdout.readline()
+        listening = re.match(r"jitdyn listening on (\S+) ", first)
+        assert listening, first + (process.stderr.read() if process.stderr else "")
+        yield listening.group(1)
+    finally:
+        process.send_signal(signal.SIGINT)
+        process.communicate(timeout=30)
