@@ -1,4 +1,4 @@
-"""The `jitdyn` command line: serve, models, demo, sessions, experiments.
+"""The `jitdyn` command line: serve, models, demo, replay, sessions, experiments.
 
 Every option is accepted wherever a user puts it: `-v` and a group's options (`--server` of
 `models`, `--data` of `sessions`) work before or after the action, because each leaf parser takes
@@ -63,6 +63,7 @@ _probability = checked(
     "a probability in [0, 1]",
     malformed="a probability like 0.05 or 5%",
 )
+_positive_duration = checked(parse_duration, lambda value: value > 0, "a duration > 0, like 10ms")
 _seconds = checked(
     parse_seconds,
     lambda value: value > 0,
@@ -197,43 +198,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="default passive for a built-in model, else the server's choice for the model (driven for "
         "one with actuators)",
     )
-    for flag, parse_text, kind, default, text in (
-        (
-            "--seconds",
-            _seconds,
-            "seconds",
-            10.0,
-            "session length: 10s, 2500ms, or a bare number of seconds (default 10s)",
-        ),
-        (
-            "--latency",
-            parse_duration,
-            "duration",
-            0.035,
-            "one-way latency with a unit: 35ms, 0.1s (default 35ms)",
-        ),
-        ("--jitter", parse_duration, "duration", 0.010, "latency spread with a unit (default 10ms)"),
-        ("--loss", _probability, "probability", 0.05, "frame loss probability: 0.05 or 5%% (default 0.05)"),
-    ):
-        demo.add_argument(
-            flag,
-            type=argparse_type(parse_text, kind),
-            default=default,
-            metavar="P" if kind == "probability" else "DURATION",
-            help=text,
-        )
+    demo.add_argument(
+        "--seconds",
+        type=argparse_type(_seconds, "seconds"),
+        default=10.0,
+        metavar="DURATION",
+        help="session length: 10s, 2500ms, or a bare number of seconds (default 10s)",
+    )
+    _add_network(demo, latency="35ms", jitter="10ms", loss=0.05)
     demo.add_argument(
         "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
     )
     demo.add_argument("--seed", type=int, default=0, help="seed of the emulated network and the start state")
-    demo.add_argument(
-        "--clock",
-        choices=tuple(clock.lower() for clock in Clock),
-        help="realtime: ticks on the server's clock, over the emulated network; lockstep: each frame "
-        "answered as it is sent (loss emulated as skipped ticks). Default: realtime, or lockstep, "
-        "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
-        "MyoSuite model such as myolegs_osl)",
-    )
+    _clock_option(demo, "")
+
+    _add_replay(commands, leaf)
 
     sessions = leaf(
         commands,
@@ -319,6 +298,109 @@ def build_parser() -> argparse.ArgumentParser:
     )
     experiments.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
+
+
+def _add_network(parser: argparse.ArgumentParser, *, latency: str, jitter: str, loss: float) -> None:
+    """--latency, --jitter and --loss of the emulated network (experiments/netem.py)."""
+    parser.add_argument(
+        "--latency",
+        type=argparse_type(parse_duration, "duration"),
+        default=parse_duration(latency),
+        metavar="DURATION",
+        help=f"one-way latency of the emulated network, with a unit: 35ms, 0.1s (default {latency})",
+    )
+    parser.add_argument(
+        "--jitter",
+        type=argparse_type(parse_duration, "duration"),
+        default=parse_duration(jitter),
+        metavar="DURATION",
+        help=f"latency spread with a unit (default {jitter})",
+    )
+    parser.add_argument(
+        "--loss",
+        type=argparse_type(_probability, "probability"),
+        default=loss,
+        metavar="P",
+        help=f"frame loss probability: 0.05 or 5%% (default {loss:g})",
+    )
+
+
+def _clock_option(parser: argparse.ArgumentParser, what: str) -> None:
+    parser.add_argument(
+        "--clock",
+        choices=tuple(clock.lower() for clock in Clock),
+        help=f"realtime: ticks on the server's clock{what}, over the emulated network; lockstep: each "
+        "frame answered as it is sent (loss emulated as skipped ticks). Default: realtime, or lockstep, "
+        "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
+        "MyoSuite model such as myolegs_osl)",
+    )
+
+
+def _add_replay(
+    commands: argparse._SubParsersAction[argparse.ArgumentParser],
+    leaf: Callable[..., argparse.ArgumentParser],
+) -> None:
+    from jitdyn.cli.trials import FORMATS
+
+    replay = leaf(
+        commands,
+        "replay",
+        help="stream a recorded trial's joint angles (.mot, .sto, .c3d, .csv) into a session",
+        description="Stream the joint angles of a recorded trial into a session on a registered model, "
+        "against a local in-process server (or --server), show progress, and print a summary like the "
+        "demo's with the stored session. OpenSim .mot and .sto (degrees or radians as the header's "
+        "inDegrees says), C3D (the angle outputs Vicon's Plug-in Gait stores as points, such as "
+        "LKneeAngles: x flexion, y varus, z internal rotation; needs jitdyn[lab]) and CSV with a header "
+        "(a time column, seconds). A column drives the model's joint of its name; --map FILE links the "
+        "rest. Joints without a column are held at rest and columns without a joint are left out, both "
+        "said in one line.",
+    )
+    replay.add_argument("file", type=Path, help=f"the recording: {', '.join(FORMATS)}")
+    replay.add_argument(
+        "--model",
+        required=True,
+        type=argparse_type(lambda text: _model_ref(text) and text, "model"),
+        metavar="MODEL",
+        help="the registered model to drive: NAME, NAME:VERSION or sha256:ID (`jitdyn models list`)",
+    )
+    replay.add_argument(
+        "--map",
+        dest="map_file",
+        type=Path,
+        metavar="FILE",
+        help="links of columns to joints the names do not make: one `JOINT = COLUMN` a line, "
+        "`JOINT = -COLUMN` to flip its sign, # comments",
+    )
+    replay.add_argument(
+        "--angles",
+        choices=("deg", "rad"),
+        help="the file's rotations are in degrees or radians (default: as the file says: a .mot's "
+        "inDegrees, degrees in C3D, radians in CSV); slides are metres either way",
+    )
+    replay.add_argument(
+        "--dt",
+        type=argparse_type(_positive_duration, "duration"),
+        metavar="DURATION",
+        help="the session's tick, with a unit: 10ms (default: the file's step rounded up to a whole "
+        "multiple of the model's timestep, as a session's dt must be; between the file's samples a "
+        "cubic spline gives the angles and their velocities)",
+    )
+    for flag, where in (("--start", "first"), ("--end", "last")):
+        replay.add_argument(
+            flag,
+            type=argparse_type(parse_duration, "duration"),
+            metavar="T",
+            help=f"replay from (--start) or to (--end) this time on the file's clock, with a unit: 1.5s, "
+            f"250ms (default: its {where} sample)",
+        )
+    replay.add_argument(
+        "--scenario",
+        choices=tuple(scenario.lower() for scenario in Scenario),
+        help="default: the server's choice for the model (driven for one with actuators)",
+    )
+    _clock_option(replay, " (each sample sent at its time in the file)")
+    _add_network(replay, latency="0ms", jitter="0ms", loss=0.0)
+    replay.add_argument("--seed", type=int, default=0, help="seed of the emulated network (default 0)")
 
 
 def _add_render(
@@ -489,23 +571,61 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
         estimator=parse(EstimatorKind, args.estimator, argument="--estimator"),
         clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
     )
-    progress = sys.stderr.isatty()
+    _against_server(
+        settings,
+        args.model,
+        lambda address, local: run_demo(
+            address, demo, out=sys.stdout, progress=sys.stderr.isatty(), local_data=local
+        ),
+    )
+    return 0
+
+
+def _against_server(settings: Settings, model: str, run: Callable[[str, Path | None], object]) -> None:
+    """`run(address, local data folder)` against --server, else a local in-process server on the
+    data folder (which must exist for a model that is not built in)."""
     if settings.server:
-        run_demo(settings.server, demo, out=sys.stdout, progress=progress, local_data=None)
-        return 0
+        run(settings.server, None)
+        return
     from jitdyn.server.transport.background import BackgroundServer
 
     data = settings.data.resolve()
-    if args.model.partition(":")[0] not in BUILTIN_NAMES and not settings.index_url and not data.is_dir():
+    if model.partition(":")[0] not in BUILTIN_NAMES and not settings.index_url and not data.is_dir():
         raise FailedPrecondition(
-            f"no model {args.model!r} here: {data} does not exist, so only the built-in models "
+            f"no model {model!r} here: {data} does not exist, so only the built-in models "
             f"({', '.join(BUILTIN_NAMES)}) are registered; register it first (jitdyn models register) or "
             "give --data of the folder that holds it"
         )
     config = _server_config(settings, address="127.0.0.1:0")
-    print(f"starting a local jitdyn server (data in {settings.data.resolve()})", flush=True)
+    print(f"starting a local jitdyn server (data in {data})", flush=True)
     with BackgroundServer(config) as server:
-        run_demo(server.address, demo, out=sys.stdout, progress=progress, local_data=settings.data.resolve())
+        run(server.address, data)
+
+
+def _replay(args: argparse.Namespace, settings: Settings) -> int:
+    from jitdyn.cli.replay import ReplaySettings, run_replay
+    from jitdyn.experiments.netem import NetworkProfile
+
+    replay = ReplaySettings(
+        file=args.file,
+        model=args.model,
+        map_file=args.map_file,
+        scenario=parse(Scenario, args.scenario, argument="--scenario") if args.scenario else None,
+        clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
+        network=NetworkProfile(latency=args.latency, jitter=args.jitter, loss=args.loss),
+        seed=args.seed,
+        angles=args.angles,
+        dt=args.dt,
+        start=args.start,
+        end=args.end,
+    )
+    _against_server(
+        settings,
+        args.model,
+        lambda address, local: run_replay(
+            address, replay, out=sys.stdout, progress=sys.stderr.isatty(), local_data=local
+        ),
+    )
     return 0
 
 
@@ -519,6 +639,7 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace, Settings], int]] = {
     "serve": _serve,
     "models": _models,
     "demo": _demo,
+    "replay": _replay,
     "sessions": _sessions,
 }
 
