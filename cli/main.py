@@ -603,7 +603,7 @@ def _against_server(settings: Settings, model: str, run: Callable[[str, Path | N
 
 
 def _replay(args: argparse.Namespace, settings: Settings) -> int:
-    from jitdyn.cli.replay import ReplaySettings, run_replay
+    from jitdyn.cli.replay import ReplaySettings, load_trial, run_replay
     from jitdyn.experiments.netem import NetworkProfile
 
     replay = ReplaySettings(
@@ -619,11 +619,12 @@ def _replay(args: argparse.Namespace, settings: Settings) -> int:
         start=args.start,
         end=args.end,
     )
+    trial = load_trial(replay)  # a file it cannot replay is said before a server starts
     _against_server(
         settings,
         args.model,
         lambda address, local: run_replay(
-            address, replay, out=sys.stdout, progress=sys.stderr.isatty(), local_data=local
+            address, replay, trial, out=sys.stdout, progress=sys.stderr.isatty(), local_data=local
         ),
     )
     return 0

@@ -39,7 +39,7 @@ from jitdyn.experiments.progress import progress_bar
 from jitdyn.settings import parse_model_reference
 from jitdyn.vocabulary import Channel, Clock, Output, Scenario
 
-__all__ = ["ReplaySettings", "mapped_model", "run_replay"]
+__all__ = ["ReplaySettings", "Samples", "load_trial", "mapped_model", "run_replay"]
 
 
 @dataclass(frozen=True)
@@ -89,17 +89,22 @@ def mapped_model(
     return ref, mapping
 
 
+def load_trial(settings: ReplaySettings) -> Trial:
+    """The part of the file `settings` replay, read before a server is asked anything."""
+    return read_trial(settings.file).between(settings.start, settings.end)
+
+
 def run_replay(
     address: str,
     settings: ReplaySettings,
+    trial: Trial,
     *,
     out: TextIO,
     progress: bool = True,
     local_data: Path | None = None,
 ) -> dict[str, object]:
-    """Replay the file of `settings` into a session at `address`; print and return its summary.
-    The file and the map are read before a session is opened."""
-    trial = read_trial(settings.file).between(settings.start, settings.end)
+    """Replay `trial` (load_trial) into a session at `address` as `settings` say; print and return
+    its summary. The map is read before a session is opened."""
     degrees = trial.degrees if settings.angles is None else settings.angles == "deg"
     answers = Answers()
     with Client(address) as client:

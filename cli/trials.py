@@ -20,6 +20,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from jitdyn.cli.extras import require_extra
 from jitdyn.errors import InvalidArgument
 
 __all__ = ["FORMATS", "PLUG_IN_GAIT", "Trial", "read_trial"]
@@ -191,12 +192,9 @@ def _read_c3d(path: Path) -> Trial:
     """The angle outputs of a C3D (`_angle_points`); each point is three columns, NAME.x, NAME.y,
     NAME.z, in POINT:ANGLE_UNITS (degrees when it is not given, as Plug-in Gait writes them). The
     markers and other points are left out, and said so."""
-    try:
-        import ezc3d
-    except ImportError:
-        raise InvalidArgument(
-            f"{path}: reading C3D needs ezc3d, which is not installed: pip install 'jitdyn[lab]'"
-        ) from None
+    require_extra("ezc3d", what="ezc3d (C3D files)", extra="lab")
+    import ezc3d
+
     try:
         c3d = ezc3d.c3d(str(path))
     except (OSError, RuntimeError, ValueError, IndexError) as error:  # its C++ errors, as Python's

@@ -324,3 +324,13 @@ def test_what_replay_refuses_it_says_in_one_line(
     assert one_line_error(result, 1).startswith(
         f"jitdyn replay: InvalidArgument: {message.format(d=tmp_path)}"
     )
+
+
+def test_a_c3d_without_the_lab_extra_names_it(tmp_path: Path) -> None:
+    c3d = recording_path("vicon_CMJ_kinem_kinet_emg.c3d")
+    result = jitdyn(
+        "replay", str(c3d), "--model", "cmj_leg", preamble="sys.modules['ezc3d'] = None  # not installed"
+    )
+    assert one_line_error(result, 1) == (
+        "jitdyn replay: needs ezc3d (C3D files), which is not installed: pip install 'jitdyn[lab]'"
+    )
