@@ -101,12 +101,13 @@ class JointMap:
             f"unused columns: {', '.join(self.unused) or 'none'}"
         )
 
-    def frames(
-        self, values: np.ndarray, velocities: np.ndarray, *, nq: int, nv: int, degrees: bool
-    ) -> Callable[[int, float, int], FrameData]:
-        """A function of (sample row, t, seq) to the frame of that sample: every column that
-        drives a joint set, in radians for a hinge (`degrees`: the file's rotations are in
-        degrees; a slide's metres are never converted), the other joints at rest."""
+    def framer(
+        self, *, nq: int, nv: int, degrees: bool
+    ) -> Callable[[np.ndarray, np.ndarray, float, int], FrameData]:
+        """A function of (angles (columns,), their velocities (columns,), t, seq) to that
+        sample's frame: every column that drives a joint set, in radians for a hinge (`degrees`:
+        the rotations are in degrees; a slide's metres are never converted), the other joints at
+        rest."""
         rest = np.zeros(nq)
         for joint in self.joints:
             if joint.type in _REST:
@@ -121,10 +122,10 @@ class JointMap:
         qpos_at = [link.joint.qpos_address for link in self.links]
         dof_at = [link.joint.dof_address for link in self.links]
 
-        def frame(row: int, t: float, seq: int) -> FrameData:
+        def frame(angles: np.ndarray, velocities: np.ndarray, t: float, seq: int) -> FrameData:
             qpos, qvel = rest.copy(), np.zeros(nv)
-            qpos[qpos_at] = values[row, columns] * scale
-            qvel[dof_at] = velocities[row, columns] * scale
+            qpos[qpos_at] = angles[columns] * scale
+            qvel[dof_at] = velocities[columns] * scale
             return FrameData(seq=seq, t=t, qpos=qpos, qvel=qvel)
 
         return frame

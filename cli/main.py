@@ -1,4 +1,4 @@
-"""The `jitdyn` command line: serve, models, demo, replay, sessions, experiments.
+"""The `jitdyn` command line: serve, models, demo, replay, lsl, sessions, experiments.
 
 Every option is accepted wherever a user puts it: `-v` and a group's options (`--server` of
 `models`, `--data` of `sessions`) work before or after the action, because each leaf parser takes
@@ -210,9 +210,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--estimator", default=EstimatorKind.UKF.value, choices=tuple(kind.value for kind in EstimatorKind)
     )
     demo.add_argument("--seed", type=int, default=0, help="seed of the emulated network and the start state")
-    _clock_option(demo, "")
+    _clock_option(demo, "over the emulated network")
 
     _add_replay(commands, leaf)
+    _add_lsl(commands, leaf)
 
     sessions = leaf(
         commands,
@@ -325,14 +326,14 @@ def _add_network(parser: argparse.ArgumentParser, *, latency: str, jitter: str, 
     )
 
 
-def _clock_option(parser: argparse.ArgumentParser, what: str) -> None:
+def _clock_option(parser: argparse.ArgumentParser, realtime: str, *, emulated: bool = True) -> None:
+    lockstep = "each frame answered as it is sent" + (" (loss emulated as skipped ticks)" if emulated else "")
     parser.add_argument(
         "--clock",
         choices=tuple(clock.lower() for clock in Clock),
-        help=f"realtime: ticks on the server's clock{what}, over the emulated network; lockstep: each "
-        "frame answered as it is sent (loss emulated as skipped ticks). Default: realtime, or lockstep, "
-        "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
-        "MyoSuite model such as myolegs_osl)",
+        help=f"realtime: ticks on the server's clock, {realtime}; lockstep: {lockstep}. Default: realtime, or "
+        "lockstep, said so, when the server refuses a realtime session for its cost or its machine's load (a "
+        "big MyoSuite model such as myolegs_osl)",
     )
 
 
@@ -356,35 +357,7 @@ def _add_replay(
         "said in one line.",
     )
     replay.add_argument("file", type=Path, help=f"the recording: {', '.join(FORMATS)}")
-    replay.add_argument(
-        "--model",
-        required=True,
-        type=argparse_type(lambda text: _model_ref(text) and text, "model"),
-        metavar="MODEL",
-        help="the registered model to drive: NAME, NAME:VERSION or sha256:ID (`jitdyn models list`)",
-    )
-    replay.add_argument(
-        "--map",
-        dest="map_file",
-        type=Path,
-        metavar="FILE",
-        help="links of columns to joints the names do not make: one `JOINT = COLUMN` a line, "
-        "`JOINT = -COLUMN` to flip its sign, # comments",
-    )
-    replay.add_argument(
-        "--angles",
-        choices=("deg", "rad"),
-        help="the file's rotations are in degrees or radians (default: as the file says: a .mot's "
-        "inDegrees, degrees in C3D, radians in CSV); slides are metres either way",
-    )
-    replay.add_argument(
-        "--dt",
-        type=argparse_type(_positive_duration, "duration"),
-        metavar="DURATION",
-        help="the session's tick, with a unit: 10ms (default: the file's step rounded up to a whole "
-        "multiple of the model's timestep, as a session's dt must be; between the file's samples a "
-        "cubic spline gives the angles and their velocities)",
-    )
+    _add_joint_options(replay, units="as the file says: a .mot's inDegrees, degrees in C3D, radians in CSV")
     for flag, where in (("--start", "first"), ("--end", "last")):
         replay.add_argument(
             flag,
@@ -393,14 +366,90 @@ def _add_replay(
             help=f"replay from (--start) or to (--end) this time on the file's clock, with a unit: 1.5s, "
             f"250ms (default: its {where} sample)",
         )
-    replay.add_argument(
+    _clock_option(replay, "each sample sent at its time in the file over the emulated network")
+    _add_network(replay, latency="0ms", jitter="0ms", loss=0.0)
+    replay.add_argument("--seed", type=int, default=0, help="seed of the emulated network (default 0)")
+
+
+def _add_joint_options(parser: argparse.ArgumentParser, *, units: str) -> None:
+    """--model, --map, --angles, --dt and --scenario of the commands that drive joints from columns."""
+    parser.add_argument(
+        "--model",
+        required=True,
+        type=argparse_type(lambda text: _model_ref(text) and text, "model"),
+        metavar="MODEL",
+        help="the registered model to drive: NAME, NAME:VERSION or sha256:ID (`jitdyn models list`)",
+    )
+    parser.add_argument(
+        "--map",
+        dest="map_file",
+        type=Path,
+        metavar="FILE",
+        help="links of columns to joints the names do not make: one `JOINT = COLUMN` a line, "
+        "`JOINT = -COLUMN` to flip its sign, # comments",
+    )
+    parser.add_argument(
+        "--angles",
+        choices=("deg", "rad"),
+        help=f"the rotations are in degrees or radians (default: {units}); slides are metres either way",
+    )
+    parser.add_argument(
+        "--dt",
+        type=argparse_type(_positive_duration, "duration"),
+        metavar="DURATION",
+        help="the session's tick, with a unit: 10ms (default: the recording's step rounded up to a whole "
+        "multiple of the model's timestep, as a session's dt must be)",
+    )
+    parser.add_argument(
         "--scenario",
         choices=tuple(scenario.lower() for scenario in Scenario),
         help="default: the server's choice for the model (driven for one with actuators)",
     )
-    _clock_option(replay, " (each sample sent at its time in the file)")
-    _add_network(replay, latency="0ms", jitter="0ms", loss=0.0)
-    replay.add_argument("--seed", type=int, default=0, help="seed of the emulated network (default 0)")
+
+
+def _add_lsl(
+    commands: argparse._SubParsersAction[argparse.ArgumentParser],
+    leaf: Callable[..., argparse.ArgumentParser],
+) -> None:
+    lsl = leaf(
+        commands,
+        "lsl",
+        help="bridge a Lab Streaming Layer stream of joint angles and a session (needs jitdyn[lab])",
+        description="Take a Lab Streaming Layer stream of joint angles (by --name or --type) into a session "
+        "on a registered model, its sample times mapped onto this machine's LSL clock through the inlet's "
+        "time_correction(), and publish the answers as two LSL streams stamped with each tick's time: NAME "
+        "(the estimated qpos and qvel, qfrc_inverse and the source: 1 MEASURED, 2 PREDICTED, 3 CORRECTED) "
+        "and NAME-lateness (frame_delay and answer_time, s), which LabRecorder stores beside the lab's "
+        "other streams. Channels drive joints as in `jitdyn replay`. Runs until --seconds pass, the stream "
+        "is silent for --idle, or Ctrl-C; then prints the summary. Needs jitdyn[lab] (pylsl, whose liblsl "
+        "needs glibc 2.35 or newer).",
+    )
+    which = lsl.add_mutually_exclusive_group(required=True)
+    which.add_argument("--name", dest="stream_name", metavar="NAME", help="the LSL stream's name")
+    which.add_argument(
+        "--type", dest="stream_type", metavar="TYPE", help="the LSL stream's type (the first found)"
+    )
+    _add_joint_options(lsl, units="as the channels' units say: deg, degree or degrees, else radians")
+    _clock_option(lsl, "each sample sent as it comes", emulated=False)
+    lsl.add_argument(
+        "--seconds",
+        type=argparse_type(_seconds, "seconds"),
+        metavar="DURATION",
+        help="end the session after this long on the stream's clock (default: when the stream stops)",
+    )
+    for flag, default, text in (
+        ("--wait", 10.0, "how long to look for the stream, and for its first sample (default 10s)"),
+        ("--idle", 2.0, "end the session when the stream sends nothing for this long (default 2s)"),
+    ):
+        lsl.add_argument(
+            flag, type=argparse_type(_seconds, "seconds"), default=default, metavar="DURATION", help=text
+        )
+    lsl.add_argument(
+        "--publish",
+        default="jitdyn",
+        metavar="NAME",
+        help="the name of the answers' LSL stream; the lateness' is NAME-lateness (default jitdyn)",
+    )
 
 
 def _add_render(
@@ -630,6 +679,42 @@ def _replay(args: argparse.Namespace, settings: Settings) -> int:
     return 0
 
 
+def _lsl(args: argparse.Namespace, settings: Settings) -> int:
+    import signal
+    import threading
+
+    from jitdyn.cli.lsl import LslSettings, run_lsl
+
+    lsl = LslSettings(
+        stream=args.stream_name or args.stream_type,
+        by="name" if args.stream_name else "type",
+        model=args.model,
+        map_file=args.map_file,
+        scenario=parse(Scenario, args.scenario, argument="--scenario") if args.scenario else None,
+        clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
+        angles=args.angles,
+        dt=args.dt,
+        seconds=args.seconds,
+        wait=args.wait,
+        idle=args.idle,
+        name=args.publish,
+    )
+    # Ctrl-C ends the session as the stream's end would: closed, summarised and stored.
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        _against_server(
+            settings,
+            args.model,
+            lambda address, local: run_lsl(
+                address, lsl, out=sys.stdout, progress=sys.stderr.isatty(), local_data=local, stop=stop
+            ),
+        )
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    return 0
+
+
 def _sessions(args: argparse.Namespace, settings: Settings) -> int:
     from jitdyn.cli.sessions import run_sessions_command
 
@@ -641,6 +726,7 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace, Settings], int]] = {
     "models": _models,
     "demo": _demo,
     "replay": _replay,
+    "lsl": _lsl,
     "sessions": _sessions,
 }
 

@@ -39,7 +39,7 @@ from jitdyn.experiments.progress import progress_bar
 from jitdyn.settings import parse_model_reference
 from jitdyn.vocabulary import Channel, Clock, Output, Scenario
 
-__all__ = ["ReplaySettings", "Samples", "load_trial", "mapped_model", "run_replay"]
+__all__ = ["ReplaySettings", "Samples", "load_trial", "mapped_model", "run_replay", "session_dt"]
 
 
 @dataclass(frozen=True)
@@ -87,6 +87,12 @@ def mapped_model(
         where=f"--map {map_file}",
     )
     return ref, mapping
+
+
+def session_dt(step: float, timestep: float) -> float:
+    """A sampling `step` rounded up to a whole multiple of the model's `timestep`, which a
+    session's dt must be (docs/decisions/0170)."""
+    return timestep * max(1, math.ceil(step / timestep - 1e-6))
 
 
 def load_trial(settings: ReplaySettings) -> Trial:
@@ -192,7 +198,7 @@ class Samples:
                     f"{trial.path}: column {trial.columns[column]} has {gaps.size} samples that are not numbers "
                     f"(gaps), the first at t = {trial.times[gaps[0]]:g} s; fill them before replaying"
                 )
-        tick = dt or timestep * max(1, math.ceil(step / timestep - 1e-6))
+        tick = dt or session_dt(step, timestep)
         start, span = trial.times[0], trial.times[-1] - trial.times[0]
         times = start + np.arange(math.floor(span / tick + 1e-6) + 1) * tick
         spline = CubicSpline(trial.times, np.nan_to_num(trial.values), axis=0)
@@ -214,6 +220,6 @@ class Samples:
 
     def frames(self, mapping: JointMap, *, nq: int, nv: int, degrees: bool) -> Iterator[FrameData]:
         """The frame of every tick: seq k at k * dt."""
-        frame = mapping.frames(self.angles, self.velocities, nq=nq, nv=nv, degrees=degrees)
+        frame = mapping.framer(nq=nq, nv=nv, degrees=degrees)
         for k, t in enumerate(self.times):
-            yield frame(k, float(t), k)
+            yield frame(self.angles[k], self.velocities[k], float(t), k)

@@ -91,6 +91,7 @@ class Answers:
     syncs: list[SyncSample] = field(default_factory=list)
     frames: dict[int, FrameData] = field(default_factory=dict)
     lost: int = 0
+    gaps: int = 0  # LOCKSTEP ticks skipped because no frame came for them (a live stream's)
     listener: Callable[[TickResult | Rejection], None] | None = None
 
     def collect(self, answers: Iterable[Answer]) -> None:
@@ -161,10 +162,15 @@ def feed_lockstep(
     seed: int,
     bar: ProgressBar,
 ) -> None:
-    """Send each frame and wait for its answer; a frame the network loses (seeded) is a skipped
-    tick, which the server answers PREDICTED."""
+    """Send each frame and wait for its answer; a frame the network loses (seeded), or a tick no
+    frame comes for (a live stream's gap), is a skipped tick, which the server answers PREDICTED."""
     rng = np.random.default_rng(seed)
+    following = 0
     for frame in frames:
+        for seq in range(following, frame.seq):
+            answers.gaps += 1
+            answers.collect([session.skip(seq)])
+        following = frame.seq + 1
         answers.frames[frame.seq] = frame
         if rng.random() < loss:
             answers.lost += 1
@@ -187,15 +193,24 @@ def finish(session: Session, answers: Answers, bar: ProgressBar) -> Summary:
 
 
 def describe_session(
-    session: Session, *, model: str, dt: float, ticks: int, lockstep: bool, chosen: bool, extra: str = ""
+    session: Session,
+    *,
+    model: str,
+    dt: float,
+    ticks: int | None,
+    lockstep: bool,
+    chosen: bool,
+    extra: str = "",
 ) -> str:
     """'session ID: MODEL, SCENARIO, dt, ticks, clock...': `chosen`, the scenario was the server's
-    choice (its reason is said); `extra` goes before the grace."""
+    choice (its reason is said); `ticks` None: as many as a live stream sends; `extra` goes before
+    the grace."""
     opened = session.opened
     reason = f" ({opened.scenario_reason})" if chosen else ""
+    count = "ticks while the stream sends" if ticks is None else f"{ticks} ticks"
     return (
         f"session {opened.session_id}: {model}, {opened.scenario.lower()}{reason}, dt {dt * 1e3:g} ms, "
-        f"{ticks} ticks{', LOCKSTEP' if lockstep else ''}{extra}, grace {opened.grace * 1e3:g} ms"
+        f"{count}{', LOCKSTEP' if lockstep else ''}{extra}, grace {opened.grace * 1e3:g} ms"
     )
 
 
@@ -243,7 +258,7 @@ class Context:
 
 def report(answers: Answers, summary: Summary, context: Context, *, out: TextIO) -> dict[str, object]:
     """Print the summary of a fed session; return its numbers."""
-    results, ticks = answers.results, len(answers.frames)
+    results, ticks = answers.results, len(answers.frames) + answers.gaps
     by_source: dict[str, int] = {}
     for r in results.values():
         by_source[r.source] = by_source.get(r.source, 0) + 1
@@ -251,7 +266,8 @@ def report(answers: Answers, summary: Summary, context: Context, *, out: TextIO)
     lines = [
         "",
         (
-            f"frames sent {ticks}, lost on the emulated network {answers.lost}, rejected "
+            f"frames sent {len(answers.frames)}, lost on the emulated network {answers.lost}, "
+            f"{f'ticks with no frame {answers.gaps}, ' if answers.gaps else ''}rejected "
             f"{len(answers.rejections)}; answers received for {len(results)} of the {ticks} ticks"
         ),
         *_rejection_reasons(answers.rejections),

@@ -12,6 +12,9 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+import pyarrow.parquet as pq
+
 
 def jitdyn(
     *args: str, cwd: Path | None = None, env: dict[str, str] | None = None, preamble: str = ""
@@ -63,3 +66,27 @@ def serving(*args: str, data: Path, env: dict[str, str] | None = None) -> Iterat
     finally:
         process.send_signal(signal.SIGINT)
         process.communicate(timeout=30)
+
+
+def ok(result: subprocess.CompletedProcess[str]) -> str:
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    return result.stdout
+
+
+def stored_frames(stdout: str, data: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(seqs, frame_qpos) of the frames the server received, from the Parquet the summary names
+    in its data folder."""
+    path = re.search(r"^stored: (\S+\.parquet) \(in the data folder of the server", stdout, re.MULTILINE)
+    assert path, stdout
+    table = pq.read_table(data / path.group(1)).to_pydict()
+    rows = [
+        (seq, qpos)
+        for seq, qpos, received in zip(
+            table["seq"], table["frame_qpos"], table["frame_received"], strict=True
+        )
+        if received and qpos
+    ]
+    seqs = sorted({seq for seq, _ in rows})
+    by_seq = dict(rows)
+    return np.array(seqs), np.array([by_seq[seq] for seq in seqs])

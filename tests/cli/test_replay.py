@@ -7,15 +7,13 @@ from __future__ import annotations
 
 import re
 import subprocess
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import pyarrow.parquet as pq
 import pytest
-from _cli import jitdyn, one_line_error, serving
+from _cli import jitdyn, ok, one_line_error, stored_frames
 
-from jitdyn.experiments.recorded import chain_mjcf, load_isen, load_recording, recording_path
+from jitdyn.experiments.recorded import load_isen, load_recording, recording_path
 
 ezc3d = pytest.importorskip("ezc3d")
 
@@ -24,48 +22,8 @@ JUMP_RATE = 200.0  # Hz, the Vicon jump's "Model Outputs"
 VICON = {"AngArtHip_R": "RHipAngles", "AngArtKnee_R": "RKneeAngles", "AngArtAnkle_R": "RAnkleAngles"}
 
 
-@pytest.fixture(scope="module")
-def data(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tmp_path_factory.mktemp("replay") / "data"
-
-
-@pytest.fixture(scope="module")
-def server(data: Path) -> Iterator[str]:
-    """A real `jitdyn serve` on `data`, with the hip-knee-ankle leg of the recorded jump registered."""
-    folder = data.parent
-    with serving(data=data) as address:
-        leg = folder / "cmj_leg.xml"
-        leg.write_text(chain_mjcf(), encoding="utf-8")
-        ok(jitdyn("models", "register", str(leg), "--server", address))
-        yield address
-
-
-def ok(result: subprocess.CompletedProcess[str]) -> str:
-    assert result.returncode == 0, result.stdout + result.stderr
-    assert "Traceback" not in result.stderr, result.stderr
-    return result.stdout
-
-
 def replay(*args: str) -> subprocess.CompletedProcess[str]:
     return jitdyn("replay", *args)
-
-
-def stored_frames(stdout: str, data: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(seqs, frame_qpos) of the frames the server received, from the Parquet the summary names
-    in its data folder."""
-    path = re.search(r"^stored: (\S+\.parquet) \(in the data folder of the server", stdout, re.MULTILINE)
-    assert path, stdout
-    table = pq.read_table(data / path.group(1)).to_pydict()
-    rows = [
-        (seq, qpos)
-        for seq, qpos, received in zip(
-            table["seq"], table["frame_qpos"], table["frame_received"], strict=True
-        )
-        if received and qpos
-    ]
-    seqs = sorted({seq for seq, _ in rows})
-    by_seq = dict(rows)
-    return np.array(seqs), np.array([by_seq[seq] for seq in seqs])
 
 
 def line_of(stdout: str, start: str) -> str:
@@ -117,7 +75,7 @@ def write_c3d(path: Path, points: dict[str, np.ndarray], *, rate: float, angles:
 
 
 def test_an_opensim_mot_of_a_jump_drives_pendulum_3_through_a_map(
-    server: str, data: Path, tmp_path: Path
+    leg_server: str, leg_data: Path, tmp_path: Path
 ) -> None:
     """Degrees as the header says, the knee's sign flipped by the map, the unmapped hinge held at
     rest, the ankle's column left out and said so; 200 Hz replayed at pendulum_3's 25 ms timestep."""
@@ -142,7 +100,7 @@ def test_an_opensim_mot_of_a_jump_drives_pendulum_3_through_a_map(
             "--clock",
             "lockstep",
             "--server",
-            server,
+            leg_server,
         )
     )
     ticks = len(jump) // 5 + (1 if len(jump) % 5 else 0)
@@ -160,7 +118,7 @@ def test_an_opensim_mot_of_a_jump_drives_pendulum_3_through_a_map(
         re.MULTILINE,
     )
     assert f"frames sent {ticks}, lost on the emulated network 0, rejected 0" in stdout
-    seqs, qpos = stored_frames(stdout, data)
+    seqs, qpos = stored_frames(stdout, leg_data)
     np.testing.assert_array_equal(seqs, np.arange(ticks))
     # Every 5th sample is a tick: the spline through the samples is the file there.
     expected = np.radians(jump[::5, :2]) * [1.0, -1.0]
@@ -169,7 +127,7 @@ def test_an_opensim_mot_of_a_jump_drives_pendulum_3_through_a_map(
 
 
 def test_a_c3d_of_plug_in_gait_angles_drives_a_leg_by_name_in_realtime(
-    server: str, data: Path, tmp_path: Path
+    leg_server: str, leg_data: Path, tmp_path: Path
 ) -> None:
     """The jump's hip, knee and ankle angles (x, y, z) as Plug-in Gait names its points, and a real
     marker beside them, written by ezc3d; each x (flexion) drives the leg's joint of its motion's
@@ -181,7 +139,7 @@ def test_a_c3d_of_plug_in_gait_angles_drives_a_leg_by_name_in_realtime(
     write_c3d(c3d, points, rate=JUMP_RATE, angles=list(VICON.values()))
     stdout = ok(
         replay(str(c3d), "--model", "cmj_leg", "--dt", "10ms", "--start", "1s", "--end", "3s", "--latency", "30ms",
-               "--jitter", "5ms", "--loss", "5%", "--server", server)
+               "--jitter", "5ms", "--loss", "5%", "--server", leg_server)
     )  # fmt: skip
     assert "rotations in degrees (POINT:ANGLE_UNITS deg); left out: 1 point not angles" in stdout
     assert line_of(stdout, "joints:") == (
@@ -195,14 +153,16 @@ def test_a_c3d_of_plug_in_gait_angles_drives_a_leg_by_name_in_realtime(
         "network: latency 30 ms, jitter 5 ms, loss 5% (seeded 0)" in stdout or "running it LOCKSTEP" in stdout
     )
     assert "frames sent 201, lost on the emulated network" in stdout
-    seqs, qpos = stored_frames(stdout, data)
+    seqs, qpos = stored_frames(stdout, leg_data)
     first = round(1.0 * JUMP_RATE)  # --start 1s
     expected = np.radians(np.column_stack([angles[name][first : first + 401 : 2, 0] for name in VICON]))
     np.testing.assert_allclose(qpos, expected[seqs], atol=1e-7)
     assert len(seqs) >= 201 * 0.8  # those the emulated network did not lose
 
 
-def test_biomdp_s_own_vicon_c3d_replays_its_modeled_angles(server: str, data: Path, tmp_path: Path) -> None:
+def test_biomdp_s_own_vicon_c3d_replays_its_modeled_angles(
+    leg_server: str, leg_data: Path, tmp_path: Path
+) -> None:
     """A C3D Vicon Nexus wrote: its angles are modeled outputs (USERMO3-9, named by their
     descriptions) in radians without POINT:ANGLE_UNITS, so --angles rad; at cmj_leg's 2 ms
     timestep its 5 ms samples are replayed at 6 ms, on the spline between them."""
@@ -216,7 +176,7 @@ def test_biomdp_s_own_vicon_c3d_replays_its_modeled_angles(server: str, data: Pa
     )
     stdout = ok(
         replay(str(c3d), "--model", "cmj_leg", "--map", str(mapping), "--angles", "rad", "--start", "20ms",
-               "--end", "2s", "--clock", "lockstep", "--server", server)
+               "--end", "2s", "--clock", "lockstep", "--server", leg_server)
     )  # fmt: skip
     assert (
         f"replaying {c3d}: 397 samples at 200 Hz, rotations in radians (--angles rad); left out: 35 points not angles"
@@ -227,7 +187,7 @@ def test_biomdp_s_own_vicon_c3d_replays_its_modeled_angles(server: str, data: Pa
         "AngArtAnkle_R.x; held at rest (no column): none; unused columns: AngSegPELVIS_LR.x,"
     )
     assert "resampled to 166.667 Hz (dt 6 ms, 331 ticks)" in stdout
-    seqs, qpos = stored_frames(stdout, data)
+    seqs, qpos = stored_frames(stdout, leg_data)
     np.testing.assert_array_equal(seqs, np.arange(331))
     file = ezc3d.c3d(str(c3d))
     labels = list(file["parameters"]["POINT"]["LABELS"]["value"])
@@ -238,7 +198,7 @@ def test_biomdp_s_own_vicon_c3d_replays_its_modeled_angles(server: str, data: Pa
         np.testing.assert_allclose(qpos[:, j], np.interp(times, np.arange(1600) / 200, recorded), atol=2e-3)
 
 
-def test_a_csv_of_walking_drives_the_leg_by_name(server: str, data: Path, tmp_path: Path) -> None:
+def test_a_csv_of_walking_drives_the_leg_by_name(leg_server: str, leg_data: Path, tmp_path: Path) -> None:
     """iSen's steady stepping (right hip and knee, radians at 100 Hz) as a CSV with a header: the
     columns named as the leg's joints drive them; the ankle, with no column, is held at rest."""
     walk = load_isen("isen_gait")[:300, :2]
@@ -246,14 +206,14 @@ def test_a_csv_of_walking_drives_the_leg_by_name(server: str, data: Path, tmp_pa
     rows = [f"{k / 100:.2f},{hip:.9f},{knee:.9f}" for k, (hip, knee) in enumerate(walk)]
     csv.write_text("\n".join(["time,hip_flexion_r,knee_flexion_r", *rows]) + "\n", encoding="utf-8")
     stdout = ok(
-        replay(str(csv), "--model", "cmj_leg", "--dt", "10ms", "--clock", "lockstep", "--server", server)
+        replay(str(csv), "--model", "cmj_leg", "--dt", "10ms", "--clock", "lockstep", "--server", leg_server)
     )
     assert "rotations in radians (radians, a CSV's default (--angles deg if not))" in stdout
     assert line_of(stdout, "joints:") == (
         "joints: hip_flexion_r <- hip_flexion_r, knee_flexion_r <- knee_flexion_r; held at rest (no column): "
         "ankle_flexion_r; unused columns: none"
     )
-    seqs, qpos = stored_frames(stdout, data)
+    seqs, qpos = stored_frames(stdout, leg_data)
     np.testing.assert_allclose(qpos[:, :2], walk[seqs], atol=1e-8)
 
 
@@ -315,12 +275,12 @@ JUMP_MOT = "jump\nversion=1\ninDegrees=yes\nendheader\ntime\thip_flexion_r\tknee
     ],
 )
 def test_what_replay_refuses_it_says_in_one_line(
-    server: str, tmp_path: Path, files: dict[str, str], args: list[str], message: str
+    leg_server: str, tmp_path: Path, files: dict[str, str], args: list[str], message: str
 ) -> None:
     for name, text in files.items():
         (tmp_path / name).write_text(text, encoding="utf-8")
     named = [str(tmp_path / a) if a.endswith((".txt", ".mot", ".map", ".c3d")) else a for a in args]
-    result = replay(*named, "--model", "pendulum_3", "--server", server)
+    result = replay(*named, "--model", "pendulum_3", "--server", leg_server)
     assert one_line_error(result, 1).startswith(
         f"jitdyn replay: InvalidArgument: {message.format(d=tmp_path)}"
     )
