@@ -22,40 +22,28 @@ import numpy as np
 
 from jitdyn.client import FrameData
 from jitdyn.errors import InvalidArgument
+from jitdyn.registry.info import JointInfo
 from jitdyn.v1 import model_registry_pb2
 from jitdyn.vocabulary import JointType, from_proto
 
-__all__ = ["JointMap", "ModelJoint", "map_joints", "model_joints", "read_map_file"]
+__all__ = ["JointMap", "Link", "map_joints", "model_joints", "read_map_file"]
 
 # A hinge turns, a slide moves: only they take one column each.
 _SCALAR = (JointType.HINGE, JointType.SLIDE)
 _REST = {JointType.FREE: (0, 0, 0, 1, 0, 0, 0), JointType.BALL: (1, 0, 0, 0)}
 
 
-@dataclass(frozen=True)
-class ModelJoint:
-    """One joint of the model, as the registry describes it."""
-
-    name: str
-    type: JointType
-    qpos_address: int
-    dof_address: int
-    limited: bool
-    lower: float
-    upper: float
-
-
-def model_joints(model: model_registry_pb2.Model) -> list[ModelJoint]:
+def model_joints(model: model_registry_pb2.Model) -> list[JointInfo]:
     """The joints of a registry `Model` message, in the model's order."""
     return [
-        ModelJoint(
+        JointInfo(
             name=joint.name,
             type=from_proto(JointType, joint.type, argument="joint.type") or JointType.HINGE,
-            qpos_address=joint.qpos_address,
-            dof_address=joint.dof_address,
             limited=joint.limited,
             lower=joint.range_lower,
             upper=joint.range_upper,
+            qpos_address=joint.qpos_address,
+            dof_address=joint.dof_address,
         )
         for joint in model.joints
     ]
@@ -65,7 +53,7 @@ def model_joints(model: model_registry_pb2.Model) -> list[ModelJoint]:
 class Link:
     """Column `column` (its index) drives `joint`, times `sign`."""
 
-    joint: ModelJoint
+    joint: JointInfo
     column: int
     sign: float
 
@@ -75,7 +63,7 @@ class JointMap:
     """The links of the recording's `columns` to the model's `joints`, in the model's order."""
 
     links: tuple[Link, ...]
-    joints: tuple[ModelJoint, ...]
+    joints: tuple[JointInfo, ...]
     columns: tuple[str, ...]
 
     @property
@@ -159,7 +147,7 @@ def read_map_file(path: Path) -> list[tuple[str, str, float, int]]:
 
 
 def map_joints(
-    joints: Sequence[ModelJoint],
+    joints: Sequence[JointInfo],
     columns: Sequence[str],
     *,
     find: Callable[[str], int | None],
@@ -204,7 +192,7 @@ def map_joints(
     return JointMap(links=ordered, joints=tuple(joints), columns=tuple(columns))
 
 
-def _check_scalar(joint: ModelJoint, at: str) -> None:
+def _check_scalar(joint: JointInfo, at: str) -> None:
     if joint.type not in _SCALAR:
         raise InvalidArgument(
             f"{at}: joint {joint.name!r} is a {joint.type} joint; a column drives a hinge or a slide only"
