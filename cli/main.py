@@ -685,6 +685,8 @@ def _lsl(args: argparse.Namespace, settings: Settings) -> int:
 
     from jitdyn.cli.lsl import LslSettings, run_lsl
 
+    require_extra("pylsl", what="pylsl (Lab Streaming Layer)", extra="lab")  # before a server starts
+
     lsl = LslSettings(
         stream=args.stream_name or args.stream_type,
         by="name" if args.stream_name else "type",

@@ -171,3 +171,14 @@ def test_no_stream_of_that_name_is_said_in_one_line(pylsl: ModuleType, tmp_path:
         "jitdyn lsl: FailedPrecondition: no LSL stream of name 'nobody-streams-this' answered within 1 s (LSL "
         "looks as far as lsl_api.cfg's ResolveScope lets it: this machine, its link or its site)"
     )
+
+
+def test_without_the_lab_extra_it_names_it_before_starting_a_server(tmp_path: Path) -> None:
+    result = jitdyn(
+        "lsl", "--name", "leg", "--model", "pendulum_3", "--data", str(tmp_path / "data"),
+        preamble="sys.modules['pylsl'] = None  # not installed",
+    )  # fmt: skip
+    assert one_line_error(result, 1) == (
+        "jitdyn lsl: needs pylsl (Lab Streaming Layer), which is not installed: pip install 'jitdyn[lab]'"
+    )
+    assert not (tmp_path / "data").exists()
