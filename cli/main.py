@@ -1,4 +1,4 @@
-"""The `jitdyn` command line: serve, models, demo, sessions, experiments.
+"""The `jitdyn` command line: serve, models, demo, replay, lsl, sessions, experiments.
 
 Every option is accepted wherever a user puts it: `-v` and a group's options (`--server` of
 `models`, `--data` of `sessions`) work before or after the action, because each leaf parser takes
@@ -63,6 +63,7 @@ _probability = checked(
     "a probability in [0, 1]",
     malformed="a probability like 0.05 or 5%",
 )
+_positive_duration = checked(parse_duration, lambda value: value > 0, "a duration > 0, like 10ms")
 _seconds = checked(
     parse_seconds,
     lambda value: value > 0,
@@ -242,31 +243,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="what moves the body, as the filter models it (any case): default passive for a built-in "
         "model, else the server's choice for the model (driven for one with actuators)",
     )
-    for flag, parse_text, kind, default, text in (
-        (
-            "--seconds",
-            _seconds,
-            "seconds",
-            10.0,
-            "session length: 10s, 2500ms, or a bare number of seconds (default 10s)",
-        ),
-        (
-            "--latency",
-            parse_duration,
-            "duration",
-            0.035,
-            "one-way latency with a unit: 35ms, 0.1s (default 35ms)",
-        ),
-        ("--jitter", parse_duration, "duration", 0.010, "latency spread with a unit (default 10ms)"),
-        ("--loss", _probability, "probability", 0.05, "frame loss probability: 0.05 or 5%% (default 0.05)"),
-    ):
-        demo.add_argument(
-            flag,
-            type=argparse_type(parse_text, kind),
-            default=default,
-            metavar="P" if kind == "probability" else "DURATION",
-            help=text,
-        )
+    demo.add_argument(
+        "--seconds",
+        type=argparse_type(_seconds, "seconds"),
+        default=10.0,
+        metavar="DURATION",
+        help="session length: 10s, 2500ms, or a bare number of seconds (default 10s)",
+    )
+    _add_network(demo, latency="35ms", jitter="10ms", loss=0.05)
     demo.add_argument(
         "--estimator",
         default=EstimatorKind.UKF,
@@ -290,6 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
         "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
         "MyoSuite model such as myolegs_osl)",
     )
+
+    _add_replay(commands, leaf)
+    _add_lsl(commands, leaf)
 
     sessions = leaf(
         commands,
@@ -411,6 +398,157 @@ def _query_description() -> str:
     width = max(len(name) for name in FRAME_COLUMN_NOTES)
     columns = "\n".join(f"  {name:<{width}}  {note}" for name, note in FRAME_COLUMN_NOTES.items())
     return f"{textwrap.fill(intro, 100)}\n\ncolumns of `frames` (unit: meaning):\n{columns}"
+
+
+def _add_network(parser: argparse.ArgumentParser, *, latency: str, jitter: str, loss: float) -> None:
+    """--latency, --jitter and --loss of the emulated network (experiments/netem.py)."""
+    parser.add_argument(
+        "--latency",
+        type=argparse_type(parse_duration, "duration"),
+        default=parse_duration(latency),
+        metavar="DURATION",
+        help=f"one-way latency of the emulated network, with a unit: 35ms, 0.1s (default {latency})",
+    )
+    parser.add_argument(
+        "--jitter",
+        type=argparse_type(parse_duration, "duration"),
+        default=parse_duration(jitter),
+        metavar="DURATION",
+        help=f"latency spread with a unit (default {jitter})",
+    )
+    parser.add_argument(
+        "--loss",
+        type=argparse_type(_probability, "probability"),
+        default=loss,
+        metavar="P",
+        help=f"frame loss probability: 0.05 or 5%% (default {loss:g})",
+    )
+
+
+def _clock_option(parser: argparse.ArgumentParser, realtime: str, *, emulated: bool = True) -> None:
+    lockstep = "each frame answered as it is sent" + (" (loss emulated as skipped ticks)" if emulated else "")
+    parser.add_argument(
+        "--clock",
+        **_word(Clock, "--clock", lower=True),
+        help=f"realtime: ticks on the server's clock, {realtime}; lockstep: {lockstep}. Default: realtime, or "
+        "lockstep, said so, when the server refuses a realtime session for its cost or its machine's load (a "
+        "big MyoSuite model such as myolegs_osl)",
+    )
+
+
+def _add_replay(
+    commands: argparse._SubParsersAction[argparse.ArgumentParser],
+    leaf: Callable[..., argparse.ArgumentParser],
+) -> None:
+    from jitdyn.cli.trials import FORMATS
+
+    replay = leaf(
+        commands,
+        "replay",
+        help="stream a recorded trial's joint angles (.mot, .sto, .c3d, .csv) into a session",
+        description="Stream the joint angles of a recorded trial into a session on a registered model, "
+        "against a local in-process server (or --server), show progress, and print a summary like the "
+        "demo's with the stored session. OpenSim .mot and .sto (degrees or radians as the header's "
+        "inDegrees says), C3D (the angle outputs Vicon's Plug-in Gait stores as points, such as "
+        "LKneeAngles: x flexion, y varus, z internal rotation; needs jitdyn[lab]) and CSV with a header "
+        "(a time column, seconds). A column drives the model's joint of its name; --map FILE links the "
+        "rest. Joints without a column are held at rest and columns without a joint are left out, both "
+        "said in one line.",
+    )
+    replay.add_argument("file", type=Path, help=f"the recording: {', '.join(FORMATS)}")
+    _add_joint_options(replay, units="as the file says: a .mot's inDegrees, degrees in C3D, radians in CSV")
+    for flag, where in (("--start", "first"), ("--end", "last")):
+        replay.add_argument(
+            flag,
+            type=argparse_type(parse_duration, "duration"),
+            metavar="T",
+            help=f"replay from (--start) or to (--end) this time on the file's clock, with a unit: 1.5s, "
+            f"250ms (default: its {where} sample)",
+        )
+    _clock_option(replay, "each sample sent at its time in the file over the emulated network")
+    _add_network(replay, latency="0ms", jitter="0ms", loss=0.0)
+    replay.add_argument("--seed", type=int, default=0, help="seed of the emulated network (default 0)")
+
+
+def _add_joint_options(parser: argparse.ArgumentParser, *, units: str) -> None:
+    """--model, --map, --angles, --dt and --scenario of the commands that drive joints from columns."""
+    parser.add_argument(
+        "--model",
+        required=True,
+        type=argparse_type(lambda text: _model_ref(text) and text, "model"),
+        metavar="MODEL",
+        help="the registered model to drive: NAME, NAME:VERSION or sha256:ID (`jitdyn models list`)",
+    )
+    parser.add_argument(
+        "--map",
+        dest="map_file",
+        type=Path,
+        metavar="FILE",
+        help="links of columns to joints the names do not make: one `JOINT = COLUMN` a line, "
+        "`JOINT = -COLUMN` to flip its sign, # comments",
+    )
+    parser.add_argument(
+        "--angles",
+        choices=("deg", "rad"),
+        help=f"the rotations are in degrees or radians (default: {units}); slides are metres either way",
+    )
+    parser.add_argument(
+        "--dt",
+        type=argparse_type(_positive_duration, "duration"),
+        metavar="DURATION",
+        help="the session's tick, with a unit: 10ms (default: the recording's step rounded up to a whole "
+        "multiple of the model's timestep, as a session's dt must be)",
+    )
+    parser.add_argument(
+        "--scenario",
+        **_word(Scenario, "--scenario", lower=True),
+        help="default: the server's choice for the model (driven for one with actuators)",
+    )
+
+
+def _add_lsl(
+    commands: argparse._SubParsersAction[argparse.ArgumentParser],
+    leaf: Callable[..., argparse.ArgumentParser],
+) -> None:
+    lsl = leaf(
+        commands,
+        "lsl",
+        help="bridge a Lab Streaming Layer stream of joint angles and a session (needs jitdyn[lab])",
+        description="Take a Lab Streaming Layer stream of joint angles (by --name or --type) into a session "
+        "on a registered model, its sample times mapped onto this machine's LSL clock through the inlet's "
+        "time_correction(), and publish the answers as two LSL streams stamped with each tick's time: NAME "
+        "(the estimated qpos and qvel, qfrc_inverse and the source: 1 MEASURED, 2 PREDICTED, 3 CORRECTED) "
+        "and NAME-lateness (frame_delay and answer_time, s), which LabRecorder stores beside the lab's "
+        "other streams. Channels drive joints as in `jitdyn replay`. Runs until --seconds pass, the stream "
+        "is silent for --idle, or Ctrl-C; then prints the summary. Needs jitdyn[lab] (pylsl, whose liblsl "
+        "needs glibc 2.35 or newer).",
+    )
+    which = lsl.add_mutually_exclusive_group(required=True)
+    which.add_argument("--name", dest="stream_name", metavar="NAME", help="the LSL stream's name")
+    which.add_argument(
+        "--type", dest="stream_type", metavar="TYPE", help="the LSL stream's type (the first found)"
+    )
+    _add_joint_options(lsl, units="as the channels' units say: deg, degree or degrees, else radians")
+    _clock_option(lsl, "each sample sent as it comes", emulated=False)
+    lsl.add_argument(
+        "--seconds",
+        type=argparse_type(_seconds, "seconds"),
+        metavar="DURATION",
+        help="end the session after this long on the stream's clock (default: when the stream stops)",
+    )
+    for flag, default, text in (
+        ("--wait", 10.0, "how long to look for the stream, and for its first sample (default 10s)"),
+        ("--idle", 2.0, "end the session when the stream sends nothing for this long (default 2s)"),
+    ):
+        lsl.add_argument(
+            flag, type=argparse_type(_seconds, "seconds"), default=default, metavar="DURATION", help=text
+        )
+    lsl.add_argument(
+        "--publish",
+        default="jitdyn",
+        metavar="NAME",
+        help="the name of the answers' LSL stream; the lateness' is NAME-lateness (default jitdyn)",
+    )
 
 
 def _add_render(
@@ -582,30 +720,113 @@ def _demo(args: argparse.Namespace, settings: Settings) -> int:
         estimator=args.estimator,
         clock=args.clock,
     )
-    progress = sys.stderr.isatty()
-    if settings.server:
-        # A folder on this machine may hold the model's MJCF (a `jitdyn serve` beside the demo's).
-        data = settings.data.resolve() if settings.data.is_dir() else None
-        sources = TruthSources(data=data, mjcf=args.mjcf, asset_dir=args.asset_dir)
-        run_demo(settings.server, demo, out=sys.stdout, progress=progress, local_data=None, sources=sources)
-        return 0
-    if args.mjcf or args.asset_dir:
+    if not settings.server and (args.mjcf or args.asset_dir):
         raise SettingError(
             "--mjcf and --asset-dir go with --server: the local server's models are in its --data"
         )
+    # Against --server, a folder on this machine may hold the model's MJCF (a `jitdyn serve` beside
+    # the demo's), or --mjcf names it.
+    here = settings.data.resolve() if settings.data.is_dir() else None
+    remote = TruthSources(data=here, mjcf=args.mjcf, asset_dir=args.asset_dir)
+    _against_server(
+        settings,
+        args.model,
+        lambda address, local: run_demo(
+            address,
+            demo,
+            out=sys.stdout,
+            progress=sys.stderr.isatty(),
+            local_data=local,
+            sources=remote if local is None else None,
+        ),
+    )
+    return 0
+
+
+def _against_server(settings: Settings, model: str, run: Callable[[str, Path | None], object]) -> None:
+    """`run(address, local data folder)` against --server, else a local in-process server on the
+    data folder (which must exist for a model that is not built in)."""
+    if settings.server:
+        run(settings.server, None)
+        return
     from jitdyn.server.transport.background import BackgroundServer
 
     data = settings.data.resolve()
-    if args.model.partition(":")[0] not in BUILTIN_NAMES and not settings.index_url and not data.is_dir():
+    if model.partition(":")[0] not in BUILTIN_NAMES and not settings.index_url and not data.is_dir():
         raise FailedPrecondition(
-            f"no model {args.model!r} here: {data} does not exist, so only the built-in models "
+            f"no model {model!r} here: {data} does not exist, so only the built-in models "
             f"({', '.join(BUILTIN_NAMES)}) are registered; register it first (jitdyn models register) or "
             "give --data of the folder that holds it"
         )
     config = _server_config(settings, address="127.0.0.1:0")
-    print(f"starting a local jitdyn server (data in {settings.data.resolve()})", flush=True)
+    print(f"starting a local jitdyn server (data in {data})", flush=True)
     with BackgroundServer(config) as server:
-        run_demo(server.address, demo, out=sys.stdout, progress=progress, local_data=settings.data.resolve())
+        run(server.address, data)
+
+
+def _replay(args: argparse.Namespace, settings: Settings) -> int:
+    from jitdyn.cli.replay import ReplaySettings, load_trial, run_replay
+    from jitdyn.experiments.netem import NetworkProfile
+
+    replay = ReplaySettings(
+        file=args.file,
+        model=args.model,
+        map_file=args.map_file,
+        scenario=parse(Scenario, args.scenario, argument="--scenario") if args.scenario else None,
+        clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
+        network=NetworkProfile(latency=args.latency, jitter=args.jitter, loss=args.loss),
+        seed=args.seed,
+        angles=args.angles,
+        dt=args.dt,
+        start=args.start,
+        end=args.end,
+    )
+    trial = load_trial(replay)  # a file it cannot replay is said before a server starts
+    _against_server(
+        settings,
+        args.model,
+        lambda address, local: run_replay(
+            address, replay, trial, out=sys.stdout, progress=sys.stderr.isatty(), local_data=local
+        ),
+    )
+    return 0
+
+
+def _lsl(args: argparse.Namespace, settings: Settings) -> int:
+    import signal
+    import threading
+
+    from jitdyn.cli.lsl import LslSettings, run_lsl
+
+    require_extra("pylsl", what="pylsl (Lab Streaming Layer)", extra="lab")  # before a server starts
+
+    lsl = LslSettings(
+        stream=args.stream_name or args.stream_type,
+        by="name" if args.stream_name else "type",
+        model=args.model,
+        map_file=args.map_file,
+        scenario=parse(Scenario, args.scenario, argument="--scenario") if args.scenario else None,
+        clock=parse(Clock, args.clock, argument="--clock") if args.clock else None,
+        angles=args.angles,
+        dt=args.dt,
+        seconds=args.seconds,
+        wait=args.wait,
+        idle=args.idle,
+        name=args.publish,
+    )
+    # Ctrl-C ends the session as the stream's end would: closed, summarised and stored.
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
+    try:
+        _against_server(
+            settings,
+            args.model,
+            lambda address, local: run_lsl(
+                address, lsl, out=sys.stdout, progress=sys.stderr.isatty(), local_data=local, stop=stop
+            ),
+        )
+    finally:
+        signal.signal(signal.SIGINT, previous)
     return 0
 
 
@@ -619,6 +840,8 @@ _HANDLERS: dict[str, Callable[[argparse.Namespace, Settings], int]] = {
     "serve": _serve,
     "models": _models,
     "demo": _demo,
+    "replay": _replay,
+    "lsl": _lsl,
     "sessions": _sessions,
 }
 

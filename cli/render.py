@@ -5,7 +5,7 @@ renderer, as an MP4, a GIF or one PNG frame, the answered pose solid and the mea
     rendered.path, rendered.notes
 
 MuJoCo chooses its GL backend (MUJOCO_GL) once, when it is first imported, and the CLI has imported
-it long before: the frames are drawn by a child process (jitdyn.cli.replay) started with MUJOCO_GL
+it long before: the frames are drawn by a child process (jitdyn.cli.render_child) started with MUJOCO_GL
 set, after this module has checked the system library it needs. Why: docs/decisions/0131-session-render.md.
 """
 
@@ -153,7 +153,7 @@ def render_session(
     # Both are read once, at import: MuJoCo's context and PyOpenGL's platform must agree.
     child["MUJOCO_GL"] = child["PYOPENGL_PLATFORM"] = backend.name
     done = subprocess.run(
-        [sys.executable, "-m", "jitdyn.cli.replay"],
+        [sys.executable, "-m", "jitdyn.cli.render_child"],
         input=request.to_json(),
         stdout=subprocess.PIPE,  # the answer, as JSON; progress and MuJoCo's own errors go to stderr
         text=True,

@@ -29,11 +29,12 @@ DOCKERFILE = ROOT / "deploy" / "Dockerfile"
 GENERIC = ("server", "client", "registry", "storage", "experiments", "cli", "models")
 # Packages of the extras, which a base install must not pull in. (matplotlib is not among them:
 # filterpy, which the server needs, requires it.)
-EXTRAS_ONLY = ("duckdb", "myo_sim", "tqdm")
+EXTRAS_ONLY = ("duckdb", "myo_sim", "tqdm", "ezc3d", "pylsl")
 NEEDS_EXTRA = (
     (["experiments", "--quick"], "experiments"),
     (["sessions", "query", "SELECT 1", "--data", "."], "query"),
     (["models", "register", "--myo", "myoelbow"], "myo"),
+    (["lsl", "--name", "leg", "--model", "pendulum_3"], "lab"),
 )
 
 # Run inside the fresh venv: every leaf of the CLI's parser, so a new command cannot be forgotten.

@@ -299,22 +299,22 @@ class Settings:
     server: str | None = setting(
         None,
         parse=parse_address,
-        commands=("models", "demo", "experiments"),
+        commands=("models", "demo", "replay", "lsl", "experiments"),
         metavar="HOST:PORT",
-        default_text="127.0.0.1:50051 for models; the demo and the experiments start a server in-process",
+        default_text="127.0.0.1:50051 for models; demo, replay, lsl and the experiments start a server in-process",
         help="the jitdyn server to talk to",
     )
     data: Path = setting(
         Path("jitdyn-data"),
         parse=_path,
-        commands=("serve", "demo", "sessions"),
+        commands=("serve", "demo", "replay", "lsl", "sessions"),
         metavar="DIR",
         help="data folder: Parquet frames, model store, the default SQLite index",
     )
     index_url: str | None = setting(
         None,
         parse=_text,
-        commands=("serve", "demo", "sessions"),
+        commands=("serve", "demo", "replay", "lsl", "sessions"),
         flag="--index",
         metavar="URL",
         default_text="index.sqlite in the data folder",
@@ -337,14 +337,14 @@ class Settings:
         None,
         parse=positive_int,
         default_text="the CPU count, shared among --processes (one each at one process per CPU)",
-        commands=("serve", "demo"),
+        commands=("serve", "demo", "replay", "lsl"),
         metavar="N",
         help="threads propagating sigma points, shared by all sessions",
     )
     engine: str = setting(
         "native",
         parse=_engine,
-        commands=("serve", "demo"),
+        commands=("serve", "demo", "replay", "lsl"),
         metavar="NAME",
         help="what computes the UKF: native (compiled, on MuJoCo's C API) or python (the numpy "
         "engine it is tested against, for comparison and debugging: 1.3-3.5x the CPU of a filter "
@@ -353,7 +353,7 @@ class Settings:
     secret_file: Path | None = setting(
         None,
         parse=_path,
-        commands=("serve", "demo"),
+        commands=("serve", "demo", "replay", "lsl"),
         metavar="FILE",
         default_text="~/.config/jitdyn/secret.key",
         help="HMAC key of subject pseudonyms, mode 0600, outside the data folder, created at first start; "

@@ -3,21 +3,16 @@ user runs the command (a separate process, a real server on a loopback port)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
 import re
-import secrets
-import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from _cli import jitdyn, listed
+from _cli import jitdyn, listed, one_line_error, serving
 
 from jitdyn.errors import JitdynError
 
@@ -27,15 +22,6 @@ ROOT = Path(__file__).resolve().parents[2]
 BASE_INSTALL = "\n".join(
     f"sys.modules[{name!r}] = None" for name in ("matplotlib", "PIL", "tqdm", "myo_sim", "biomdp", "duckdb")
 )
-
-
-def one_line_error(result: subprocess.CompletedProcess[str], code: int) -> str:
-    """The one `jitdyn ...` line a failed command prints on stderr, with no traceback."""
-    assert result.returncode == code, result.stdout + result.stderr
-    assert "Traceback" not in result.stderr, result.stderr
-    lines = [line for line in result.stderr.splitlines() if line.startswith("jitdyn")]
-    assert len(lines) == 1, result.stderr
-    return lines[0]
 
 
 # -- --help works without the extra; running says which to install ----------------------------------
@@ -68,30 +54,6 @@ def test_running_experiments_without_the_extra_names_it(tmp_path: Path) -> None:
 
 
 # -- every duration takes a unit; a bare number keeps its documented meaning --------------------------
-
-
-@contextlib.contextmanager
-def serving(*args: str, data: Path, env: dict[str, str] | None = None) -> Iterator[str]:
-    """`jitdyn serve ARGS` on a free loopback port, one process; yields its address."""
-    environ = {k: v for k, v in os.environ.items() if not k.startswith("JITDYN_")}
-    environ.update(JITDYN_SECRET=secrets.token_hex(32), **(env or {}))
-    command = [sys.executable, "-m", "jitdyn.cli", "serve", "--address", "127.0.0.1:0", "--processes", "1"]
-    process = subprocess.Popen(
-        [*command, "--workers", "1", "--data", str(data), *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=environ,
-    )
-    try:
-        assert process.stdout is not None
-        first = process.stdout.readline()
-        listening = re.match(r"jitdyn listening on (\S+) ", first)
-        assert listening, first + (process.stderr.read() if process.stderr else "")
-        yield listening.group(1)
-    finally:
-        process.send_signal(signal.SIGINT)
-        process.communicate(timeout=30)
 
 
 def idle_session_ends_after(address: str) -> str:
