@@ -18,12 +18,11 @@ from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
-import sqlalchemy as sa
 
 from jitdyn.cli.render import Rendered, RenderRequest
 from jitdyn.cli.scene import Caption, Pixels, SessionScene, dressed_model
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, NotFound
-from jitdyn.registry.store import blob_path, fetch_blob, read_blob
+from jitdyn.registry.store import session_model
 from jitdyn.storage.db import open_index
 from jitdyn.storage.index import SessionIndex, SessionRow
 from jitdyn.storage.stored import read_stored
@@ -57,21 +56,6 @@ class _Session:
     assets: dict[str, bytes]
 
 
-def _content(engine: sa.Engine, data_root: Path, row: SessionRow) -> tuple[str, dict[str, bytes]]:
-    """The MJCF and assets of the session's model: the data folder's copy, else the index's."""
-    try:
-        return read_blob(data_root, blob_path(row.model_id))
-    except FileNotFoundError:
-        pass
-    fetched = fetch_blob(engine, data_root, row.model_id)
-    if fetched is None:
-        raise FailedPrecondition(
-            f"the model of session {row.session_id} ({row.model_name} v{row.model_version}, {row.model_id}) "
-            f"is neither in the index nor in {data_root.resolve()}"
-        )
-    return read_blob(data_root, fetched)
-
-
 def _load(request: RenderRequest) -> _Session:
     engine = open_index(request.index_url)
     try:
@@ -92,7 +76,7 @@ def _load(request: RenderRequest) -> _Session:
             raise FailedPrecondition(
                 f"session {row.session_id} ({row.status}) is empty: {why}, nothing to render"
             )
-        mjcf, assets = _content(engine, request.data_root, row)
+        mjcf, assets = session_model(engine, request.data_root, row)
     finally:
         engine.dispose()
     return _Session(row=row, timeline=timeline, mjcf=mjcf, assets=assets)
