@@ -52,6 +52,7 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, str, Path]:
 # -- Found 1: options only before the subcommand -----------------------------------------------------
 
 
+@pytest.mark.slow  # 4-6 s of subprocesses
 def test_group_options_work_after_the_action(server: Any, tmp_path: Path) -> None:
     listing = ok(jitdyn("models", "list", "--server", server.address, "-v"))
     assert re.search(r"sha256:[0-9a-f]{64}  pendulum_1 v1", listing), listing
@@ -95,6 +96,7 @@ def test_demo_of_a_model_not_registered_says_so_and_creates_nothing(tmp_path: Pa
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow  # 4-6 s of subprocesses
 def test_verbose_before_experiments() -> None:
     assert "usage: jitdyn experiments" in ok(jitdyn("-v", "experiments", "--help"))
     result = jitdyn("-v", "experiments", "table_9_9")

@@ -20,6 +20,9 @@ pytest.importorskip("myo_sim")
 # name typed, name registered, nv, demo length (5 ticks of 10 model timesteps each), and whether
 # its REALTIME tick is over half its dt by the server's estimate (the legs': 38 and 69 ms against
 # 5 and 10 ms), so that the demo always runs it LOCKSTEP; the hand's is refused only on a busy machine.
+# MyoSuite models packed, compiled and run end to end, 3-11 s each: run with -m slow.
+pytestmark = pytest.mark.slow
+
 MODELS = [
     ("myolegs_osl", "myolegs_osl", 29, "50ms", True),
     ("myoHand", "myohand", 23, "100ms", False),

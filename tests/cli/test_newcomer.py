@@ -76,6 +76,7 @@ def idle_session_ends_after(address: str) -> str:
         ([], {"JITDYN_IDLE_TIMEOUT": "0.6s"}, "for 0.6 s, the limit (--idle-timeout)"),
     ],
 )
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_serve_takes_the_idle_timeout_with_a_unit(
     flags: list[str], env: dict[str, str], said: str, tmp_path: Path
 ) -> None:
@@ -131,6 +132,7 @@ def test_a_bad_limit_in_the_environment_is_named(tmp_path: Path) -> None:
     assert not (tmp_path / "data").exists()
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_demo_seconds_take_a_unit(server: Any, tmp_path: Path) -> None:
     for seconds in ("500ms", "0.5"):
         out = jitdyn("demo", "--seconds", seconds, "--model", "pendulum_1", "--server", server.address)
@@ -184,6 +186,7 @@ def test_sessions_list_prints_the_scenario_as_stored(sessions_data: tuple[Path, 
     assert (row["model"], row["scenario"], row["clock"]) == ("pendulum_1 v1", "PASSIVE", "LOCKSTEP"), row
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_a_session_id_prefix_is_accepted(sessions_data: tuple[Path, list[str]], tmp_path: Path) -> None:
     data, ids = sessions_data
     full, prefix = ids[0], ids[0][:8]
@@ -197,6 +200,7 @@ def test_a_session_id_prefix_is_accepted(sessions_data: tuple[Path, list[str]], 
     assert (tmp_path / f"{full}.png").stat().st_size > 0
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_an_ambiguous_prefix_lists_the_candidates(sessions_data: tuple[Path, list[str]]) -> None:
     data, ids = sessions_data
     digit = ids[-1][0]
@@ -293,6 +297,7 @@ def test_the_late_column_is_explained() -> None:
     assert "`late` counts the ticks whose frame came after the tick was answered" in page
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_a_file_stored_before_those_columns_still_reads(tmp_path: Path) -> None:
     import pyarrow.parquet as pq
 
@@ -385,6 +390,7 @@ def test_the_default_demo_shows_predictions_corrected(server: Any) -> None:
         assert re.search(r"^  rejected \d+: \d+ [A-Z_]+", result.stdout, re.MULTILINE), result.stdout
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_the_demo_says_why_it_rejected(server: Any) -> None:
     # Frames 2.6 s late at 50 ms ticks are 52 ticks late, past the 50 the server keeps.
     result = jitdyn(
@@ -416,6 +422,7 @@ SWING = """<mujoco model="swing">
 """
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_demo_takes_a_registered_myosuite_model(server: Any) -> None:
     registered = jitdyn("models", "register", "--myo", "myoelbow", "--server", server.address)
     assert registered.returncode == 0, registered.stderr
@@ -431,6 +438,7 @@ def test_demo_takes_a_registered_myosuite_model(server: Any) -> None:
         assert summary_counts(result.stdout)["ticks"] >= 50, result.stdout
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_demo_of_a_model_whose_mjcf_is_not_here_says_why(server: Any, tmp_path: Path) -> None:
     (tmp_path / "swing.xml").write_text(SWING, encoding="utf-8")
     registered = jitdyn("models", "register", str(tmp_path / "swing.xml"), "--server", server.address)
@@ -445,6 +453,7 @@ def test_demo_of_a_model_whose_mjcf_is_not_here_says_why(server: Any, tmp_path: 
     assert one_line_error(unknown, 1).startswith("jitdyn demo: NotFound: ")
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_demo_of_a_model_registered_in_the_data_folder(tmp_path: Path) -> None:
     (tmp_path / "swing.xml").write_text(SWING, encoding="utf-8")
     data = tmp_path / "data"
@@ -465,6 +474,7 @@ def test_demo_of_a_model_registered_in_the_data_folder(tmp_path: Path) -> None:
 # -- the demo's summary: forces in the units of each dof, over the answers the store holds ------------
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_the_demos_force_ranges_are_the_stored_ones_in_each_dofs_unit(server: Any) -> None:
     out = jitdyn(
         "demo", "--model", "biped", "--seconds", "1s", "--clock", "realtime", "--server", server.address
@@ -545,6 +555,7 @@ ELBOW = """<mujoco model="elbow">
 """
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_the_demo_runs_a_model_the_server_holds_inside_its_range(server: Any, tmp_path: Path) -> None:
     mjcf = tmp_path / "elbow.xml"
     mjcf.write_text(ELBOW, encoding="utf-8")
@@ -582,6 +593,7 @@ def test_the_demo_runs_a_model_the_server_holds_inside_its_range(server: Any, tm
 # -- one casing everywhere, help that explains --------------------------------------------------------
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_the_demo_takes_its_words_in_any_case(server: Any) -> None:
     for scenario, estimator, clock in (
         ("PASSIVE", "ukf", "LockStep"),
@@ -622,6 +634,7 @@ def test_the_version_is_the_installed_packages() -> None:
     assert (result.returncode, result.stdout) == (0, f"jitdyn {version('jitdyn')}\n"), result.stderr
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_an_actions_options_go_before_it_too(sessions_data: tuple[Path, list[str]]) -> None:
     data, _ = sessions_data
     after = jitdyn("sessions", "list", "--limit", "2", "--status", "complete", "--data", str(data))
@@ -635,6 +648,7 @@ def test_an_actions_options_go_before_it_too(sessions_data: tuple[Path, list[str
         assert (before.returncode, before.stdout) == (0, after.stdout), before.stderr
 
 
+@pytest.mark.slow  # 3-8 s of demos and servers
 def test_sessions_list_has_a_header_and_takes_a_version(server: Any, tmp_path: Path) -> None:
     from jitdyn.client import Client, FrameData, SessionOptions
 

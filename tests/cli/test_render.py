@@ -23,6 +23,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 # The sessions of test_plot.py; its `stored` fixture made once for this module too.
 from test_plot import Stored, jitdyn, png_size, stored  # noqa: F401
 
+# Renders through OSMesa take 3-10 s each: run with -m slow (README, Getting started).
+pytestmark = pytest.mark.slow
+
 PIL = pytest.importorskip("PIL.Image")
 
 

@@ -125,6 +125,7 @@ def test_chosen_cases_run_alone_and_a_failure_exits_1(server: str) -> None:
     assert "FAIL models.get" in keyless.stderr  # progress, as each case ends
 
 
+@pytest.mark.slow  # 11 s of timeouts against an absent server
 def test_usage_errors_and_an_absent_server_are_one_line(tmp_path: Path) -> None:
     unknown = suite("--server", "127.0.0.1:1", "--case", "frame.nope")
     assert unknown.returncode == 2
