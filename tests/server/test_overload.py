@@ -219,9 +219,8 @@ def test_late_frames_wait_while_their_replays_keep_a_late_process_behind(tmp_pat
     replays measured, and the sessions' replays and catch-ups take more than a tenth of the
     process's time (REPLAY_SHARE). While the process is stopped for 100 ms every 50 ticks (the
     machine taking its CPU), its answers go late, and late frames are refused until it catches up;
-    on the old rule every replay fitted its own session and was applied. (Two sessions sufficed
-    while a replay ran its 16 ticks at once: spread, a frame costs about three ticks, so it takes
-    six sessions to pass the share.)"""
+    on the old rule every replay fitted its own session and was applied. A spread replay costs
+    about three ticks a frame, so six sessions pass the share."""
     from jitdyn.client import Rejection
 
     server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "1.0")
