@@ -19,29 +19,16 @@ import difflib
 import logging
 import os
 import sys
-import textwrap
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
+from jitdyn.cli.commands import COMMANDS, Command, ModelRef, OneOf
 from jitdyn.cli.extras import MissingExtra, require_extra
 from jitdyn.errors import FailedPrecondition, JitdynError, Unavailable
 from jitdyn.registry.builtins import BUILTIN_NAMES
-from jitdyn.settings import (
-    SettingError,
-    Settings,
-    add_arguments,
-    argparse_type,
-    checked,
-    default_workers,
-    parse_duration,
-    parse_model_reference,
-    parse_seconds,
-    positive_int,
-    resolve,
-)
-from jitdyn.vocabulary import Clock, EstimatorKind, Scenario, SessionStatus, parse
+from jitdyn.settings import SettingError, Settings, add_arguments, default_workers, resolve
+from jitdyn.vocabulary import Clock, Scenario, parse
 
 __all__ = ["DEFAULT_SERVER", "EXIT_ERROR", "EXIT_USAGE", "build_parser", "main"]
 
@@ -51,55 +38,6 @@ DEFAULT_SERVER = "127.0.0.1:50051"
 
 _LEAF = "_leaf_parser"
 _EPILOG = "exit codes: 0 done, 1 the command failed (one line on stderr says why), 2 usage error"
-
-
-def _fraction_or_percent(text: str) -> float:
-    return float(text.rstrip("%")) / (100.0 if text.endswith("%") else 1.0)
-
-
-_probability = checked(
-    _fraction_or_percent,
-    lambda value: 0.0 <= value <= 1.0,
-    "a probability in [0, 1]",
-    malformed="a probability like 0.05 or 5%",
-)
-_positive_duration = checked(parse_duration, lambda value: value > 0, "a duration > 0, like 10ms")
-_seconds = checked(
-    parse_seconds,
-    lambda value: value > 0,
-    "a duration > 0, like 10s, 2500ms or 10 (seconds)",
-)
-
-
-def _word(kind: type[Any], flag: str, *, lower: bool) -> dict[str, Any]:
-    """`type=` and `metavar=` of an option that takes a member of the vocabulary's `kind`, in any
-    case, as the SDK takes it (jitdyn.vocabulary.parse); shown in the case the help writes it."""
-    names = [member.name.lower() if lower else member.name for member in kind]
-
-    def convert(text: str) -> Any:
-        try:
-            return parse(kind, text, argument=flag)
-        except JitdynError:
-            raise argparse.ArgumentTypeError(
-                f"expected one of {', '.join(names)} (in any case), got {text!r}"
-            ) from None
-
-    convert.__name__ = flag
-    return {"type": convert, "metavar": "{" + ",".join(names) + "}"}
-
-
-@dataclass(frozen=True)
-class ModelRef:
-    """What `models show` was given: a content id, or a name and a version (0: the newest)."""
-
-    model_id: str = ""
-    name: str = ""
-    version: int = 0
-
-
-def _model_ref(text: str) -> ModelRef:
-    model_id, name, version = parse_model_reference(text)
-    return ModelRef(model_id=model_id, name=name, version=version)
 
 
 def _installed_version() -> str:
@@ -112,24 +50,37 @@ def _installed_version() -> str:
         return "(not installed)"
 
 
-def _common() -> argparse.ArgumentParser:
+class _Parser(argparse.ArgumentParser):
+    """A parser whose description may be written only when its help is shown (`sessions query`'s
+    lists the stored columns, which takes the Parquet stack: parsing loads no numeric library)."""
+
+    lazy_description: Callable[[], str] | None = None
+
+    def format_help(self) -> str:
+        if self.lazy_description is not None:
+            self.description, self.lazy_description = self.lazy_description(), None
+        return super().format_help()
+
+
+def _common() -> _Parser:
     """Options of every parser, top-level and leaves alike."""
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)
     common.add_argument(
         "-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="log more (server and client)"
     )
     return common
 
 
-def _settings_parent(command: str) -> argparse.ArgumentParser:
-    parent = argparse.ArgumentParser(add_help=False)
+def _settings_parent(command: str) -> _Parser:
+    parent = _Parser(add_help=False)
     add_arguments(parent, command)
     return parent
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The parser of every command, read from the table in jitdyn.cli.commands."""
     common = _common()
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="jitdyn",
         parents=[common],
         epilog=_EPILOG,
@@ -143,447 +94,49 @@ def build_parser() -> argparse.ArgumentParser:
         help="print jitdyn's version and exit",
     )
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-
-    def leaf(
-        subparsers: argparse._SubParsersAction[argparse.ArgumentParser],
-        name: str,
-        group: str | None = None,
-        **kwargs: Any,
-    ) -> argparse.ArgumentParser:
-        """A command's parser, with the settings of `group` (default: the command itself)."""
-        command = subparsers.add_parser(
-            name, parents=[common, _settings_parent(group or name)], epilog=_EPILOG, **kwargs
-        )
-        # The innermost parser reached, so that an option it does not know shows its usage.
-        command.set_defaults(**{_LEAF: command})
-        return command
-
-    leaf(
-        commands,
-        "serve",
-        help="run the server",
-        description="Run the jitdyn server until Ctrl-C or SIGTERM.",
-    )
-
-    models = leaf(
-        commands,
-        "models",
-        help="register, list and show models",
-        description="The model registry, from the shell.",
-    )
-    model_commands = models.add_subparsers(dest="models_command", metavar="ACTION", required=True)
-    register = leaf(
-        model_commands,
-        "register",
-        "models",
-        help="register an MJCF file, or a MyoSuite model with --myo",
-        description="Register an MJCF file with the files it names, or a MyoSuite model (--myo). Content "
-        "already registered is not registered again: it keeps its name, and a different --name or "
-        "--tag is refused (exit 1) rather than dropped silently.",
-    )
-    what = register.add_mutually_exclusive_group(required=True)
-    what.add_argument("file", nargs="?", type=Path, help="the MJCF file")
-    what.add_argument(
-        "--myo",
-        metavar="NAME",
-        help="pack the MyoSuite model NAME from myo-sim with its meshes (needs jitdyn[myo]): myoelbow, "
-        "myohand, myolegs, myolegs_osl, ...; `--myo list` lists every one that compiles (no server needed)",
-    )
-    register.add_argument(
-        "--name", help="name to register under (default: the file's stem, or the --myo name)"
-    )
-    register.add_argument(
-        "--asset-dir",
-        type=Path,
-        help="folder of the meshes, textures and included XML the MJCF refers to "
-        "(default: the MJCF's folder, only the files it names)",
-    )
-    register.add_argument("--description", default="", help="free description")
-    register.add_argument("--tag", action="append", default=[], help="a tag (repeatable)")
-    listing = leaf(model_commands, "list", "models", help="list registered models")
-    listing.add_argument("--name", default="", help="only this name")
-    listing.add_argument("--tag", default="", help="only models with this tag")
-    show = leaf(model_commands, "show", "models", help="show one model (by id, NAME or NAME:VERSION)")
-    show.add_argument(
-        "model", type=argparse_type(_model_ref, "model"), help="sha256:... id, a name, or name:version"
-    )
-
-    demo = leaf(
-        commands,
-        "demo",
-        help="a simulated REALTIME session over an emulated network",
-        description="Drive a simulated research object (truth simulated by MuJoCo here) through an emulated "
-        "network against a local in-process server (or --server), show progress, and print a summary. A "
-        "model whose REALTIME session the server refuses runs LOCKSTEP instead (see --clock).",
-    )
-    demo.add_argument(
-        "--model",
-        default="pendulum_3",
-        type=argparse_type(lambda text: _model_ref(text) and text, "model"),
-        metavar="MODEL",
-        help="a registered model: NAME, NAME:VERSION or sha256:ID; a built-in, or one registered in the "
-        "data folder (default pendulum_3)",
-    )
-    demo.add_argument(
-        "--mjcf",
-        type=Path,
-        metavar="FILE",
-        help="with --server, the MJCF file --model was registered from, which the demo simulates its truth "
-        "with (default: the model's copy in --data, built-ins and MyoSuite models need none)",
-    )
-    demo.add_argument(
-        "--asset-dir",
-        type=Path,
-        metavar="DIR",
-        help="folder of the files --mjcf names, as for `models register` (default: the MJCF's folder)",
-    )
-    demo.add_argument(
-        "--scenario",
-        **_word(Scenario, "--scenario", lower=True),
-        help="what moves the body, as the filter models it (any case): default passive for a built-in "
-        "model, else the server's choice for the model (driven for one with actuators)",
-    )
-    demo.add_argument(
-        "--seconds",
-        type=argparse_type(_seconds, "seconds"),
-        default=10.0,
-        metavar="DURATION",
-        help="session length: 10s, 2500ms, or a bare number of seconds (default 10s)",
-    )
-    _add_network(demo, latency="35ms", jitter="10ms", loss=0.05)
-    demo.add_argument(
-        "--estimator",
-        default=EstimatorKind.UKF,
-        **_word(EstimatorKind, "--estimator", lower=False),
-        help="what answers a tick whose frame is late or lost (any case): UKF, the Unscented Kalman Filter "
-        "on the model's dynamics (default); STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION, dead "
-        "reckoning from the last frames, for comparison",
-    )
-    demo.add_argument(
-        "--seed",
-        type=int,
-        default=0,
-        help="seed of the emulated network's latency and loss and of the start state (default 0): the "
-        "same seed sends the same frames at the same times",
-    )
-    demo.add_argument(
-        "--clock",
-        **_word(Clock, "--clock", lower=True),
-        help="realtime: ticks on the server's clock, over the emulated network; lockstep: each frame "
-        "answered as it is sent (loss emulated as skipped ticks). Default: realtime, or lockstep, "
-        "said so, when the server refuses a realtime session for its cost or its machine's load (a big "
-        "MyoSuite model such as myolegs_osl)",
-    )
-
-    _add_replay(commands, leaf)
-    _add_lsl(commands, leaf)
-
-    sessions = leaf(
-        commands,
-        "sessions",
-        help="list, show, query, export, plot and render stored sessions",
-        description="The stored sessions, read from the data folder and the SQL index (no server needed).",
-    )
-    session_commands = sessions.add_subparsers(dest="sessions_command", metavar="ACTION", required=True)
-    slist = leaf(
-        session_commands,
-        "list",
-        "sessions",
-        help="list sessions, newest first",
-        description="List the stored sessions, newest first, one a line: id, start, status, model, "
-        "scenario, clock and the counts of its summary. ticks: distinct ticks answered; measured, "
-        "predicted, corrected: answers of each source (a tick answered PREDICTED and then CORRECTED "
-        "counts in both); rejected: frames refused, each stored with its reason (see `sessions "
-        "query`); late: ticks whose frame came after the tick was answered, so that it was corrected "
-        "(results with late_ticks > 0); a frame too late to be used at all is rejected TOO_OLD instead.",
-    )
-    slist.add_argument(
-        "--model",
-        type=argparse_type(_model_ref, "model"),
-        metavar="MODEL",
-        help="only sessions of this model: NAME (every version), NAME:VERSION or sha256:ID",
-    )
-    slist.add_argument(
-        "--status",
-        **_word(SessionStatus, "--status", lower=False),
-        help="only sessions that ended so (any case)",
-    )
-    slist.add_argument(
-        "--limit",
-        type=argparse_type(positive_int, "limit"),
-        default=50,
-        metavar="N",
-        help="at most N (default 50)",
-    )
-    sshow = leaf(session_commands, "show", "sessions", help="show one session")
-    sshow.add_argument("session_id")
-    squery = leaf(
-        session_commands,
-        "query",
-        "sessions",
-        help="run SQL with DuckDB over the frames (view `frames`) and the index (table `sessions`)",
-        description=_query_description(),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    squery.add_argument("sql", help='e.g. "SELECT source, count(*) FROM frames GROUP BY source"')
-    squery.add_argument(
-        "--format",
-        choices=("table", "csv", "json"),
-        default="table",
-        help="an aligned table (default), CSV with a header, or JSON lines (one object per row)",
-    )
-    squery.add_argument("--out", type=Path, help="write the result to this file instead of stdout")
-    sexport = leaf(
-        session_commands,
-        "export",
-        "sessions",
-        help="export one session as CSV, OpenSim .sto or MCAP (Foxglove)",
-        description="Write one stored session for tools outside jitdyn. csv: every stored row, one "
-        "column per array element. sto: OpenSim's storage file, one row per tick (a correction "
-        "replaces its prediction). mcap: the file Foxglove opens: joint states, forces, frames, "
-        "sources and lateness as time series, and every body's pose at each tick (MuJoCo's forward "
-        "kinematics on the stored model) as 3D frame transforms on /tf (needs jitdyn[lab]).",
-    )
-    sexport.add_argument("session_id")
-    sexport.add_argument("--format", choices=("csv", "sto", "mcap"), default="csv")
-    sexport.add_argument("--out", type=Path, help="output file (default <session id>.<format>)")
-    splot = leaf(
-        session_commands,
-        "plot",
-        "sessions",
-        help="draw one session: q measured and answered, forces, lateness, NIS (needs jitdyn[experiments])",
-        description="Draw one stored session as one figure on a shared time axis: the source of each "
-        "tick's answer; per joint the measured q against the answered q (PREDICTED and CORRECTED ticks "
-        "marked, gaps shaded) beside the answered generalized force; the frames' network lateness; the "
-        "server's time to answer; the filter's NIS. A PNG, or one self-contained HTML page. Needs "
-        "matplotlib (jitdyn[experiments]).",
-    )
-    splot.add_argument("session_id")
-    splot.add_argument(
-        "--out", type=Path, help="a .png or .html file, or a folder (default <session id>.png here)"
-    )
-    splot.add_argument(
-        "--joints",
-        nargs="+",
-        metavar="NAME",
-        default=[],
-        help="the joints to draw, by name (default: the first 6 of the model)",
-    )
-
-    _add_render(session_commands, leaf)
-
-    experiments = commands.add_parser(
-        "experiments",
-        help="reproduce the thesis experiments (needs jitdyn[experiments])",
-        add_help=False,
-        description="Reproduce every experiment of the thesis; see `jitdyn experiments --help`.",
-    )
-    experiments.add_argument("rest", nargs=argparse.REMAINDER)
+    for command in COMMANDS:
+        _add_command(commands, command, command.name, common)
     return parser
 
 
-def _query_description() -> str:
-    """`sessions query --help`: the tables, then every column of `frames` with its unit."""
-    from jitdyn.storage.columns import FRAME_COLUMN_NOTES
-
-    intro = (
-        "Run SQL with DuckDB (needs jitdyn[query]) over the stored frames (view `frames`, one row per "
-        "answer: a tick answered PREDICTED and later CORRECTED has two rows), the index (table "
-        "`sessions`) and the names and units of the arrays' elements (table `coordinates`: session_id, "
-        "vector 'qpos' for frame_qpos and qpos or 'dof' for the nv-long arrays, i as DuckDB indexes a "
-        "list from 1, name, joint, unit rad or m, force_unit N m or N). Name a joint's values with "
-        '"SELECT c.name, f.qfrc_inverse[c.i] FROM frames f JOIN coordinates c USING (session_id) '
-        "WHERE c.vector = 'dof'\"."
-    )
-    width = max(len(name) for name in FRAME_COLUMN_NOTES)
-    columns = "\n".join(f"  {name:<{width}}  {note}" for name, note in FRAME_COLUMN_NOTES.items())
-    return f"{textwrap.fill(intro, 100)}\n\ncolumns of `frames` (unit: meaning):\n{columns}"
-
-
-def _add_network(parser: argparse.ArgumentParser, *, latency: str, jitter: str, loss: float) -> None:
-    """--latency, --jitter and --loss of the emulated network (experiments/netem.py)."""
-    parser.add_argument(
-        "--latency",
-        type=argparse_type(parse_duration, "duration"),
-        default=parse_duration(latency),
-        metavar="DURATION",
-        help=f"one-way latency of the emulated network, with a unit: 35ms, 0.1s (default {latency})",
-    )
-    parser.add_argument(
-        "--jitter",
-        type=argparse_type(parse_duration, "duration"),
-        default=parse_duration(jitter),
-        metavar="DURATION",
-        help=f"latency spread with a unit (default {jitter})",
-    )
-    parser.add_argument(
-        "--loss",
-        type=argparse_type(_probability, "probability"),
-        default=loss,
-        metavar="P",
-        help=f"frame loss probability: 0.05 or 5%% (default {loss:g})",
-    )
-
-
-def _clock_option(parser: argparse.ArgumentParser, realtime: str, *, emulated: bool = True) -> None:
-    lockstep = "each frame answered as it is sent" + (" (loss emulated as skipped ticks)" if emulated else "")
-    parser.add_argument(
-        "--clock",
-        **_word(Clock, "--clock", lower=True),
-        help=f"realtime: ticks on the server's clock, {realtime}; lockstep: {lockstep}. Default: realtime, or "
-        "lockstep, said so, when the server refuses a realtime session for its cost or its machine's load (a "
-        "big MyoSuite model such as myolegs_osl)",
-    )
-
-
-def _add_replay(
-    commands: argparse._SubParsersAction[argparse.ArgumentParser],
-    leaf: Callable[..., argparse.ArgumentParser],
+def _add_command(
+    subparsers: argparse._SubParsersAction[_Parser],
+    command: Command,
+    group: str,
+    common: _Parser,
 ) -> None:
-    from jitdyn.cli.trials import FORMATS
-
-    replay = leaf(
-        commands,
-        "replay",
-        help="stream a recorded trial's joint angles (.mot, .sto, .c3d, .csv) into a session",
-        description="Stream the joint angles of a recorded trial into a session on a registered model, "
-        "against a local in-process server (or --server), show progress, and print a summary like the "
-        "demo's with the stored session. OpenSim .mot and .sto (degrees or radians as the header's "
-        "inDegrees says), C3D (the angle outputs Vicon's Plug-in Gait stores as points, such as "
-        "LKneeAngles: x flexion, y varus, z internal rotation; needs jitdyn[lab]) and CSV with a header "
-        "(a time column, seconds). A column drives the model's joint of its name; --map FILE links the "
-        "rest. Joints without a column are held at rest and columns without a joint are left out, both "
-        "said in one line.",
-    )
-    replay.add_argument("file", type=Path, help=f"the recording: {', '.join(FORMATS)}")
-    _add_joint_options(replay, units="as the file says: a .mot's inDegrees, degrees in C3D, radians in CSV")
-    for flag, where in (("--start", "first"), ("--end", "last")):
-        replay.add_argument(
-            flag,
-            type=argparse_type(parse_duration, "duration"),
-            metavar="T",
-            help=f"replay from (--start) or to (--end) this time on the file's clock, with a unit: 1.5s, "
-            f"250ms (default: its {where} sample)",
+    """`command`'s parser, with its options, the settings of `group` and its actions' parsers."""
+    if command.passthrough:
+        rest = subparsers.add_parser(
+            command.name, help=command.help, description=str(command.description), add_help=False
         )
-    _clock_option(replay, "each sample sent at its time in the file over the emulated network")
-    _add_network(replay, latency="0ms", jitter="0ms", loss=0.0)
-    replay.add_argument("--seed", type=int, default=0, help="seed of the emulated network (default 0)")
-
-
-def _add_joint_options(parser: argparse.ArgumentParser, *, units: str) -> None:
-    """--model, --map, --angles, --dt and --scenario of the commands that drive joints from columns."""
-    parser.add_argument(
-        "--model",
-        required=True,
-        type=argparse_type(lambda text: _model_ref(text) and text, "model"),
-        metavar="MODEL",
-        help="the registered model to drive: NAME, NAME:VERSION or sha256:ID (`jitdyn models list`)",
+        rest.add_argument("rest", nargs=argparse.REMAINDER)
+        return
+    parser = subparsers.add_parser(
+        command.name,
+        parents=[common, _settings_parent(group)],
+        epilog=_EPILOG,
+        help=command.help,
+        description=command.description if isinstance(command.description, str) else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter
+        if command.raw_description
+        else argparse.HelpFormatter,
     )
-    parser.add_argument(
-        "--map",
-        dest="map_file",
-        type=Path,
-        metavar="FILE",
-        help="links of columns to joints the names do not make: one `JOINT = COLUMN` a line, "
-        "`JOINT = -COLUMN` to flip its sign, # comments",
-    )
-    parser.add_argument(
-        "--angles",
-        choices=("deg", "rad"),
-        help=f"the rotations are in degrees or radians (default: {units}); slides are metres either way",
-    )
-    parser.add_argument(
-        "--dt",
-        type=argparse_type(_positive_duration, "duration"),
-        metavar="DURATION",
-        help="the session's tick, with a unit: 10ms (default: the recording's step rounded up to a whole "
-        "multiple of the model's timestep, as a session's dt must be)",
-    )
-    parser.add_argument(
-        "--scenario",
-        **_word(Scenario, "--scenario", lower=True),
-        help="default: the server's choice for the model (driven for one with actuators)",
-    )
-
-
-def _add_lsl(
-    commands: argparse._SubParsersAction[argparse.ArgumentParser],
-    leaf: Callable[..., argparse.ArgumentParser],
-) -> None:
-    lsl = leaf(
-        commands,
-        "lsl",
-        help="bridge a Lab Streaming Layer stream of joint angles and a session (needs jitdyn[lab])",
-        description="Take a Lab Streaming Layer stream of joint angles (by --name or --type) into a session "
-        "on a registered model, its sample times mapped onto this machine's LSL clock through the inlet's "
-        "time_correction(), and publish the answers as two LSL streams stamped with each tick's time: NAME "
-        "(the estimated qpos and qvel, qfrc_inverse and the source: 1 MEASURED, 2 PREDICTED, 3 CORRECTED) "
-        "and NAME-lateness (frame_delay and answer_time, s), which LabRecorder stores beside the lab's "
-        "other streams. Channels drive joints as in `jitdyn replay`. Runs until --seconds pass, the stream "
-        "is silent for --idle, or Ctrl-C; then prints the summary. Needs jitdyn[lab] (pylsl, whose liblsl "
-        "needs glibc 2.35 or newer).",
-    )
-    which = lsl.add_mutually_exclusive_group(required=True)
-    which.add_argument("--name", dest="stream_name", metavar="NAME", help="the LSL stream's name")
-    which.add_argument(
-        "--type", dest="stream_type", metavar="TYPE", help="the LSL stream's type (the first found)"
-    )
-    _add_joint_options(lsl, units="as the channels' units say: deg, degree or degrees, else radians")
-    _clock_option(lsl, "each sample sent as it comes", emulated=False)
-    lsl.add_argument(
-        "--seconds",
-        type=argparse_type(_seconds, "seconds"),
-        metavar="DURATION",
-        help="end the session after this long on the stream's clock (default: when the stream stops)",
-    )
-    for flag, default, text in (
-        ("--wait", 10.0, "how long to look for the stream, and for its first sample (default 10s)"),
-        ("--idle", 2.0, "end the session when the stream sends nothing for this long (default 2s)"),
-    ):
-        lsl.add_argument(
-            flag, type=argparse_type(_seconds, "seconds"), default=default, metavar="DURATION", help=text
-        )
-    lsl.add_argument(
-        "--publish",
-        default="jitdyn",
-        metavar="NAME",
-        help="the name of the answers' LSL stream; the lateness' is NAME-lateness (default jitdyn)",
-    )
-
-
-def _add_render(
-    session_commands: argparse._SubParsersAction[argparse.ArgumentParser],
-    leaf: Callable[..., argparse.ArgumentParser],
-) -> None:
-    from jitdyn.cli.render import DEFAULT_GL, FORMATS, GL_BACKENDS
-
-    render = leaf(
-        session_commands,
-        "render",
-        "sessions",
-        help="replay one session with MuJoCo's renderer: MP4, GIF or one PNG frame (needs jitdyn[render])",
-        description="Replay one stored session with MuJoCo's offscreen renderer: the model moving as the "
-        "server answered it, the measured pose beside it as a translucent blue ghost, and the source of "
-        "each tick (MEASURED, PREDICTED, CORRECTED when its frame came late) in a caption. Videos play in "
-        "real time, decimated to at most 30 (MP4) or 12.5 (GIF, at 3/4 size in 192 colours, for a small file) frames a second. Needs jitdyn[render] and "
-        "an offscreen GL library: libosmesa6 (Debian) for osmesa.",
-    )
-    render.add_argument("session_id")
-    render.add_argument(
-        "--out", type=Path, required=True, help=f"the file to write: {', '.join(FORMATS)} (one frame)"
-    )
-    render.add_argument(
-        "--frame",
-        type=argparse_type(parse_duration, "duration"),
-        metavar="T",
-        help="the time of the PNG's frame on the session's clock, with a unit: 1.5s, 250ms "
-        "(default: the middle of the session)",
-    )
-    render.add_argument(
-        "--gl",
-        choices=tuple(GL_BACKENDS),
-        help=f"MuJoCo's offscreen GL (default: MUJOCO_GL if set, else {DEFAULT_GL}; egl on a GPU host)",
-    )
+    if callable(command.description):
+        parser.lazy_description = command.description
+    # The innermost parser reached, so that an option it does not know shows its usage.
+    parser.set_defaults(**{_LEAF: parser})
+    for entry in command.options:
+        if isinstance(entry, OneOf):
+            exclusive = parser.add_mutually_exclusive_group(required=entry.required)
+            for one in entry.options:
+                exclusive.add_argument(*one.flags, **one.kwargs)
+        else:
+            parser.add_argument(*entry.flags, **entry.kwargs)
+    if command.actions:
+        actions = parser.add_subparsers(dest=f"{command.name}_command", metavar="ACTION", required=True)
+        for action in command.actions:
+            _add_command(actions, action, group, common)
 
 
 def _server_config(settings: Settings, **overrides: Any) -> Any:

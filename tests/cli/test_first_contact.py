@@ -109,7 +109,10 @@ def test_the_command_line_parses_without_loading_the_engine() -> None:
     arguments imports neither MuJoCo nor the SQL, Parquet and SciPy stacks; only a command that
     runs does."""
     heavy = ("mujoco", "numpy", "scipy", "sqlalchemy", "pyarrow", "filterpy")
-    code = f"import sys, jitdyn.cli; print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    code = (
+        "import sys, jitdyn.cli; jitdyn.cli.build_parser().parse_args(['demo', '--seconds', '1s']); "
+        f"print(sorted(m for m in {heavy!r} if m in sys.modules))"
+    )
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert loaded.stdout.strip() == "[]", loaded.stdout + loaded.stderr
 
