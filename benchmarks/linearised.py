@@ -1,0 +1,158 @@
+"""What an EKF linearised by MuJoCo would cost a tick, against the sigma points it would replace.
+
+MuJoCo MPC's Kalman estimator propagates its covariance with the transition Jacobian that
+`mjd_transitionFD` finite-differences (one call, skipping the stages a perturbation cannot change).
+It perturbs 2nv+na state columns, where the spherical simplex set steps n+2 points: measure before
+assuming that the EKF is cheaper (issue 31). For each model of benchmarks/cost_nv.py at its rate,
+on the state its own excitation reaches, the CPU of:
+
+- the simplex points' physics over one tick: points x steps mj_step (the UKF's floor), and at one
+  coarse step a tick (points x 1 mj_step, the step's own price taken at the model's timestep);
+- the EKF's Jacobians over one tick: one mjd_transitionFD a step, chained (A = A_k ... A_1), or one
+  at a single coarse step of the whole tick (`coarse`: the model's timestep set to dt);
+- the EKF's algebra in numpy: A P A' + Q and an update measuring qpos and qvel.
+
+    python -m benchmarks.linearised                  # every model, ~1 minute
+    python -m benchmarks.linearised --rows myohand   # substrings of the row names
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import statistics
+import time
+
+import mujoco
+import numpy as np
+
+from benchmarks.cost_nv import ROWS, Row, load, truth
+from jitdyn.server.estimation.config import resolve_config
+from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.estimation.ukf import UnscentedFilter
+from jitdyn.vocabulary import Scenario
+
+
+def _cpu(work: object, repeats: int) -> float:
+    """Median CPU seconds of `work()` over `repeats` calls, after one to warm it."""
+    assert callable(work)
+    work()
+    times = []
+    for _ in range(repeats):
+        c0 = time.process_time()
+        work()
+        times.append(time.process_time() - c0)
+    return statistics.median(times)
+
+
+def measure(row: Row, repeats: int) -> dict[str, float]:
+    model = load(row.model)
+    dt = 1.0 / row.rate
+    steps = round(dt / model.opt.timestep)
+    frames = truth(model, row.scenario, steps, ticks=60)
+    config = resolve_config(
+        model=model, scenario=row.scenario, dt=dt, requested={}, model_defaults={}, measured={"qpos", "qvel"}
+    )
+    with WorkerPool(1) as pool:
+        ukf = UnscentedFilter(model, config, pool=pool)
+        points, n = ukf.nsigma, ukf.state_dimension
+    d = mujoco.MjData(model)
+    d.qpos[:], d.qvel[:], d.ctrl[:] = frames[-1].qpos, frames[-1].qvel, frames[-1].ctrl
+    mujoco.mj_forward(model, d)
+    start = mujoco.MjData(model)
+    mujoco.mj_copyData(start, model, d)
+
+    def one_step() -> None:
+        mujoco.mj_copyData(d, model, start)
+        mujoco.mj_step(model, d)
+
+    step = _cpu(one_step, repeats * 20)
+    rk4 = model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    if rk4:  # mjd_transitionFD refuses RK4: the Jacobian of a semi-implicit Euler step instead
+        model = copy.copy(model)
+        model.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
+    nx = 2 * model.nv + model.na
+    a = np.zeros((nx, nx))
+
+    def jacobian() -> None:
+        mujoco.mj_copyData(d, model, start)
+        mujoco.mjd_transitionFD(model, d, 1e-6, False, a, None, None, None)
+
+    fd = _cpu(jacobian, repeats)
+    coarse = copy.copy(model)
+    coarse.opt.timestep = steps * model.opt.timestep
+    dc = mujoco.MjData(coarse)
+    mujoco.mj_copyData(dc, coarse, start)
+
+    def coarse_jacobian() -> None:
+        mujoco.mjd_transitionFD(coarse, dc, 1e-6, False, a, None, None, None)
+
+    fd_coarse = _cpu(coarse_jacobian, repeats)
+    rng = np.random.default_rng(0)
+    p = np.cov(rng.standard_normal((nx, 4 * nx)))
+    h = np.eye(2 * model.nv, nx)
+    r = 1e-4 * np.eye(2 * model.nv)
+
+    def algebra() -> None:
+        prior = a @ p @ a.T + 1e-6 * np.eye(nx)
+        s = h @ prior @ h.T + r
+        gain = np.linalg.solve(s, h @ prior).T
+        prior - gain @ s @ gain.T
+
+    chain = _cpu(lambda: a @ a, repeats * 5) * (steps - 1)
+    return {
+        "nv": model.nv,
+        "na": model.na,
+        "n": n,
+        "nx": nx,
+        "points": points,
+        "steps": steps,
+        "step": step,
+        "simplex": points * steps * step,
+        "fd": fd,
+        "ekf": steps * fd + chain,
+        "ekf_coarse": fd_coarse,
+        "simplex_coarse": points * step,
+        "algebra": _cpu(algebra, repeats),
+        "rk4": rk4,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--rows", nargs="+", help="substrings of row names")
+    parser.add_argument("--repeats", type=int, default=15)
+    args = parser.parse_args(argv)
+    seen: set[tuple[str, Scenario]] = set()
+    rows = []
+    for row in ROWS:  # the models and scenarios of cost_nv, without its pool and timestep variants
+        if (row.model, row.scenario) not in seen and (not args.rows or any(s in row.name for s in args.rows)):
+            seen.add((row.model, row.scenario))
+            rows.append(row)
+    print(
+        f"# {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; mujoco {mujoco.__version__}; "
+        f"medians of {args.repeats} calls, CPU time, one thread"
+    )
+    print(
+        "| model, scenario | nv / na | UKF n, points x steps | mj_step us | simplex physics us/tick "
+        "| FD us/step (2nv+na cols) | EKF Jacobians us/tick | EKF / simplex | one coarse FD us | its / simplex at one step "
+        "| EKF algebra us |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for row in rows:
+        r = measure(row, args.repeats)
+        print(
+            f"| {row.name.replace(' (default)', '')} | {r['nv']} / {r['na']} | {r['n']}, {r['points']} x {r['steps']} "
+            f"| {r['step'] * 1e6:.1f}{' (RK4; FD on Euler)' if r['rk4'] else ''} | {r['simplex'] * 1e6:.0f} | {r['fd'] * 1e6:.0f} ({r['nx']}) "
+            f"| {r['ekf'] * 1e6:.0f} | {r['ekf'] / r['simplex']:.2f} | {r['ekf_coarse'] * 1e6:.0f} "
+            f"| {r['ekf_coarse'] / r['simplex_coarse']:.2f} | {r['algebra'] * 1e6:.0f} |",
+            flush=True,
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
