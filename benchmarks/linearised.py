@@ -3,7 +3,7 @@
 MuJoCo MPC's Kalman estimator propagates its covariance with the transition Jacobian that
 `mjd_transitionFD` finite-differences (one call, skipping the stages a perturbation cannot change).
 It perturbs 2nv+na state columns, where the spherical simplex set steps n+2 points: measure before
-assuming that the EKF is cheaper (issue 31). For each model of benchmarks/cost_nv.py at its rate,
+assuming that the EKF is cheaper. For each model of benchmarks/cost_nv.py at its rate,
 on the state its own excitation reaches, the CPU of:
 
 - the simplex points' physics over one tick: points x steps mj_step (the UKF's floor), and at one

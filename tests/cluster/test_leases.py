@@ -65,7 +65,8 @@ def _open_on(replica: Replica, client: Client) -> Session:
     raise AssertionError(f"the balancer never put a session on {replica.name}")
 
 
-@pytest.mark.parametrize("client", ["raw", "sdk"])
+# The SDK's variant (15 s) runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.parametrize("client", ["raw", pytest.param("sdk", marks=pytest.mark.slow)])
 def test_postgresql_down_for_every_replica_takes_no_session_from_its_live_owner(
     start_replica: Callable[..., Replica], index_url: str, client: str
 ) -> None:
@@ -183,6 +184,7 @@ def test_a_replica_cut_off_from_postgresql_alone_hands_its_session_to_a_healthy_
     assert stored_seqs(healthy, str(row["location"])) == list(range(len(seqs)))
 
 
+@pytest.mark.slow  # 16 s; runs with the slow tests (pytest -m slow), to keep CI under 20 minutes
 def test_replicas_whose_clocks_are_a_minute_off_take_nothing_from_each_other(
     start_replica: Callable[..., Replica], index_url: str
 ) -> None:
@@ -212,6 +214,7 @@ def test_replicas_whose_clocks_are_a_minute_off_take_nothing_from_each_other(
     assert "nobody resumed it" not in ahead.log.read_text()
 
 
+@pytest.mark.slow  # 23 s; runs with the slow tests (pytest -m slow), to keep CI under 20 minutes
 def test_the_async_sdk_hands_over_too(
     netns_host: NetnsHost, start_replica: Callable[..., Replica], index_url: str, tmp_path: Path
 ) -> None:
