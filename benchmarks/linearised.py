@@ -12,8 +12,15 @@ on the state its own excitation reaches, the CPU of:
   at a single coarse step of the whole tick (`coarse`: the model's timestep set to dt);
 - the EKF's algebra in numpy: A P A' + Q and an update measuring qpos and qvel.
 
+- with --accuracy, the prediction error over 100 ms gaps every 250 ms of the model's own excited
+  motion: the UKF as the server runs it (its filter's prediction alone: forecast FILTER, noise
+  FIXED) against `LinearisedFilter`, a plain EKF on the same state, Q, P0 and R whose Jacobian over
+  the whole tick is finite-differenced from the same physics (a reference of the algorithm, not
+  of its price).
+
     python -m benchmarks.linearised                  # every model, ~1 minute
     python -m benchmarks.linearised --rows myohand   # substrings of the row names
+    python -m benchmarks.linearised --accuracy       # the errors too, a few minutes
 """
 
 from __future__ import annotations
@@ -28,7 +35,9 @@ import mujoco
 import numpy as np
 
 from benchmarks.cost_nv import ROWS, Row, load, truth
-from jitdyn.server.estimation.config import resolve_config
+from jitdyn.server.estimation.config import EstimatorConfig, resolve_config
+from jitdyn.server.estimation.interface import Measurement
+from jitdyn.server.estimation.noise import UkfNoise
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.ukf import UnscentedFilter
 from jitdyn.vocabulary import Scenario
@@ -119,12 +128,107 @@ def measure(row: Row, repeats: int) -> dict[str, float]:
     }
 
 
+class LinearisedFilter:
+    """An EKF of the UKF's own state ([q, qd], and f in DRIVEN; plain vectors only): the mean by
+    the model's steps over the tick, the covariance by the tick's Jacobian, finite differences of
+    the same steps, one column a perturbed state; activations carried as inputs, as the UKF does."""
+
+    def __init__(self, model: mujoco.MjModel, config: EstimatorConfig, first: Measurement) -> None:
+        self.model, self.data = model, mujoco.MjData(model)
+        self.steps = round(config.dt / model.opt.timestep)
+        noise = UkfNoise.of(model, self.data, config)
+        self.n, self.nv = noise.n, model.nv
+        self.Q, self.P = noise.process_noise(config.dt), noise.initial_covariance()
+        self.R = config.r * np.eye(2 * model.nv)
+        self.x = np.zeros(self.n)
+        self.x[: 2 * self.nv] = np.concatenate([first.qpos, first.qvel])
+        self.act = np.zeros(model.na)
+
+    def _step(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d, nv = self.data, self.nv
+        d.qpos[:], d.qvel[:], d.act[:] = x[:nv], x[nv : 2 * nv], self.act
+        d.qfrc_applied[:] = x[2 * nv : 3 * nv] if self.n > 2 * nv else 0.0
+        mujoco.mj_step(self.model, d, self.steps)
+        out = x.copy()
+        out[:nv], out[nv : 2 * nv] = d.qpos, d.qvel
+        return out, d.act.copy()
+
+    def predict(self) -> np.ndarray:
+        mean, act = self._step(self.x)
+        a = np.empty((self.n, self.n))
+        for i in range(self.n):  # forward differences, scaled to each component's spread
+            eps = 1e-6 * max(1.0, abs(self.x[i]))
+            probe = self.x.copy()
+            probe[i] += eps
+            a[:, i] = (self._step(probe)[0] - mean) / eps
+        self.x, self.act = mean, act
+        self.P = a @ self.P @ a.T + self.Q
+        return self.x[: self.nv].copy()
+
+    def update(self, frame: Measurement) -> None:
+        h = np.eye(2 * self.nv, self.n)
+        s = h @ self.P @ h.T + self.R
+        gain = np.linalg.solve(s, h @ self.P).T
+        self.x = self.x + gain @ (np.concatenate([frame.qpos, frame.qvel]) - h @ self.x)
+        joseph = np.eye(self.n) - gain @ h
+        self.P = joseph @ self.P @ joseph.T + gain @ self.R @ gain.T
+
+
+def swing(model: mujoco.MjModel, steps: int, ticks: int) -> list[Measurement]:
+    """A passive body let go from a pose 0.8 rad off its rest in every joint (seeded)."""
+    d = mujoco.MjData(model)
+    d.qpos[:] = model.qpos0 + 0.8 * np.random.default_rng(0).uniform(-1.0, 1.0, model.nq)
+    frames = []
+    for _ in range(ticks):
+        mujoco.mj_step(model, d, steps)
+        frames.append(Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy()))
+    return frames
+
+
+def gap_errors(row: Row, seconds: float) -> tuple[float, float]:
+    """Mean |q error| over the ticks of 100 ms gaps every 250 ms: (UKF, EKF)."""
+    model = load(row.model)
+    dt = 1.0 / row.rate
+    steps = round(dt / model.opt.timestep)
+    if row.scenario == Scenario.PASSIVE:  # a passive body left at rest would not move: let it swing
+        frames = swing(model, steps, ticks=round(seconds / dt))
+    else:
+        frames = truth(model, row.scenario, steps, ticks=round(seconds / dt))
+    config = resolve_config(
+        model=model,
+        scenario=row.scenario,
+        dt=dt,
+        requested={"forecast": "FILTER", "noise_model": "FIXED"},
+        model_defaults={},
+        measured={"qpos", "qvel"},
+    )
+    period, gap = round(0.25 / dt), max(1, round(0.1 / dt))
+    errors: dict[str, list[float]] = {"ukf": [], "ekf": []}
+    with WorkerPool(1) as pool:
+        ukf = UnscentedFilter(model, config, pool=pool)
+        ukf.initialise(frames[0])
+        ekf = LinearisedFilter(model, config, frames[0])
+        for k in range(1, len(frames)):
+            in_gap = k > period and k % period < gap
+            ekf_q = ekf.predict()
+            if in_gap:
+                errors["ukf"].append(float(np.mean(np.abs(ukf.predict(ctrl=None).qpos - frames[k].qpos))))
+                errors["ekf"].append(float(np.mean(np.abs(ekf_q - frames[k].qpos))))
+            else:
+                ukf.advance(ctrl=None)
+                ukf.update(frames[k])
+                ekf.update(frames[k])
+    return statistics.fmean(errors["ukf"]), statistics.fmean(errors["ekf"])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--rows", nargs="+", help="substrings of row names")
     parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--accuracy", action="store_true", help="also the errors over gaps (slow)")
+    parser.add_argument("--seconds", type=float, default=4.0, help="of motion for --accuracy (default 4)")
     args = parser.parse_args(argv)
     seen: set[tuple[str, Scenario]] = set()
     rows = []
@@ -151,6 +255,17 @@ def main(argv: list[str] | None = None) -> int:
             f"| {r['ekf_coarse'] / r['simplex_coarse']:.2f} | {r['algebra'] * 1e6:.0f} |",
             flush=True,
         )
+    if args.accuracy:
+        print("\n| model, scenario | UKF mean |q error| over gaps (rad) | EKF | EKF / UKF |")
+        print("|---|---|---|---|")
+        for row in rows:
+            if row.scenario == Scenario.CONTROLLED or load(row.model).nq != load(row.model).nv:
+                continue  # [q, qd, qdd] with measured controls, or a ball or free joint: not in the reference
+            ukf, ekf = gap_errors(row, args.seconds)
+            print(
+                f"| {row.name.replace(' (default)', '')} | {ukf:.2e} | {ekf:.2e} | {ekf / ukf:.2f} |",
+                flush=True,
+            )
     return 0
 
 
