@@ -209,8 +209,22 @@ def swing(model: mujoco.MjModel, steps: int, ticks: int) -> list[Measurement]:
     return frames
 
 
-def gap_errors(row: Row, seconds: float) -> tuple[float, float]:
-    """Mean |q error| over the ticks of 100 ms gaps every 250 ms: (UKF, EKF)."""
+def noisy(frames: list[Measurement], std: float, seed: int = 0) -> list[Measurement]:
+    """The frames as a sensor would give them: Gaussian noise of `std` rad on qpos and 10 `std`
+    rad/s on qvel (seeded)."""
+    rng = np.random.default_rng(seed)
+    return [
+        Measurement(
+            qpos=f.qpos + std * rng.standard_normal(f.qpos.shape),
+            qvel=f.qvel + 10.0 * std * rng.standard_normal(f.qvel.shape),
+        )
+        for f in frames
+    ]
+
+
+def gap_errors(row: Row, seconds: float, noise: float = 0.0) -> tuple[float, float]:
+    """Mean |q error| against the true motion over the ticks of 100 ms gaps every 250 ms, the
+    filters fed frames with `noise` (see `noisy`): (UKF, EKF)."""
     model = load(row.model)
     dt = 1.0 / row.rate
     steps = round(dt / model.opt.timestep)
@@ -226,12 +240,13 @@ def gap_errors(row: Row, seconds: float) -> tuple[float, float]:
         model_defaults={},
         measured={"qpos", "qvel"},
     )
+    sensed = noisy(frames, noise) if noise else frames
     period, gap = round(0.25 / dt), max(1, round(0.1 / dt))
     errors: dict[str, list[float]] = {"ukf": [], "ekf": []}
     with WorkerPool(1) as pool:
         ukf = UnscentedFilter(model, config, pool=pool)
-        ukf.initialise(frames[0])
-        ekf = LinearisedFilter(model, config, frames[0])
+        ukf.initialise(sensed[0])
+        ekf = LinearisedFilter(model, config, sensed[0])
         for k in range(1, len(frames)):
             in_gap = k > period and k % period < gap
             ekf_q = ekf.predict()
@@ -240,8 +255,8 @@ def gap_errors(row: Row, seconds: float) -> tuple[float, float]:
                 errors["ekf"].append(float(np.mean(np.abs(ekf_q - frames[k].qpos))))
             else:
                 ukf.advance(ctrl=None)
-                ukf.update(frames[k])
-                ekf.update(frames[k])
+                ukf.update(sensed[k])
+                ekf.update(sensed[k])
     return statistics.fmean(errors["ukf"]), statistics.fmean(errors["ekf"])
 
 
@@ -253,6 +268,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--accuracy", action="store_true", help="also the errors over gaps (slow)")
     parser.add_argument("--seconds", type=float, default=4.0, help="of motion for --accuracy (default 4)")
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        help="rad of noise on the frames' qpos (10x on qvel) for --accuracy",
+    )
     args = parser.parse_args(argv)
     seen: set[tuple[str, Scenario]] = set()
     rows = []
@@ -285,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
         for row in ACCURACY_ROWS:
             if args.rows and not any(s in row.name for s in args.rows):
                 continue
-            ukf, ekf = gap_errors(row, args.seconds)
+            ukf, ekf = gap_errors(row, args.seconds, args.noise)
             print(
                 f"| {row.name.replace(' (default)', '')} | {ukf:.2e} | {ekf:.2e} | {ekf / ukf:.2f} |",
                 flush=True,
