@@ -97,13 +97,14 @@ def truth(model: mujoco.MjModel, scenario: Scenario, nstep: int, ticks: int) -> 
 
 def physics(ukf: UnscentedFilter) -> None:
     """The rollout of this tick's sigma points (as the filter would step them), alone."""
-    kf, nq, nv, process = ukf._kf, ukf._nq, ukf._nv, ukf._process
-    process.set_inputs(act=ukf._act, ctrl=ukf._ctrl, qfrc=ukf._qfrc)
-    if ukf._linear_force:
-        chi = ukf._points.sigma_points(kf.x[: nq + nv], kf.P[: 2 * nv, : 2 * nv])
+    parts = ukf.parts
+    kf, nq, nv, process, state = parts.kf, parts.layout.nq, parts.layout.nv, parts.process, parts.state
+    process.set_inputs(act=state.act, ctrl=state.ctrl, qfrc=state.qfrc)
+    if parts.layout.linear_force:
+        chi = parts.points.sigma_points(kf.x[: nq + nv], kf.P[: 2 * nv, : 2 * nv])
         process.propagate_linear_force(chi, np.repeat(kf.x[None, nq + nv :], chi.shape[0], 0), nstep=None)
     else:
-        process.propagate(ukf._points.sigma_points(kf.x, kf.P), nstep=None)
+        process.propagate(parts.points.sigma_points(kf.x, kf.P), nstep=None)
 
 
 def measure(row: Row, rounds: int) -> dict[str, float]:
@@ -148,8 +149,8 @@ def measure(row: Row, rounds: int) -> dict[str, float]:
             out["cycle_wall"].append(wall)
             out["physics_cpu"].append(0.5 * (before + after))
             out["ratio"].append(cpu / (0.5 * (before + after)))
-        finite = bool(np.isfinite(ukf._kf.x).all())
-        error = float(np.max(np.abs(ukf._kf.x[: model.nq] - frames[k - 1].qpos)))
+        finite = bool(np.isfinite(ukf.parts.kf.x).all())
+        error = float(np.max(np.abs(ukf.parts.kf.x[: model.nq] - frames[k - 1].qpos)))
     result = {key: statistics.median(values) for key, values in out.items()}
     result.update(
         nq=model.nq,

@@ -781,14 +781,15 @@ def tick_physics_us(model: str, scenario: str, rate: float, states: dict[str, np
             if k == 0:
                 ukf.initialise(frame)
                 continue
-            kf = ukf._kf
-            sigmas = ukf._points.sigma_points(kf.x, kf.P)
+            parts = ukf.parts
+            kf, state = parts.kf, parts.state
+            sigmas = parts.points.sigma_points(kf.x, kf.P)
             if controlled:
-                ukf._ctrl = np.array(states["ctrl"][k])
-            ukf._process.set_inputs(act=ukf._act, ctrl=ukf._ctrl, qfrc=ukf._qfrc)
+                state.ctrl = np.array(states["ctrl"][k])
+            parts.process.set_inputs(act=state.act, ctrl=state.ctrl, qfrc=state.qfrc)
             started = time.process_time()  # the pool's threads included
             for _ in range(5):
-                ukf._process.propagate(sigmas, nstep=None)
+                parts.process.propagate(sigmas, nstep=None)
             samples.append((time.process_time() - started) / 5)
             ukf.advance(ctrl=frame.ctrl)
             ukf.update(frame)

@@ -168,10 +168,6 @@ class Stage:
 
 WAITING = "read in a wait (select, a lock): not spent"
 _SERVICE = "server/transport/dynamics_service.py"
-_UKF = "server/estimation/ukf.py"
-_FORECAST_METHODS = tuple(
-    f"UnscentedFilter.{m}" for m in ("_combined", "_forecast", "_answer_nis", "_observe_gap")
-)
 _CLOCK_METHODS = (
     "_RealtimeClock.run",
     "_RealtimeClock.due",
@@ -227,13 +223,14 @@ STAGES: tuple[Stage, ...] = (
                 "server/estimation/foresight.py",
                 "server/estimation/matching.py",
                 "server/estimation/deadreckoning.py",
+                "server/estimation/gap.py",
             ),
-            in_functions(_UKF, *_FORECAST_METHODS),
+            in_functions("server/estimation/adaptive_steps.py", "observe_gap"),
         ),
     ),
     Stage(
         "the glance ahead (ticks past the filter)",
-        anywhere(in_functions(_UKF, "UnscentedFilter.glance", "UnscentedFilter.extrapolate")),
+        anywhere(in_files("server/estimation/lookahead.py")),
     ),
     Stage("the result's dynamics", anywhere(in_files("server/estimation/dynamics.py"))),
     Stage(

@@ -1,12 +1,14 @@
 """One UKF's numeric steps, the interface both engines implement: the native one
 (native/filter.py, on MuJoCo's C API) and the Python one here (numpy and filterpy), which the
 native one is held to (tests/server/test_native.py). UnscentedFilter (estimation/ukf.py) runs a
-tick through these steps and keeps the rest (the guard, the adaptive noise, the forecasts, the
-estimate) itself.
+tick through these steps and through the steps both engines share (the guard, the adaptive noise,
+the forecasts, the estimate: estimation/ukf.py's table says where each is); estimation/parts.py
+picks the core of the configured engine.
 
     core.set_inputs(act=act, ctrl=ctrl, qfrc=qfrc)   # what acts on the points over the tick
     core.predict()                                    # sigma points, propagation, transform
     core.update(z)                                    # the measurement's correction; core.nis
+    nis = correct(core, z, size=len(x))               # the same, a singular S a NaN state
     finite = core.tidy()                              # P symmetrised, repaired when indefinite
     qacc = core.forward(qpos, qvel, act=act, ctrl=ctrl, qfrc=qfrc)
 
@@ -34,7 +36,7 @@ from jitdyn.server.estimation.batched import BatchedUKF
 from jitdyn.server.estimation.process import SigmaProcess
 from jitdyn.server.estimation.sigma import cholesky_upper, nearest_positive_definite
 
-__all__ = ["FilterCore", "PythonCore"]
+__all__ = ["FilterCore", "PythonCore", "correct"]
 
 
 class FilterCore(Protocol):
@@ -70,6 +72,18 @@ class FilterCore(Protocol):
     def forward(
         self, qpos: np.ndarray, qvel: np.ndarray, *, act: np.ndarray, ctrl: np.ndarray, qfrc: np.ndarray
     ) -> np.ndarray: ...
+
+
+def correct(kf: FilterCore, z: np.ndarray, *, size: int) -> float | None:
+    """kf's update with measurement z; its NIS, None when not finite. An innovation covariance
+    that cannot be inverted leaves nothing of the update usable: x (size,) turns NaN."""
+    try:
+        kf.update(z)
+        nis = kf.nis
+    except np.linalg.LinAlgError:
+        kf.x = np.full(size, np.nan)
+        nis = float("nan")
+    return nis if np.isfinite(nis) else None
 
 
 def _passed(name: str) -> Any:

@@ -39,6 +39,12 @@ CASES = {
         ("UnscentedFilter._predict", f"{ROOT}/server/estimation/ukf.py"),
         ("SessionRuntime.advance", f"{ROOT}/server/runtime/session.py"),
     ],
+    "the glance ahead (ticks past the filter)": [
+        ("Rollout.rollout", f"{SITE}/mujoco/rollout.py"),
+        ("Propagator.__call__", f"{ROOT}/server/estimation/propagate.py"),
+        ("Lookahead.glance", f"{ROOT}/server/estimation/lookahead.py"),
+        ("UnscentedFilter.glance", f"{ROOT}/server/estimation/ukf.py"),
+    ],
     "estimator cycle: the sigma points' physics": [
         ("Rollout.rollout", f"{SITE}/mujoco/rollout.py"),
         ("Propagator.__call__", f"{ROOT}/server/estimation/propagate.py"),
@@ -75,6 +81,24 @@ CASES = {
 @pytest.mark.parametrize("stage", sorted(CASES))
 def test_a_stack_is_in_the_stage_that_contains_it(budget: ModuleType, stage: str) -> None:
     assert budget.classify(stack(budget, *CASES[stage])) == stage
+
+
+def test_a_gaps_answer_is_the_forecasts(budget: ModuleType) -> None:
+    # The inverse dynamics of the combination's forecast (estimation/gap.py), and what the frame
+    # that ends the gap teaches the adaptive noise, are the forecast's, not the filter's algebra.
+    answering = stack(
+        budget,
+        ("Answers.inverse", f"{ROOT}/server/estimation/answer.py"),
+        ("combined", f"{ROOT}/server/estimation/gap.py"),
+        ("UnscentedFilter.predict", f"{ROOT}/server/estimation/ukf.py"),
+    )
+    learning = stack(
+        budget,
+        ("observe_gap", f"{ROOT}/server/estimation/adaptive_steps.py"),
+        ("UnscentedFilter.update", f"{ROOT}/server/estimation/ukf.py"),
+    )
+    forecast = "the forecast (combination, matching, dead reckoning)"
+    assert (budget.classify(answering), budget.classify(learning)) == (forecast, forecast)
 
 
 def test_stage_names_are_unique(budget: ModuleType) -> None:
