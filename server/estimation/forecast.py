@@ -748,8 +748,16 @@ class ForecastCombiner:
             errors, verrors, ages = errors[finite], verrors[finite], ages[finite]
         if ages.size == 0:
             return
-        cov = errors @ errors.transpose(0, 2, 1) / self._nv
-        cov_v = verrors @ verrors.transpose(0, 2, 1) / self._nv
+        # A probe that diverged without going non-finite (a rollout under a wild force) squares
+        # past the largest float: it is left out as a non-finite one is, and says nothing on stderr.
+        with np.errstate(over="ignore", invalid="ignore"):
+            cov = errors @ errors.transpose(0, 2, 1) / self._nv
+            cov_v = verrors @ verrors.transpose(0, 2, 1) / self._nv
+        bounded = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(cov_v).all(axis=(1, 2))
+        if not bounded.all():
+            cov, cov_v, ages = cov[bounded], cov_v[bounded], ages[bounded]
+            if ages.size == 0:
+                return
         # Rows are oldest first, so ages fall along them; only probes that waited at the horizon
         # through a gap share one, the horizon, at the front.
         if ages.size < 2 or ages[0] != ages[1]:
