@@ -77,13 +77,16 @@ _MOORE: Final = "GaitAnalysisToolKit-0.2.0/gaitanalysis/octave/2d_inverse_dynami
 
 def fetch_archives(cache: Path) -> dict[str, Path]:
     """The source archives in `cache`, downloaded there by pip (`pip download --no-deps
-    --no-binary :all:`) when missing; their sha256 printed, so a build says what it read."""
+    --no-binary :all: --no-build-isolation`: with isolation, pip builds the sdists' build
+    dependencies from source too, numpy among them, and fails where an index lacks one of theirs) when
+    missing; their sha256 printed, so a build says what it read."""
     cache.mkdir(parents=True, exist_ok=True)
     found = {}
     for name, requirement in ARCHIVES.items():
         path = cache / name
         if not path.is_file():
             command = [sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:"]
+            command.append("--no-build-isolation")
             subprocess.run([*command, "-d", str(cache), requirement], check=True, capture_output=True)
         if not path.is_file():
             raise FileNotFoundError(f"pip download {requirement} left no {name} in {cache}")

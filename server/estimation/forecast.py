@@ -579,13 +579,20 @@ class ForecastCombiner:
         ones; with the prior, its scores on other people's walking (PriorScores) over STATIC, the
         other extrapolators and PRIOR, blended with the session's as a fading memory holds a score
         made before the session's n: FORGETTING^n of the prior's, the rest the session's
-        (docs/decisions/0186-prior-predictor.md)."""
+        (docs/decisions/0186-prior-predictor.md). Once the session has a score at h, the prior's
+        covariances are taken at the session's scale, their STATIC variance the session's: the prior
+        says how the predictors compare, the session how large its motion's errors are
+        (docs/decisions/0192-the-prior-at-the-sessions-scale.md)."""
         if self._prior_cov is None:
             return self._cov[h], self._cov_v[h]
         share = _PRIOR_SHARE[min(int(self._count[h]), _PRIOR_SHARE.size - 1)]
         block, prior = self._prior_mask, self._prior_cov
-        C = np.where(block, share * prior[0][h] + (1.0 - share) * self._cov[h], self._cov[h])
-        D = np.where(block, share * prior[1][h] + (1.0 - share) * self._cov_v[h], self._cov_v[h])
+        C0, D0 = (
+            _at_scale(prior[0][h], self._cov[h], self._static),
+            _at_scale(prior[1][h], self._cov_v[h], self._static),
+        )
+        C = np.where(block, share * C0 + (1.0 - share) * self._cov[h], self._cov[h])
+        D = np.where(block, share * D0 + (1.0 - share) * self._cov_v[h], self._cov_v[h])
         return C, D
 
     def _match(self, i: int) -> None:
@@ -809,6 +816,13 @@ _FADING: Final = np.array(
 # The prior's share of the covariances a horizon's weights come from after n scores of the session's
 # own (FORGETTING^n, by Python's scalar power as _FADING; nil from where it no longer counts).
 _PRIOR_SHARE: Final = np.array([FORGETTING**n for n in range(200)] + [0.0])
+
+
+def _at_scale(prior: np.ndarray, session: np.ndarray, static: int) -> np.ndarray:
+    """The prior's covariance (P, P) times the session's STATIC variance over its own (as it is
+    while the session has no score there, or either is nil)."""
+    ours, theirs = float(session[static, static]), float(prior[static, static])
+    return prior if ours <= 0.0 or theirs <= 0.0 else prior * (ours / theirs)
 
 
 def _novelty(q: np.ndarray, C: np.ndarray, static: int) -> np.ndarray | None:

@@ -18,18 +18,23 @@ qd where it differs from theirs, fading with FADE (as estimation/matching.py doe
 session's own past). Dofs of no leg take `fallback` (the session's own history, or constant
 velocity). Why a prior and how it was chosen: docs/decisions/0186-prior-predictor.md.
 
-Cost: a match is one pass over the library's candidates, O(N F) for N candidates of F features
-(the library holds some 34,000 moments; a 3-joint leg's F is 12). Pure numpy.
+Cost: a match is a query of a k-d tree over the library's candidates (scipy's cKDTree, one per leg's
+joints and set of lags present, built at its first use and shared by every session of the library):
+some 40 us, where a pass over all of them (`nearest`, kept as the reference the tree is tested
+against) took 200-1000 us (the library holds some 34,000 moments; a 3-joint leg's F is 12).
+docs/decisions/0190-prior-lookup-by-tree.md.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Final
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from jitdyn.roles import JointRole
 
@@ -37,12 +42,14 @@ __all__ = [
     "FEATURE_TIME",
     "LAGS",
     "PRIOR_FILE",
+    "Index",
     "K",
     "Leg",
     "PriorLibrary",
     "PriorMatcher",
     "legs_of",
     "library",
+    "nearest",
     "prior_without",
 ]
 
@@ -166,11 +173,52 @@ class PriorLibrary:
             without=tuple(without),
         )
 
+    def columns(self, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """q and qd (N, J) over `columns` (J,) of JOINTS, copied once per choice of them: copied on
+        every continuation, they had been most of its time."""
+        key = tuple(int(c) for c in columns)
+        found = self._columns.get(key)
+        if found is None:
+            found = self._columns[key] = (self.q[:, columns], self.v[:, columns])
+        return found
+
+    @functools.cached_property
+    def _columns(self) -> dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]]:
+        return {}
+
+    def index(self, columns: np.ndarray, present: tuple[bool, ...]) -> Index:
+        """What a match over `columns` (J,) of JOINTS searches, with the feature's components
+        `present` (len(LAGS) + 1,) per joint; built at the first call (PriorMatcher builds every
+        one its legs need), then shared."""
+        key = (tuple(int(c) for c in columns), present)
+        found = self._indexes.get(key)
+        if found is None:
+            has = self.candidate & np.all(np.isfinite(self.q[:, columns]), axis=1)
+            rows = np.flatnonzero(has)
+            scaled = (self.features[rows][:, columns] / self.spread[columns]).reshape(rows.size, -1)
+            kept = np.tile(np.array(present), len(key[0]))
+            found = self._indexes[key] = Index(rows, (scaled, np.square(scaled)), cKDTree(scaled[:, kept]))
+        return found
+
+    @functools.cached_property
+    def _indexes(self) -> dict[tuple[tuple[int, ...], tuple[bool, ...]], Index]:
+        return {}
+
     def describe(self) -> str:
         """Which people the library holds, for a report: "5 subjects (fukuchi, ...), xsens left out"."""
         kept = [s for s in self.subjects if s not in self.without]
         out = f"{len(kept)} subjects ({', '.join(kept)})"
         return out + (f", {', '.join(self.without)} left out" if self.without else "")
+
+
+@dataclass(frozen=True)
+class Index:
+    """The candidates of a match (N,) (rows of the library), their scaled features (N, F) and the
+    squares of those, and a k-d tree of the features over the components a match compares."""
+
+    rows: np.ndarray
+    features: tuple[np.ndarray, np.ndarray]
+    tree: cKDTree
 
 
 @dataclass(frozen=True)
@@ -223,9 +271,13 @@ def library_features(q: np.ndarray, v: np.ndarray, *, rate: float) -> np.ndarray
 
 
 class PriorMatcher:
-    """See the module docstring: one session's matches against the library, its legs given."""
+    """See the module docstring: one session's matches against the library, its legs given;
+    exhaustive: every match a pass over all of the candidates (`nearest`) instead of the tree's query,
+    the same moments (the reference, and the benchmark's other arm)."""
 
-    def __init__(self, library: PriorLibrary, *, legs: tuple[Leg, ...], nv: int, dt: float) -> None:
+    def __init__(
+        self, library: PriorLibrary, *, legs: tuple[Leg, ...], nv: int, dt: float, exhaustive: bool = False
+    ) -> None:
         if not legs or not dt > 0.0:
             raise ValueError(f"a prior matcher needs a leg and dt > 0, got {len(legs)} legs, dt {dt}")
         self._library, self._legs, self._nv, self._dt = library, legs, int(nv), float(dt)
@@ -239,16 +291,10 @@ class PriorMatcher:
             np.array([s for d, s in zip(leg.dofs, leg.signs, strict=True) if d >= 0]) for leg in legs
         ]
         self._columns = [np.flatnonzero(leg.joints) for leg in legs]
-        # Per leg: the candidates whose clip has all of its joints, their scaled features and the
-        # squares of those.
-        self._candidates: list[np.ndarray] = []
-        self._features: list[tuple[np.ndarray, np.ndarray]] = []
-        for cols in self._columns:
-            has = library.candidate & np.all(np.isfinite(library.q[:, cols]), axis=1)
-            rows = np.flatnonzero(has)
-            self._candidates.append(rows)
-            scaled = (library.features[rows][:, cols] / library.spread[cols]).reshape(rows.size, -1)
-            self._features.append((scaled, np.square(scaled)))
+        self._exhaustive = exhaustive
+        for cols in self._columns:  # every set of lags present, so that no match builds a tree
+            for lags in itertools.product((True, False), repeat=len(LAGS)):
+                library.index(cols, (*lags, True))
         self.roled = np.zeros(nv, dtype=bool)
         for dofs in self._dofs:
             self.roled[dofs] = True
@@ -292,10 +338,14 @@ class PriorMatcher:
                     feature[:, j] = (self._q[(tick - lag) % ring, dofs] - now[dofs]) * signs
             feature[:, -1] = self._v[tick % ring, dofs] * signs * FEATURE_TIME
             query = (feature / self._library.spread[self._columns[i]]).ravel()
-            mask = np.tile(present, dofs.size).astype(float)
-            found, w, d = nearest(self._features[i], query, mask)
+            mask = np.tile(present, dofs.size)
+            index = self._library.index(self._columns[i], tuple(present.tolist()))
+            if self._exhaustive:
+                found, w, d = nearest(index.features, query, mask.astype(float))
+            else:
+                found, w, d = nearest_in_tree(index.tree, query[mask])
             if d <= FARTHEST * mask.sum():
-                rows[i], weights[i] = self._candidates[i][found], w
+                rows[i], weights[i] = index.rows[found], w
         return rows, weights
 
     def state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -331,6 +381,15 @@ class PriorMatcher:
             )
             q[:, dofs], v[:, dofs], a[:, dofs] = lq * signs, lv * signs, la * signs
         return q, v, a
+
+
+def nearest_in_tree(tree: cKDTree, query: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """`nearest` by a k-d tree of the candidates' features over the components present only: the
+    K nearest rows (K,), their inverse-distance weights, and the nearest one's squared distance."""
+    distance, found = tree.query(query, k=K)
+    d = np.square(distance)
+    w = 1.0 / (d + 1e-3 * float(d[0]) + 1e-12)
+    return np.asarray(found), w / w.sum(), float(d[0])
 
 
 def nearest(
@@ -373,7 +432,7 @@ def follow_library(
     total = w.sum(axis=1, keepdims=True)
     none = total[:, 0] == 0.0
     w = w / np.where(none[:, None], 1.0, total)
-    Q, V = library.q[:, columns], library.v[:, columns]
+    Q, V = library.columns(columns)
 
     def at(x: np.ndarray) -> np.ndarray:
         return np.asarray((1.0 - f) * x[below] + f * x[np.minimum(below + 1, x.shape[0] - 1)])

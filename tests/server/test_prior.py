@@ -105,3 +105,32 @@ def test_the_shipped_prior_holds_its_six_people_under_5_mb() -> None:
     assert library(("xsens",)).describe().endswith(", xsens left out")
     with pytest.raises(ValueError, match="the prior has no subject 'nobody'; it has isen, xsens"):
         PriorLibrary.load(without=("nobody",))
+
+
+def test_the_trees_lookup_finds_the_moments_a_pass_over_every_candidate_finds() -> None:
+    """A walk the library does not hold (stroke, left out), frames with a gap now and then (so that
+    every set of lags present is searched): the k-d tree's matches are the exhaustive pass's, the
+    same library moments with the same weights, but where two moments tie for the tenth place."""
+    q = _walk("stroke")
+    v = np.gradient(q, DT, axis=0)
+    model = mujoco.MjModel.from_xml_string(chain_mjcf())
+    legs = legs_of(joint_roles(describe_model(model).joints, ()))
+    tree, scan = (
+        PriorMatcher(library(("stroke",)), legs=legs, nv=3, dt=DT, exhaustive=e) for e in (False, True)
+    )
+    same = matched = 0
+    for k in range(q.shape[0]):
+        if k % 25 >= 20:  # 50 ms lost every 250 ms: the lags 50-150 ms back come and go
+            continue
+        for m in (tree, scan):
+            m.record(k, q[k], v[k])
+        (rows, weights), (rows_ref, weights_ref) = tree.match(k), scan.match(k)
+        assert np.isnan(rows).all() == np.isnan(rows_ref).all()
+        if np.isnan(rows).all():
+            continue
+        matched += 1
+        order, order_ref = np.argsort(rows[0]), np.argsort(rows_ref[0])
+        if np.array_equal(rows[0][order], rows_ref[0][order_ref]):
+            same += 1
+            np.testing.assert_allclose(weights[0][order], weights_ref[0][order_ref], rtol=1e-6)
+    assert matched > 150 and same >= 0.97 * matched, (same, matched)
