@@ -205,7 +205,13 @@ STAGES: tuple[Stage, ...] = (
         "the record (storage: the row, the commit thread)",
         anywhere(in_files("storage/"), in_functions("server/transport/messages.py", "tick_record")),
     ),
-    Stage("metrics", anywhere(in_files("server/transport/metrics.py"), in_library("/prometheus_client/"))),
+    Stage(
+        "metrics",
+        anywhere(
+            in_files("server/transport/metrics.py", "server/transport/tally.py"),
+            in_library("/prometheus_client/"),
+        ),
+    ),
     Stage(
         "admission and the loop's watch",
         anywhere(

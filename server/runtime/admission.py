@@ -5,11 +5,15 @@ of this process's tick budget (a fraction of one core: one process runs Python o
     ticket = admission.admit(cost_per_tick=probe + TRANSPORT_COST, dt=0.05, what="pendulum_3 at 20 Hz")
     ...
     ticket.observe(seconds)          # each tick's measured cost refines the session's estimate
+    ticket.answered(lateness)        # each REALTIME answer's lateness
     ticket.release()                 # when the session ends (safe twice)
 
 A session's load is its cost per tick divided by dt: CPU seconds per second. The process's load is
 the larger of the sum over its sessions and its CPU actually used over the last seconds (which
 also counts what no estimate sees: the gRPC transport of LOCKSTEP sessions, compaction, GC).
+A tick is counted on its ticket, in plain numbers its session's thread alone writes; the process
+adds up what its tickets counted once per window, when it reads the window's evidence
+(docs/decisions/0196-metrics-and-admission-per-window.md).
 
 A process's budget is only worth what the machine can give it: on a machine whose cores other
 programs (or the server's other processes, or the clients beside it) keep busy, a session is also
@@ -112,6 +116,13 @@ class Ticket:
     cpu_per_tick: float | None = None
     released: bool = False
     admitted_at: float = field(default_factory=time.monotonic)
+    # What the session's own thread counted since admission: ticks, their compute (s), REALTIME
+    # answers and the late ones among them. Only ever grown, so that the process reads what is new
+    # of them at the end of a window without a lock on the tick's path (Admission._collect).
+    counted_ticks: int = 0
+    counted_compute: float = 0.0
+    counted_answers: int = 0
+    counted_late: int = 0
 
     @property
     def load(self) -> float:
@@ -120,7 +131,8 @@ class Ticket:
     def observe(self, seconds: float, *, cpu: float | None = None) -> None:
         """One tick took `seconds` of the estimator and dynamics (`cpu` of them its thread's CPU);
         the process's learnt overhead per tick (the transport, the loop, recording) is added."""
-        self.admission._count_tick(seconds)
+        self.counted_ticks += 1
+        self.counted_compute += seconds
         self.cost_per_tick += _EWMA * (seconds + self.admission.overhead - self.cost_per_tick)
         self.compute_per_tick += _EWMA * (seconds - self.compute_per_tick)
         if cpu is not None:
@@ -150,6 +162,11 @@ class Ticket:
             previous = self.replay_per_tick
             self.replay_per_tick = measured if previous is None else previous + _EWMA * (measured - previous)
 
+    def answered(self, lateness: float) -> None:
+        """A REALTIME answer of this session went `lateness` s past its deadline (0 when on time)."""
+        self.counted_answers += 1
+        self.counted_late += lateness > LATE_ANSWER
+
     def release(self) -> None:
         self.admission._release(self)
 
@@ -166,6 +183,8 @@ class Admission:
     # The process's GIL switch interval, told of each admitted session's grace; None: left alone.
     switch: SwitchInterval | None = None
     _by_id: dict[int, Ticket] = field(default_factory=dict)
+    # Each ticket's counts (ticks, compute, answers, late) when the process last added them up.
+    _collected: dict[int, tuple[int, float, int, int]] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _cpu_mark: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
     _cpu_load: float = 0.0
@@ -201,7 +220,9 @@ class Admission:
         with self._lock:
             self._cpu_mark = (time.monotonic(), time.process_time())
             self._cpu_load = 0.0
+            self._collect()  # what was counted before is not the window's
             self._window_ticks, self._window_compute = 0, 0.0
+            self._answers, self._late_answers = 0, 0
             self._machine_mark = _machine_times()
             self._recent_mark, self.recent_free = (time.monotonic(), self._machine_mark), None
 
@@ -216,6 +237,7 @@ class Admission:
         wall, cpu = time.monotonic(), time.process_time()
         since, used = self._cpu_mark
         if wall - since >= _CPU_WINDOW:
+            self._collect()
             if self.count_process_cpu:
                 self._cpu_load = (cpu - used) / (wall - since)
                 if self._window_ticks >= 50:
@@ -264,10 +286,22 @@ class Admission:
             self.machine_free = _usable_cpus() * max(0.0, 1.0 - busy / total)
         self._machine_mark = now
 
-    def _count_tick(self, compute: float) -> None:
-        with self._lock:
-            self._window_ticks += 1
-            self._window_compute += compute
+    def _collect(self) -> None:
+        """Add what every ticket counted since the last collection to the window. Under the lock.
+        A tick counted while this reads may be in one of its counts and not yet in another: it is
+        the next window's, whole, then."""
+        for key, ticket in self._by_id.items():
+            self._collect_one(key, ticket)
+
+    def _collect_one(self, key: int, ticket: Ticket) -> None:
+        ticks, compute = ticket.counted_ticks, ticket.counted_compute
+        answers, late = ticket.counted_answers, ticket.counted_late
+        seen_ticks, seen_compute, seen_answers, seen_late = self._collected.get(key, (0, 0.0, 0, 0))
+        self._window_ticks += ticks - seen_ticks
+        self._window_compute += compute - seen_compute
+        self._answers += answers - seen_answers
+        self._late_answers += late - seen_late
+        self._collected[key] = (ticks, compute, answers, late)
 
     def observe_lateness(self, seconds: float) -> None:
         """A REALTIME answer went `seconds` past its deadline (0 when on time)."""
@@ -567,6 +601,8 @@ class Admission:
             if ticket.released:
                 return
             ticket.released = True
-            self._by_id.pop(id(ticket), None)
+            if self._by_id.pop(id(ticket), None) is not None:
+                self._collect_one(id(ticket), ticket)  # its last ticks count in this window
+            self._collected.pop(id(ticket), None)
         if ticket.grace is not None and self.switch is not None:
             self.switch.remove(ticket.grace)

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import dataclasses
 import ipaddress
+import itertools
 import logging
 import os
 import signal
@@ -39,7 +40,7 @@ from jitdyn.server.runtime.priority import prioritise
 from jitdyn.server.runtime.publishing import publish_pending_loop
 from jitdyn.server.runtime.resume import ResumeTokens
 from jitdyn.server.runtime.services import DEFAULT_SESSION_LIMITS, Services, SessionLimits
-from jitdyn.server.runtime.stalls import LoopWatch, Stall
+from jitdyn.server.runtime.stalls import BEAT, LoopWatch, Stall
 from jitdyn.server.runtime.switch_interval import PROCESS_SWITCH_INTERVAL
 from jitdyn.server.transport.auth import ApiKeyInterceptor, load_api_keys
 from jitdyn.server.transport.dynamics_service import DynamicsServicer
@@ -47,6 +48,7 @@ from jitdyn.server.transport.metrics import metrics, serve_metrics
 from jitdyn.server.transport.probes import LOOP_HUNG_AFTER, MirroredHealth, Probes
 from jitdyn.server.transport.registry_service import ModelRegistryServicer
 from jitdyn.server.transport.session_service import SessionServicer
+from jitdyn.server.transport.tally import FLUSH_EVERY, HistogramTally
 from jitdyn.settings import Settings, default_workers
 from jitdyn.storage.anonymise import DEFAULT_ALLOWED_ATTRIBUTES, Anonymiser, load_or_create_secret
 from jitdyn.storage.commit import GroupCommitter
@@ -453,11 +455,15 @@ async def shutdown(server: grpc.aio.Server, services: Services, *, grace: float 
 def watch_loop(admission: Admission, *, stall: float) -> LoopWatch:
     """Watch the running loop: its lag goes to admission and to `jitdyn_loop_lag_seconds`, and a
     stall longer than `stall` seconds (0: none) is logged with what the loop was running."""
-    lag = metrics().loop_lag.labels(metrics().process)
+    lag = HistogramTally(metrics().loop_lag.labels(metrics().process))
+    beats = itertools.count(1)
+    every = max(1, round(FLUSH_EVERY / BEAT))
 
     def on_lag(seconds: float) -> None:
         admission.observe_loop_lag(seconds)
         lag.observe(seconds)
+        if next(beats) % every == 0:  # the metric once a window, as a session's (tally.py)
+            lag.flush()
 
     def report(stall: Stall) -> None:
         _log.warning("%s", stall.describe())

@@ -46,6 +46,7 @@ from jitdyn.server.transport.metrics import metrics
 from jitdyn.server.transport.opening import open_request, opened_message
 from jitdyn.server.transport.session_service import summary_to_pb
 from jitdyn.server.transport.status import abort
+from jitdyn.server.transport.tally import FLUSH_EVERY, CounterTally, HistogramTally
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.records import SessionSummaryInfo
 from jitdyn.v1 import dynamics_pb2, dynamics_pb2_grpc
@@ -122,13 +123,15 @@ class _Stream:
     def __init__(self, opened: OpenedSession, limits: StreamLimits = DEFAULT_STREAM_LIMITS) -> None:
         self.ticket = opened.ticket  # REALTIME: this session's share of the process's tick budget
         self.limits = limits
+        # The tick's metrics, counted here and added to the process's once a window (flush_metrics).
         m, process, model = metrics(), metrics().process, opened.info.name
-        self._m_ticks = {s: m.ticks.labels(process, model, s) for s in Source}
-        self._m_shed = m.shed.labels(process, model)
-        self._m_restarts = m.restarts.labels(process, model)
-        self._m_compute = m.compute.labels(process, model)
-        self._m_lateness = m.lateness.labels(process, model)
-        self._m_lag = m.durable_lag.labels(process)
+        self._m_ticks = {s: CounterTally(m.ticks.labels(process, model, s)) for s in Source}
+        self._m_shed = CounterTally(m.shed.labels(process, model))
+        self._m_restarts = CounterTally(m.restarts.labels(process, model))
+        self._m_compute = HistogramTally(m.compute.labels(process, model))
+        self._m_lateness = HistogramTally(m.lateness.labels(process, model))
+        self._m_lag = HistogramTally(m.durable_lag.labels(process))
+        self._m_flush_at = time.monotonic() + FLUSH_EVERY
         self.opened = opened
         self.plan = opened.plan
         self.runtime = opened.runtime
@@ -191,6 +194,15 @@ class _Stream:
                 self._token_issued = time.monotonic()
                 return
 
+    def flush_metrics(self) -> None:
+        """Add what this session's ticks counted to the process's metrics: once a window, and when
+        it ends."""
+        self._m_flush_at = time.monotonic() + FLUSH_EVERY
+        for tally in (*self._m_ticks.values(), self._m_shed, self._m_restarts):
+            tally.flush()
+        for histogram in (self._m_compute, self._m_lateness, self._m_lag):
+            histogram.flush()
+
     def overload_notice(self) -> Response | None:
         """REALTIME: the in-band warning that this session's answers may go late
         (Admission.unaffordable), asked at most every OVERLOAD_CHECK s and repeated every
@@ -252,6 +264,8 @@ class _Stream:
         else:
             self._m_compute.observe(outcome.compute_us / 1e6)
         self._m_lag.observe(outcome.seq - durable if durable is not None else outcome.seq + 1)
+        if time.monotonic() >= self._m_flush_at:
+            self.flush_metrics()
         return result_message(
             outcome,
             outputs=self.plan.outputs,
@@ -454,7 +468,7 @@ class _Stream:
         lateness = max(0.0, self.clock.now() - self.deadline(outcome.seq))
         self._m_lateness.observe(lateness)
         if self.ticket is not None:
-            self.ticket.admission.observe_lateness(lateness)
+            self.ticket.answered(lateness)
         return response
 
     def _observe_tick(self, seconds: float, *, cpu: float) -> None:
@@ -1000,6 +1014,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             ) from None
         finally:
             self._services.release(stream.recorder.header.tenant)
+            stream.flush_metrics()
             metrics().open_sessions.labels(metrics().process).dec()
             if stream.ticket is not None:
                 stream.ticket.release()

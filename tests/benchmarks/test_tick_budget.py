@@ -61,6 +61,11 @@ CASES = {
         ("_Stream.record_result", SERVICE),
     ],
     "the result message": [("_Stream.record_result", SERVICE), ("_Stream.answer", SERVICE)],
+    # A session's tallies of its metrics (server/transport/tally.py) are the metrics' cost.
+    "metrics": [
+        ("HistogramTally.observe", f"{ROOT}/server/transport/tally.py"),
+        ("_Stream.record_result", SERVICE),
+    ],
     "the clock": [
         ("MonotonicClock.now", f"{ROOT}/server/runtime/clock.py"),
         ("_Stream.record_result", SERVICE),

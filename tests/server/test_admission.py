@@ -440,3 +440,33 @@ def test_before_its_first_replay_a_session_prices_one_at_its_ticks_cpu() -> None
     assert ticket.replay_price == pytest.approx(0.0006 + 0.05 * (0.0008 - 0.0006))
     ticket.observe_replay(0.01, cpu=0.002, ticks=4)
     assert ticket.replay_price == pytest.approx(0.0005)  # its own replays, once measured
+
+
+def test_tickets_count_their_answers_and_the_window_adds_them_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each session counts its own answers on its ticket, without the process's lock; the process
+    adds up what its tickets counted when a window ends, a released ticket's last answers with them,
+    and what was counted before the process started its first window not at all."""
+    import time
+
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.2)
+    admission = Admission(budget=0.75, count_process_cpu=False)
+    first, second = (
+        admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz") for _ in range(2)
+    )
+    for _ in range(30):
+        first.answered(0.02)  # before the window starts: not the window's
+    admission.start_window()
+    for k in range(60):
+        first.answered(0.0)
+        second.answered(0.012 if k % 20 == 0 else 0.001)  # 3 late in 120
+    second.release()  # its answers still count in this window
+    time.sleep(0.25)
+    admission.measured_load()  # the window ends
+    assert admission.late_share == pytest.approx(3 / 120)
+    for _ in range(60):
+        first.answered(0.0)
+    time.sleep(0.25)
+    admission.measured_load()
+    assert admission.late_share == 0.0
