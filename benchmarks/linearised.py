@@ -36,12 +36,13 @@ import numpy as np
 
 from benchmarks.cost_nv import ROWS, Row, load, truth
 from jitdyn.server.estimation.config import EstimatorConfig, resolve_config
+from jitdyn.server.estimation.guard import Guard
 from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.noise import UkfNoise
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.propagate import process_model
 from jitdyn.server.estimation.ukf import UnscentedFilter
-from jitdyn.vocabulary import Scenario
+from jitdyn.vocabulary import Scenario, WrongModel
 
 
 def _cpu(work: object, repeats: int) -> float:
@@ -144,11 +145,25 @@ class LinearisedFilter:
         self.qfrc, self.last_qvel, self.since = np.zeros(model.nv), np.array(first.qvel), 0
         noise = UkfNoise.of(model, self.data, config)
         self.n, self.nv = noise.n, model.nv
-        self.Q, self.P = noise.process_noise(config.dt), noise.initial_covariance()
+        self.Q, self.P0 = noise.process_noise(config.dt), noise.initial_covariance()
         self.R = config.r * np.eye(2 * model.nv)
+        # The UKF's own guard (estimation/guard.py): EXTERNAL's wrong_model RESTART starts the
+        # filter again from a frame whose NIS stays far out, as the UKF does.
+        self.guard = Guard(
+            m=2 * model.nv,
+            restart=WrongModel(config.wrong_model) == WrongModel.RESTART,
+            driven=Scenario(config.scenario) == Scenario.DRIVEN,
+        )
+        self.restarts = 0
         self.x = np.zeros(self.n)
-        self.x[: 2 * self.nv] = np.concatenate([first.qpos, first.qvel])
         self.act = np.zeros(model.na)
+        self._start_from(first)
+
+    def _start_from(self, frame: Measurement) -> None:
+        """x on the frame, P = P0 (estimation/guard_steps.py start_from); DRIVEN keeps its force."""
+        self.x[: 2 * self.nv] = np.concatenate([frame.qpos, frame.qvel])
+        self.P = self.P0.copy()
+        self.last, self.last_qvel, self.since = frame, np.array(frame.qvel), 0
 
     def _step(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         d, nv = self.data, self.nv
@@ -169,22 +184,38 @@ class LinearisedFilter:
             a[:, i] = (self._step(probe)[0] - mean) / eps
         self.x, self.act, self.since = mean, act, self.since + 1
         self.P = a @ self.P @ a.T + self.Q
+        self.P = 0.5 * (self.P + self.P.T)
+        if self.guard.diverged(finite=self._finite(), largest_variance=float(self.P.diagonal().max())):
+            self._start_from(self.last)
+            self.guard.start()
         return self.x[: self.nv].copy()
+
+    def _finite(self) -> bool:
+        return bool(np.all(np.isfinite(self.x)) and np.all(np.isfinite(self.P)))
 
     def update(self, frame: Measurement) -> None:
         h = np.eye(2 * self.nv, self.n)
         s = h @ self.P @ h.T + self.R
         gain = np.linalg.solve(s, h @ self.P).T
-        self.x = self.x + gain @ (np.concatenate([frame.qpos, frame.qvel]) - h @ self.x)
+        y = np.concatenate([frame.qpos, frame.qvel]) - h @ self.x
+        nis = float(y @ np.linalg.solve(s, y))
+        self.x = self.x + gain @ y
         joseph = np.eye(self.n) - gain @ h
         self.P = joseph @ self.P @ joseph.T + gain @ self.R @ gain.T
+        self.guard.count(nis if np.isfinite(nis) else None)
+        if self.guard.restart_due(finite=self._finite(), largest_variance=float(self.P.diagonal().max())):
+            # As guard_steps.restart: from the frame, the held force kept, the guard as new.
+            self.restarts += 1
+            self._start_from(frame)
+            self.guard.reset()
+            return
         if self.external:  # the force that acted, restored from the frames and held, as the UKF does
             d = self.data
             d.qpos[:], d.qvel[:], d.act[:] = frame.qpos, frame.qvel, self.act
             d.qacc[:] = (frame.qvel - self.last_qvel) / (self.since * self.dt)
             mujoco.mj_inverse(self.model, d)
             self.qfrc = np.array(d.qfrc_inverse)
-        self.last_qvel, self.since = np.array(frame.qvel), 0
+        self.last, self.last_qvel, self.since = frame, np.array(frame.qvel), 0
 
 
 # The reference takes plain vectors in PASSIVE, EXTERNAL and DRIVEN: not CONTROLLED's [q, qd, qdd],
