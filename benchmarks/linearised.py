@@ -244,7 +244,7 @@ class LinearisedFilter:
             self._start_from(frame)
             self.guard.reset()
             return
-        if self.external:  # the force that acted, restored from the frames and held, as the UKF does
+        if self.external and self.since > 0:  # the force that acted, restored and held, as the UKF does
             d = self.data
             d.qpos[:], d.qvel[:], d.act[:] = frame.qpos, frame.qvel, self.act
             d.qacc[:] = (frame.qvel - self.last_qvel) / (self.since * self.dt)
