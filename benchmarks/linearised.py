@@ -156,8 +156,8 @@ class LinearisedFilter:
     carried as inputs, as the UKF does. A state with ball or free joints lives on the UKF's
     manifold (estimation/manifold.py: mj_integratePos and mj_differentiatePos are its + and -).
     `coarsen`: the process model's timestep times this (10 at 1 ms and 100 Hz: one step a tick),
-    its integrator implicitfast, as the issue's coarse candidate asks (Euler's 5 ms steps lost 1.82x
-    on myolegs_osl EXTERNAL: docs/decisions/0200-the-linearised-reference-is-the-ukfs-algorithm.md)."""
+    its integrator implicitfast, as the issue's coarse candidate asks (on myolegs_osl the same
+    errors as Euler's: docs/decisions/0200-the-linearised-reference-is-the-ukfs-algorithm.md)."""
 
     def __init__(
         self, model: mujoco.MjModel, config: EstimatorConfig, first: Measurement, *, coarsen: int = 1
