@@ -43,7 +43,7 @@ DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
 # Server CPU per tick outside the estimator (receiving the frame, checking it, the result message,
 # sending it, recording it, the event loop): the starting guess, which each process then replaces
 # with its own, learnt from its CPU and its ticks (docs/decisions/0005-admission-starting-guesses.md).
-TRANSPORT_COST: Final = 2e-3  # s
+TRANSPORT_COST: Final = 1e-3  # s
 _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 # Cores of the machine kept free of new sessions: the slack that keeps ticks on time when the
 # machine is nearly full (a tick late by a scheduling quantum is late).
@@ -490,7 +490,8 @@ class Admission:
         current = max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
         # A process with nothing to serve takes a session whose own filter fits the budget,
         # whatever the guess of the transport's cost: its ticks then measure what they cost
-        # (with the starting guess alone, no 500 Hz session, at 2 ms a tick, could ever open).
+        # (with the starting guess alone, a 500 Hz session's filter and the guess could pass the
+        # budget of its 2 ms tick and never open).
         if not self._by_id and current < self.budget / 2 and filter_seconds / ticket.dt <= self.budget:
             # Its own filter must still find the machine's CPU free.
             self._check_machine(ticket, load=filter_seconds / ticket.dt, what=what)
