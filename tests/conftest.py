@@ -7,6 +7,7 @@ others to import.
 from __future__ import annotations
 
 import secrets
+import signal
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,13 @@ from jitdyn.mujoco_log import route_mujoco_messages
 # MuJoCo's warnings go to logging, as in the server and the CLI, not to MUJOCO_LOG.TXT in the
 # folder pytest runs from (tests/cli/test_first_contact.py checks that none is written).
 route_mujoco_messages()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """SIGTERM ends a run as Ctrl-C does, so the fixtures' finalizers stop the servers, HAProxy
+    and moto they started: a terminated run left them serving, and the next tests' admission
+    counted their CPU as the machine's load."""
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
