@@ -20,6 +20,9 @@ programs (or the server's other processes, or the clients beside it) keep busy, 
 refused when the CPU the machine left idle over the last window, or during a burst of opens over
 its latest quarter second (a burst the window has not seen yet), less what was admitted since,
 cannot carry it (Linux: /proc/stat; elsewhere the process budget alone; docs/decisions/0008).
+What a client on this machine spent starting up before its first open is not load: it is added back
+to the idle CPU of the figures it fell in (server/runtime/clients.py,
+docs/decisions/0207-a-clients-start-up-is-not-load.md).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Final
 
 from jitdyn.errors import InvalidArgument, ResourceExhausted
+from jitdyn.server.runtime.clients import ClientStart
 from jitdyn.server.runtime.switch_interval import SwitchInterval
 
 __all__ = ["DEFAULT_TICK_BUDGET", "TRANSPORT_COST", "Admission", "Ticket"]
@@ -193,11 +197,17 @@ class Admission:
     _window_ticks: int = 0
     _window_compute: float = 0.0
     _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
+    _machine_mark_at: float = field(default_factory=time.monotonic)
     machine_free: float | None = None  # cores the machine left idle over the last window
+    _machine_span: tuple[float, float] = (0.0, 0.0)  # monotonic s the machine_free figure spans
     _recent_mark: tuple[float, tuple[int, int] | None] = field(
         default_factory=lambda: (time.monotonic(), _machine_times())
     )
     recent_free: float | None = None  # cores the machine left idle over the last _RECENT s
+    _recent_span: tuple[float, float] = (0.0, 0.0)
+    # Client processes on this machine that opened sessions lately, by pid: their start-up's CPU is
+    # not load (observe_client).
+    _clients: dict[int, ClientStart] = field(default_factory=dict)
     _opens: tuple[int, int] = (0, 0)  # REALTIME opens asked in the last _RECENT period, this one
     _looked: bool = False  # the first admission's look at the machine was taken
     _answers: int = 0
@@ -223,7 +233,7 @@ class Admission:
             self._collect()  # what was counted before is not the window's
             self._window_ticks, self._window_compute = 0, 0.0
             self._answers, self._late_answers = 0, 0
-            self._machine_mark = _machine_times()
+            self._machine_mark, self._machine_mark_at = _machine_times(), time.monotonic()
             self._recent_mark, self.recent_free = (time.monotonic(), self._machine_mark), None
 
     def measured_load(self) -> float:
@@ -267,7 +277,7 @@ class Admission:
         self._looked = True  # once, even where /proc/stat is not there to read
         if self.machine_free is not None:
             return
-        before = _machine_times()
+        before, since = _machine_times(), time.monotonic()
         time.sleep(_FIRST_LOOK)
         after = _machine_times()
         if before is None or after is None or after[1] <= before[1]:
@@ -275,16 +285,17 @@ class Admission:
         free = _usable_cpus() * max(0.0, 1.0 - (after[0] - before[0]) / (after[1] - before[1]))
         with self._lock:
             if self.machine_free is None:  # a window that ended meanwhile knows better
-                self.machine_free = free
+                self.machine_free, self._machine_span = free, (since, time.monotonic())
 
     def _sample_machine(self) -> None:
         if not self.count_machine_cpu:
             return
-        now = _machine_times()
+        now, at = _machine_times(), time.monotonic()
         if now is not None and self._machine_mark is not None and now[1] > self._machine_mark[1]:
             busy, total = now[0] - self._machine_mark[0], now[1] - self._machine_mark[1]
             self.machine_free = _usable_cpus() * max(0.0, 1.0 - busy / total)
-        self._machine_mark = now
+            self._machine_span = (self._machine_mark_at, at)
+        self._machine_mark, self._machine_mark_at = now, at
 
     def _collect(self) -> None:
         """Add what every ticket counted since the last collection to the window. Under the lock.
@@ -332,6 +343,7 @@ class Admission:
         if times is not None and mark is not None and times[1] > mark[1]:
             busy, total = times[0] - mark[0], times[1] - mark[1]
             self.recent_free = _usable_cpus() * max(0.0, 1.0 - busy / total)
+            self._recent_span = (self._recent_mark[0], now)
         self._recent_mark = (now, times)
         self._opens = (self._opens[1], 0)
 
@@ -339,6 +351,24 @@ class Admission:
         """A REALTIME open was asked of this process (at the door, before any decision)."""
         with self._lock:
             self._opens = (self._opens[0], self._opens[1] + 1)
+
+    def observe_client(self, start: ClientStart) -> None:
+        """A client process on this machine opened a session: the CPU it spent starting up, before
+        its first open, is not load. Its first open counts; clients seen more than two windows ago
+        are forgotten (no figure reaches back that far)."""
+        with self._lock:
+            now = time.monotonic()
+            self._clients.setdefault(start.pid, start)
+            for pid in [p for p, c in self._clients.items() if c.opened < now - 2 * _CPU_WINDOW]:
+                del self._clients[pid]
+
+    def _started_within(self, span: tuple[float, float]) -> float:
+        """Cores of a figure over `span` that were clients starting up (observe_client). Under the
+        lock."""
+        since, until = span
+        if until <= since or not self._clients:
+            return 0.0
+        return sum(c.within(since, until) for c in self._clients.values()) / (until - since)
 
     def observe_replay(self, seconds: float) -> None:
         """A late frame's replay (the timewarp) took `seconds` on the loop."""
@@ -556,12 +586,14 @@ class Admission:
         """Cores the machine left idle, less what was admitted since, in the last window or, during
         a burst of opens, in the last _RECENT s, whichever is fewer; None where the machine is not
         counted. Under the lock."""
-        figures = [(self.machine_free, self._cpu_mark[0])]
+        figures = [(self.machine_free, self._machine_span)]
         if sum(self._opens) >= _BURST:
-            figures.append((self.recent_free, self._recent_mark[0]))
+            figures.append((self.recent_free, self._recent_span))
+        cores = _usable_cpus()
         left = [
-            free - sum(t.load for t in self._by_id.values() if t.admitted_at >= since)
-            for free, since in figures
+            min(cores, free + self._started_within(span))
+            - sum(t.load for t in self._by_id.values() if t.admitted_at >= span[1])
+            for free, span in figures
             if free is not None
         ]
         return min(left, default=None)

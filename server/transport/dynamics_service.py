@@ -26,6 +26,7 @@ import grpc
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
 from jitdyn.mujoco_log import counting
 from jitdyn.server.runtime.alarm import Alarm
+from jitdyn.server.runtime.clients import LocalClients
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
 from jitdyn.server.runtime.frames import FrameIn, Rejection
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, IdleTimeout, StreamLimits
@@ -617,6 +618,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         self._streams: dict[_Stream, _Context] = {}
         self._draining = False
         self._all_moved = asyncio.Event()
+        self._clients = LocalClients(services.admission.observe_client)
 
     def _count_admission(self, refused: bool) -> None:
         if refused:
@@ -697,6 +699,9 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             )
         try:
             request = open_request(first.open, tenant=tenant_of(context))
+            if request.clock == Clock.REALTIME and not self._clients.seen(peer := context.peer()):
+                # A client on this machine: its start-up is not load (server/runtime/clients.py).
+                await asyncio.to_thread(self._clients.note, peer)
             return await self._open(request)
         except JitdynError as error:
             # Logged too: a balancer may not pass the status on (HAProxy 2.6 resets the stream

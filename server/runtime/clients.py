@@ -1,0 +1,176 @@
+"""Client processes on this machine, found from their connection, so that admission does not take
+a client's own start-up (its imports, its trajectory, its model's compile) for load that refuses it
+(docs/decisions/0207-a-clients-start-up-is-not-load.md).
+
+    clients = LocalClients(admission.observe_client)
+    if not clients.seen(context.peer()):            # on the event loop: a dict lookup
+        await asyncio.to_thread(clients.note, context.peer())   # once per connection, ~5 ms
+
+Linux only (/proc): the peer's socket is looked up in /proc/net/tcp and tcp6 by its address and
+port, its process by the socket's inode among /proc/PID/fd, and its start and CPU in
+/proc/PID/stat. A process in another PID namespace, or of another user whose /proc/PID/fd this
+server may not read, is not found: its CPU stays load, the safe side. A lookup reads a few
+hundred /proc entries (about 5 ms here), once per connection, off the event loop.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import re
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Final
+
+__all__ = ["ClientStart", "LocalClients", "client_start"]
+
+_Address = ipaddress.IPv4Address | ipaddress.IPv6Address
+_PEER = re.compile(r"^ipv([46]):\[?([0-9A-Fa-f.:]+?)\]?:(\d+)$")
+_ESTABLISHED: Final = "01"
+
+
+@dataclass(frozen=True, slots=True)
+class ClientStart:
+    """A client process on this machine: when it started, when it first opened a session here, and
+    the CPU it used between the two (monotonic s, s)."""
+
+    pid: int
+    started: float
+    opened: float
+    cpu: float
+
+    def within(self, since: float, until: float) -> float:
+        """s of its start-up's CPU that fell in [since, until], taking it as spread evenly over the
+        start-up (a client that ran for an hour before opening puts little of it in a window)."""
+        overlap = min(until, self.opened) - max(since, self.started)
+        if overlap <= 0.0:
+            return 0.0
+        span = self.opened - self.started
+        return self.cpu if span <= 0.0 else self.cpu * min(1.0, overlap / span)
+
+
+def _parse_peer(peer: str) -> tuple[_Address, int] | None:
+    """gRPC's peer string ("ipv4:127.0.0.1:5000", "ipv6:[::1]:5000") as an address and port."""
+    found = _PEER.match(peer)
+    if found is None:
+        return None
+    try:
+        return ipaddress.ip_address(found.group(2)), int(found.group(3))
+    except ValueError:
+        return None
+
+
+def _proc_address(hexed: str) -> tuple[_Address, int]:
+    """/proc/net/tcp's "0100007F:1F90": the address in 32-bit words of host order, the port."""
+    address, port = hexed.split(":")
+    raw = bytes.fromhex(address)
+    words = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+    if len(words) == 4:
+        return ipaddress.IPv4Address(words), int(port, 16)
+    return ipaddress.IPv6Address(words), int(port, 16)
+
+
+def _same(a: _Address, b: _Address) -> bool:
+    """Equal, an IPv4 address and its IPv4-mapped IPv6 form included."""
+    a4 = a.ipv4_mapped if isinstance(a, ipaddress.IPv6Address) and a.ipv4_mapped else a
+    b4 = b.ipv4_mapped if isinstance(b, ipaddress.IPv6Address) and b.ipv4_mapped else b
+    return a4 == b4
+
+
+def _socket_inode(address: _Address, port: int) -> int | None:
+    """The inode of this machine's established TCP socket whose local end is address:port."""
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            with open(table, encoding="ascii") as lines:
+                next(lines, None)  # the header
+                for line in lines:
+                    fields = line.split()
+                    if len(fields) < 10 or fields[3] != _ESTABLISHED:
+                        continue
+                    local, local_port = _proc_address(fields[1])
+                    if local_port == port and _same(local, address):
+                        return int(fields[9]) or None
+        except (OSError, ValueError):
+            continue
+    return None
+
+
+def _owner(inode: int) -> int | None:
+    """The process holding socket `inode` open, among those whose descriptors this one may read."""
+    target = f"socket:[{inode}]"
+    me = os.getpid()
+    with os.scandir("/proc") as processes:
+        pids = [int(e.name) for e in processes if e.name.isdigit() and int(e.name) != me]
+    for pid in pids:
+        try:
+            with os.scandir(f"/proc/{pid}/fd") as descriptors:
+                if any(os.readlink(fd.path) == target for fd in descriptors):
+                    return pid
+        except OSError:  # gone, or not ours to read
+            continue
+    return None
+
+
+def _started_and_cpu(pid: int) -> tuple[float, float] | None:
+    """(monotonic s when `pid` started, its CPU s so far) from /proc/PID/stat."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as stat:
+            text = stat.read()
+    except OSError:
+        return None
+    fields = text[text.rfind(")") + 2 :].split()
+    if len(fields) < 20:
+        return None
+    tick = os.sysconf("SC_CLK_TCK")
+    cpu = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+    since_boot = int(fields[19]) / tick  # starttime
+    clock = getattr(time, "CLOCK_BOOTTIME", time.CLOCK_MONOTONIC)
+    return time.monotonic() - (time.clock_gettime(clock) - since_boot), cpu
+
+
+def client_start(peer: str) -> ClientStart | None:
+    """The process on this machine at the other end of the connection `peer` (gRPC's
+    ServicerContext.peer()), with its start-up until now; None where it is not on this machine, not
+    visible to this process, or this is not Linux."""
+    parsed = _parse_peer(peer)
+    if parsed is None:
+        return None
+    opened = time.monotonic()
+    inode = _socket_inode(*parsed)
+    pid = None if inode is None else _owner(inode)
+    found = None if pid is None else _started_and_cpu(pid)
+    if pid is None or found is None:
+        return None
+    started, cpu = found
+    return ClientStart(pid=pid, started=started, opened=opened, cpu=cpu)
+
+
+class LocalClients:
+    """The connections whose process was looked for, each once, and what was found told to `tell`
+    (Admission.observe_client). Thread-safe."""
+
+    _REMEMBERED: Final = 4096  # connections; the oldest are forgotten first
+
+    def __init__(self, tell: Callable[[ClientStart], None]) -> None:
+        self._tell = tell
+        self._seen: OrderedDict[str, None] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def seen(self, peer: str) -> bool:
+        """Whether the connection `peer` was looked for already (or is being looked for)."""
+        return peer in self._seen
+
+    def note(self, peer: str) -> None:
+        """Look for the process at the other end of `peer`, once: blocking, a few ms."""
+        with self._lock:
+            if peer in self._seen:
+                return
+            self._seen[peer] = None
+            while len(self._seen) > self._REMEMBERED:
+                self._seen.popitem(last=False)
+        start = client_start(peer)
+        if start is not None:
+            self._tell(start)
