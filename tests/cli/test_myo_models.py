@@ -1,8 +1,9 @@
 """MyoSuite's big models end to end, as a user runs them: `jitdyn models
 register --myo NAME` of myolegs_osl, myoHand and myolegs against a real server, `jitdyn demo --model
 NAME` of each to completion (LOCKSTEP, said so: their REALTIME tick does not fit their dt), and
-`sessions plot` and `sessions render` of the hand's session. Short demos, few ticks: the legs' UKF
-tick takes half a second here."""
+`sessions plot` and `sessions render` of each one's session. Short demos, few ticks: the legs' UKF
+tick takes half a second here. They run in CI (about 45 s); listing every model myo-sim offers
+compiles each of them (20 s) and runs with the slow tests."""
 
 from __future__ import annotations
 
@@ -20,9 +21,6 @@ pytest.importorskip("myo_sim")
 # name typed, name registered, nv, demo length (5 ticks of 10 model timesteps each), and whether
 # its REALTIME tick is over half its dt by the server's estimate (the legs': 38 and 69 ms against
 # 5 and 10 ms), so that the demo always runs it LOCKSTEP; the hand's is refused only on a busy machine.
-# MyoSuite models packed, compiled and run end to end, 3-11 s each: run with -m slow.
-pytestmark = pytest.mark.slow
-
 MODELS = [
     ("myolegs_osl", "myolegs_osl", 29, "50ms", True),
     ("myoHand", "myohand", 23, "100ms", False),
@@ -82,10 +80,13 @@ def test_a_demo_asked_for_realtime_is_refused_in_one_line(server: Any) -> None:
     assert len(lines) == 1 and lines[0].startswith("jitdyn demo: ResourceExhausted: "), result.stderr
 
 
-def test_the_hands_session_plots_and_renders(server: Any, demos: dict[str, str], tmp_path: Path) -> None:
-    if "myohand" not in demos:
-        pytest.skip("the myohand demo did not run")
-    session, data = demos["myohand"], str(server.services.data_root)
+@pytest.mark.parametrize("name", [name for _, name, *_ in MODELS])
+def test_each_models_session_plots_and_renders(
+    server: Any, demos: dict[str, str], tmp_path: Path, name: str
+) -> None:
+    if name not in demos:
+        pytest.skip(f"the {name} demo did not run")
+    session, data = demos[name], str(server.services.data_root)
     plotted = ok(jitdyn("sessions", "plot", session, "--data", data, cwd=tmp_path))
     assert plotted.stdout == f"plotted {session} to {session}.png\n"
     assert (tmp_path / f"{session}.png").stat().st_size > 50_000
@@ -104,16 +105,17 @@ def test_the_hands_session_plots_and_renders(server: Any, demos: dict[str, str],
             env={"MUJOCO_GL": "osmesa"},
         )
     )
-    assert re.search(r"myohand v1, DRIVEN (LOCKSTEP|REALTIME), COMPLETE, ticks \d+", rendered.stderr), (
+    assert re.search(rf"{name} v1, DRIVEN (LOCKSTEP|REALTIME), COMPLETE, ticks \d+", rendered.stderr), (
         rendered.stderr
     )
     PIL = pytest.importorskip("PIL.Image")
     with PIL.open(out) as image:
         pixels = np.asarray(image.convert("RGB"), dtype=np.float64)
-    # The hand and the MyoSuite scene's meshes and textures, not a blank frame.
+    # The model and the MyoSuite scene's meshes and textures, not a blank frame.
     assert pixels.std() > 20, pixels.std()
 
 
+@pytest.mark.slow
 def test_myo_list_needs_no_server_and_an_unknown_name_gets_the_names(cache: dict[str, str]) -> None:
     listed = ok(jitdyn("models", "register", "--myo", "list", env=cache))
     names = [line.split()[0] for line in listed.stdout.splitlines()]
