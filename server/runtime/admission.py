@@ -362,6 +362,16 @@ class Admission:
             for pid in [p for p, c in self._clients.items() if c.opened < now - 2 * _CPU_WINDOW]:
                 del self._clients[pid]
 
+    def machine_short(self) -> bool:
+        """Whether the machine's idle CPU, as admission reads it now, is under a core (and so a
+        client's start-up may be what refuses an open), or not read yet; otherwise looking for
+        the client is not worth its few ms (server/runtime/clients.py)."""
+        if not (self.count_machine_cpu and self.count_process_cpu):
+            return False
+        with self._lock:
+            free = self._machine_left()
+            return free is None or free < 1.0 + MACHINE_HEADROOM
+
     def _started_within(self, span: tuple[float, float]) -> float:
         """Cores of a figure over `span` that were clients starting up (observe_client). Under the
         lock."""

@@ -2,8 +2,8 @@
 a client's own start-up (its imports, its trajectory, its model's compile) for load that refuses it
 (docs/decisions/0207-a-clients-start-up-is-not-load.md).
 
-    clients = LocalClients(admission.observe_client)
-    if not clients.seen(context.peer()):            # on the event loop: a dict lookup
+    clients = LocalClients(admission.observe_client, needed=admission.machine_short)
+    if clients.wanted(context.peer()):              # on the event loop: a few comparisons
         await asyncio.to_thread(clients.note, context.peer())   # once per connection, ~5 ms
 
 Linux only (/proc): the peer's socket is looked up in /proc/net/tcp and tcp6 by its address and
@@ -150,24 +150,37 @@ def client_start(peer: str) -> ClientStart | None:
 
 class LocalClients:
     """The connections whose process was looked for, each once, and what was found told to `tell`
-    (Admission.observe_client). Thread-safe."""
+    (Admission.observe_client); looked for only while `needed()` (the machine is short of CPU),
+    and at most LOOKUPS_PER_SECOND of them (a burst of opens from as many connections must not
+    cost seconds of lookups). Thread-safe."""
 
     _REMEMBERED: Final = 4096  # connections; the oldest are forgotten first
+    LOOKUPS_PER_SECOND: Final = 20
 
-    def __init__(self, tell: Callable[[ClientStart], None]) -> None:
+    def __init__(self, tell: Callable[[ClientStart], None], *, needed: Callable[[], bool]) -> None:
         self._tell = tell
+        self._needed = needed
         self._seen: OrderedDict[str, None] = OrderedDict()
         self._lock = threading.Lock()
+        self._second, self._lookups = 0, 0
 
-    def seen(self, peer: str) -> bool:
-        """Whether the connection `peer` was looked for already (or is being looked for)."""
-        return peer in self._seen
+    def wanted(self, peer: str) -> bool:
+        """Whether to look for the process of connection `peer` now: not looked for yet, the
+        machine short of CPU, and lookups left this second."""
+        if peer in self._seen or not self._needed():
+            return False
+        second = int(time.monotonic())
+        return second != self._second or self._lookups < self.LOOKUPS_PER_SECOND
 
     def note(self, peer: str) -> None:
         """Look for the process at the other end of `peer`, once: blocking, a few ms."""
         with self._lock:
-            if peer in self._seen:
+            second = int(time.monotonic())
+            if second != self._second:
+                self._second, self._lookups = second, 0
+            if peer in self._seen or self._lookups >= self.LOOKUPS_PER_SECOND:
                 return
+            self._lookups += 1
             self._seen[peer] = None
             while len(self._seen) > self._REMEMBERED:
                 self._seen.popitem(last=False)

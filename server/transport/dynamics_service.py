@@ -618,7 +618,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         self._streams: dict[_Stream, _Context] = {}
         self._draining = False
         self._all_moved = asyncio.Event()
-        self._clients = LocalClients(services.admission.observe_client)
+        admission = services.admission
+        self._clients = LocalClients(admission.observe_client, needed=admission.machine_short)
 
     def _count_admission(self, refused: bool) -> None:
         if refused:
@@ -699,7 +700,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             )
         try:
             request = open_request(first.open, tenant=tenant_of(context))
-            if request.clock == Clock.REALTIME and not self._clients.seen(peer := context.peer()):
+            if request.clock == Clock.REALTIME and self._clients.wanted(peer := context.peer()):
                 # A client on this machine: its start-up is not load (server/runtime/clients.py).
                 await asyncio.to_thread(self._clients.note, peer)
             return await self._open(request)

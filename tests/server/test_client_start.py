@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from _serve import Serve
 
-from jitdyn.server.runtime.clients import ClientStart, client_start
+from jitdyn.server.runtime.clients import ClientStart, LocalClients, client_start
 
 # Burns `BURN` s of its own CPU, connects to the port it is given, says so, and waits to be told.
 _CONNECTOR = textwrap.dedent(
@@ -65,6 +65,25 @@ def _check_found(child: subprocess.Popen[str], listener: socket.socket, host: st
     finally:
         child.kill()
         listener.close()
+
+
+def test_each_connection_is_looked_for_once_only_while_the_machine_is_short_and_at_a_bounded_rate() -> None:
+    told: list[ClientStart] = []
+    short = [False]
+    clients = LocalClients(told.append, needed=lambda: short[0])
+    peers = [f"ipv4:192.0.2.7:{40000 + i}" for i in range(LocalClients.LOOKUPS_PER_SECOND + 5)]
+    assert not clients.wanted(peers[0])  # the machine has CPU to spare: not worth a lookup
+    short[0] = True
+    assert clients.wanted(peers[0])
+    while int(time.monotonic() + 0.2) != int(time.monotonic()):
+        time.sleep(0.05)  # all the lookups below within one second
+    for peer in peers:
+        clients.note(peer)
+    assert not told  # none of them is on this machine
+    looked = [p for p in peers if not clients.wanted(p)]
+    assert len(looked) == len(peers)  # each was looked for, or this second's lookups are spent
+    time.sleep(1.0)
+    assert [p for p in peers if clients.wanted(p)] == peers[LocalClients.LOOKUPS_PER_SECOND :]
 
 
 def test_a_peer_that_is_not_on_this_machine_or_not_tcp_is_not_a_local_client() -> None:
