@@ -139,9 +139,12 @@ def client_start(peer: str) -> ClientStart | None:
     if parsed is None:
         return None
     opened = time.monotonic()
-    inode = _socket_inode(*parsed)
-    pid = None if inode is None else _owner(inode)
-    found = None if pid is None else _started_and_cpu(pid)
+    try:
+        inode = _socket_inode(*parsed)
+        pid = None if inode is None else _owner(inode)
+        found = None if pid is None else _started_and_cpu(pid)
+    except (OSError, ValueError):  # no /proc, or one that reads otherwise: nothing is known
+        return None
     if pid is None or found is None:
         return None
     started, cpu = found
