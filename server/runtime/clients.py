@@ -41,6 +41,7 @@ class ClientStart:
     started: float
     opened: float
     cpu: float
+    born: int = 0  # its start in clock ticks since boot: with pid, which process this is
 
     def within(self, since: float, until: float) -> float:
         """s of its start-up's CPU that fell in [since, until], taking it as spread evenly over the
@@ -114,8 +115,9 @@ def _owner(inode: int) -> int | None:
     return None
 
 
-def _started_and_cpu(pid: int) -> tuple[float, float] | None:
-    """(monotonic s when `pid` started, its CPU s so far) from /proc/PID/stat."""
+def _started_and_cpu(pid: int) -> tuple[float, float, int] | None:
+    """(monotonic s when `pid` started, its CPU s so far, its start in clock ticks since boot) from
+    /proc/PID/stat."""
     try:
         with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as stat:
             text = stat.read()
@@ -126,9 +128,9 @@ def _started_and_cpu(pid: int) -> tuple[float, float] | None:
         return None
     tick = os.sysconf("SC_CLK_TCK")
     cpu = (int(fields[11]) + int(fields[12])) / tick  # utime, stime
-    since_boot = int(fields[19]) / tick  # starttime
+    born = int(fields[19])  # starttime
     clock = getattr(time, "CLOCK_BOOTTIME", time.CLOCK_MONOTONIC)
-    return time.monotonic() - (time.clock_gettime(clock) - since_boot), cpu
+    return time.monotonic() - (time.clock_gettime(clock) - born / tick), cpu, born
 
 
 def client_start(peer: str) -> ClientStart | None:
@@ -147,15 +149,16 @@ def client_start(peer: str) -> ClientStart | None:
         return None
     if pid is None or found is None:
         return None
-    started, cpu = found
-    return ClientStart(pid=pid, started=started, opened=opened, cpu=cpu)
+    started, cpu, born = found
+    return ClientStart(pid=pid, started=started, opened=opened, cpu=cpu, born=born)
 
 
 class LocalClients:
     """The connections whose process was looked for, each once, and what was found told to `tell`
-    (Admission.observe_client); looked for only while `needed()` (the machine is short of CPU),
-    and at most LOOKUPS_PER_SECOND of them (a burst of opens from as many connections must not
-    cost seconds of lookups). Thread-safe."""
+    (Admission.observe_client), once per process: a client's later connections come after its
+    start-up, and their CPU since is load. Looked for only while `needed()` (the machine is short
+    of CPU), and at most LOOKUPS_PER_SECOND of them (a burst of opens from as many connections
+    must not cost seconds of lookups). Thread-safe."""
 
     _REMEMBERED: Final = 4096  # connections; the oldest are forgotten first
     LOOKUPS_PER_SECOND: Final = 20
@@ -164,6 +167,7 @@ class LocalClients:
         self._tell = tell
         self._needed = needed
         self._seen: OrderedDict[str, None] = OrderedDict()
+        self._told: OrderedDict[tuple[int, int], None] = OrderedDict()  # (pid, born) of processes
         self._lock = threading.Lock()
         self._second, self._lookups = 0, 0
 
@@ -188,5 +192,12 @@ class LocalClients:
             while len(self._seen) > self._REMEMBERED:
                 self._seen.popitem(last=False)
         start = client_start(peer)
-        if start is not None:
-            self._tell(start)
+        if start is None:
+            return
+        with self._lock:
+            if (start.pid, start.born) in self._told:
+                return
+            self._told[start.pid, start.born] = None
+            while len(self._told) > self._REMEMBERED:
+                self._told.popitem(last=False)
+        self._tell(start)

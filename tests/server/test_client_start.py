@@ -23,7 +23,7 @@ _CONNECTOR = textwrap.dedent(
     until = time.process_time() + float(sys.argv[3])
     while time.process_time() < until:
         pass
-    s = socket.create_connection((sys.argv[1], int(sys.argv[2])))
+    sockets = [socket.create_connection((sys.argv[1], int(sys.argv[2]))) for _ in range(int(sys.argv[4]))]
     print("connected", flush=True)
     sys.stdin.readline()
     """
@@ -42,7 +42,7 @@ def test_the_process_at_the_other_end_of_a_loopback_connection_is_found(host: st
     port = listener.getsockname()[1]
     before = time.monotonic()
     with subprocess.Popen(
-        [sys.executable, "-c", _CONNECTOR, host, str(port), "0.3"],
+        [sys.executable, "-c", _CONNECTOR, host, str(port), "0.3", "1"],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
@@ -65,6 +65,33 @@ def _check_found(child: subprocess.Popen[str], listener: socket.socket, host: st
     finally:
         child.kill()
         listener.close()
+
+
+def test_a_process_is_told_once_whatever_its_connections() -> None:
+    """A client's second connection comes after its start-up: what it spent since is load."""
+    listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    told: list[ClientStart] = []
+    clients = LocalClients(told.append, needed=lambda: True)
+    with subprocess.Popen(
+        [sys.executable, "-c", _CONNECTOR, "127.0.0.1", str(port), "0.1", "2"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    ) as child:
+        try:
+            accepted = [listener.accept() for _ in range(2)]
+            assert child.stdout is not None and child.stdout.readline() == "connected\n"
+            for _, (_, peer_port) in accepted:
+                clients.note(f"ipv4:127.0.0.1:{peer_port}")
+            assert [start.pid for start in told] == [child.pid]
+            for connection, _ in accepted:
+                connection.close()
+        finally:
+            child.kill()
+            listener.close()
 
 
 def test_each_connection_is_looked_for_once_only_while_the_machine_is_short_and_at_a_bounded_rate() -> None:
