@@ -322,6 +322,29 @@ def test_a_loop_that_runs_its_deadlines_late_admits_no_one(monkeypatch: pytest.M
     admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
 
 
+def test_a_loop_that_lags_with_no_session_admitted_is_late_for_no_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Clients starting up beside an idle server lag its loop; their opens are judged by the
+    machine's idle CPU, not refused for a lateness no session saw."""
+    import time
+
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.2)
+    admission = Admission(budget=0.75, count_process_cpu=False)
+    admission.observe_loop_lag(0.045)  # 40 ms of a 0.25 s window more than 5 ms late, 16 %
+    time.sleep(0.25)
+    admission.observe_loop_lag(0.0)
+    assert admission.lag_share == 0.0
+    first = admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+    admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
+    # With a session admitted, the same lag is late for it.
+    admission.observe_loop_lag(0.045)
+    time.sleep(0.25)
+    admission.observe_loop_lag(0.0)
+    assert admission.lag_share > 0.1
+    assert admission.unaffordable(first) is None  # the first admitted is never the one told
+
+
 def test_the_door_refuses_only_what_admit_would(monkeypatch: pytest.MonkeyPatch) -> None:
     """Admission.full, asked before a session is priced: a process whose last sessions went late
     but that has none now may still take one (admit's first rule), so the door lets it through;
