@@ -3,8 +3,7 @@ a client's own start-up (its imports, its trajectory, its model's compile) for l
 (docs/decisions/0207-a-clients-start-up-is-not-load.md).
 
     clients = LocalClients(admission.observe_client, needed=admission.machine_short)
-    if clients.wanted(context.peer()):              # on the event loop: a few comparisons
-        await asyncio.to_thread(clients.note, context.peer())   # once per connection, ~5 ms
+    await clients.look(context.peer())     # on the event loop: a lookup on a thread when wanted
 
 Linux only (/proc): the peer's socket is looked up in /proc/net/tcp and tcp6 by its address and
 port, its process by the socket's inode among /proc/PID/fd, and its start and CPU in
@@ -15,6 +14,7 @@ hundred /proc entries (about 5 ms here), once per connection, off the event loop
 
 from __future__ import annotations
 
+import asyncio
 import ipaddress
 import os
 import re
@@ -170,6 +170,26 @@ class LocalClients:
         self._told: OrderedDict[tuple[int, int], None] = OrderedDict()  # (pid, born) of processes
         self._lock = threading.Lock()
         self._second, self._lookups = 0, 0
+        self._looking: dict[str, asyncio.Future[None]] = {}  # lookups under way, by connection
+
+    async def look(self, peer: str) -> None:
+        """On the event loop: look for the process of `peer` when `wanted`, on a thread, and wait
+        for it; the opens of a connection that come while its lookup runs wait for that one."""
+        running = self._looking.get(peer)
+        if running is not None:
+            await asyncio.shield(running)
+            return
+        if not self.wanted(peer):
+            return
+        lookup = asyncio.ensure_future(asyncio.to_thread(self.note, peer))
+        self._looking[peer] = lookup
+        try:
+            await asyncio.shield(lookup)
+        finally:
+            if lookup.done():
+                self._looking.pop(peer, None)
+            else:  # this open was cancelled; the lookup goes on and cleans up after itself
+                lookup.add_done_callback(lambda _: self._looking.pop(peer, None))
 
     def wanted(self, peer: str) -> bool:
         """Whether to look for the process of connection `peer` now: not looked for yet, the

@@ -700,9 +700,9 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             )
         try:
             request = open_request(first.open, tenant=tenant_of(context))
-            if request.clock == Clock.REALTIME and self._clients.wanted(peer := context.peer()):
+            if request.clock == Clock.REALTIME:
                 # A client on this machine: its start-up is not load (server/runtime/clients.py).
-                await asyncio.to_thread(self._clients.note, peer)
+                await self._clients.look(context.peer())
             return await self._open(request)
         except JitdynError as error:
             # Logged too: a balancer may not pass the status on (HAProxy 2.6 resets the stream

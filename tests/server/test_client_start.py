@@ -4,6 +4,7 @@ that spent every core of the machine starting up just before they opened."""
 
 from __future__ import annotations
 
+import asyncio
 import socket
 import subprocess
 import sys
@@ -84,9 +85,14 @@ def test_a_process_is_told_once_whatever_its_connections() -> None:
         try:
             accepted = [listener.accept() for _ in range(2)]
             assert child.stdout is not None and child.stdout.readline() == "connected\n"
-            for _, (_, peer_port) in accepted:
-                clients.note(f"ipv4:127.0.0.1:{peer_port}")
+            peers = [f"ipv4:127.0.0.1:{peer_port}" for _, (_, peer_port) in accepted]
+
+            async def opens() -> None:  # three opens on each connection at once
+                await asyncio.gather(*(clients.look(peer) for peer in peers for _ in range(3)))
+
+            asyncio.run(opens())
             assert [start.pid for start in told] == [child.pid]
+            assert not clients.wanted(peers[0]) and not clients.wanted(peers[1])
             for connection, _ in accepted:
                 connection.close()
         finally:
