@@ -16,6 +16,13 @@ stepping; alone/physics less 1 is the interpreter's cost per probe that one batc
 
     python -m benchmarks.forecast                # pendulum_3 and myoElbow (myoElbow needs jitdyn[myo])
     python -m benchmarks.forecast --rounds 15
+    python -m benchmarks.forecast --share        # the forecast's share of a DRIVEN session's cycle
+
+With --share: the whole estimator of a DRIVEN session as the server builds it (JITDYN preset,
+native engine, one worker) on a 2-link arm at 50 Hz and myoElbow at 500 Hz, over the model's own
+excited motion with 4 ticks of frames lost every 25, once with the forecast combination (the
+preset's, motion matching and the prior included) and once with `forecast` FILTER, alternated
+round by round; thread CPU per tick, medians.
 """
 
 from __future__ import annotations
@@ -99,15 +106,78 @@ def measure(name: str, dt: float, rounds: int, ticks: int) -> dict[str, float] |
     }
 
 
+def _driven_cycle(name: str, rate: float, forecast: str) -> Callable[[int], None]:
+    """One tick (k) of a DRIVEN session's estimator of `name` at `rate` Hz: a frame, or none on 4
+    ticks of every 25."""
+    from benchmarks.cost_nv import load as load_model
+    from benchmarks.cost_nv import truth
+    from benchmarks.late_arm import ARM
+    from jitdyn.server.estimation.config import resolve_config
+    from jitdyn.server.estimation.factory import make_estimator
+    from jitdyn.server.estimation.pool import WorkerPool
+    from jitdyn.vocabulary import Scenario
+
+    model = mujoco.MjModel.from_xml_string(ARM) if name == "arm2" else load_model(name)
+    dt = 1.0 / rate
+    config = resolve_config(
+        model=model, scenario="DRIVEN", dt=dt, requested={"forecast": forecast}, measured={"qpos", "qvel"}
+    )
+    frames = truth(model, Scenario.DRIVEN, round(dt / model.opt.timestep), ticks=1000)
+    estimator = make_estimator(model, config, pool=WorkerPool(1))
+    estimator.initialise(frames[0])
+
+    def tick(k: int) -> None:
+        if k % 25 in (10, 11, 12, 13):
+            estimator.predict(ctrl=None)
+        else:
+            estimator.advance(ctrl=None)
+            estimator.update(frames[k % len(frames)])
+
+    return tick
+
+
+def share(rounds: int, ticks: int) -> None:
+    """The forecast combination's share of a DRIVEN cycle (module docstring)."""
+    print("| model | rate (Hz) | cycle, forecast combination (us) | cycle, FILTER (us) | the forecast (us) | share |")
+    print("|---|---|---|---|---|---|")
+    for name, rate in (("arm2", 50.0), ("myoelbow", 500.0)):
+        try:
+            arms = {f: _driven_cycle(name, rate, f) for f in ("COMBINED", "FILTER")}
+        except ImportError:  # myo_sim: the jitdyn[myo] extra
+            print(f"| {name} | {rate:g} | not run: myo_sim is not installed |||", flush=True)
+            continue
+        spent: dict[str, list[float]] = {f: [] for f in arms}
+        k = 1
+        for _ in range(rounds):
+            for label, tick in arms.items():
+                began = time.thread_time()
+                for j in range(k, k + ticks):
+                    tick(j)
+                spent[label].append((time.thread_time() - began) / ticks * 1e6)
+            k += ticks
+        combined, alone = statistics.median(spent["COMBINED"]), statistics.median(spent["FILTER"])
+        print(
+            f"| {name} | {rate:g} | {combined:.0f} | {alone:.0f} | {combined - alone:.0f} | "
+            f"{100 * (combined - alone) / combined:.0f} % |",
+            flush=True,
+        )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--rounds", type=int, default=7, help="round-robin rounds (default 7)")
     parser.add_argument("--ticks", type=int, default=200, help="ticks per measurement (default 200)")
+    parser.add_argument(
+        "--share", action="store_true", help="the forecast's share of a DRIVEN session's cycle instead"
+    )
     args = parser.parse_args(argv)
     if args.rounds < 1 or args.ticks < 1:
         parser.error("--rounds and --ticks must be at least 1")
+    if args.share:
+        share(args.rounds, args.ticks)
+        return 0
     print(f"{PROBES} probes; {args.rounds} rounds of {args.ticks} ticks; mujoco {mujoco.__version__}")
     print()
     print("| model | dt (ms) | physics (us) | tick (us) | tick/physics | alone (us) | alone/physics |")
