@@ -420,7 +420,10 @@ async def _services(config: ServerConfig, server: grpc.aio.Server) -> tuple[Serv
         ),
     )
     model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(
-        ModelRegistryServicer(registry), server
+        ModelRegistryServicer(
+            registry, engine=config.engine, max_tick_share=config.stream_limits.max_tick_share
+        ),
+        server,
     )
     dynamics_servicer = DynamicsServicer(services, limits=config.stream_limits)
     server.dynamics = dynamics_servicer  # type: ignore[attr-defined]
