@@ -16,17 +16,19 @@ and IEEE 1278's constant-velocity dead reckoning as the last resort.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import statistics
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
 import mujoco
 import numpy as np
 
-from jitdyn.errors import ResourceExhausted
+from jitdyn.errors import JitdynError, ResourceExhausted
 from jitdyn.estimator_settings import SettingValue
 from jitdyn.registry import CandidateCost, ModelInfo, ModelRegistry
 from jitdyn.server.estimation.config import Engine, preset_values, resolve_config
@@ -35,6 +37,8 @@ from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.layout import linear_force_applies
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.vocabulary import EstimatorKind, ForceModel, Preset, Scenario, SigmaScheme, proto_enum_name
+
+_log = logging.getLogger(__name__)
 
 __all__ = ["CHOICE_RATES", "STEPS", "Chosen", "CostTable", "ModelCosts", "candidates", "measure_costs"]
 
@@ -45,6 +49,9 @@ STEPS: Final = (1, 2, 5, 10)
 # Cycles run and timed per run: the first ones warm the estimator, the median of the others counts.
 _WARM: Final = 2
 _TIMED: Final = 7
+# A first cycle slower than this (a chain of 100 links: ~0.2 s at ten steps) is timed 1 + 3 times.
+_SLOW_CYCLE: Final = 0.02  # s
+_SLOW_RUNS: Final = 4
 # The rates `models show` gives the choice at (those the model's timestep allows), beside the
 # timestep's own.
 CHOICE_RATES: Final = (1000.0, 500.0, 250.0, 200.0, 100.0, 50.0, 20.0)
@@ -103,13 +110,16 @@ def _cycle_seconds(
     ctrl = np.zeros(model.nu) if scenario == Scenario.CONTROLLED else None
     measurement = Measurement(qpos=model.qpos0.copy(), qvel=zeros, ctrl=ctrl)
     estimator.initialise(measurement)
-    timed = []
-    for _ in range(_WARM + _TIMED):
+    timed: list[float] = []
+    runs = _WARM + _TIMED
+    while len(timed) < runs:
         started = time.thread_time()
         estimator.advance(ctrl=ctrl)
         estimator.update(measurement)
         timed.append(time.thread_time() - started)
-    return statistics.median(timed[_WARM:])
+        if timed[0] > _SLOW_CYCLE:
+            runs = _SLOW_RUNS  # a model this slow costs seconds a run: fewer cycles, the median still
+    return statistics.median(timed[1 if runs == _SLOW_RUNS else _WARM :])
 
 
 def measure_costs(model: mujoco.MjModel, *, engine: Engine) -> list[CandidateCost]:
@@ -117,15 +127,23 @@ def measure_costs(model: mujoco.MjModel, *, engine: Engine) -> list[CandidateCos
     a fixed number of cycles at each of STEPS physics steps a tick, on one thread (a private pool
     of one worker, so that all of the work is on the thread timed)."""
     scenarios = [s for s in Scenario if s != Scenario.CONTROLLED or model.nu > 0]
-    costs = []
+    costs: list[CandidateCost] = []
+    if model.nv == 0:
+        return costs  # nothing moves: no estimator runs (an open says so), nothing to time
     with WorkerPool(1) as pool:
         for scenario in scenarios:
             for estimator, sigma in candidates(model, scenario):
                 settings = _settings(estimator.name, sigma.name if sigma else "")
-                seconds = tuple(
-                    _cycle_seconds(model, scenario, settings, steps=steps, engine=engine, pool=pool)
-                    for steps in STEPS
-                )
+                try:
+                    seconds = tuple(
+                        _cycle_seconds(model, scenario, settings, steps=steps, engine=engine, pool=pool)
+                        for steps in STEPS
+                    )
+                except (JitdynError, ValueError, ArithmeticError, np.linalg.LinAlgError) as error:
+                    # A candidate this model cannot run is none of its candidates; the model
+                    # registers all the same, and an open that asks for it is told why.
+                    _log.warning("%s in %s cannot be timed on this model: %s", estimator, scenario, error)
+                    continue
                 costs.append(
                     CandidateCost(
                         scenario=scenario.name,
@@ -260,10 +278,22 @@ class ModelCosts:
     What is stored for a content id never changes (the first measurement stored stands), so it is
     kept here once read: an open does not ask the index again."""
 
-    def __init__(self, registry: ModelRegistry, *, engine: Engine, share: float) -> None:
+    def __init__(
+        self,
+        registry: ModelRegistry,
+        *,
+        engine: Engine,
+        share: float,
+        max_nv: int | None = None,
+        measured: Callable[[], None] | None = None,
+    ) -> None:
         self._registry = registry
         self._engine = engine
         self._share = share
+        self._max_nv = max_nv  # a model with more dofs opens no session here: it is not timed
+        # Told when a measurement ends: admission starts its window again (Admission.start_window),
+        # so that the seconds of CPU it took are not read as its sessions' load and refuse the next.
+        self._measured = measured
         self._lock = threading.Lock()  # one measurement at a time in this process
         self._known: dict[str, tuple[CandidateCost, ...]] = {}
 
@@ -290,11 +320,17 @@ class ModelCosts:
         models) and stored. A model registered before costs were measured is measured at its
         first open or show."""
         known = self._read([info.id]).get(info.id)
+        if known is None and self._max_nv is not None and info.nv > self._max_nv:
+            return self._table(info, ())  # not stored: a server that allows it measures it
         if known is None:
             with self._lock:
                 known = self._read([info.id]).get(info.id)
                 if known is None:
                     model = model if model is not None else self._registry.load(info.id, tenant=info.tenant)
-                    known = self._registry.store_costs(info.id, measure_costs(model, engine=self._engine))
+                    try:
+                        known = self._registry.store_costs(info.id, measure_costs(model, engine=self._engine))
+                    finally:
+                        if self._measured is not None:
+                            self._measured()
                     self._known[info.id] = known
         return self._table(info, known)

@@ -197,7 +197,13 @@ class SessionOpener:
         # The door's memory: what the last opens cost, by request (insertion-ordered, oldest first).
         self._door_prices: dict[tuple[object, ...], _DoorPrice] = {}
         self._door_lock = threading.Lock()  # never held for more than a lookup or an insert
-        self._costs = ModelCosts(services.registry, engine=services.engine, share=limits.max_tick_share)
+        self._costs = ModelCosts(
+            services.registry,
+            engine=services.engine,
+            share=limits.max_tick_share,
+            max_nv=services.limits.max_state_dimension,
+            measured=services.admission.start_window,
+        )
 
     @property
     def limits(self) -> StreamLimits:
@@ -352,9 +358,10 @@ class SessionOpener:
         self, info: ModelInfo, model: mujoco.MjModel, plan: SessionPlan, scenario: Scenario
     ) -> _Choice:
         """How the session's estimator is chosen: asked for, by the model's defaults, by the
-        preset (LOCKSTEP, THESIS), or by the model's stored cost (ResourceExhausted when no
-        candidate fits the tick). The costs are measured here for a model that has none stored."""
-        costs = self._costs.table(info, model)
+        preset (LOCKSTEP, THESIS, --estimator-choice preset), or by the model's stored cost
+        (ResourceExhausted when no candidate fits the tick). Only an open the cost chooses for
+        measures a model that has no costs stored; the others show what is stored."""
+        costs = self._costs.stored([info]).get(info.id)
         asked = [name for name in _CHOSEN_SETTINGS if name in plan.estimator_request]
         if asked:
             return _Choice(
@@ -370,13 +377,10 @@ class SessionOpener:
                 reason=f"the model's defaults for SCENARIO_{scenario.name} set {' and '.join(named)}",
                 costs=costs,
             )
-        if plan.preset != Preset.JITDYN or plan.clock != Clock.REALTIME:
-            why = (
-                f"PRESET_{plan.preset.name} runs its own filter"
-                if plan.preset != Preset.JITDYN
-                else f"CLOCK_{plan.clock.name} has no tick to fit"
-            )
+        why = _preset_reason(plan, by_cost=self._services.choose_by_cost)
+        if why:
             return _Choice(how=EstimatorChoice.PRESET, reason=f"the preset's: {why}", costs=costs)
+        costs = self._costs.table(info, model)
         if not costs.of(scenario):
             return _Choice(
                 how=EstimatorChoice.PRESET,
@@ -540,6 +544,17 @@ class SessionOpener:
         except BaseException:
             recorder.discard()
             raise
+
+
+def _preset_reason(plan: SessionPlan, *, by_cost: bool) -> str:
+    """Why a session that names no estimator gets the preset's, or "" when its cost chooses."""
+    if plan.preset != Preset.JITDYN:
+        return f"PRESET_{plan.preset.name} runs its own filter"
+    if plan.clock != Clock.REALTIME:
+        return f"CLOCK_{plan.clock.name} has no tick to fit"
+    if not by_cost:
+        return "this server runs --estimator-choice preset"
+    return ""
 
 
 def _chosen(choice: _Choice) -> dict[str, Any]:

@@ -10,6 +10,7 @@ so the event loop keeps serving other RPCs and session ticks meanwhile.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 
 import grpc
 
@@ -38,9 +39,13 @@ class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer
         *,
         engine: Engine = Engine.NATIVE,
         max_tick_share: float = DEFAULTS.max_tick_share,
+        max_state_dimension: int = DEFAULTS.max_state_dimension,
+        measured: Callable[[], None] | None = None,
     ) -> None:
         self._registry = registry
-        self._costs = ModelCosts(registry, engine=engine, share=max_tick_share)
+        self._costs = ModelCosts(
+            registry, engine=engine, share=max_tick_share, max_nv=max_state_dimension, measured=measured
+        )
 
     @translate_errors
     async def RegisterModel(

@@ -265,3 +265,29 @@ def test_the_highest_rate_a_cost_fits(seconds: tuple[float, ...], rate: float) -
     assert table.max_rate(cost) == pytest.approx(rate)
     if rate:
         assert table.fits(cost, 1 / rate) and (rate == 1000.0 or not table.fits(cost, 1 / rate - 0.001))
+
+
+def test_a_server_set_to_the_presets_choice_keeps_it(
+    tmp_path: Path, make_config: Any, hand: model_registry_pb2.Model
+) -> None:
+    """`jitdyn serve --estimator-choice preset`: a REALTIME session that names no estimator gets
+    the preset's, whatever the stored cost says; the costs are still measured and shown."""
+    from jitdyn.server.transport.app import ServerConfig
+    from jitdyn.server.transport.background import BackgroundServer
+    from jitdyn.settings import resolve
+
+    settings = resolve({}, {"JITDYN_ESTIMATOR_CHOICE": "PRESET"})
+    assert settings.estimator_choice == "preset"
+    assert ServerConfig.from_settings(resolve({}, {})).choose_by_cost
+    chosen = ServerConfig.from_settings(settings).choose_by_cost
+    with BackgroundServer(make_config(tmp_path, choose_by_cost=chosen)) as running:
+        running.services.admission.count_machine_cpu = False
+        with Client(running.address, timeout=120) as client:
+            options = SessionOptions(model_name="pendulum_3", scenario="PASSIVE", dt=0.05, clock="REALTIME")
+            with client.open_session(options) as session:
+                assert session.opened.estimator["sigma_points"] == "MERWE"
+                assert session.opened.estimator_choice == "PRESET"
+                assert session.opened.estimator_reason == (
+                    "the preset's: this server runs --estimator-choice preset"
+                )
+            assert client.get_model_message(name="pendulum_3").estimator_costs
