@@ -291,3 +291,13 @@ def test_a_server_set_to_the_presets_choice_keeps_it(
                     "the preset's: this server runs --estimator-choice preset"
                 )
             assert client.get_model_message(name="pendulum_3").estimator_costs
+
+
+def test_a_model_with_nothing_to_estimate_registers_with_no_candidates(client: Client) -> None:
+    """No dof, no estimator: the registration goes on, with no costs to show."""
+    still = '<mujoco model="still"><worldbody><geom type="box" size="0.1 0.1 0.1"/></worldbody></mujoco>'
+    _, created = client.register_model(name="still", mjcf=still, assets={})
+    assert created
+    shown = client.get_model_message(name="still")
+    assert shown.dimensions.nv == 0
+    assert not shown.estimator_costs and not shown.estimator_choices
