@@ -8,6 +8,17 @@ a coarser timestep), and more workers.
 
     python -m benchmarks.cost_nv                 # every row, ~2 minutes
     python -m benchmarks.cost_nv --rows myolegs  # substrings of the row names
+
+With --candidates, what a user can see before registering a model: every built-in model and every
+myo-sim model that compiles here, in the scenario a session of it gets when it names none, at its
+rate (the built-ins at the rates above, the myo-sim models at 100 Hz), and for every estimator the
+server may choose for it (server/runtime/choice.py, most accurate first): the CPU of a cycle per
+tick beside the mean |q error| of its answers over 100 ms gaps every 250 ms of the model's own
+excited motion, and that error against the first candidate's (the full UKF's).
+
+    python -m benchmarks.cost_nv --candidates                    # ~10 minutes
+    python -m benchmarks.cost_nv --candidates --rows myohand     # substrings of the model names
+    python -m benchmarks.cost_nv --candidates --noise 0.005      # frames with a sensor's noise
 """
 
 from __future__ import annotations
@@ -167,13 +178,133 @@ def measure(row: Row, rounds: int) -> dict[str, float]:
     return result
 
 
+# The built-in models at the rates of ROWS; the myo-sim models at this rate.
+BUILTIN_RATES = {"pendulum_1": 20.0, "pendulum_2": 20.0, "pendulum_3": 20.0, "biped": 200.0}
+MYO_RATE = 100.0
+
+
+def candidate_models(names: list[str] | None) -> list[tuple[str, mujoco.MjModel, float]]:
+    """Every built-in model and every myo-sim model that packs and compiles here (as `jitdyn
+    models register --myo` finds them), compiled as the registry compiles them, with its rate."""
+    from jitdyn.client.myo import pack_myo_model, registrable_myo_models
+
+    found = []
+    for name, rate in BUILTIN_RATES.items():
+        if not names or any(s in name for s in names):
+            found.append((name, load(name), rate))
+    for myo in registrable_myo_models():
+        if names and not any(s in myo.name for s in names):
+            continue
+        mjcf, assets = pack_myo_model(myo.name)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            found.append((myo.name, mujoco.MjModel.from_xml_string(mjcf, assets), MYO_RATE))
+    return found
+
+
+def candidate_run(
+    model: mujoco.MjModel,
+    scenario: Scenario,
+    rate: float,
+    settings: dict[str, object],
+    seconds: float,
+    noise: float = 0.0,
+) -> tuple[float, float]:
+    """(median CPU s of a cycle per tick, mean |q error| over the gaps' ticks against the truth) of
+    one candidate on the model's own excited motion (`truth`), a 100 ms gap every 250 ms: a gap's
+    ticks answered by the estimator's prediction, the others by a cycle on the frame. The frames
+    are perfect, or carry Gaussian noise of `noise` rad (or m) on qpos' tangent and 10 `noise`
+    rad/s on qvel (seeded), as benchmarks/linearised.py's `noisy` puts it."""
+    from jitdyn.server.estimation.factory import make_estimator
+    from jitdyn.server.estimation.manifold import SplitManifold
+
+    dt = 1.0 / rate
+    steps = round(dt / model.opt.timestep)
+    frames = truth(model, scenario, steps, ticks=round(seconds / dt))
+    config = resolve_config(
+        model=model, scenario=scenario, dt=dt, requested=settings, measured={"qpos", "qvel"}
+    )
+    period, gap = round(0.25 / dt), max(1, round(0.1 / dt))
+    cycles, errors = [], []
+    manifold = SplitManifold(model, rest=0)
+    rng = np.random.default_rng(0)
+    sensed = [
+        Measurement(
+            qpos=manifold.add(f.qpos, noise * rng.standard_normal(model.nv)),
+            qvel=None if f.qvel is None else f.qvel + 10.0 * noise * rng.standard_normal(model.nv),
+        )
+        for f in frames
+    ]
+    with WorkerPool(1) as pool:
+        estimator = make_estimator(model, config, pool=pool)
+        estimator.initialise(sensed[0])
+        for k in range(1, len(frames)):
+            if k > period and k % period < gap:
+                q = estimator.predict(ctrl=None).qpos
+                errors.append(float(np.mean(np.abs(manifold.residual(q, frames[k].qpos)))))
+            else:
+                c0 = time.thread_time()
+                estimator.advance(ctrl=None)
+                estimator.update(sensed[k])
+                cycles.append(time.thread_time() - c0)
+    return statistics.median(cycles), statistics.fmean(errors)
+
+
+def candidates_table(names: list[str] | None, seconds: float, noise: float) -> None:
+    from jitdyn.server.estimation.config import default_scenario
+    from jitdyn.server.runtime.choice import candidates
+
+    print(
+        "| model | nv / nu / na | scenario, rate | candidate | cycle per tick (us CPU) | cycle / dt "
+        "| fits half of dt | mean |q error| over gaps (rad) | error / full UKF's |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, model, rate in candidate_models(names):
+        scenario, _ = default_scenario(model)
+        full = None
+        for estimator, sigma in candidates(model, scenario):
+            settings: dict[str, object] = {"estimator": estimator}
+            if sigma is not None:
+                settings["sigma_points"] = sigma
+            cycle, error = candidate_run(model, scenario, rate, settings, seconds, noise)
+            full = error if full is None else full
+            label = estimator.name if sigma is None else f"{estimator.name} {sigma.name}"
+            print(
+                f"| {name} | {model.nv} / {model.nu} / {model.na} | {scenario.name} {rate:g} Hz | {label} "
+                f"| {cycle * 1e6:.0f} | {cycle * rate:.2f} | {'yes' if cycle * rate <= 0.5 else 'no'} "
+                f"| {error:.2e} | {error / full:.2f} |",
+                flush=True,
+            )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--rows", nargs="+", help="substrings of row names")
     parser.add_argument("--rounds", type=int, default=7)
+    parser.add_argument(
+        "--candidates",
+        action="store_true",
+        help="every built-in and myo-sim model, every estimator the server may choose: cost and accuracy",
+    )
+    parser.add_argument(
+        "--seconds", type=float, default=2.0, help="of motion per --candidates run (default 2)"
+    )
+    parser.add_argument(
+        "--noise",
+        type=float,
+        default=0.0,
+        help="rad of noise on the frames' qpos (10x on qvel) for --candidates",
+    )
     args = parser.parse_args(argv)
+    if args.candidates:
+        print(
+            f"# {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; mujoco {mujoco.__version__}; "
+            f"{args.seconds:g} s of motion a run, noise {args.noise:g}, one thread"
+        )
+        candidates_table(args.rows, args.seconds, args.noise)
+        return 0
     rows = [r for r in ROWS if not args.rows or any(s in r.name for s in args.rows)]
     print(
         f"# {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; python {sys.version.split()[0]}, "

@@ -1056,7 +1056,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--estimator",
         choices=("UKF", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION"),
-        help="the sessions' estimator (default: the server's, the UKF); STATIC measures what a tick "
+        help="the sessions' estimator (default: the server's, chosen by the model's stored cost); STATIC measures what a tick "
         "costs around the filter, with no filter",
     )
     parser.add_argument("--json", type=Path, help="also write every report here")

@@ -263,6 +263,10 @@ MODELS = Command(
         Command(
             "show",
             "show one model (by id, NAME or NAME:VERSION)",
+            "Show one model (by id, NAME or NAME:VERSION) as JSON: its joints, actuators and metadata, and "
+            "what a tick of each estimator a REALTIME session of it may get costs on the server "
+            "(estimator_costs, measured once when it was registered, or now for a model that has none yet) "
+            "with the estimator the server chooses at a few rates (estimator_choices).",
             options=(option("model", type=_MODEL_REF, help="sha256:... id, a name, or name:version"),),
         ),
     ),

@@ -24,6 +24,7 @@ from jitdyn.v1 import common_pb2, dynamics_pb2, model_registry_pb2
 from jitdyn.vocabulary import (
     Channel,
     Clock,
+    EstimatorChoice,
     Horizon,
     Output,
     RejectReason,
@@ -366,6 +367,10 @@ class Opened:
     resume_token: str = field(default="", repr=False)
     resume_from_seq: int | None = None  # a resumed session: the first tick this stream expects
     resume_reason: str = ""  # a resumed session: how its estimator continues
+    # How estimator["estimator"] and ["sigma_points"] were chosen (BY_COST: from the model's
+    # stored cost, for the session's rate), and why; None from a server that does not say.
+    estimator_choice: EstimatorChoice | None = None
+    estimator_reason: str = ""
 
     @classmethod
     def from_message(cls, message: dynamics_pb2.SessionOpened) -> Opened:
@@ -391,6 +396,10 @@ class Opened:
             resume_token=message.resume_token,
             resume_from_seq=message.resume_from_seq if message.HasField("resume_from_seq") else None,
             resume_reason=message.resume_reason,
+            estimator_choice=from_proto(
+                EstimatorChoice, message.estimator_choice, argument="opened.estimator_choice"
+            ),
+            estimator_reason=message.estimator_reason,
         )
 
 

@@ -154,6 +154,11 @@ def _(ctx: Context) -> str:
         )
         check(opened.estimator.preset != common_pb2.PRESET_UNSPECIFIED, "opened.estimator.preset is unset")
         check(
+            opened.estimator_choice != dynamics_pb2.ESTIMATOR_CHOICE_UNSPECIFIED
+            and bool(opened.estimator_reason),
+            "opened.estimator_choice or estimator_reason is unset",
+        )
+        check(
             opened.state_dimension == 2, f"PASSIVE on nv 1: state dimension 2, got {opened.state_dimension}"
         )
         check(

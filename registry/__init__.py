@@ -20,6 +20,7 @@ from jitdyn.registry.content_id import content_id
 if TYPE_CHECKING:
     from jitdyn.registry.builtins import BUILTIN_NAMES, BuiltinModel, builtin_model_path, builtin_models
     from jitdyn.registry.compile import ModelCompiler, compile_model
+    from jitdyn.registry.costs import CandidateCost
     from jitdyn.registry.info import ActuatorInfo, JointInfo, ModelInfo, ModelMetadata, describe_model
     from jitdyn.registry.limits import DEFAULT_LIMITS, RegistryLimits
     from jitdyn.registry.registry import DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, ModelRegistry
@@ -29,6 +30,7 @@ _MODULE_OF = {
     "BuiltinModel": "builtins",
     "builtin_model_path": "builtins",
     "builtin_models": "builtins",
+    "CandidateCost": "costs",
     "ModelCompiler": "compile",
     "compile_model": "compile",
     "ActuatorInfo": "info",
@@ -50,6 +52,7 @@ __all__ = [
     "MAX_PAGE_SIZE",
     "ActuatorInfo",
     "BuiltinModel",
+    "CandidateCost",
     "JointInfo",
     "ModelCompiler",
     "ModelInfo",

@@ -24,7 +24,7 @@ import json
 import logging
 import threading
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +36,7 @@ from jitdyn.lifecycle import Closeable
 from jitdyn.registry.builtins import builtin_models
 from jitdyn.registry.compile import ModelCompiler, check_request
 from jitdyn.registry.content_id import check_content_id, content_id
+from jitdyn.registry.costs import CandidateCost, read_costs, store_costs
 from jitdyn.registry.info import (
     ActuatorInfo,
     JointInfo,
@@ -498,6 +499,19 @@ class ModelRegistry(Closeable):
             # SQLite's LIKE ignores case; GLOB does not, and tags hold none of its wildcards.
             return padded.op("GLOB")(f"* {tag} *")
         return padded.contains(f" {tag} ", autoescape=True)
+
+    # -- estimator costs ----------------------------------------------------------------------
+
+    def costs(self, model_ids: Iterable[str]) -> dict[str, tuple[CandidateCost, ...]]:
+        """The stored estimator costs of those of `model_ids` that were measured (registry.costs)."""
+        self._check_open()
+        return read_costs(self._engine, model_ids)
+
+    def store_costs(self, model_id: str, costs: Sequence[CandidateCost]) -> tuple[CandidateCost, ...]:
+        """Store the measured estimator costs of `model_id` unless stored already; the stored ones."""
+        self._check_open()
+        check_content_id(model_id)
+        return store_costs(self._engine, model_id, costs)
 
     # -- load -------------------------------------------------------------------------------------
 

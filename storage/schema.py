@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sqlalchemy as sa
 
-__all__ = ["metadata", "model_blobs", "models", "session_leases", "session_log", "sessions"]
+__all__ = ["metadata", "model_blobs", "model_costs", "models", "session_leases", "session_log", "sessions"]
 
 metadata = sa.MetaData(
     naming_convention={
@@ -55,6 +55,19 @@ model_blobs = sa.Table(
     metadata,
     sa.Column("id", sa.String(80), primary_key=True),
     sa.Column("zip", sa.LargeBinary, nullable=False),
+)
+
+# What a tick of each estimator candidate costs on a model (server/runtime/choice.py), measured once
+# when the model is registered, by content id like `model_blobs`: the same content costs the same,
+# and every replica sharing the index chooses from the same stored figures
+# (docs/decisions/0204-the-estimator-chosen-by-stored-cost.md).
+model_costs = sa.Table(
+    "model_costs",
+    metadata,
+    sa.Column("id", sa.String(80), primary_key=True),
+    # A JSON list of {"scenario", "estimator", "sigma_points", "steps": [...], "seconds": [...]}.
+    sa.Column("costs_json", sa.Text, nullable=False),
+    sa.Column("measured_at", sa.DateTime(timezone=True), nullable=False),
 )
 
 sessions = sa.Table(

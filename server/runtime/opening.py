@@ -23,7 +23,7 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import Final
+from typing import Any, Final
 
 import mujoco
 
@@ -37,6 +37,7 @@ from jitdyn.server.estimation.factory import make_estimator, measure_cycle
 from jitdyn.server.estimation.interface import Estimator
 from jitdyn.server.estimation.prior import prior_without
 from jitdyn.server.runtime.admission import Ticket
+from jitdyn.server.runtime.choice import CostTable, ModelCosts
 from jitdyn.server.runtime.costs import snapshot_bytes, tick_cost
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, StreamLimits
 from jitdyn.server.runtime.plan import OpenRequest, SessionPlan, plan_session
@@ -48,7 +49,7 @@ from jitdyn.storage.parquet import header_from_json
 from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.records import SessionHeader
 from jitdyn.storage.shared import TakenOver
-from jitdyn.vocabulary import Clock, JointType, Scenario
+from jitdyn.vocabulary import Clock, EstimatorChoice, JointType, Preset, Scenario
 
 __all__ = ["OpenedSession", "SessionOpener", "TickPrice"]
 
@@ -117,6 +118,9 @@ class OpenedSession:
     pseudonym: str
     scenario_reason: str  # why this scenario
     noise_reason: str  # why this noise model
+    estimator_choice: EstimatorChoice  # how the estimator and its sigma points were chosen
+    estimator_reason: str  # and why, in words
+    costs: CostTable | None = None  # the model's stored estimator costs (None: not measured)
     tokens: ResumeTokens | None = None  # a shared tier's: what issues this session's resume tokens
     resume_token: str = field(default="", repr=False)  # "" without a shared tier; never logged
     resume_from_seq: int | None = None  # a resumed session: the first tick this stream answers
@@ -153,6 +157,22 @@ class _Resolved:
     estimator: Estimator
     ticket: Ticket | None
     taken: TakenOver | None  # a resumed session, held under a new epoch
+    choice: _Choice
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Choice:
+    """How an open's estimator was chosen: the settings the choice adds to the request's, and why."""
+
+    how: EstimatorChoice
+    reason: str
+    settings: dict[str, object] = field(default_factory=dict)
+    costs: CostTable | None = None
+
+
+# The settings that name the estimator: set by the open or the model's defaults, they are the
+# choice; otherwise a REALTIME session's is made by cost (server/runtime/choice.py).
+_CHOSEN_SETTINGS: Final = ("estimator", "sigma_points")
 
 
 class SessionOpener:
@@ -177,6 +197,13 @@ class SessionOpener:
         # The door's memory: what the last opens cost, by request (insertion-ordered, oldest first).
         self._door_prices: dict[tuple[object, ...], _DoorPrice] = {}
         self._door_lock = threading.Lock()  # never held for more than a lookup or an insert
+        self._costs = ModelCosts(
+            services.registry,
+            engine=services.engine,
+            share=limits.max_tick_share,
+            max_nv=services.limits.max_state_dimension,
+            measured=services.admission.start_window,
+        )
 
     @property
     def limits(self) -> StreamLimits:
@@ -279,11 +306,12 @@ class SessionOpener:
             )
         scenario, scenario_reason = _scenario(plan, model)
         plan = dataclasses.replace(plan, scenario=scenario)
+        choice = self._choose(info, model, plan, scenario)
         config = resolve_config(
             model=model,
             scenario=scenario,
             dt=plan.dt,
-            requested=plan.estimator_request,
+            requested={**choice.settings, **plan.estimator_request},
             model_defaults=info.defaults.get(scenario, {}),
             preset=plan.preset,
             measured=plan.measured,
@@ -318,12 +346,51 @@ class SessionOpener:
                 estimator=estimator,
                 ticket=ticket,
                 taken=taken,
+                choice=choice,
             )
             return self._start(resolved)
         except BaseException:
             if ticket is not None:
                 ticket.release()
             raise
+
+    def _choose(
+        self, info: ModelInfo, model: mujoco.MjModel, plan: SessionPlan, scenario: Scenario
+    ) -> _Choice:
+        """How the session's estimator is chosen: asked for, by the model's defaults, by the
+        preset (LOCKSTEP, THESIS, --estimator-choice preset), or by the model's stored cost
+        (ResourceExhausted when no candidate fits the tick). Only an open the cost chooses for
+        measures a model that has no costs stored; the others show what is stored."""
+        costs = self._costs.stored([info]).get(info.id)
+        asked = [name for name in _CHOSEN_SETTINGS if name in plan.estimator_request]
+        if asked:
+            return _Choice(
+                how=EstimatorChoice.ASKED,
+                reason=f"asked for: open.estimator sets {' and '.join(asked)}",
+                costs=costs,
+            )
+        defaults = info.defaults.get(scenario, {})
+        named = [name for name in _CHOSEN_SETTINGS if name in defaults]
+        if named:
+            return _Choice(
+                how=EstimatorChoice.MODEL_DEFAULTS,
+                reason=f"the model's defaults for SCENARIO_{scenario.name} set {' and '.join(named)}",
+                costs=costs,
+            )
+        why = _preset_reason(plan, by_cost=self._services.choose_by_cost)
+        if why:
+            return _Choice(how=EstimatorChoice.PRESET, reason=f"the preset's: {why}", costs=costs)
+        costs = self._costs.table(info, model)
+        if not costs.of(scenario):
+            return _Choice(
+                how=EstimatorChoice.PRESET,
+                reason=f"the preset's: no cost was measured for SCENARIO_{scenario.name} on this model",
+                costs=costs,
+            )
+        chosen = costs.choose(scenario, plan.dt)
+        return _Choice(
+            how=EstimatorChoice.BY_COST, reason=chosen.reason, settings=dict(chosen.settings), costs=costs
+        )
 
     def _model(self, request: OpenRequest) -> tuple[ModelInfo, mujoco.MjModel]:
         """The model `request` names (registered first when sent inline) and its compiled copy."""
@@ -467,6 +534,7 @@ class SessionOpener:
                 pseudonym=pseudonym,
                 scenario_reason=resolved.scenario_reason,
                 noise_reason=_noise_reason(resolved),
+                **_chosen(resolved.choice),
                 tokens=tokens,
                 resume_token=_resume_token(tokens, recorder),
                 resume_from_seq=None if taken is None else first_tick,
@@ -476,6 +544,22 @@ class SessionOpener:
         except BaseException:
             recorder.discard()
             raise
+
+
+def _preset_reason(plan: SessionPlan, *, by_cost: bool) -> str:
+    """Why a session that names no estimator gets the preset's, or "" when its cost chooses."""
+    if plan.preset != Preset.JITDYN:
+        return f"PRESET_{plan.preset.name} runs its own filter"
+    if plan.clock != Clock.REALTIME:
+        return f"CLOCK_{plan.clock.name} has no tick to fit"
+    if not by_cost:
+        return "this server runs --estimator-choice preset"
+    return ""
+
+
+def _chosen(choice: _Choice) -> dict[str, Any]:
+    """What `opened` says of the estimator's choice (OpenedSession's fields)."""
+    return {"estimator_choice": choice.how, "estimator_reason": choice.reason, "costs": choice.costs}
 
 
 def _resume_token(tokens: ResumeTokens | None, recorder: SessionRecorder) -> str:

@@ -55,6 +55,9 @@ class Services:
     data_root: Path
     # What computes the JITDYN preset's UKF (--engine): NATIVE, or FAST, its Python reference.
     engine: Engine = Engine.NATIVE
+    # A REALTIME session that names no estimator gets the most accurate its model's stored cost
+    # fits (server/runtime/choice.py); False (--estimator-choice preset): the preset's.
+    choose_by_cost: bool = True
     # Where finished sessions' Parquet is published (storage/root.py); None: the data folder only.
     root: DataRoot | None = None
     limits: SessionLimits = DEFAULT_SESSION_LIMITS

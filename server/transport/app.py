@@ -107,6 +107,9 @@ class ServerConfig:
     workers: int = field(default_factory=default_workers)
     # What computes the UKF of the JITDYN preset (--engine): NATIVE, or FAST, its Python reference.
     engine: Engine = Engine.NATIVE
+    # How a REALTIME session that names no estimator gets one (--estimator-choice): by its model's
+    # stored cost, or the preset's.
+    choose_by_cost: bool = True
     secret_file: Path | None = None
     allowed_attributes: frozenset[str] = DEFAULT_ALLOWED_ATTRIBUTES
     registry_limits: RegistryLimits = DEFAULT_LIMITS
@@ -149,6 +152,7 @@ class ServerConfig:
             "data_root_uri": settings.data_root_uri,
             "workers": settings.workers if settings.workers is not None else default_workers(),
             "engine": Engine.FAST if settings.engine == "python" else Engine.NATIVE,
+            "choose_by_cost": settings.estimator_choice == "cost",
             "secret_file": settings.secret_file,
             "tls_cert": settings.tls_cert,
             "tls_key": settings.tls_key,
@@ -378,6 +382,20 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
     return server, port, services
 
 
+def _registry_servicer(
+    registry: ModelRegistry, config: ServerConfig, admission: Admission
+) -> ModelRegistryServicer:
+    """The registry's servicer, measuring models' estimator costs as this server's opens use them;
+    admission starts its window again after each measurement."""
+    return ModelRegistryServicer(
+        registry,
+        engine=config.engine,
+        max_tick_share=config.stream_limits.max_tick_share,
+        max_state_dimension=config.session_limits.max_state_dimension,
+        measured=admission.start_window,
+    )
+
+
 async def _services(config: ServerConfig, server: grpc.aio.Server) -> tuple[Services, MirroredHealth]:
     root = await asyncio.to_thread(open_root, config)
     data_root = await asyncio.to_thread(prepare_data_root, config.data_root)
@@ -408,6 +426,7 @@ async def _services(config: ServerConfig, server: grpc.aio.Server) -> tuple[Serv
         anonymiser=Anonymiser(secret, allowed_attributes=config.allowed_attributes),
         pool=WorkerPool(config.workers),
         engine=config.engine,
+        choose_by_cost=config.choose_by_cost,
         data_root=data_root,
         root=root,
         limits=config.session_limits,
@@ -420,7 +439,7 @@ async def _services(config: ServerConfig, server: grpc.aio.Server) -> tuple[Serv
         ),
     )
     model_registry_pb2_grpc.add_ModelRegistryServiceServicer_to_server(
-        ModelRegistryServicer(registry), server
+        _registry_servicer(registry, config, services.admission), server
     )
     dynamics_servicer = DynamicsServicer(services, limits=config.stream_limits)
     server.dynamics = dynamics_servicer  # type: ignore[attr-defined]

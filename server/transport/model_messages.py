@@ -18,11 +18,13 @@ from jitdyn.errors import InvalidArgument
 from jitdyn.registry import ModelInfo, ModelMetadata
 from jitdyn.registry.info import check_metadata
 from jitdyn.roles import joint_roles
+from jitdyn.server.runtime.choice import CostTable
 from jitdyn.settings_message import settings_from_message, settings_message
 from jitdyn.v1 import common_pb2, model_registry_pb2
-from jitdyn.vocabulary import JointType, Scenario, from_proto, parse, to_proto
+from jitdyn.vocabulary import EstimatorKind, JointType, Scenario, SigmaScheme, from_proto, parse, to_proto
 
 __all__ = [
+    "cost_messages",
     "metadata_from_message",
     "metadata_message",
     "model_message",
@@ -67,8 +69,49 @@ def metadata_message(metadata: ModelMetadata) -> model_registry_pb2.ModelMetadat
     )
 
 
-def model_message(info: ModelInfo) -> model_registry_pb2.Model:
-    """The jitdyn.v1.Model of a registered model."""
+def _estimator(name: str) -> common_pb2.Estimator.ValueType:
+    return common_pb2.Estimator.ValueType(to_proto(EstimatorKind[name]) if name else 0)
+
+
+def _sigma(name: str) -> common_pb2.SigmaPoints.ValueType:
+    return common_pb2.SigmaPoints.ValueType(to_proto(SigmaScheme[name]) if name else 0)
+
+
+def cost_messages(
+    table: CostTable,
+) -> tuple[list[model_registry_pb2.EstimatorCost], list[model_registry_pb2.EstimatorChoiceAtRate]]:
+    """A model's stored costs, and the choice they make at a few rates, as messages."""
+    costs = [
+        model_registry_pb2.EstimatorCost(
+            scenario=common_pb2.Scenario.ValueType(to_proto(Scenario[cost.scenario])),
+            estimator=_estimator(cost.estimator),
+            sigma_points=_sigma(cost.sigma_points),
+            steps=list(cost.steps),
+            seconds=list(cost.seconds),
+            max_rate=table.max_rate(cost),
+        )
+        for cost in table.costs
+    ]
+    choices = []
+    for scenario in Scenario:
+        if not table.of(scenario):
+            continue
+        for rate in table.rates():
+            chosen = table.pick(scenario, 1.0 / rate)
+            choices.append(
+                model_registry_pb2.EstimatorChoiceAtRate(
+                    scenario=common_pb2.Scenario.ValueType(to_proto(scenario)),
+                    rate=rate,
+                    estimator=_estimator(chosen.estimator if chosen else ""),
+                    sigma_points=_sigma(chosen.sigma_points if chosen else ""),
+                )
+            )
+    return costs, choices
+
+
+def model_message(info: ModelInfo, costs: CostTable | None = None) -> model_registry_pb2.Model:
+    """The jitdyn.v1.Model of a registered model, with its stored estimator costs when given."""
+    estimator_costs, estimator_choices = cost_messages(costs) if costs is not None else ([], [])
     created_at = timestamp_pb2.Timestamp()
     created_at.FromDatetime(info.created_at)
     roles = {role.joint: role for role in joint_roles(info.joints, info.tags)}
@@ -107,4 +150,6 @@ def model_message(info: ModelInfo) -> model_registry_pb2.Model:
         created_at=created_at,
         timestep=info.timestep,
         builtin=info.builtin,
+        estimator_costs=estimator_costs,
+        estimator_choices=estimator_choices,
     )

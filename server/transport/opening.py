@@ -78,7 +78,7 @@ def opened_message(opened: OpenedSession) -> dynamics_pb2.SessionOpened:
     plan = opened.plan
     return dynamics_pb2.SessionOpened(
         session_id=opened.session_id,
-        model=model_message(opened.info),
+        model=model_message(opened.info, opened.costs),
         estimator=settings_message(opened.settings),
         state_dimension=opened.state_dimension,
         measured=[common_pb2.Channel.ValueType(to_proto(c)) for c in sorted(plan.measured)],
@@ -94,4 +94,6 @@ def opened_message(opened: OpenedSession) -> dynamics_pb2.SessionOpened:
         resume_token=opened.resume_token,
         resume_from_seq=opened.resume_from_seq,
         resume_reason=opened.resume_reason,
+        estimator_choice=dynamics_pb2.EstimatorChoice.ValueType(to_proto(opened.estimator_choice)),
+        estimator_reason=opened.estimator_reason,
     )

@@ -10,24 +10,42 @@ so the event loop keeps serving other RPCs and session ticks meanwhile.
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 
 import grpc
 
 from jitdyn.errors import InvalidArgument
 from jitdyn.registry import DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE, ModelRegistry
+from jitdyn.server.estimation.config import Engine
+from jitdyn.server.runtime.choice import ModelCosts
 from jitdyn.server.transport.auth import tenant_of
 from jitdyn.server.transport.model_messages import metadata_from_message, model_message
 from jitdyn.server.transport.status import translate_errors
+from jitdyn.settings import DEFAULTS
 from jitdyn.v1 import model_registry_pb2, model_registry_pb2_grpc
 
 __all__ = ["ModelRegistryServicer"]
 
 
 class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer):
-    """Serves `jitdyn.registry` to the tenant of each RPC (server.auth.tenant_of)."""
+    """Serves `jitdyn.registry` to the tenant of each RPC (server.auth.tenant_of). A model's
+    estimator costs are measured when it is registered (a second or so for the largest), or, for
+    one registered before costs were measured (the built-in ones too), when it is first shown;
+    a listing gives those stored (server/runtime/choice.py)."""
 
-    def __init__(self, registry: ModelRegistry) -> None:
+    def __init__(
+        self,
+        registry: ModelRegistry,
+        *,
+        engine: Engine = Engine.NATIVE,
+        max_tick_share: float = DEFAULTS.max_tick_share,
+        max_state_dimension: int = DEFAULTS.max_state_dimension,
+        measured: Callable[[], None] | None = None,
+    ) -> None:
         self._registry = registry
+        self._costs = ModelCosts(
+            registry, engine=engine, share=max_tick_share, max_nv=max_state_dimension, measured=measured
+        )
 
     @translate_errors
     async def RegisterModel(
@@ -47,7 +65,8 @@ class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer
             metadata=metadata,
             tenant=tenant,
         )
-        return model_registry_pb2.RegisterModelResponse(model=model_message(info), created=created)
+        costs = await asyncio.to_thread(self._costs.table, info)
+        return model_registry_pb2.RegisterModelResponse(model=model_message(info, costs), created=created)
 
     @translate_errors
     async def GetModel(
@@ -72,7 +91,8 @@ class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer
             name=request.name or None,
             version=request.version,
         )
-        return model_registry_pb2.GetModelResponse(model=model_message(info))
+        costs = await asyncio.to_thread(self._costs.table, info)
+        return model_registry_pb2.GetModelResponse(model=model_message(info, costs))
 
     @translate_errors
     async def ListModels(
@@ -96,6 +116,8 @@ class ModelRegistryServicer(model_registry_pb2_grpc.ModelRegistryServiceServicer
             page_size=page_size,
             page_token=request.page_token,
         )
+        tables = await asyncio.to_thread(self._costs.stored, infos)
         return model_registry_pb2.ListModelsResponse(
-            models=[model_message(info) for info in infos], next_page_token=next_page_token
+            models=[model_message(info, tables.get(info.id)) for info in infos],
+            next_page_token=next_page_token,
         )

@@ -182,6 +182,16 @@ def _engine(text: str) -> str:
     return name
 
 
+ESTIMATOR_CHOICES: Final = ("cost", "preset")
+
+
+def _estimator_choice(text: str) -> str:
+    name = text.strip().lower()
+    if name not in ESTIMATOR_CHOICES:
+        raise ValueError(f"expected one of {', '.join(ESTIMATOR_CHOICES)}, got {text!r}")
+    return name
+
+
 def default_workers(processes: int = 1) -> int:
     """Threads propagating sigma points by default: the CPUs, shared among the server's processes
     (one each at one process per CPU). Why: docs/decisions/0060-one-worker-per-process.md."""
@@ -349,6 +359,15 @@ class Settings:
         help="what computes the UKF: native (compiled, on MuJoCo's C API) or python (the numpy "
         "engine it is tested against, for comparison and debugging: 1.3-3.5x the CPU of a filter "
         "cycle, benchmarks/RESULTS.md); the THESIS preset always runs filterpy",
+    )
+    estimator_choice: str = setting(
+        "cost",
+        parse=_estimator_choice,
+        commands=("serve",),
+        metavar="RULE",
+        help="the estimator of a REALTIME session that names none: cost (the most accurate whose cost, "
+        "measured when its model was registered, fits --max-tick-share of the tick; else the open is "
+        "refused) or preset (the preset's, whatever it costs)",
     )
     secret_file: Path | None = setting(
         None,

@@ -25,6 +25,7 @@ __all__ = [
     "WORDS",
     "Channel",
     "Clock",
+    "EstimatorChoice",
     "EstimatorKind",
     "ForceModel",
     "Forecast",
@@ -135,6 +136,15 @@ class EstimatorKind(enum.StrEnum):
     CONSTANT_ACCELERATION = "CONSTANT_ACCELERATION"
 
 
+class EstimatorChoice(enum.StrEnum):
+    """How a session's estimator was chosen (jitdyn.v1.EstimatorChoice)."""
+
+    BY_COST = "BY_COST"  # REALTIME: the most accurate candidate whose stored cost fits the tick
+    ASKED = "ASKED"  # the open named the estimator or its sigma points
+    MODEL_DEFAULTS = "MODEL_DEFAULTS"  # the model's defaults for the scenario named them
+    PRESET = "PRESET"  # LOCKSTEP (no tick to fit) or THESIS: the preset's
+
+
 class Preset(enum.StrEnum):
     """The source of the settings a session leaves unset (jitdyn.v1.Preset)."""
 
@@ -199,6 +209,7 @@ WORDS: Final[dict[type[enum.StrEnum], tuple[str, str, str]]] = {
     Source: ("dynamics_pb2", "Source", "SOURCE_"),
     RejectReason: ("dynamics_pb2", "RejectReason", "REJECT_REASON_"),
     Horizon: ("dynamics_pb2", "Horizon", "HORIZON_"),
+    EstimatorChoice: ("dynamics_pb2", "EstimatorChoice", "ESTIMATOR_CHOICE_"),
     SessionStatus: ("session_pb2", "SessionStatus", "SESSION_STATUS_"),
     JointType: ("model_registry_pb2", "JointType", "JOINT_TYPE_"),
 }

@@ -130,6 +130,7 @@ def open_request(
     history: int = 0,
     attributes: dict[str, str] | None = None,
     subject: str = "",
+    estimator: str = "",
 ) -> Request:
     return Request(
         open=dynamics_pb2.OpenSession(
@@ -138,6 +139,9 @@ def open_request(
             clock=common_pb2.Clock.Value(f"CLOCK_{clock}"),
             history=history,
             subject=dynamics_pb2.Subject(id=subject, attributes=attributes or {}),
+            estimator=common_pb2.EstimatorSettings(
+                estimator=common_pb2.Estimator.Value(f"ESTIMATOR_{estimator}") if estimator else 0
+            ),
         )
     )
 

@@ -161,12 +161,15 @@ def test_a_silent_client_is_ended_after_the_idle_timeout(serve: Callable[..., Se
 
 
 def test_a_tick_that_cannot_fit_dt_is_refused_at_open(serve: Callable[..., Served]) -> None:
+    """The UKF asked for: without it, the server would choose dead reckoning by the model's cost
+    (docs/decisions/0204-the-estimator-chosen-by-stored-cost.md)."""
     served = serve()
     register(served, "chain100", chain(100))
     details = _refused(
         lambda: list(
             served.dynamics.StreamSession(
-                iter([open_request(model="chain100", dt=0.025, clock="REALTIME")]), timeout=60
+                iter([open_request(model="chain100", dt=0.025, clock="REALTIME", estimator="UKF")]),
+                timeout=60,
             )
         ),
         grpc.StatusCode.RESOURCE_EXHAUSTED,

@@ -405,3 +405,35 @@ def test_close_is_safe_twice(engine: sa.Engine, data_root: Path) -> None:
     registry.close()
     with pytest.raises(RuntimeError, match="the ModelRegistry is closed"):
         registry.list()
+
+
+def test_estimator_costs_are_stored_once_by_content(registry: ModelRegistry) -> None:
+    """The first measurement stored for a content id stands: a second (another replica's, measured
+    at the same time) returns the first, so every server chooses from the same figures."""
+    from jitdyn.registry import CandidateCost
+
+    info = registry.register_builtins()[0]
+    assert registry.costs([info.id]) == {}
+    first = CandidateCost(
+        scenario="PASSIVE",
+        estimator="UKF",
+        sigma_points="MERWE",
+        steps=(1, 2, 5, 10),
+        seconds=(1e-4, 2e-4, 5e-4, 1e-3),
+    )
+    stored = registry.store_costs(info.id, [first])
+    assert stored == (first,)
+    later = CandidateCost(
+        scenario="PASSIVE",
+        estimator="UKF",
+        sigma_points="MERWE",
+        steps=(1, 2, 5, 10),
+        seconds=(9.0, 9.0, 9.0, 9.0),
+    )
+    assert registry.store_costs(info.id, [later]) == (first,)
+    assert registry.costs([info.id, "sha256:" + "0" * 64]) == {info.id: (first,)}
+    # Between two timed steps a tick costs their straight line; past the last, the last two's.
+    assert first.at(1) == pytest.approx(1e-4) and first.at(4) == pytest.approx(4e-4)
+    assert first.at(20) == pytest.approx(2e-3)
+    with pytest.raises(ValueError, match="ascend"):
+        CandidateCost(scenario="PASSIVE", estimator="UKF", sigma_points="", steps=(2, 1), seconds=(1.0, 1.0))

@@ -49,6 +49,42 @@ reaches the client (REALTIME only).
 """
 Global___Horizon: _TypeAlias = Horizon  # noqa: Y015
 
+class _EstimatorChoice:
+    ValueType = _typing.NewType("ValueType", _builtins.int)
+    V: _TypeAlias = ValueType  # noqa: Y015
+
+class _EstimatorChoiceEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_EstimatorChoice.ValueType], _builtins.type):
+    DESCRIPTOR: _descriptor.EnumDescriptor
+    ESTIMATOR_CHOICE_UNSPECIFIED: _EstimatorChoice.ValueType  # 0
+    """Not said (a server older than this field)."""
+    ESTIMATOR_CHOICE_BY_COST: _EstimatorChoice.ValueType  # 1
+    """CLOCK_REALTIME, nothing asked for: the most accurate of the model's candidates whose cost,
+    measured once when the model was registered, fits the tick (`Model.estimator_costs`).
+    """
+    ESTIMATOR_CHOICE_ASKED: _EstimatorChoice.ValueType  # 2
+    """`OpenSession.estimator` named the estimator or its sigma points."""
+    ESTIMATOR_CHOICE_MODEL_DEFAULTS: _EstimatorChoice.ValueType  # 3
+    """The model's defaults for the scenario named them (`ModelMetadata.defaults`)."""
+    ESTIMATOR_CHOICE_PRESET: _EstimatorChoice.ValueType  # 4
+    """The preset's: CLOCK_LOCKSTEP (no tick to fit), or PRESET_THESIS (the thesis' filter as it ran)."""
+
+class EstimatorChoice(_EstimatorChoice, metaclass=_EstimatorChoiceEnumTypeWrapper):
+    """How a session's estimator was chosen."""
+
+ESTIMATOR_CHOICE_UNSPECIFIED: EstimatorChoice.ValueType  # 0
+"""Not said (a server older than this field)."""
+ESTIMATOR_CHOICE_BY_COST: EstimatorChoice.ValueType  # 1
+"""CLOCK_REALTIME, nothing asked for: the most accurate of the model's candidates whose cost,
+measured once when the model was registered, fits the tick (`Model.estimator_costs`).
+"""
+ESTIMATOR_CHOICE_ASKED: EstimatorChoice.ValueType  # 2
+"""`OpenSession.estimator` named the estimator or its sigma points."""
+ESTIMATOR_CHOICE_MODEL_DEFAULTS: EstimatorChoice.ValueType  # 3
+"""The model's defaults for the scenario named them (`ModelMetadata.defaults`)."""
+ESTIMATOR_CHOICE_PRESET: EstimatorChoice.ValueType  # 4
+"""The preset's: CLOCK_LOCKSTEP (no tick to fit), or PRESET_THESIS (the thesis' filter as it ran)."""
+Global___EstimatorChoice: _TypeAlias = EstimatorChoice  # noqa: Y015
+
 class _Source:
     ValueType = _typing.NewType("ValueType", _builtins.int)
     V: _TypeAlias = ValueType  # noqa: Y015
@@ -758,6 +794,8 @@ class SessionOpened(_message.Message):
     RESUME_TOKEN_FIELD_NUMBER: _builtins.int
     RESUME_FROM_SEQ_FIELD_NUMBER: _builtins.int
     RESUME_REASON_FIELD_NUMBER: _builtins.int
+    ESTIMATOR_CHOICE_FIELD_NUMBER: _builtins.int
+    ESTIMATOR_REASON_FIELD_NUMBER: _builtins.int
     session_id: _builtins.str
     """The session's id (a UUID)."""
     state_dimension: _builtins.int
@@ -797,6 +835,14 @@ class SessionOpened(_message.Message):
     resume_reason: _builtins.str
     """A resumed session: how its estimator continues ("restored from the snapshot at tick 812",
     or "restarted from the next frame"); empty for a new session.
+    """
+    estimator_choice: Global___EstimatorChoice.ValueType
+    """How the estimator and sigma points in `estimator` were chosen: by the model's measured cost
+    (`Model.estimator_costs`), asked for, the model's defaults, or the preset's.
+    """
+    estimator_reason: _builtins.str
+    """Why, in words: e.g. "chosen by cost: ESTIMATOR_UKF with SIGMA_POINTS_MERWE costs 2.3 ms a
+    tick, over 0.5 of dt 2 ms; ESTIMATOR_UKF with SIGMA_POINTS_SIMPLEX costs 0.9 ms, which fits".
     """
     @_builtins.property
     def model(self) -> _model_registry_pb2.Model:
@@ -839,10 +885,12 @@ class SessionOpened(_message.Message):
         resume_token: _builtins.str = ...,
         resume_from_seq: _builtins.int | None = ...,
         resume_reason: _builtins.str = ...,
+        estimator_choice: Global___EstimatorChoice.ValueType = ...,
+        estimator_reason: _builtins.str = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["_resume_from_seq", b"_resume_from_seq", "estimator", b"estimator", "model", b"model", "resume_from_seq", b"resume_from_seq"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["_resume_from_seq", b"_resume_from_seq", "dropped_attributes", b"dropped_attributes", "dt", b"dt", "estimator", b"estimator", "grace", b"grace", "history", b"history", "measured", b"measured", "model", b"model", "noise_reason", b"noise_reason", "outputs", b"outputs", "resume_from_seq", b"resume_from_seq", "resume_reason", b"resume_reason", "resume_token", b"resume_token", "scenario", b"scenario", "scenario_reason", b"scenario_reason", "session_id", b"session_id", "state_dimension", b"state_dimension", "steps_per_tick", b"steps_per_tick", "subject_pseudonym", b"subject_pseudonym"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["_resume_from_seq", b"_resume_from_seq", "dropped_attributes", b"dropped_attributes", "dt", b"dt", "estimator", b"estimator", "estimator_choice", b"estimator_choice", "estimator_reason", b"estimator_reason", "grace", b"grace", "history", b"history", "measured", b"measured", "model", b"model", "noise_reason", b"noise_reason", "outputs", b"outputs", "resume_from_seq", b"resume_from_seq", "resume_reason", b"resume_reason", "resume_token", b"resume_token", "scenario", b"scenario", "scenario_reason", b"scenario_reason", "session_id", b"session_id", "state_dimension", b"state_dimension", "steps_per_tick", b"steps_per_tick", "subject_pseudonym", b"subject_pseudonym"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     _WhichOneofReturnType__resume_from_seq: _TypeAlias = _typing.Literal["resume_from_seq"]  # noqa: Y015
     _WhichOneofArgType__resume_from_seq: _TypeAlias = _typing.Literal["_resume_from_seq", b"_resume_from_seq"]  # noqa: Y015

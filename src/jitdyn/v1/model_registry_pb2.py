@@ -26,7 +26,7 @@ from google.protobuf import timestamp_pb2 as google_dot_protobuf_dot_timestamp__
 from jitdyn.v1 import common_pb2 as jitdyn_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1ejitdyn/v1/model_registry.proto\x12\tjitdyn.v1\x1a\x1fgoogle/protobuf/timestamp.proto\x1a\x16jitdyn/v1/common.proto\"\xc2\x01\n\x05Joint\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\"\n\x04type\x18\x02 \x01(\x0e\x32\x14.jitdyn.v1.JointType\x12\x0f\n\x07limited\x18\x03 \x01(\x08\x12\x13\n\x0brange_lower\x18\x04 \x01(\x01\x12\x13\n\x0brange_upper\x18\x05 \x01(\x01\x12\x14\n\x0cqpos_address\x18\x06 \x01(\r\x12\x13\n\x0b\x64of_address\x18\x07 \x01(\r\x12\x0c\n\x04role\x18\x08 \x01(\t\x12\x13\n\x0brole_source\x18\t \x01(\t\"f\n\x08\x41\x63tuator\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06target\x18\x02 \x01(\t\x12\x14\n\x0c\x63trl_limited\x18\x03 \x01(\x08\x12\x12\n\nctrl_lower\x18\x04 \x01(\x01\x12\x12\n\nctrl_upper\x18\x05 \x01(\x01\"\\\n\nDimensions\x12\n\n\x02nq\x18\x01 \x01(\r\x12\n\n\x02nv\x18\x02 \x01(\r\x12\n\n\x02nu\x18\x03 \x01(\r\x12\n\n\x02na\x18\x04 \x01(\r\x12\x0f\n\x07nsensor\x18\x05 \x01(\r\x12\r\n\x05nbody\x18\x06 \x01(\r\"j\n\x10ScenarioDefaults\x12%\n\x08scenario\x18\x01 \x01(\x0e\x32\x13.jitdyn.v1.Scenario\x12/\n\testimator\x18\x02 \x01(\x0b\x32\x1c.jitdyn.v1.EstimatorSettings\"a\n\rModelMetadata\x12\x13\n\x0b\x64\x65scription\x18\x01 \x01(\t\x12\x0c\n\x04tags\x18\x02 \x03(\t\x12-\n\x08\x64\x65\x66\x61ults\x18\x03 \x03(\x0b\x32\x1b.jitdyn.v1.ScenarioDefaults\"\xa6\x02\n\x05Model\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0f\n\x07version\x18\x03 \x01(\r\x12)\n\ndimensions\x18\x04 \x01(\x0b\x32\x15.jitdyn.v1.Dimensions\x12 \n\x06joints\x18\x05 \x03(\x0b\x32\x10.jitdyn.v1.Joint\x12&\n\tactuators\x18\x06 \x03(\x0b\x32\x13.jitdyn.v1.Actuator\x12*\n\x08metadata\x18\x07 \x01(\x0b\x32\x18.jitdyn.v1.ModelMetadata\x12.\n\ncreated_at\x18\x08 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08timestep\x18\t \x01(\x01\x12\x0f\n\x07\x62uiltin\x18\n \x01(\x08\"\xca\x01\n\x14RegisterModelRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04mjcf\x18\x02 \x01(\t\x12;\n\x06\x61ssets\x18\x03 \x03(\x0b\x32+.jitdyn.v1.RegisterModelRequest.AssetsEntry\x12*\n\x08metadata\x18\x04 \x01(\x0b\x32\x18.jitdyn.v1.ModelMetadata\x1a-\n\x0b\x41ssetsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x0c:\x02\x38\x01\"I\n\x15RegisterModelResponse\x12\x1f\n\x05model\x18\x01 \x01(\x0b\x32\x10.jitdyn.v1.Model\x12\x0f\n\x07\x63reated\x18\x02 \x01(\x08\"B\n\x0fGetModelRequest\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0f\n\x07version\x18\x03 \x01(\r\"3\n\x10GetModelResponse\x12\x1f\n\x05model\x18\x01 \x01(\x0b\x32\x10.jitdyn.v1.Model\"U\n\x11ListModelsRequest\x12\x11\n\tpage_size\x18\x01 \x01(\r\x12\x12\n\npage_token\x18\x02 \x01(\t\x12\x0c\n\x04name\x18\x03 \x01(\t\x12\x0b\n\x03tag\x18\x04 \x01(\t\"O\n\x12ListModelsResponse\x12 \n\x06models\x18\x01 \x03(\x0b\x32\x10.jitdyn.v1.Model\x12\x17\n\x0fnext_page_token\x18\x02 \x01(\t*}\n\tJointType\x12\x1a\n\x16JOINT_TYPE_UNSPECIFIED\x10\x00\x12\x13\n\x0fJOINT_TYPE_FREE\x10\x01\x12\x13\n\x0fJOINT_TYPE_BALL\x10\x02\x12\x14\n\x10JOINT_TYPE_SLIDE\x10\x03\x12\x14\n\x10JOINT_TYPE_HINGE\x10\x04\x32\xfa\x01\n\x14ModelRegistryService\x12R\n\rRegisterModel\x12\x1f.jitdyn.v1.RegisterModelRequest\x1a .jitdyn.v1.RegisterModelResponse\x12\x43\n\x08GetModel\x12\x1a.jitdyn.v1.GetModelRequest\x1a\x1b.jitdyn.v1.GetModelResponse\x12I\n\nListModels\x12\x1c.jitdyn.v1.ListModelsRequest\x1a\x1d.jitdyn.v1.ListModelsResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x1ejitdyn/v1/model_registry.proto\x12\tjitdyn.v1\x1a\x1fgoogle/protobuf/timestamp.proto\x1a\x16jitdyn/v1/common.proto\"\xc2\x01\n\x05Joint\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\"\n\x04type\x18\x02 \x01(\x0e\x32\x14.jitdyn.v1.JointType\x12\x0f\n\x07limited\x18\x03 \x01(\x08\x12\x13\n\x0brange_lower\x18\x04 \x01(\x01\x12\x13\n\x0brange_upper\x18\x05 \x01(\x01\x12\x14\n\x0cqpos_address\x18\x06 \x01(\r\x12\x13\n\x0b\x64of_address\x18\x07 \x01(\r\x12\x0c\n\x04role\x18\x08 \x01(\t\x12\x13\n\x0brole_source\x18\t \x01(\t\"f\n\x08\x41\x63tuator\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0e\n\x06target\x18\x02 \x01(\t\x12\x14\n\x0c\x63trl_limited\x18\x03 \x01(\x08\x12\x12\n\nctrl_lower\x18\x04 \x01(\x01\x12\x12\n\nctrl_upper\x18\x05 \x01(\x01\"\\\n\nDimensions\x12\n\n\x02nq\x18\x01 \x01(\r\x12\n\n\x02nv\x18\x02 \x01(\r\x12\n\n\x02nu\x18\x03 \x01(\r\x12\n\n\x02na\x18\x04 \x01(\r\x12\x0f\n\x07nsensor\x18\x05 \x01(\r\x12\r\n\x05nbody\x18\x06 \x01(\r\"j\n\x10ScenarioDefaults\x12%\n\x08scenario\x18\x01 \x01(\x0e\x32\x13.jitdyn.v1.Scenario\x12/\n\testimator\x18\x02 \x01(\x0b\x32\x1c.jitdyn.v1.EstimatorSettings\"a\n\rModelMetadata\x12\x13\n\x0b\x64\x65scription\x18\x01 \x01(\t\x12\x0c\n\x04tags\x18\x02 \x03(\t\x12-\n\x08\x64\x65\x66\x61ults\x18\x03 \x03(\x0b\x32\x1b.jitdyn.v1.ScenarioDefaults\"\x96\x03\n\x05Model\x12\n\n\x02id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0f\n\x07version\x18\x03 \x01(\r\x12)\n\ndimensions\x18\x04 \x01(\x0b\x32\x15.jitdyn.v1.Dimensions\x12 \n\x06joints\x18\x05 \x03(\x0b\x32\x10.jitdyn.v1.Joint\x12&\n\tactuators\x18\x06 \x03(\x0b\x32\x13.jitdyn.v1.Actuator\x12*\n\x08metadata\x18\x07 \x01(\x0b\x32\x18.jitdyn.v1.ModelMetadata\x12.\n\ncreated_at\x18\x08 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08timestep\x18\t \x01(\x01\x12\x0f\n\x07\x62uiltin\x18\n \x01(\x08\x12\x31\n\x0f\x65stimator_costs\x18\x0b \x03(\x0b\x32\x18.jitdyn.v1.EstimatorCost\x12;\n\x11\x65stimator_choices\x18\x0c \x03(\x0b\x32 .jitdyn.v1.EstimatorChoiceAtRate\"\xbf\x01\n\rEstimatorCost\x12%\n\x08scenario\x18\x01 \x01(\x0e\x32\x13.jitdyn.v1.Scenario\x12\'\n\testimator\x18\x02 \x01(\x0e\x32\x14.jitdyn.v1.Estimator\x12,\n\x0csigma_points\x18\x03 \x01(\x0e\x32\x16.jitdyn.v1.SigmaPoints\x12\r\n\x05steps\x18\x04 \x03(\r\x12\x0f\n\x07seconds\x18\x05 \x03(\x01\x12\x10\n\x08max_rate\x18\x06 \x01(\x01\"\xa3\x01\n\x15\x45stimatorChoiceAtRate\x12%\n\x08scenario\x18\x01 \x01(\x0e\x32\x13.jitdyn.v1.Scenario\x12\x0c\n\x04rate\x18\x02 \x01(\x01\x12\'\n\testimator\x18\x03 \x01(\x0e\x32\x14.jitdyn.v1.Estimator\x12,\n\x0csigma_points\x18\x04 \x01(\x0e\x32\x16.jitdyn.v1.SigmaPoints\"\xca\x01\n\x14RegisterModelRequest\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04mjcf\x18\x02 \x01(\t\x12;\n\x06\x61ssets\x18\x03 \x03(\x0b\x32+.jitdyn.v1.RegisterModelRequest.AssetsEntry\x12*\n\x08metadata\x18\x04 \x01(\x0b\x32\x18.jitdyn.v1.ModelMetadata\x1a-\n\x0b\x41ssetsEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\x0c:\x02\x38\x01\"I\n\x15RegisterModelResponse\x12\x1f\n\x05model\x18\x01 \x01(\x0b\x32\x10.jitdyn.v1.Model\x12\x0f\n\x07\x63reated\x18\x02 \x01(\x08\"B\n\x0fGetModelRequest\x12\x10\n\x08model_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0f\n\x07version\x18\x03 \x01(\r\"3\n\x10GetModelResponse\x12\x1f\n\x05model\x18\x01 \x01(\x0b\x32\x10.jitdyn.v1.Model\"U\n\x11ListModelsRequest\x12\x11\n\tpage_size\x18\x01 \x01(\r\x12\x12\n\npage_token\x18\x02 \x01(\t\x12\x0c\n\x04name\x18\x03 \x01(\t\x12\x0b\n\x03tag\x18\x04 \x01(\t\"O\n\x12ListModelsResponse\x12 \n\x06models\x18\x01 \x03(\x0b\x32\x10.jitdyn.v1.Model\x12\x17\n\x0fnext_page_token\x18\x02 \x01(\t*}\n\tJointType\x12\x1a\n\x16JOINT_TYPE_UNSPECIFIED\x10\x00\x12\x13\n\x0fJOINT_TYPE_FREE\x10\x01\x12\x13\n\x0fJOINT_TYPE_BALL\x10\x02\x12\x14\n\x10JOINT_TYPE_SLIDE\x10\x03\x12\x14\n\x10JOINT_TYPE_HINGE\x10\x04\x32\xfa\x01\n\x14ModelRegistryService\x12R\n\rRegisterModel\x12\x1f.jitdyn.v1.RegisterModelRequest\x1a .jitdyn.v1.RegisterModelResponse\x12\x43\n\x08GetModel\x12\x1a.jitdyn.v1.GetModelRequest\x1a\x1b.jitdyn.v1.GetModelResponse\x12I\n\nListModels\x12\x1c.jitdyn.v1.ListModelsRequest\x1a\x1d.jitdyn.v1.ListModelsResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -35,8 +35,8 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_REGISTERMODELREQUEST_ASSETSENTRY']._loaded_options = None
   _globals['_REGISTERMODELREQUEST_ASSETSENTRY']._serialized_options = b'8\001'
-  _globals['_JOINTTYPE']._serialized_start=1570
-  _globals['_JOINTTYPE']._serialized_end=1695
+  _globals['_JOINTTYPE']._serialized_start=2042
+  _globals['_JOINTTYPE']._serialized_end=2167
   _globals['_JOINT']._serialized_start=103
   _globals['_JOINT']._serialized_end=297
   _globals['_ACTUATOR']._serialized_start=299
@@ -48,21 +48,25 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_MODELMETADATA']._serialized_start=605
   _globals['_MODELMETADATA']._serialized_end=702
   _globals['_MODEL']._serialized_start=705
-  _globals['_MODEL']._serialized_end=999
-  _globals['_REGISTERMODELREQUEST']._serialized_start=1002
-  _globals['_REGISTERMODELREQUEST']._serialized_end=1204
-  _globals['_REGISTERMODELREQUEST_ASSETSENTRY']._serialized_start=1159
-  _globals['_REGISTERMODELREQUEST_ASSETSENTRY']._serialized_end=1204
-  _globals['_REGISTERMODELRESPONSE']._serialized_start=1206
-  _globals['_REGISTERMODELRESPONSE']._serialized_end=1279
-  _globals['_GETMODELREQUEST']._serialized_start=1281
-  _globals['_GETMODELREQUEST']._serialized_end=1347
-  _globals['_GETMODELRESPONSE']._serialized_start=1349
-  _globals['_GETMODELRESPONSE']._serialized_end=1400
-  _globals['_LISTMODELSREQUEST']._serialized_start=1402
-  _globals['_LISTMODELSREQUEST']._serialized_end=1487
-  _globals['_LISTMODELSRESPONSE']._serialized_start=1489
-  _globals['_LISTMODELSRESPONSE']._serialized_end=1568
-  _globals['_MODELREGISTRYSERVICE']._serialized_start=1698
-  _globals['_MODELREGISTRYSERVICE']._serialized_end=1948
+  _globals['_MODEL']._serialized_end=1111
+  _globals['_ESTIMATORCOST']._serialized_start=1114
+  _globals['_ESTIMATORCOST']._serialized_end=1305
+  _globals['_ESTIMATORCHOICEATRATE']._serialized_start=1308
+  _globals['_ESTIMATORCHOICEATRATE']._serialized_end=1471
+  _globals['_REGISTERMODELREQUEST']._serialized_start=1474
+  _globals['_REGISTERMODELREQUEST']._serialized_end=1676
+  _globals['_REGISTERMODELREQUEST_ASSETSENTRY']._serialized_start=1631
+  _globals['_REGISTERMODELREQUEST_ASSETSENTRY']._serialized_end=1676
+  _globals['_REGISTERMODELRESPONSE']._serialized_start=1678
+  _globals['_REGISTERMODELRESPONSE']._serialized_end=1751
+  _globals['_GETMODELREQUEST']._serialized_start=1753
+  _globals['_GETMODELREQUEST']._serialized_end=1819
+  _globals['_GETMODELRESPONSE']._serialized_start=1821
+  _globals['_GETMODELRESPONSE']._serialized_end=1872
+  _globals['_LISTMODELSREQUEST']._serialized_start=1874
+  _globals['_LISTMODELSREQUEST']._serialized_end=1959
+  _globals['_LISTMODELSRESPONSE']._serialized_start=1961
+  _globals['_LISTMODELSRESPONSE']._serialized_end=2040
+  _globals['_MODELREGISTRYSERVICE']._serialized_start=2170
+  _globals['_MODELREGISTRYSERVICE']._serialized_end=2420
 # @@protoc_insertion_point(module_scope)

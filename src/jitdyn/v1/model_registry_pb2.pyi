@@ -270,6 +270,8 @@ class Model(_message.Message):
     CREATED_AT_FIELD_NUMBER: _builtins.int
     TIMESTEP_FIELD_NUMBER: _builtins.int
     BUILTIN_FIELD_NUMBER: _builtins.int
+    ESTIMATOR_COSTS_FIELD_NUMBER: _builtins.int
+    ESTIMATOR_CHOICES_FIELD_NUMBER: _builtins.int
     id: _builtins.str
     """Content id: "sha256:" and the lowercase hex SHA-256 of this byte string, every integer an
     unsigned 64-bit big-endian length or count: len(mjcf) mjcf n, then for each asset in ascending
@@ -304,6 +306,21 @@ class Model(_message.Message):
     def created_at(self) -> _timestamp_pb2.Timestamp:
         """When it was first registered (UTC)."""
 
+    @_builtins.property
+    def estimator_costs(self) -> _containers.RepeatedCompositeFieldContainer[Global___EstimatorCost]:
+        """What a tick of each estimator a REALTIME session of this model may get costs, measured once
+        on the server when the model was registered (at its first open for a model registered before
+        costs were measured) and stored with it: per scenario, the candidates from the most accurate
+        to the cheapest. A REALTIME session that names neither its estimator nor its sigma points gets
+        the first whose `max_rate` reaches its rate. Empty: not measured yet.
+        """
+
+    @_builtins.property
+    def estimator_choices(self) -> _containers.RepeatedCompositeFieldContainer[Global___EstimatorChoiceAtRate]:
+        """The choice that rule makes at a few rates (those the timestep allows of 1000, 500, 250, 200,
+        100, 50 and 20 Hz), per scenario; empty when the costs are not measured yet.
+        """
+
     def __init__(
         self,
         *,
@@ -317,14 +334,101 @@ class Model(_message.Message):
         created_at: _timestamp_pb2.Timestamp | None = ...,
         timestep: _builtins.float = ...,
         builtin: _builtins.bool = ...,
+        estimator_costs: _abc.Iterable[Global___EstimatorCost] | None = ...,
+        estimator_choices: _abc.Iterable[Global___EstimatorChoiceAtRate] | None = ...,
     ) -> None: ...
     _HasFieldArgType: _TypeAlias = _typing.Literal["created_at", b"created_at", "dimensions", b"dimensions", "metadata", b"metadata"]  # noqa: Y015
     def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
-    _ClearFieldArgType: _TypeAlias = _typing.Literal["actuators", b"actuators", "builtin", b"builtin", "created_at", b"created_at", "dimensions", b"dimensions", "id", b"id", "joints", b"joints", "metadata", b"metadata", "name", b"name", "timestep", b"timestep", "version", b"version"]  # noqa: Y015
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["actuators", b"actuators", "builtin", b"builtin", "created_at", b"created_at", "dimensions", b"dimensions", "estimator_choices", b"estimator_choices", "estimator_costs", b"estimator_costs", "id", b"id", "joints", b"joints", "metadata", b"metadata", "name", b"name", "timestep", b"timestep", "version", b"version"]  # noqa: Y015
     def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
     def WhichOneof(self, oneof_group: _Never) -> None: ...
 
 Global___Model: _TypeAlias = Model  # noqa: Y015
+
+@_typing.final
+class EstimatorCost(_message.Message):
+    """One estimator candidate of a model in one scenario and what a tick of it costs."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    SCENARIO_FIELD_NUMBER: _builtins.int
+    ESTIMATOR_FIELD_NUMBER: _builtins.int
+    SIGMA_POINTS_FIELD_NUMBER: _builtins.int
+    STEPS_FIELD_NUMBER: _builtins.int
+    SECONDS_FIELD_NUMBER: _builtins.int
+    MAX_RATE_FIELD_NUMBER: _builtins.int
+    scenario: _common_pb2.Scenario.ValueType
+    """The scenario it was measured in."""
+    estimator: _common_pb2.Estimator.ValueType
+    """The estimator."""
+    sigma_points: _common_pb2.SigmaPoints.ValueType
+    """Its sigma points; SIGMA_POINTS_UNSPECIFIED for the dead-reckoning estimators."""
+    max_rate: _builtins.float
+    """The highest rate (Hz; dt a whole number of timesteps, at most 10 s) at which a tick fits
+    this server's share of dt (`jitdyn serve --max-tick-share`); 0 when it fits none.
+    """
+    @_builtins.property
+    def steps(self) -> _containers.RepeatedScalarFieldContainer[_builtins.int]:
+        """The physics steps of the model's timestep a tick spanned in each timed run (ascending)."""
+
+    @_builtins.property
+    def seconds(self) -> _containers.RepeatedScalarFieldContainer[_builtins.float]:
+        """CPU seconds of one predict and update on one thread at each of `steps`: the median of a fixed
+        number of cycles at the model's rest pose. Between two, a tick costs their straight line;
+        past the last, the last two's, never falling.
+        """
+
+    def __init__(
+        self,
+        *,
+        scenario: _common_pb2.Scenario.ValueType = ...,
+        estimator: _common_pb2.Estimator.ValueType = ...,
+        sigma_points: _common_pb2.SigmaPoints.ValueType = ...,
+        steps: _abc.Iterable[_builtins.int] | None = ...,
+        seconds: _abc.Iterable[_builtins.float] | None = ...,
+        max_rate: _builtins.float = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["estimator", b"estimator", "max_rate", b"max_rate", "scenario", b"scenario", "seconds", b"seconds", "sigma_points", b"sigma_points", "steps", b"steps"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___EstimatorCost: _TypeAlias = EstimatorCost  # noqa: Y015
+
+@_typing.final
+class EstimatorChoiceAtRate(_message.Message):
+    """The estimator a REALTIME session of a model gets at one rate, nothing asked for."""
+
+    DESCRIPTOR: _descriptor.Descriptor
+
+    SCENARIO_FIELD_NUMBER: _builtins.int
+    RATE_FIELD_NUMBER: _builtins.int
+    ESTIMATOR_FIELD_NUMBER: _builtins.int
+    SIGMA_POINTS_FIELD_NUMBER: _builtins.int
+    scenario: _common_pb2.Scenario.ValueType
+    """The scenario."""
+    rate: _builtins.float
+    """The rate (Hz)."""
+    estimator: _common_pb2.Estimator.ValueType
+    """The estimator chosen; ESTIMATOR_UNSPECIFIED when none fits (the open is refused)."""
+    sigma_points: _common_pb2.SigmaPoints.ValueType
+    """Its sigma points; SIGMA_POINTS_UNSPECIFIED for dead reckoning or none."""
+    def __init__(
+        self,
+        *,
+        scenario: _common_pb2.Scenario.ValueType = ...,
+        rate: _builtins.float = ...,
+        estimator: _common_pb2.Estimator.ValueType = ...,
+        sigma_points: _common_pb2.SigmaPoints.ValueType = ...,
+    ) -> None: ...
+    _HasFieldArgType: _TypeAlias = _Never  # noqa: Y015
+    def HasField(self, field_name: _HasFieldArgType) -> _builtins.bool: ...
+    _ClearFieldArgType: _TypeAlias = _typing.Literal["estimator", b"estimator", "rate", b"rate", "scenario", b"scenario", "sigma_points", b"sigma_points"]  # noqa: Y015
+    def ClearField(self, field_name: _ClearFieldArgType) -> None: ...
+    def WhichOneof(self, oneof_group: _Never) -> None: ...
+
+Global___EstimatorChoiceAtRate: _TypeAlias = EstimatorChoiceAtRate  # noqa: Y015
 
 @_typing.final
 class RegisterModelRequest(_message.Message):
