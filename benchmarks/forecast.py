@@ -138,7 +138,9 @@ def _driven_cycle(name: str, rate: float, forecast: str) -> Callable[[int], None
 
 def share(rounds: int, ticks: int) -> None:
     """The forecast combination's share of a DRIVEN cycle (module docstring)."""
-    print("| model | rate (Hz) | cycle, forecast combination (us) | cycle, FILTER (us) | the forecast (us) | share |")
+    print(
+        "| model | rate (Hz) | cycle, forecast combination (us) | cycle, FILTER (us) | the forecast (us) | share |"
+    )
     print("|---|---|---|---|---|---|")
     for name, rate in (("arm2", 50.0), ("myoelbow", 500.0)):
         try:

@@ -322,7 +322,9 @@ def test_a_loop_that_runs_its_deadlines_late_admits_no_one(monkeypatch: pytest.M
     admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
 
 
-def test_a_loop_that_lags_with_no_session_admitted_is_late_for_no_one(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_loop_that_lags_with_no_session_admitted_is_late_for_no_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """Clients starting up beside an idle server lag its loop; their opens are judged by the
     machine's idle CPU, not refused for a lateness no session saw."""
     import time
