@@ -1130,6 +1130,7 @@ def prior(ctx: Context) -> Section:
         Column(f"{prior_eval.LEVEL:.0%} interval", _interval),
         Column("phase 0 alone", lambda r: r.phase_ratio(0.0)),
         Column("phases' range", _phase_range),
+        Column("each phase", lambda r: " / ".join(f"{r.phase_ratio(p):.3f}" for p in r.by_phase)),
         Column("no roles / best", lambda r: r.ratio("no roles")),
         Column("target", lambda r: _limit(prior_eval.target(r.recording, r.horizon, r.sensors))),
         Column("verdict", lambda r: r.verdict),
@@ -1147,7 +1148,7 @@ def prior(ctx: Context) -> Section:
         "stride) and over the whole run, pooled over the phases' gaps, as a multiple of the best "
         f"extrapolator, with its {prior_eval.LEVEL:.0%} bootstrap interval over the gaps. 'phase 0 "
         "alone': the single-phase protocol's cell (first gap from 250 ms); 'phases' range': each "
-        "phase's own ratio, lowest to highest. MH4: issue 33's must-have 4 (gait at 35 ms at or "
+        "phase's own ratio, lowest to highest ('each phase': in the order of their starts). MH4: issue 33's must-have 4 (gait at 35 ms at or "
         "below the best extrapolator, motion that does not repeat within 1.05 x)."
     )
     return Section(name, title, text, (Table.of(name, title, columns, rows),))
