@@ -1092,15 +1092,28 @@ def _limit(limit: float | None) -> str:
     return "" if limit is None else f"<= {limit:g} x"
 
 
+def _interval(row: prior_eval.PriorRow) -> str:
+    low, high = row.interval()
+    return f"{low:.3f}-{high:.3f}"
+
+
+def _phase_range(row: prior_eval.PriorRow) -> str:
+    ratios = [row.phase_ratio(p) for p in row.by_phase]
+    return f"{min(ratios):.3f}-{max(ratios):.3f}"
+
+
 def prior(ctx: Context) -> Section:
-    """The prior of human motion left one subject out (experiments/prior_eval.py)."""
+    """The prior of human motion left one subject out (experiments/prior_eval.py), with the gaps at
+    five phases (one in --quick: the single-phase protocol; docs/decisions/0202-gap-phases.md)."""
     name = "prior"
     title = "Foresight from the first step: the prior of human motion, leaving one subject out"
+    phases = prior_eval.SINGLE_PHASE if ctx.quick else prior_eval.PHASES
     rows = prior_eval.evaluate(
         lambda spec, obj: run_lockstep(ctx.client, spec, models=ctx.models, obj=obj, progress=ctx.progress),
         recordings=prior_eval.RECORDINGS_EVALUATED,
         sensors=SENSORS,
         seconds=3.0 if ctx.quick else None,
+        phases=phases,
     )
     columns: tuple[Column[prior_eval.PriorRow], ...] = (
         Column("recording", lambda r: r.recording),
@@ -1108,22 +1121,35 @@ def prior(ctx: Context) -> Section:
         Column("sensors", lambda r: r.sensors),
         Column("window", lambda r: r.window),
         Column("horizon (ms)", lambda r: round(r.horizon * 1000)),
+        Column("gaps", lambda r: r.count),
         Column("defaults", lambda r: r.errors["defaults"]),
         Column("no roles (no prior)", lambda r: r.errors["no roles"]),
         Column("best extrapolator", lambda r: r.best[1]),
         Column("which", lambda r: r.best[0]),
         Column("defaults / best", lambda r: r.ratio("defaults")),
+        Column(f"{prior_eval.LEVEL:.0%} interval", _interval),
+        Column("phase 0 alone", lambda r: r.phase_ratio(0.0)),
+        Column("phases' range", _phase_range),
+        Column("each phase", lambda r: " / ".join(f"{r.phase_ratio(p):.3f}" for p in r.by_phase)),
         Column("no roles / best", lambda r: r.ratio("no roles")),
         Column("target", lambda r: _limit(prior_eval.target(r.recording, r.horizon, r.sensors))),
         Column("verdict", lambda r: r.verdict),
+        Column("short horizons (MH4)", lambda r: _limit(prior_eval.short_limit(r.recording, r.horizon))),
+        Column("MH4 standing", lambda r: r.standing(prior_eval.short_limit(r.recording, r.horizon))),
     )
+    starts = ", ".join(f"{250 + p * 1000:g}" for p in phases)
     text = (
         "Every recording of a person is answered by a prior of human motion without that person "
         "(leave one subject out; the prior column names who it holds), beside the same recording on "
         "a model whose joints say no role (the forecast combination without the prior) and the "
-        "extrapolators. 100 ms of frames are lost every 250 ms from the first frame; the q error 35 "
-        f"and 100 ms after the last frame, over the gaps of the first {prior_eval.FIRST_STRIDE:g} s "
-        "(the first stride) and over the whole run."
+        "extrapolators. 100 ms of frames are lost every 250 ms, the first gap from "
+        f"{starts} ms (one session each: {len(phases)} phase(s)); the q error 35 and 100 ms after "
+        f"the last frame, over the gaps of the first {prior_eval.FIRST_STRIDE:g} s (the first "
+        "stride) and over the whole run, pooled over the phases' gaps, as a multiple of the best "
+        f"extrapolator, with its {prior_eval.LEVEL:.0%} bootstrap interval over the gaps. 'phase 0 "
+        "alone': the single-phase protocol's cell (first gap from 250 ms); 'phases' range': each "
+        "phase's own ratio, lowest to highest ('each phase': in the order of their starts). MH4: issue 33's must-have 4 (gait at 35 ms at or "
+        "below the best extrapolator, motion that does not repeat within 1.05 x)."
     )
     return Section(name, title, text, (Table.of(name, title, columns, rows),))
 

@@ -44,6 +44,7 @@ class RunSpec:
     network: NetworkProfile = PERFECT
     grace: float = 0.0  # s: a frame later than this after its tick is late (LOCKSTEP emulation)
     gaps: tuple[int, int] | None = None  # (gap ticks, period ticks): deterministic gaps instead of `network`
+    gap_first: int | None = None  # the tick the first gap starts at (None: one period in)
     overrides: Mapping[str, Any] = field(default_factory=dict)  # estimator settings beyond the preset
     # The scenario the session is opened with: None, the object's; "" the server's choice (the
     # client names none); or a scenario (a wrong one, to test absorption).
@@ -170,7 +171,7 @@ def _frame(
 def _schedule(spec: RunSpec, ticks: int, dt: float) -> Schedule:
     if spec.gaps is not None:
         gap_ticks, period = spec.gaps
-        return gap_schedule(ticks, dt=dt, gap_ticks=gap_ticks, period=period)
+        return gap_schedule(ticks, dt=dt, gap_ticks=gap_ticks, period=period, first=spec.gap_first)
     return lockstep_schedule(ticks, dt=dt, profile=spec.network, seed=spec.seed, grace=spec.grace)
 
 

@@ -78,3 +78,37 @@ def test_motion_that_is_not_gait_is_not_answered_at_gaits_scale(client: Any) -> 
     first = {round(r.horizon * 1000): r for r in rows if r.window == "first stride"}
     assert first[100].ratio("defaults") <= 1.05, first[100].errors
     assert first[35].ratio("defaults") <= 1.05, first[35].errors
+
+
+@pytest.mark.timeout(300)
+def test_phases_pool_the_gaps_of_later_starts_and_keep_the_single_phase_cells(client: Any) -> None:
+    """The gaps at two phases (the first gap from 250 and from 350 ms) on Fukuchi's walk, perfect
+    frames, 1.3 s: phase 0's cells are the single-phase protocol's, to the digit (the same
+    sessions); the first stride's cells hold 4 gaps a phase, 8 pooled; the later phase's gaps are
+    other gaps (other errors); each pooled ratio lies in its 90 % bootstrap interval, which has a
+    width (docs/decisions/0202-gap-phases.md)."""
+
+    def rows(phases: tuple[float, ...]) -> dict[tuple[str, int], prior_eval.PriorRow]:
+        found = prior_eval.evaluate(
+            lambda spec, obj: run_lockstep(client, spec, obj=obj, progress=False),
+            recordings=("fukuchi_walk",),
+            sensors={"perfect": None},
+            seconds=1.3,
+            phases=phases,
+        )
+        return {(r.window, round(r.horizon * 1000)): r for r in found}
+
+    single, phased = rows(prior_eval.SINGLE_PHASE), rows((0.0, 0.1))
+    assert (
+        single.keys() == phased.keys() == {(w, h) for w in ("first stride", "whole run") for h in (35, 100)}
+    )
+    for cell, row in phased.items():
+        one = single[cell]
+        assert row.by_phase[0.0] == pytest.approx(one.errors, rel=1e-9), cell
+        assert row.phase_ratio(0.0) == pytest.approx(one.ratio("defaults"), rel=1e-9), cell
+        assert row.by_phase[0.1]["defaults"] != pytest.approx(one.errors["defaults"], rel=1e-3), cell
+        assert row.count > one.count, cell
+        low, high = row.interval()
+        assert low <= row.ratio("defaults") <= high and low < high, (cell, low, high)
+    assert [single["first stride", h].count for h in (35, 100)] == [4, 4]
+    assert [phased["first stride", h].count for h in (35, 100)] == [8, 8]
