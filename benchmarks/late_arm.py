@@ -65,8 +65,13 @@ def beside(address: str, sessions: int) -> Iterator[None]:
         yield
         return
     seconds = TICKS * DT + 8.0  # the generator's own start-up, then the arm's session inside it
+    reports = []
+
+    def generate(**kwargs: object) -> None:
+        reports.append(run(**kwargs))  # type: ignore[arg-type]
+
     thread = threading.Thread(
-        target=run,
+        target=generate,
         kwargs={
             "model": "pendulum_3",
             "scenario": "PASSIVE",
@@ -86,6 +91,8 @@ def beside(address: str, sessions: int) -> Iterator[None]:
         yield
     finally:
         thread.join(timeout=seconds + 60)
+        for report in reports:  # how many of them the server admitted, and how they were answered
+            print(f"   beside: {report.line().strip()}", flush=True)
 
 
 def one_session(engine: str, scenario: str | None, others: int = 0) -> tuple[int, list[str], float]:
