@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import functools
 import gc
 import json
 import math
@@ -782,14 +783,21 @@ def tick_physics_us(model: str, scenario: str, rate: float, states: dict[str, np
                 ukf.initialise(frame)
                 continue
             parts = ukf.parts
-            kf, state = parts.kf, parts.state
-            sigmas = parts.points.sigma_points(kf.x, kf.P)
+            kf, state, layout = parts.kf, parts.state, parts.layout
             if controlled:
                 state.ctrl = np.array(states["ctrl"][k])
             parts.process.set_inputs(act=state.act, ctrl=state.ctrl, qfrc=state.qfrc)
+            if layout.linear_force:  # SIMPLEX_LINEAR_FORCE: points over [q, qd], the force carried along
+                head = layout.nq + layout.nv
+                chi = parts.points.sigma_points(kf.x[:head], kf.P[: 2 * layout.nv, : 2 * layout.nv])
+                force = np.repeat(kf.x[None, head:], chi.shape[0], 0)
+                rollout = functools.partial(parts.process.propagate_linear_force, chi, force, nstep=None)
+            else:
+                sigmas = parts.points.sigma_points(kf.x, kf.P)
+                rollout = functools.partial(parts.process.propagate, sigmas, nstep=None)
             started = time.process_time()  # the pool's threads included
             for _ in range(5):
-                parts.process.propagate(sigmas, nstep=None)
+                rollout()
             samples.append((time.process_time() - started) / 5)
             ukf.advance(ctrl=frame.ctrl)
             ukf.update(frame)
