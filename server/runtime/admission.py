@@ -326,9 +326,8 @@ class Admission:
         closes each window on time: the evidence an admission reads is then always of the last
         window, not of everything since the last admission (a server idle for a minute, then
         beside a CPU hog for two seconds, saw half a minute's idle CPU as free). A lag while no
-        session is admitted is late for no one: the machine's idle CPU judges that moment (clients
-        starting up beside an idle server lagged its loop, then had their opens refused for it;
-        docs/decisions/0207-a-clients-start-up-is-not-load.md)."""
+        session is admitted is late for no one: the machine's idle CPU judges that moment
+        (docs/decisions/0207-a-clients-start-up-is-not-load.md)."""
         with self._lock:
             if seconds > LATE_ANSWER and self._by_id:
                 self._lag_late += seconds - LATE_ANSWER

@@ -88,10 +88,8 @@ def test_a_full_fleet_that_loses_a_replica_sheds_by_admission_not_by_restarts(
     balancer = start_balancer(replicas)
     mjcf = new_model()
     # Registered first, as a lab registers its model before its sessions: its estimators' costs are
-    # measured once, here (docs/decisions/0204-the-estimator-chosen-by-stored-cost.md), not by
-    # the three replicas at once at their first inline open, each burst of measuring the machine's
-    # busy CPU in the others' first admission (a session of the three was refused once in CI, the
-    # replica's reason not kept; this was the likeliest).
+    # measured here once, not by the three replicas at once at their first inline open
+    # (docs/decisions/0204-the-estimator-chosen-by-stored-cost.md).
     with Client(balancer.address, timeout=30) as client:
         client.register_model(name="pendulum_2_inline", mjcf=mjcf)
     opened = threading.Barrier(len(replicas) + 1)
