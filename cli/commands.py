@@ -316,11 +316,12 @@ DEMO = Command(
         *_network(latency="35ms", jitter="10ms", loss=0.05),
         option(
             "--estimator",
-            default=EstimatorKind.UKF,
+            default=None,
             **_word(EstimatorKind, "--estimator", lower=False),
-            help="what answers a tick whose frame is late or lost (any case): UKF, the Unscented Kalman "
-            "Filter on the model's dynamics (default); STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION, "
-            "dead reckoning from the last frames, for comparison",
+            help="what answers a tick whose frame is late or lost (any case); default: the server's choice, "
+            "the most accurate estimator whose cost (measured when the model was registered) fits the tick, "
+            "said in the session's first line. UKF, the Unscented Kalman Filter on the model's dynamics; "
+            "STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION, dead reckoning from the last frames",
         ),
         option(
             "--seed",

@@ -24,7 +24,7 @@ from typing import TextIO
 import mujoco
 import numpy as np
 
-from jitdyn.client import Client, FrameData, SessionOptions
+from jitdyn.client import Client, FrameData, Session, SessionOptions
 from jitdyn.experiments.feed import (
     Answers,
     Context,
@@ -60,7 +60,8 @@ class DemoSettings:
     jitter: float = 0.010  # s
     loss: float = 0.05
     seed: int = 0
-    estimator: EstimatorKind = EstimatorKind.UKF
+    # None: the server's choice (by the model's stored cost in REALTIME; `opened` says which).
+    estimator: EstimatorKind | None = None
     # None: REALTIME, or LOCKSTEP (said so) when the server refuses the REALTIME session for its
     # cost or its machine's load, as it does a big MyoSuite model's.
     clock: Clock | None = None
@@ -78,6 +79,17 @@ def _start_pose(model: mujoco.MjModel, rng: np.random.Generator) -> np.ndarray:
     margin = 0.1 * (hi[bounded] - lo[bounded])
     qpos[bounded] = np.clip(qpos[bounded], lo[bounded] + margin, hi[bounded] - margin)
     return np.asarray(qpos, dtype=np.float64)
+
+
+def _estimator(session: Session, asked: EstimatorKind | None) -> str:
+    """', estimator X' as asked, or as the server chose it and why."""
+    if asked is not None:
+        return f", estimator {asked}"
+    opened = session.opened
+    reason = opened.estimator_reason or str(opened.estimator_choice or "")
+    return f", estimator {opened.estimator.get('estimator', 'the preset')}" + (
+        f" ({reason})" if reason else ""
+    )
 
 
 def run_demo(
@@ -113,7 +125,7 @@ def run_demo(
             scenario=scenario,
             dt=dt,
             clock=settings.clock or Clock.REALTIME,
-            estimator={"estimator": settings.estimator},
+            estimator={} if settings.estimator is None else {"estimator": settings.estimator},
             measured=(Channel.QPOS, Channel.QVEL, Channel.CTRL)
             if scenario is Scenario.CONTROLLED
             else (Channel.QPOS, Channel.QVEL),
@@ -128,7 +140,7 @@ def run_demo(
             ticks=ticks,
             lockstep=lockstep,
             chosen=scenario is None,
-            extra=f", estimator {settings.estimator}",
+            extra=_estimator(session, settings.estimator),
         )
         print(told, file=out)
         simulation = _Truth(model, data, dt=dt, controlled=scenario is Scenario.CONTROLLED)

@@ -82,6 +82,8 @@ def test_demo_against_a_running_server(server: Any) -> None:
         "demo", "--server", server.address, "--seconds", "1.5", "--model", "pendulum_2", "--latency", "20ms"
     ).stdout
     assert "answers received for 30 of the 30 ticks" in out, out
+    # No --estimator: the server's choice, by the model's cost, said in the session's line.
+    assert re.search(r"^session \S+: pendulum_2 .*, estimator UKF \(chosen by cost", out, re.MULTILINE), out
     assert re.search(
         r"stored: frames/model=pendulum_2/date=\d{4}-\d\d-\d\d/[0-9a-f-]{36}\.parquet "
         rf"\(in the data folder of the server at {re.escape(server.address)}\)",

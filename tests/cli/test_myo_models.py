@@ -18,13 +18,13 @@ from _cli import jitdyn
 
 pytest.importorskip("myo_sim")
 
-# name typed, name registered, nv, demo length (5 ticks of 10 model timesteps each), and whether
-# its REALTIME tick is over half its dt by the server's estimate (the legs': 38 and 69 ms against
-# 5 and 10 ms), so that the demo always runs it LOCKSTEP; the hand's is refused only on a busy machine.
+# name typed, name registered, nv, demo length (5 ticks of 10 model timesteps each). No UKF of
+# theirs fits the tick, so the server's choice by cost is dead reckoning, and the demo runs REALTIME
+# unless the machine is too busy for it (then LOCKSTEP, with the preset's UKF).
 MODELS = [
-    ("myolegs_osl", "myolegs_osl", 29, "50ms", True),
-    ("myoHand", "myohand", 23, "100ms", False),
-    ("myolegs", "myolegs", 34, "100ms", True),
+    ("myolegs_osl", "myolegs_osl", 29, "50ms"),
+    ("myoHand", "myohand", 23, "100ms"),
+    ("myolegs", "myolegs", 34, "100ms"),
 ]
 
 
@@ -46,23 +46,23 @@ def demos(server: Any) -> dict[str, str]:
     return {}
 
 
-@pytest.mark.parametrize(("typed", "name", "nv", "seconds", "too_costly"), MODELS)
+@pytest.mark.parametrize(("typed", "name", "nv", "seconds"), MODELS)
 def test_a_big_myosuite_model_registers_and_demos(
-    server: Any, demos: dict[str, str], typed: str, name: str, nv: int, seconds: str, too_costly: bool
+    server: Any, demos: dict[str, str], typed: str, name: str, nv: int, seconds: str
 ) -> None:
     registered = ok(jitdyn("models", "register", "--myo", typed, "--server", server.address))
     assert re.search(rf"^registered: sha256:[0-9a-f]{{64}}  {name} v1  nq=\d+ nv={nv} ", registered.stdout), (
         registered.stdout
     )
     demo = ok(jitdyn("demo", "--model", name, "--seconds", seconds, "--server", server.address))
-    # Refused REALTIME (its cost, or a busy machine), it says why and runs LOCKSTEP.
+    # Refused REALTIME (a busy machine), it says why and runs LOCKSTEP with the preset's UKF.
     refused = re.search(
         r"^the server refused a REALTIME session \(.+\); running it LOCKSTEP", demo.stdout, re.MULTILINE
     )
-    assert refused or not too_costly, demo.stdout
     clock = ", LOCKSTEP" if refused else ""
+    estimator = "UKF" if refused else "CONSTANT_VELOCITY \\(chosen by cost"
     session = re.search(
-        rf"^session (\S+): {name} v1 \({nv} dof\), driven \(.+\), dt \d+ ms, 5 ticks{clock}, ",
+        rf"^session (\S+): {name} v1 \({nv} dof\), driven \(.+\), dt \d+ ms, 5 ticks{clock}, estimator {estimator}",
         demo.stdout,
         re.MULTILINE,
     )
@@ -74,7 +74,18 @@ def test_a_big_myosuite_model_registers_and_demos(
 
 def test_a_demo_asked_for_realtime_is_refused_in_one_line(server: Any) -> None:
     ok(jitdyn("models", "register", "--myo", "myolegs_osl", "--server", server.address))
-    result = jitdyn("demo", "--model", "myolegs_osl", "--clock", "realtime", "--server", server.address)
+    # The UKF asked for by name: no tick of 10 model timesteps fits its cost.
+    result = jitdyn(
+        "demo",
+        "--model",
+        "myolegs_osl",
+        "--clock",
+        "realtime",
+        "--estimator",
+        "ukf",
+        "--server",
+        server.address,
+    )
     assert result.returncode == 1, result.stdout + result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("jitdyn demo: ResourceExhausted: "), result.stderr
