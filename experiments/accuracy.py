@@ -134,10 +134,11 @@ def excited_motion(model: mujoco.MjModel, scenario: Scenario, nstep: int, ticks:
 
 
 def sensed(model: mujoco.MjModel, frames: Sequence[Measurement], noise: float) -> list[Measurement]:
-    """The frames as a sensor gives them: Gaussian noise of `noise` rad (or m) on qpos' tangent and
+    """The frames as a sensor gives them, qpos and qvel alone (the excitation is what the
+    estimators must not see): Gaussian noise of `noise` rad (or m) on qpos' tangent and
     10 `noise` rad/s on qvel (seeded: the same for every estimator), or the frames themselves."""
     if noise == 0.0:
-        return list(frames)
+        return [Measurement(qpos=f.qpos, qvel=f.qvel) for f in frames]  # no ctrl: a DRIVEN session's
     manifold = SplitManifold(model, rest=0)
     rng = np.random.default_rng(0)
     return [
