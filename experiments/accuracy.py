@@ -173,7 +173,7 @@ def gap_run(
     frame. progress: the description of a bar on stderr (None: no bar)."""
     period, gap = round(EVERY / config.dt), max(1, round(GAP / config.dt))
     manifold = SplitManifold(model, rest=0)
-    errors, cycles, gaps = [], [], 0
+    errors, cycles, gaps, answered = [], [], 0, False
     with (
         WorkerPool(1) as pool,
         progress_bar(
@@ -184,10 +184,12 @@ def gap_run(
         estimator.initialise(sensors[0])
         for k in range(1, len(frames)):
             if k > period and k % period < gap:
-                gaps += k % period == 0
+                gaps += not answered  # the first tick of a gap
+                answered = True
                 q = estimator.predict(ctrl=None).qpos
                 errors.append(float(np.mean(np.abs(manifold.residual(q, frames[k].qpos)))))
             else:
+                answered = False
                 c0 = time.thread_time()
                 estimator.advance(ctrl=None)
                 estimator.update(sensors[k])
