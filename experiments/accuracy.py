@@ -13,6 +13,7 @@ benchmarks/cost_nv.py (--candidates) times every candidate on the same excited m
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import sys
 import time
@@ -360,6 +361,7 @@ def _runs(
     *,
     choice: Choice,
     progress: bool,
+    without: tuple[str, ...] = (),
 ) -> Iterator[AccuracyRow]:
     scenario, _ = default_scenario(model)
     for sensors_name, noise in SENSORS.items():
@@ -372,6 +374,10 @@ def _runs(
             config = resolve_config(
                 model=model, scenario=scenario, dt=1.0 / rate, requested=settings, measured={"qpos", "qvel"}
             )
+            # As a session's (server/runtime/opening.py): the roles its prior of human motion matches
+            # on, here without the person whose gait is replayed.
+            roles = joint_roles(describe_model(model).joints, ())
+            config = dataclasses.replace(config, roles=roles, prior_without=without)
             desc = f"{name} {motion} {sensors_name} {label(settings)}" if progress else None
             runs[label(settings)] = gap_run(model, config, frames, given, progress=desc)
         full = runs[label(choice.full)]
@@ -428,5 +434,16 @@ def accuracy_rows(
                 continue
             if rate != MYO_RATE:  # the recordings are at 100 Hz
                 choice = choose(model, scenario, MYO_RATE)
-            rows.extend(_runs(name, model, MYO_RATE, replay, gait.subject, choice=choice, progress=progress))
+            rows.extend(
+                _runs(
+                    name,
+                    model,
+                    MYO_RATE,
+                    replay,
+                    gait.subject,
+                    choice=choice,
+                    progress=progress,
+                    without=(gait.subject,),
+                )
+            )
     return rows
