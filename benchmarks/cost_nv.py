@@ -35,8 +35,8 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from jitdyn.experiments.accuracy import candidate_models, excited_motion, gap_run, sensed
 from jitdyn.server.estimation.config import resolve_config
-from jitdyn.server.estimation.interface import Measurement
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.ukf import UnscentedFilter
 from jitdyn.vocabulary import Scenario
@@ -89,21 +89,7 @@ ROWS = (
 )
 
 
-def truth(model: mujoco.MjModel, scenario: Scenario, nstep: int, ticks: int) -> list[Measurement]:
-    """The model under slow out-of-phase excitations of its actuators (sines for the biped)."""
-    d = mujoco.MjData(model)
-    mujoco.mj_forward(model, d)
-    frames = []
-    for k in range(ticks):
-        if scenario == Scenario.PASSIVE:
-            d.ctrl[:] = 0.0
-        elif model.nu and not model.na:
-            d.ctrl[:] = 2.0 * np.sin(0.02 * k + np.pi * np.arange(model.nu))
-        else:
-            d.ctrl[:] = 0.5 + 0.5 * np.sin(0.01 * k * nstep + 0.7 * np.arange(model.nu))
-        mujoco.mj_step(model, d, nstep)
-        frames.append(Measurement(qpos=d.qpos.copy(), qvel=d.qvel.copy(), ctrl=d.ctrl.copy()))
-    return frames
+truth = excited_motion  # the model under slow out-of-phase excitations of its actuators
 
 
 def physics(ukf: UnscentedFilter) -> None:
@@ -178,30 +164,6 @@ def measure(row: Row, rounds: int) -> dict[str, float]:
     return result
 
 
-# The built-in models at the rates of ROWS; the myo-sim models at this rate.
-BUILTIN_RATES = {"pendulum_1": 20.0, "pendulum_2": 20.0, "pendulum_3": 20.0, "biped": 200.0}
-MYO_RATE = 100.0
-
-
-def candidate_models(names: list[str] | None) -> list[tuple[str, mujoco.MjModel, float]]:
-    """Every built-in model and every myo-sim model that packs and compiles here (as `jitdyn
-    models register --myo` finds them), compiled as the registry compiles them, with its rate."""
-    from jitdyn.client.myo import pack_myo_model, registrable_myo_models
-
-    found = []
-    for name, rate in BUILTIN_RATES.items():
-        if not names or any(s in name for s in names):
-            found.append((name, load(name), rate))
-    for myo in registrable_myo_models():
-        if names and not any(s in myo.name for s in names):
-            continue
-        mjcf, assets = pack_myo_model(myo.name)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            found.append((myo.name, mujoco.MjModel.from_xml_string(mjcf, assets), MYO_RATE))
-    return found
-
-
 def candidate_run(
     model: mujoco.MjModel,
     scenario: Scenario,
@@ -215,39 +177,14 @@ def candidate_run(
     ticks answered by the estimator's prediction, the others by a cycle on the frame. The frames
     are perfect, or carry Gaussian noise of `noise` rad (or m) on qpos' tangent and 10 `noise`
     rad/s on qvel (seeded), as benchmarks/linearised.py's `noisy` puts it."""
-    from jitdyn.server.estimation.factory import make_estimator
-    from jitdyn.server.estimation.manifold import SplitManifold
-
     dt = 1.0 / rate
     steps = round(dt / model.opt.timestep)
-    frames = truth(model, scenario, steps, ticks=round(seconds / dt))
+    frames = excited_motion(model, scenario, steps, ticks=round(seconds / dt))
     config = resolve_config(
         model=model, scenario=scenario, dt=dt, requested=settings, measured={"qpos", "qvel"}
     )
-    period, gap = round(0.25 / dt), max(1, round(0.1 / dt))
-    cycles, errors = [], []
-    manifold = SplitManifold(model, rest=0)
-    rng = np.random.default_rng(0)
-    sensed = [
-        Measurement(
-            qpos=manifold.add(f.qpos, noise * rng.standard_normal(model.nv)),
-            qvel=None if f.qvel is None else f.qvel + 10.0 * noise * rng.standard_normal(model.nv),
-        )
-        for f in frames
-    ]
-    with WorkerPool(1) as pool:
-        estimator = make_estimator(model, config, pool=pool)
-        estimator.initialise(sensed[0])
-        for k in range(1, len(frames)):
-            if k > period and k % period < gap:
-                q = estimator.predict(ctrl=None).qpos
-                errors.append(float(np.mean(np.abs(manifold.residual(q, frames[k].qpos)))))
-            else:
-                c0 = time.thread_time()
-                estimator.advance(ctrl=None)
-                estimator.update(sensed[k])
-                cycles.append(time.thread_time() - c0)
-    return statistics.median(cycles), statistics.fmean(errors)
+    run = gap_run(model, config, frames, sensed(model, frames, noise))
+    return statistics.median(run.cycles), statistics.fmean(run.errors)
 
 
 def candidates_table(names: list[str] | None, seconds: float, noise: float) -> None:
