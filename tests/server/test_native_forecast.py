@@ -244,3 +244,21 @@ def test_the_fast_engine_and_the_prior_keep_the_python_combiner() -> None:
         built = make_estimator(model, fast, pool=pool)
         assert isinstance(built, UnscentedFilter) and built._parts.foresight is not None
         assert isinstance(built._parts.foresight.combiner, ForecastCombiner)
+
+
+def test_a_filled_window_matches_alike() -> None:
+    """fill_window records motion matching's whole window and scores nothing, in either combiner;
+    the session after it answers alike, and the combiners say the same of themselves."""
+    model = _process()
+    python, native = _pair(model, 10)
+    assert native.predictors == python.predictors
+    assert (native.horizon, native.nv, native.na) == (python.horizon, python.nv, python.na)
+
+    def frame(tick: int) -> tuple[np.ndarray, np.ndarray]:
+        t = tick * DT
+        return 0.3 * np.sin(t + np.arange(model.nv)), 0.3 * np.cos(t + np.arange(model.nv))
+
+    assert native.fill_window(frame) == python.fill_window(frame) == 400  # 20 s at 50 ms
+    _assert_equal(
+        _session(python, model, ramp=False, ticks=200), _session(native, model, ramp=False, ticks=200)
+    )
