@@ -68,6 +68,10 @@ std::vector<std::vector<int>> Subsets(int p) {
   return out;
 }
 
+// A subset's system, on the stack (at most P x P).
+using SmallMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::ColMajor, kPredictors, kPredictors>;
+using SmallVector = Eigen::Matrix<double, Eigen::Dynamic, 1, Eigen::ColMajor, kPredictors, 1>;
+
 // forecast.py's _min_variance_weights: argmin w' C w over w >= 0, sum w = 1, for the leading p
 // predictors of C (the rest weigh 0).
 PVector MinVarianceWeights(const PMatrix& full, int p) {
@@ -85,16 +89,16 @@ PVector MinVarianceWeights(const PMatrix& full, int p) {
   bool found = false;
   for (const std::vector<int>& subset : p == 4 ? subsets4 : subsets5) {
     const int k = static_cast<int>(subset.size());
-    Eigen::MatrixXd A(k, k);
+    SmallMatrix A(k, k);
     for (int i = 0; i < k; ++i) {
       for (int j = 0; j < k; ++j) A(i, j) = C(subset[i], subset[j]);
     }
     // LAPACK's gesv: LU with partial pivoting; an exact zero pivot is a singular system.
-    Eigen::PartialPivLU<Eigen::MatrixXd> lu(A);
+    Eigen::PartialPivLU<SmallMatrix> lu(A);
     bool singular = false;
     for (int i = 0; i < k; ++i) singular = singular || lu.matrixLU()(i, i) == 0.0;
     if (singular) continue;
-    Eigen::VectorXd x = lu.solve(Eigen::VectorXd::Ones(k));
+    const SmallVector x = lu.solve(SmallVector::Ones(k));
     const double total = x.sum();
     bool nonnegative = true;
     for (int i = 0; i < k; ++i) nonnegative = nonnegative && x[i] >= 0.0;
@@ -197,7 +201,8 @@ Combiner::Combiner(const mjModel* model, double dt, int steps_per_tick, int hori
   pq_ = Matrix::Zero(kPredictors, nv_);
   pv_ = Matrix::Zero(kPredictors, nv_);
   pa_ = Matrix::Zero(kPredictors, nv_);
-  lq_ = lv_ = la_ = Vector::Zero(nv_);
+  errors_ = verrors_ = Matrix::Zero(kPredictors, nv_);
+  lq_ = lv_ = la_ = a0_ = anchor_q_ = anchor_v_ = Vector::Zero(nv_);
   Grow((horizon_ + stride_ - 1) / stride_ + 3);
   Reset();
 }
@@ -305,12 +310,15 @@ void Combiner::Score(int i, const Vector& qpos, const Vector& qvel) {
   Predict(i);
   const std::int64_t h = marks_[i][kAge];
   if (!std::isnan(table_(i, c_.match_ticks))) learned_count_[h] += 1.0;
-  Matrix errors = pq_.rowwise() - qpos.transpose();
-  Matrix verrors = pv_.rowwise() - qvel.transpose();
-  if (!errors.allFinite() || !verrors.allFinite()) return;
+  errors_ = pq_.rowwise() - qpos.transpose();
+  verrors_ = pv_.rowwise() - qvel.transpose();
+  if (!errors_.allFinite() || !verrors_.allFinite()) return;
   // A probe that diverged without going non-finite squares past the largest float: left out.
-  PMatrix c = (errors * errors.transpose()) / nv_;
-  PMatrix cv = (verrors * verrors.transpose()) / nv_;
+  PMatrix c, cv;
+  c.noalias() = errors_ * errors_.transpose();
+  cv.noalias() = verrors_ * verrors_.transpose();
+  c /= nv_;
+  cv /= nv_;
   if (!c.allFinite() || !cv.allFinite()) return;
   const std::vector<double>& fading = Fading();
   const double d = Surprised(h, c) ? 1.0
@@ -345,9 +353,11 @@ void Combiner::Observe(const Vector& qpos, const Vector& qvel, const Vector& mea
       ++m;
     }
   }
-  Vector a0 = Vector::Zero(nv_);
+  Vector& a0 = a0_;
   if (has_anchor_ && anchor_tick_ < tick_) {
     a0 = (qvel - anchor_v_) / (static_cast<double>(tick_ - anchor_tick_) * dt_);
+  } else {
+    a0.setZero();
   }
   // Only a frame that follows a frame of the tick before starts a scoring probe.
   const bool streak = has_anchor_ && anchor_tick_ == tick_ - 1;
