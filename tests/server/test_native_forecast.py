@@ -111,7 +111,7 @@ def _session(combiner: Any, model: mujoco.MjModel, *, ramp: bool, ticks: int = 5
             mean = (np.full(nv, 1e160), mean[1])
         for second in (False, True) if k % 41 == 7 else (False,):  # a second frame in some ticks
             combiner.observe(
-                q + (1e-3 if second else 0.0), v, mean_qpos=mean[0], mean_qvel=mean[1], act=np.zeros(model.na),
+                q + (1e-3 if second else 0.0), v, mean_qpos=mean[0], mean_qvel=mean[1], act=np.full(model.na, 0.5 + 0.3 * np.sin(0.2 * k)),
                 force=force, rate=rate,
             )  # fmt: skip
         if k % 3 == 0:
@@ -261,4 +261,33 @@ def test_a_filled_window_matches_alike() -> None:
     assert native.fill_window(frame) == python.fill_window(frame) == 400  # 20 s at 50 ms
     _assert_equal(
         _session(python, model, ramp=False, ticks=200), _session(native, model, ramp=False, ticks=200)
+    )
+
+
+ACTIVATED = """
+<mujoco>
+  <option timestep="0.005"/>
+  <worldbody>
+    <body><joint name="a" type="hinge" axis="0 1 0" damping="0.1"/>
+      <geom type="capsule" size="0.02" fromto="0 0 0 0 0 -0.3" mass="1"/>
+      <body pos="0 0 -0.3"><joint name="b" type="hinge" axis="0 1 0" damping="0.1"/>
+        <geom type="capsule" size="0.02" fromto="0 0 0 0 0 -0.3" mass="1"/></body></body>
+  </worldbody>
+  <actuator>
+    <general joint="a" dyntype="filter" dynprm="0.05" gainprm="5"/>
+    <general joint="b" dyntype="integrator" gainprm="3"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def test_a_model_with_activations_carries_them_alike() -> None:
+    """Activations (na = 2) travel with each probe's state, in the columns before its force (the
+    process model's actuation is off, so they move no joint: a column out of place would move the
+    force, the rate and the anchor instead), over a session at another timestep."""
+    model = process_model(mujoco.MjModel.from_xml_string(ACTIVATED), scenario="DRIVEN")
+    assert model.na == 2
+    python, native = _pair(model, 10)
+    _assert_equal(
+        _session(python, model, ramp=True, ticks=300), _session(native, model, ramp=True, ticks=300)
     )
