@@ -14,12 +14,16 @@ import mujoco
 import numpy as np
 import pytest
 
+from jitdyn.experiments.recorded import chain_mjcf
+from jitdyn.registry.info import describe_model
+from jitdyn.roles import joint_roles
 from jitdyn.server.estimation import forecast
 from jitdyn.server.estimation.config import Engine
 from jitdyn.server.estimation.factory import make_estimator
 from jitdyn.server.estimation.forecast import CombinedForecast, ForecastCombiner
 from jitdyn.server.estimation.native.combiner import NativeCombiner
 from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.estimation.prior import legs_of
 from jitdyn.server.estimation.propagate import process_model
 from jitdyn.server.estimation.ukf import UnscentedFilter
 from jitdyn.server.runtime.costs import snapshot_bytes
@@ -238,12 +242,19 @@ def test_a_driven_estimator_answers_alike_with_either_combiner() -> None:
 
 
 def test_the_fast_engine_and_the_prior_keep_the_python_combiner() -> None:
+    """The FAST engine combines in Python; so does the NATIVE engine for a model whose joints have
+    leg roles (the prior of human motion stays Python)."""
     model = pendulum(2)
     fast = dataclasses.replace(config_for(model, "DRIVEN"), engine=Engine.FAST)
+    legs = mujoco.MjModel.from_xml_string(chain_mjcf())
+    roles = joint_roles(describe_model(legs).joints, ())
+    native = dataclasses.replace(config_for(legs, "DRIVEN"), roles=roles)
+    assert native.engine == Engine.NATIVE and legs_of(roles)
     with WorkerPool(1) as pool:
-        built = make_estimator(model, fast, pool=pool)
-        assert isinstance(built, UnscentedFilter) and built._parts.foresight is not None
-        assert isinstance(built._parts.foresight.combiner, ForecastCombiner)
+        for m, config in ((model, fast), (legs, native)):
+            built = make_estimator(m, config, pool=pool)
+            assert isinstance(built, UnscentedFilter) and built._parts.foresight is not None
+            assert isinstance(built._parts.foresight.combiner, ForecastCombiner)
 
 
 def test_a_filled_window_matches_alike() -> None:
