@@ -45,6 +45,7 @@ MotionMatcher::MotionMatcher(int nv, double dt, int horizon) : nv_(nv), horizon_
   features_ = Matrix::Zero(slots_, width_);
   moments_ = Vector::Zero(2 * width_);
   query_ = Vector::Zero(width_);
+  inverse_ = Vector::Zero(width_);
   distance_ = Vector::Zero(slots_);
   order_.resize(slots_);
 }
@@ -109,6 +110,8 @@ bool MotionMatcher::Match(std::int64_t tick, double* ticks, double* weights) {
   }
   if (in < kMatchK) return false;
   constexpr double kInf = std::numeric_limits<double>::infinity();
+  // Each feature by its spread.
+  for (int j = 0; j < width_; ++j) inverse_[j] = 1.0 / std::max(moments_[width_ + j], 1e-18);
   for (int s = 0; s < slots_; ++s) {
     const std::int64_t c = cstamp_[s];
     if (c <= tick - window_ || c > tick - horizon_) {
@@ -118,7 +121,7 @@ bool MotionMatcher::Match(std::int64_t tick, double* ticks, double* weights) {
     double sum = 0.0;
     for (int j = 0; j < width_; ++j) {
       const double d = features_(s, j) - query_[j];
-      sum += d * d * (1.0 / std::max(moments_[width_ + j], 1e-18));
+      sum += d * d * inverse_[j];
     }
     distance_[s] = sum;
   }

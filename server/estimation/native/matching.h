@@ -48,7 +48,7 @@ class MotionMatcher {
   std::vector<std::int64_t> stamp_, cstamp_;
   Matrix q_, v_, a_, features_;
   Vector moments_;  // fading mean (width) then variance (width)
-  Vector query_, distance_;
+  Vector query_, inverse_, distance_;  // a match's scratch, sized once
   std::vector<int> order_;
 };
 
