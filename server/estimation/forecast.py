@@ -66,9 +66,9 @@ plain arrays, so `snapshot()`/`restore()` serve the timewarp and a replay is exa
 
 This is the reference. A session on the NATIVE engine without the prior runs the same combination
 compiled (native/forecast.cc and matching.cc, through native/combiner.py; estimation/foresight.py
-chooses), held to these numbers to 1e-9: there a tick of the combination costs about its probes'
-physics, where here the Python around it costs 2.5 times as much again on a 2-link arm at 50 Hz
-(docs/decisions/0208-the-forecast-in-the-native-engine.md).
+chooses), held to these numbers to 1e-9: there a DRIVEN cycle's forecast costs about its probes'
+physics, 3.6-4.1 times less than here (a 2-link arm at 50 Hz, myoElbow at 500 Hz;
+docs/decisions/0208-the-forecast-in-the-native-engine.md).
 """
 
 from __future__ import annotations

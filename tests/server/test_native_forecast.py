@@ -113,9 +113,10 @@ def _session(combiner: Any, model: mujoco.MjModel, *, ramp: bool, ticks: int = 5
         mean = (q + 1e-3 * rng.standard_normal(nv), v + 1e-2 * rng.standard_normal(nv))
         if k == WILD:
             mean = (np.full(nv, 1e160), mean[1])
+        act = np.full(model.na, 0.5 + 0.3 * np.sin(0.2 * k))
         for second in (False, True) if k % 41 == 7 else (False,):  # a second frame in some ticks
             combiner.observe(
-                q + (1e-3 if second else 0.0), v, mean_qpos=mean[0], mean_qvel=mean[1], act=np.full(model.na, 0.5 + 0.3 * np.sin(0.2 * k)),
+                q + (1e-3 if second else 0.0), v, mean_qpos=mean[0], mean_qvel=mean[1], act=act,
                 force=force, rate=rate,
             )  # fmt: skip
         if k % 3 == 0:
@@ -145,7 +146,7 @@ def test_the_native_combination_answers_as_the_python_one(ramp: bool, horizon: i
     python, native = _pair(model, horizon)
     a, b = _session(python, model, ramp=ramp), _session(native, model, ramp=ramp)
     _assert_equal(a, b)
-    given = [w for w in a.weights]
+    given = a.weights
     assert len(given) > 100
     assert any(w[4] > 0.01 for w in given)  # LEARNED took weight
     assert any(w[0] > 0.01 for w in given)  # and MODEL
