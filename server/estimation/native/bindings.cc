@@ -124,8 +124,8 @@ PYBIND11_MODULE(_ukf, module) {
           },
           py::kw_only(), py::arg("noise_q"), py::arg("noise_qd"), py::arg("ended"))
       .def("fill_window", &Combiner::FillWindow, py::arg("q"), py::arg("v"), py::call_guard<py::gil_scoped_release>())
-      .def("snapshot", &Combiner::Snapshot)
-      .def("restore", &Combiner::Restore, py::arg("state"))
+      .def("snapshot", &Combiner::Snapshot, py::call_guard<py::gil_scoped_release>())
+      .def("restore", &Combiner::Restore, py::arg("state"), py::call_guard<py::gil_scoped_release>())
       .def_property_readonly("horizon", &Combiner::horizon)
       .def_property_readonly("nv", &Combiner::nv)
       .def_property_readonly("na", &Combiner::na)
