@@ -54,16 +54,16 @@ class BuildNative(build_ext):  # type: ignore[misc]
         super().run()
 
 
-# The three sources compile at once, on as many cores as there are (NPY_NUM_BUILD_JOBS caps it).
+# The sources compile at once, on as many cores as there are (NPY_NUM_BUILD_JOBS caps it).
 ParallelCompile("NPY_NUM_BUILD_JOBS").install()
 library = libmujoco()
 setup(
     ext_modules=[
         Pybind11Extension(
             "jitdyn.server.estimation.native._ukf",
-            sources=[str(NATIVE / name) for name in ("bindings.cc", "ukf.cc", "adaptive.cc")],
+            sources=[str(NATIVE / name) for name in ("bindings.cc", "ukf.cc", "adaptive.cc", "forecast.cc", "matching.cc")],
             include_dirs=[str(library.parent / "include"), eigen_include()],
-            depends=[str(NATIVE / "ukf.h"), str(NATIVE / "adaptive.h")],
+            depends=[str(NATIVE / name) for name in ("ukf.h", "adaptive.h", "forecast.h", "matching.h", "extrapolators.h")],
             cxx_std=17,
             # Linked by its full name (the wheel ships no unversioned libmujoco.so). At run time
             # the module finds it already loaded by `import mujoco` (by soname), or beside itself

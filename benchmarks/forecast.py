@@ -20,14 +20,17 @@ stepping; alone/physics less 1 is the interpreter's cost per probe that one batc
 
 With --share: the whole estimator of a DRIVEN session as the server builds it (JITDYN preset,
 native engine, one worker) on a 2-link arm at 50 Hz and myoElbow at 500 Hz, over the model's own
-excited motion with 4 ticks of frames lost every 25, once with the forecast combination (the
-preset's, motion matching and the prior included) and once with `forecast` FILTER, alternated
-round by round; thread CPU per tick, medians.
+excited motion with 4 ticks of frames lost every 25, three ways alternated round by round: with the
+forecast combination in the native engine (the preset's: native/forecast.cc, motion matching
+included), with the Python ForecastCombiner in its place (`native_forecast` False, the same
+numbers), and with `forecast` FILTER; thread CPU per tick, medians. The forecast's cost is a
+cycle's less FILTER's.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import sys
 import time
@@ -106,9 +109,9 @@ def measure(name: str, dt: float, rounds: int, ticks: int) -> dict[str, float] |
     }
 
 
-def _driven_cycle(name: str, rate: float, forecast: str) -> Callable[[int], None]:
+def _driven_cycle(name: str, rate: float, forecast: str, *, native: bool = True) -> Callable[[int], None]:
     """One tick (k) of a DRIVEN session's estimator of `name` at `rate` Hz: a frame, or none on 4
-    ticks of every 25."""
+    ticks of every 25; native: the forecast combination in the native engine (else the Python one)."""
     from benchmarks.cost_nv import load as load_model
     from benchmarks.cost_nv import truth
     from benchmarks.late_arm import ARM
@@ -122,6 +125,7 @@ def _driven_cycle(name: str, rate: float, forecast: str) -> Callable[[int], None
     config = resolve_config(
         model=model, scenario="DRIVEN", dt=dt, requested={"forecast": forecast}, measured={"qpos", "qvel"}
     )
+    config = dataclasses.replace(config, native_forecast=native)
     frames = truth(model, Scenario.DRIVEN, round(dt / model.opt.timestep), ticks=1000)
     estimator = make_estimator(model, config, pool=WorkerPool(1))
     estimator.initialise(frames[0])
@@ -137,16 +141,22 @@ def _driven_cycle(name: str, rate: float, forecast: str) -> Callable[[int], None
 
 
 def share(rounds: int, ticks: int) -> None:
-    """The forecast combination's share of a DRIVEN cycle (module docstring)."""
+    """The forecast combination's share of a DRIVEN cycle, native and Python (module docstring)."""
     print(
-        "| model | rate (Hz) | cycle, forecast combination (us) | cycle, FILTER (us) | the forecast (us) | share |"
+        "| model | rate (Hz) | cycle, native combination (us) | cycle, Python combination (us) | "
+        "cycle, FILTER (us) | the forecast, native (us) | the forecast, Python (us) | Python / native | "
+        "native share |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, rate in (("arm2", 50.0), ("myoelbow", 500.0)):
         try:
-            arms = {f: _driven_cycle(name, rate, f) for f in ("COMBINED", "FILTER")}
+            arms = {
+                "native": _driven_cycle(name, rate, "COMBINED"),
+                "python": _driven_cycle(name, rate, "COMBINED", native=False),
+                "filter": _driven_cycle(name, rate, "FILTER"),
+            }
         except ImportError:  # myo_sim: the jitdyn[myo] extra
-            print(f"| {name} | {rate:g} | not run: myo_sim is not installed |||", flush=True)
+            print(f"| {name} | {rate:g} | not run: myo_sim is not installed |||||||", flush=True)
             continue
         spent: dict[str, list[float]] = {f: [] for f in arms}
         k = 1
@@ -157,10 +167,11 @@ def share(rounds: int, ticks: int) -> None:
                     tick(j)
                 spent[label].append((time.thread_time() - began) / ticks * 1e6)
             k += ticks
-        combined, alone = statistics.median(spent["COMBINED"]), statistics.median(spent["FILTER"])
+        native, python, alone = (statistics.median(spent[f]) for f in ("native", "python", "filter"))
         print(
-            f"| {name} | {rate:g} | {combined:.0f} | {alone:.0f} | {combined - alone:.0f} | "
-            f"{100 * (combined - alone) / combined:.0f} % |",
+            f"| {name} | {rate:g} | {native:.0f} | {python:.0f} | {alone:.0f} | {native - alone:.0f} | "
+            f"{python - alone:.0f} | {(python - alone) / max(native - alone, 1e-9):.1f} | "
+            f"{100 * (native - alone) / native:.0f} % |",
             flush=True,
         )
 
@@ -172,7 +183,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=7, help="round-robin rounds (default 7)")
     parser.add_argument("--ticks", type=int, default=200, help="ticks per measurement (default 200)")
     parser.add_argument(
-        "--share", action="store_true", help="the forecast's share of a DRIVEN session's cycle instead"
+        "--share",
+        action="store_true",
+        help="the forecast's share of a DRIVEN session's cycle, native and Python, instead",
     )
     args = parser.parse_args(argv)
     if args.rounds < 1 or args.ticks < 1:

@@ -117,6 +117,9 @@ class EstimatorConfig:
     wrong_model: WrongModel = WrongModel.KEEP
     # Not a setting: the implementation of the filter's algebra (resolve_config: the preset's).
     engine: Engine = Engine.FILTERPY
+    # Not a setting: with the NATIVE engine, the forecast combination in it too (False: the Python
+    # ForecastCombiner, its reference, which tests and benchmarks run beside it; foresight.py).
+    native_forecast: bool = True
     # Not settings: the model's joint roles (jitdyn.roles), which the prior of human motion matches
     # (estimation/prior.py; none: no prior), and the prior's subjects left out (model tags
     # "prior.without.<subject>": a recording of that person is never scored by a prior of it).

@@ -13,6 +13,12 @@ estimation/forecast.py's; UnscentedFilter (estimation/ukf.py) calls this at the 
 The answer's variance over [q, qd] is, per component, the larger of the combination's scored error
 and the filter's prediction's (answer_scale), and its unknown force the inverse dynamics of the
 forecast motion; the filter's own mean and covariance go on predicting under their own force.
+
+Which combiner: with the NATIVE engine, the native one (native/combiner.py, the same numbers at a
+fraction of the cost); the Python ForecastCombiner, its reference, with the FAST and FILTERPY
+engines, with the prior of human motion (models whose joints have leg roles), with a predictor
+family the native engine lacks, or when the config asks for it (`native_forecast=False`)
+(docs/decisions/0208-the-forecast-in-the-native-engine.md).
 """
 
 from __future__ import annotations
@@ -24,16 +30,30 @@ import mujoco
 import numpy as np
 
 from jitdyn.errors import InvalidArgument
-from jitdyn.server.estimation.config import EstimatorConfig
+from jitdyn.server.estimation import predictors
+from jitdyn.server.estimation.config import Engine, EstimatorConfig
 from jitdyn.server.estimation.forecast import CombinedForecast, CombinerSnapshot, ForecastCombiner
 from jitdyn.server.estimation.interface import Estimate, Measurement, read_only
+from jitdyn.server.estimation.native import CombinerState
+from jitdyn.server.estimation.native.combiner import NATIVE_PREDICTORS, NativeCombiner
 from jitdyn.server.estimation.prior import PriorMatcher, legs_of, library
 from jitdyn.vocabulary import Forecast
 
-__all__ = ["FORECAST_HORIZON", "Foresight", "answer_scale"]
+__all__ = ["FORECAST_HORIZON", "Foresight", "answer_scale", "native_combination"]
 
 # The longest gap the forecast combination learns its weights for, s (past it the filter answers).
 FORECAST_HORIZON: Final = 0.5
+
+
+def native_combination(config: EstimatorConfig) -> bool:
+    """Whether a session without the prior combines its forecasts in the native engine: its engine
+    is NATIVE, the config does not ask for the Python combiner, and every predictor family is one
+    the native engine computes (estimation/predictors.py's FAMILIES)."""
+    return (
+        config.engine == Engine.NATIVE
+        and config.native_forecast
+        and predictors.names(predictors.FAMILIES) == NATIVE_PREDICTORS
+    )
 
 
 def answer_scale(P: np.ndarray, answer: CombinedForecast, nv: int) -> np.ndarray:
@@ -74,14 +94,21 @@ class Foresight:
             except ValueError as error:
                 raise InvalidArgument(f"model tag prior.without: {error}") from None
             prior = PriorMatcher(chosen, legs=legs, nv=self._nv, dt=config.dt)
-        self.combiner = ForecastCombiner(
-            model,
-            dt=config.dt,
-            steps_per_tick=config.steps_per_tick,
-            horizon=int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9)),
-            learner=True,
-            prior=prior,
-        )
+        horizon = int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9))
+        self.combiner: ForecastCombiner | NativeCombiner
+        if prior is None and native_combination(config):
+            self.combiner = NativeCombiner(
+                model, dt=config.dt, steps_per_tick=config.steps_per_tick, horizon=horizon
+            )
+        else:
+            self.combiner = ForecastCombiner(
+                model,
+                dt=config.dt,
+                steps_per_tick=config.steps_per_tick,
+                horizon=horizon,
+                learner=True,
+                prior=prior,
+            )
 
     @classmethod
     def of(
@@ -99,11 +126,17 @@ class Foresight:
     def advance(self) -> None:
         self.combiner.advance()
 
-    def snapshot(self) -> CombinerSnapshot:
+    def snapshot(self) -> CombinerSnapshot | CombinerState:
         return self.combiner.snapshot()
 
-    def restore(self, snap: CombinerSnapshot) -> None:
-        self.combiner.restore(snap)
+    def restore(self, snap: CombinerSnapshot | CombinerState) -> None:
+        # Each combiner takes its own snapshots (two branches for the type checker).
+        if isinstance(self.combiner, NativeCombiner) and isinstance(snap, CombinerState):  # noqa: SIM114
+            self.combiner.restore(snap)
+        elif isinstance(self.combiner, ForecastCombiner) and isinstance(snap, CombinerSnapshot):
+            self.combiner.restore(snap)
+        else:
+            raise TypeError(f"a snapshot of another combiner: {type(snap).__name__}")
 
     def observe(self, m: Measurement, *, x: np.ndarray, act: np.ndarray) -> None:
         """Score the forecasts against frame m and start this tick's, from the posterior mean x."""

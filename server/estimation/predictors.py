@@ -16,6 +16,11 @@ Adding a predictor is one family (a new file, or a class here) and one entry in 
         def predict(self, probes):
             ...
 
+The native engine computes the default families (MODEL, the IEEE 1278 extrapolators, LEARNED) in
+C++ (native/forecast.cc); a combination with a family it lacks, such as one added here, runs the
+Python combiner, estimation/forecast.py, with no other change (estimation/foresight.py checks the
+names, native/combiner.py's NATIVE_PREDICTORS).
+
 A `learned` family predicts from the session's own frames: it takes no weight at a horizon until
 it has scored there LEARNED_SAMPLES times from a real match, and it has no vote on a regime change
 (estimation/forecast.py). The combiner builds the LEARNED family's continuation itself (its probes

@@ -18,7 +18,7 @@ from jitdyn.server.estimation.forecast import CombinerSnapshot
 from jitdyn.server.estimation.foresight import Foresight
 from jitdyn.server.estimation.guard import Guard, GuardState
 from jitdyn.server.estimation.interface import Measurement, read_only
-from jitdyn.server.estimation.native import AdapterState
+from jitdyn.server.estimation.native import AdapterState, CombinerState
 from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
 
 __all__ = ["FilterSnapshot", "FilterState", "restore_snapshot", "take_snapshot"]
@@ -68,7 +68,7 @@ class FilterSnapshot:
     ticks_since_update: int
     guard: GuardState
     adapter: NoiseSnapshot | AdapterState | None
-    forecasts: CombinerSnapshot | None
+    forecasts: CombinerSnapshot | CombinerState | None
 
 
 def take_snapshot(

@@ -28,6 +28,9 @@ def snapshot_bytes(snapshot: object) -> int:
     """Bytes of the arrays an estimator snapshot holds (one tick of history)."""
     if isinstance(snapshot, np.ndarray):
         return int(snapshot.nbytes)
+    nbytes = getattr(snapshot, "nbytes", None)  # an opaque native snapshot says its own size
+    if isinstance(nbytes, int):
+        return nbytes
     if dataclasses.is_dataclass(snapshot) and not isinstance(snapshot, type):
         return sum(
             snapshot_bytes(_own(getattr(snapshot, f.name), shared=f.metadata.get(SHARED_WITH_EARLIER, False)))

@@ -1,6 +1,7 @@
 """jitdyn's native estimation engine: the unscented filter's numeric work (sigma points, their
 propagation through MuJoCo's C API, the unscented transform and the update) in one compiled
-module, ukf.cc, which holds the filter's state and releases the GIL while it works.
+module, ukf.cc, which holds the filter's state and releases the GIL while it works; and a DRIVEN
+session's forecast combination (forecast.cc, matching.cc; native/combiner.py wraps it).
 
 The module is built by `pip install` (setup.py) against the headers of the pinned mujoco, and
 handed that MuJoCo's pointers: importing it beside any other MuJoCo is refused, in one line.
@@ -20,7 +21,7 @@ except ImportError as error:  # pragma: no cover - a broken install, said in one
         "present (pip install -e . in the checkout)"
     ) from error
 
-__all__ = ["MUJOCO_VERSION", "AdapterState", "SingularMatrix", "Ukf"]
+__all__ = ["MUJOCO_VERSION", "AdapterState", "CombinerState", "SingularMatrix", "Ukf"]
 
 MUJOCO_VERSION = int(_ukf.MUJOCO_HEADER_VERSION)
 
@@ -32,4 +33,5 @@ if _ukf.mujoco_version() != MUJOCO_VERSION or mujoco.mj_version() != MUJOCO_VERS
 
 Ukf = _ukf.Ukf
 AdapterState = _ukf.AdapterState
+CombinerState = _ukf.CombinerState
 SingularMatrix = _ukf.SingularMatrix

@@ -79,3 +79,33 @@ class Ukf:
     S: np.ndarray
     SI: np.ndarray
     propagated_act: np.ndarray
+
+class CombinerState:
+    nbytes: int
+
+class Combiner:
+    def __init__(self, model_address: int, *, dt: float, steps_per_tick: int, horizon: int) -> None: ...
+    def reset(self) -> None: ...
+    def advance(self) -> None: ...
+    def observe(
+        self,
+        qpos: np.ndarray,
+        qvel: np.ndarray,
+        *,
+        mean_qpos: np.ndarray,
+        mean_qvel: np.ndarray,
+        act: np.ndarray,
+        force: np.ndarray,
+        rate: np.ndarray | None,
+    ) -> None: ...
+    def forecast(
+        self, *, noise_q: np.ndarray | None, noise_qd: np.ndarray | None, ended: bool
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None: ...
+    def fill_window(self, q: np.ndarray, v: np.ndarray) -> int: ...
+    def snapshot(self) -> CombinerState: ...
+    def restore(self, state: CombinerState) -> None: ...
+    horizon: int
+    nv: int
+    na: int
+    window: int
+    tick: int

@@ -8,6 +8,7 @@
 #include <string>
 
 #include "adaptive.h"
+#include "forecast.h"
 #include "ukf.h"
 
 namespace py = pybind11;
@@ -91,6 +92,45 @@ PYBIND11_MODULE(_ukf, module) {
       .def_property_readonly("gap_inflation", &Adapter::GapInflation)
       .def("snapshot", [](const Adapter& a) { return a.state(); })
       .def("restore", &Adapter::Restore, py::arg("state"));
+
+  // The forecast combination (forecast.h) and a snapshot of it, opaque and immutable from Python.
+  using jitdyn::Combiner;
+  using jitdyn::CombinerState;
+  py::class_<CombinerState>(module, "CombinerState")
+      .def_property_readonly("nbytes", [](const CombinerState& s) { return s.Bytes(); });
+  py::class_<Combiner>(module, "Combiner")
+      .def(py::init([](std::uintptr_t model_address, double dt, int steps_per_tick, int horizon) {
+             return std::make_unique<Combiner>(reinterpret_cast<const mjModel*>(model_address), dt, steps_per_tick,
+                                               horizon);
+           }),
+           py::arg("model_address"), py::kw_only(), py::arg("dt"), py::arg("steps_per_tick"), py::arg("horizon"))
+      .def("reset", &Combiner::Reset)
+      .def("advance", &Combiner::Advance, py::call_guard<py::gil_scoped_release>())
+      .def("observe", &Combiner::Observe, py::arg("qpos"), py::arg("qvel"), py::kw_only(), py::arg("mean_qpos"),
+           py::arg("mean_qvel"), py::arg("act"), py::arg("force"), py::arg("rate"),
+           py::call_guard<py::gil_scoped_release>())
+      .def(
+          "forecast",
+          [](Combiner& c, const std::optional<Vector>& noise_q, const std::optional<Vector>& noise_qd, bool ended)
+              -> std::optional<std::tuple<Vector, Vector, Vector, Vector, Vector, Vector>> {
+            std::optional<jitdyn::CombinedForecast> answer;
+            {
+              py::gil_scoped_release release;
+              answer = c.Forecast(noise_q, noise_qd, ended);
+            }
+            if (!answer) return std::nullopt;
+            return std::make_tuple(Vector(answer->weights), answer->qpos, answer->qvel, answer->qacc, answer->var_q,
+                                   answer->var_qd);
+          },
+          py::kw_only(), py::arg("noise_q"), py::arg("noise_qd"), py::arg("ended"))
+      .def("fill_window", &Combiner::FillWindow, py::arg("q"), py::arg("v"), py::call_guard<py::gil_scoped_release>())
+      .def("snapshot", &Combiner::Snapshot, py::call_guard<py::gil_scoped_release>())
+      .def("restore", &Combiner::Restore, py::arg("state"), py::call_guard<py::gil_scoped_release>())
+      .def_property_readonly("horizon", &Combiner::horizon)
+      .def_property_readonly("nv", &Combiner::nv)
+      .def_property_readonly("na", &Combiner::na)
+      .def_property_readonly("window", &Combiner::window)
+      .def_property_readonly("tick", &Combiner::tick);
 
   py::class_<Ukf>(module, "Ukf")
       .def(py::init(&MakeUkf), py::arg("model_address"), py::kw_only(), py::arg("n"), py::arg("size"),
