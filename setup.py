@@ -61,9 +61,13 @@ setup(
     ext_modules=[
         Pybind11Extension(
             "jitdyn.server.estimation.native._ukf",
-            sources=[str(NATIVE / name) for name in ("bindings.cc", "ukf.cc", "adaptive.cc")],
+            sources=[str(NATIVE / name) for name in ("bindings.cc", "ukf.cc", "adaptive.cc")]
+            # The linearised filter (EKF).
+            + [str(NATIVE / "linearised.cc")],
             include_dirs=[str(library.parent / "include"), eigen_include()],
-            depends=[str(NATIVE / "ukf.h"), str(NATIVE / "adaptive.h")],
+            depends=[str(NATIVE / "ukf.h"), str(NATIVE / "adaptive.h")]
+            # The linearised filter (EKF).
+            + [str(NATIVE / "linearised.h")],
             cxx_std=17,
             # Linked by its full name (the wheel ships no unversioned libmujoco.so). At run time
             # the module finds it already loaded by `import mujoco` (by soname), or beside itself
