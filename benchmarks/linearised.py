@@ -49,7 +49,7 @@ from jitdyn.server.estimation.linearised import LinearisedFilter
 from jitdyn.server.estimation.manifold import SplitManifold
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.ukf import UnscentedFilter
-from jitdyn.vocabulary import Forecast, NoiseModel, Scenario, WrongModel
+from jitdyn.vocabulary import EstimatorKind, Forecast, NoiseModel, Scenario, WrongModel
 
 
 def _cpu(work: object, repeats: int) -> float:
@@ -65,11 +65,17 @@ def _cpu(work: object, repeats: int) -> float:
 
 
 def ekf_config(config: EstimatorConfig, *, engine: Engine = Engine.NATIVE) -> EstimatorConfig:
-    """The UKF's settings for the linearised filter: fixed noise, the filter's own forecast, and
-    PASSIVE's wrong_model KEEP (its switch to DRIVEN is the UKF's)."""
-    wrong_model = WrongModel.KEEP if config.wrong_model == WrongModel.DRIVEN else config.wrong_model
+    """The linearised filter's settings beside the UKF's `config`: the same noise, fixed, the
+    filter's own forecast, and PASSIVE's wrong_model RESTART (the switch to DRIVEN is the UKF's),
+    as resolve_config gives an EKF session."""
+    wrong_model = WrongModel.RESTART if config.wrong_model == WrongModel.DRIVEN else config.wrong_model
     return dataclasses.replace(
-        config, noise_model=NoiseModel.FIXED, forecast=Forecast.FILTER, wrong_model=wrong_model, engine=engine
+        config,
+        estimator=EstimatorKind.EKF,
+        noise_model=NoiseModel.FIXED,
+        forecast=Forecast.FILTER,
+        wrong_model=wrong_model,
+        engine=engine,
     )
 
 

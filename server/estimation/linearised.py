@@ -48,7 +48,7 @@ from jitdyn.server.estimation.manifold import SplitManifold
 from jitdyn.server.estimation.native.linearised import EPS, FORCE_EPS, NativeTick
 from jitdyn.server.estimation.noise import UkfNoise
 from jitdyn.server.estimation.propagate import process_model
-from jitdyn.vocabulary import Channel, ForceModel, Forecast, NoiseModel, Scenario, WrongModel
+from jitdyn.vocabulary import Channel, EstimatorKind, ForceModel, Forecast, NoiseModel, Scenario, WrongModel
 
 __all__ = [
     "EPS",
@@ -141,6 +141,38 @@ class PythonTick:
         out[self.nv :] = qvel - qvel0
         return out
 
+    def _force_columns(
+        self,
+        step: np.ndarray,
+        start: tuple[np.ndarray, np.ndarray, np.ndarray],
+        force: np.ndarray,
+        nominal: tuple[np.ndarray, np.ndarray],
+    ) -> None:
+        """step[:2nv, 2nv:] (the force's columns): forward differences of the step from `start`
+        (qpos, qvel, act) in each force component against the `nominal` step's (qpos, qvel). A
+        force changes no position or velocity stage: those run once, and each column runs the
+        acceleration stage and the integrator alone (RK4: the whole step)."""
+        m, d, nv = self.model, self.data, self.nv
+        qpos, qvel, act = start
+        rk4 = m.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+        self._set(qpos, qvel, act, force)
+        mujoco.mj_forward(m, d)
+        for i in range(nv):
+            eps = FORCE_EPS * max(1.0, abs(float(force[i])))
+            d.qfrc_applied[i] = force[i] + eps
+            if rk4:
+                mujoco.mj_step(m, d)
+            else:
+                mujoco.mj_forwardSkip(m, d, mujoco.mjtStage.mjSTAGE_VEL, 1)
+                if m.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER:
+                    mujoco.mj_Euler(m, d)
+                else:
+                    mujoco.mj_implicit(m, d)
+            step[: 2 * nv, 2 * nv + i] = self._tangent(d.qpos, d.qvel, *nominal) / eps
+            self._set(qpos, qvel, act, force)
+            if rk4:
+                mujoco.mj_forward(m, d)
+
     def predict(
         self, x: np.ndarray, P: np.ndarray, act: np.ndarray, qfrc: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -159,13 +191,7 @@ class PythonTick:
             mujoco.mj_step(m, d)
             qpos1, qvel1, act1 = d.qpos.copy(), d.qvel.copy(), d.act.copy()
             if self.driven:
-                for i in range(nv):  # forward differences of the step in each force component
-                    eps = FORCE_EPS * max(1.0, abs(float(force[i])))
-                    pushed = force.copy()
-                    pushed[i] += eps
-                    self._set(qpos, qvel, act, pushed)
-                    mujoco.mj_step(m, d)
-                    step[: 2 * nv, 2 * nv + i] = self._tangent(d.qpos, d.qvel, qpos1, qvel1) / eps
+                self._force_columns(step, (qpos, qvel, act), force, (qpos1, qvel1))
             A = step @ A
             qpos, qvel, act = qpos1, qvel1, act1
         out = x.copy()
@@ -207,6 +233,10 @@ class LinearisedFilter:
     coarsen: the model's steps a process-model step (None: `coarsening`'s)."""
 
     def __init__(self, model: mujoco.MjModel, config: EstimatorConfig, *, coarsen: int | None = None) -> None:
+        if config.estimator != EstimatorKind.EKF:
+            raise InvalidArgument(
+                f"config.estimator must be EKF for a LinearisedFilter, got {config.estimator}"
+            )
         check_against_model(model, config)
         _check_supported(config)
         scenario = Scenario(config.scenario)

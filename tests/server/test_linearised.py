@@ -23,15 +23,14 @@ from tests.server.test_ukf import BALL_PENDULUM, config_for, pendulum
 
 # |native - python| <= TOL (1 + |python|), entry by entry (as tests/server/test_native.py).
 TOL = 1e-9
-FIXED = {"noise_model": "FIXED", "forecast": "FILTER"}
 
 
 def ekf_config(
     model: mujoco.MjModel, scenario: str, *, dt: float = 0.05, **requested: object
 ) -> EstimatorConfig:
-    wrong_model = {"PASSIVE": "KEEP"}.get(scenario)  # the preset's DRIVEN switch is the UKF's
-    extra = {"wrong_model": wrong_model} if wrong_model else {}
-    return config_for(model, scenario, dt=dt, **{**FIXED, **extra, **requested})
+    """The server's settings of an EKF session (resolve_config's: fixed noise, the filter's own
+    forecast, PASSIVE's wrong_model RESTART)."""
+    return config_for(model, scenario, dt=dt, estimator="EKF", **requested)
 
 
 def flatten(estimate: Estimate, f: LinearisedFilter) -> list[np.ndarray]:
@@ -184,7 +183,7 @@ def test_what_it_does_not_run_is_refused_by_name(
     scenario: str, requested: dict[str, object], message: str
 ) -> None:
     model = pendulum(2)
-    config = config_for(model, scenario, **{**FIXED, "wrong_model": "KEEP", **requested})
+    config = config_for(model, scenario, estimator="EKF", **requested)
     with pytest.raises(
         InvalidArgument, match=r"the linearised filter \(EKF\) runs no such session: " + message
     ):

@@ -63,6 +63,33 @@ void Ekf::Check(const Vector& x, const Matrix& P) const {
                                                 " x " + std::to_string(P.cols()));
 }
 
+void Ekf::ForceColumns(Matrix& step, const Vector& qpos, const Vector& qvel, const Vector& act,
+                       const Vector& force, const Vector& qpos1, const Vector& qvel1) {
+  const int k = 2 * nv_;
+  const bool rk4 = m_->opt.integrator == mjINT_RK4;
+  Vector column(k);
+  Set(qpos.data(), qvel.data(), act.data(), force.data());
+  mj_forward(m_, d_);
+  for (int i = 0; i < nv_; ++i) {
+    double eps = force_eps_ * std::max(1.0, std::abs(force[i]));
+    d_->qfrc_applied[i] = force[i] + eps;
+    if (rk4) {
+      mj_step(m_, d_);
+    } else {
+      mj_forwardSkip(m_, d_, mjSTAGE_VEL, 1);
+      if (m_->opt.integrator == mjINT_EULER) {
+        mj_Euler(m_, d_);
+      } else {
+        mj_implicit(m_, d_);
+      }
+    }
+    Tangent(d_->qpos, d_->qvel, qpos1.data(), qvel1.data(), column.data());
+    step.block(0, k + i, k, 1) = column / eps;
+    Set(qpos.data(), qvel.data(), act.data(), force.data());
+    if (rk4) mj_forward(m_, d_);
+  }
+}
+
 std::tuple<Ekf::Vector, Ekf::Matrix, Ekf::Vector> Ekf::Predict(const Vector& x, const Matrix& P,
                                                                const Vector& act_in, const Vector& qfrc) {
   Check(x, P);
@@ -73,7 +100,7 @@ std::tuple<Ekf::Vector, Ekf::Matrix, Ekf::Vector> Ekf::Predict(const Vector& x, 
   const int k = 2 * nv_;
   Vector qpos = x.head(nq_), qvel = x.segment(nq_, nv_), act = act_in;
   Vector force = driven_ ? Vector(x.tail(nv_)) : qfrc;
-  Vector qpos1(nq_), qvel1(nv_), act1(na_), pushed(nv_), column(k);
+  Vector qpos1(nq_), qvel1(nv_), act1(na_);
   Matrix A = Matrix::Identity(n_, n_), step(n_, n_);
   for (int s = 0; s < nstep_; ++s) {
     step.setIdentity();
@@ -85,17 +112,7 @@ std::tuple<Ekf::Vector, Ekf::Matrix, Ekf::Vector> Ekf::Predict(const Vector& x, 
     mju_copy(qpos1.data(), d_->qpos, nq_);
     mju_copy(qvel1.data(), d_->qvel, nv_);
     if (na_) mju_copy(act1.data(), d_->act, na_);
-    if (driven_) {
-      for (int i = 0; i < nv_; ++i) {  // forward differences of the step in each force component
-        double eps = force_eps_ * std::max(1.0, std::abs(force[i]));
-        pushed = force;
-        pushed[i] += eps;
-        Set(qpos.data(), qvel.data(), act.data(), pushed.data());
-        mj_step(m_, d_);
-        Tangent(d_->qpos, d_->qvel, qpos1.data(), qvel1.data(), column.data());
-        step.block(0, k + i, k, 1) = column / eps;
-      }
-    }
+    if (driven_) ForceColumns(step, qpos, qvel, act, force, qpos1, qvel1);
     A = step * A;
     qpos = qpos1;
     qvel = qvel1;

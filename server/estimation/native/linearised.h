@@ -43,6 +43,11 @@ class Ekf {
   void Tangent(const double* qpos, const double* qvel, const double* qpos0, const double* qvel0,
                double* out) const;
   void Check(const Vector& x, const Matrix& P) const;
+  // step's force columns: forward differences of the step from (qpos, qvel, act) under force in
+  // each force component, against the nominal step's (qpos1, qvel1). The position and velocity
+  // stages run once; each column runs the acceleration stage and the integrator (RK4: a step).
+  void ForceColumns(Matrix& step, const Vector& qpos, const Vector& qvel, const Vector& act,
+                    const Vector& force, const Vector& qpos1, const Vector& qvel1);
 
   const mjModel* m_;
   const mjModel* linearised_;
