@@ -407,19 +407,17 @@ class LinearisedFilter:
         self._start_from(m, keep_force=True)
 
     def _start_from(self, m: Measurement, *, keep_force: bool) -> None:
-        """x on the frame, P = P0 (estimation/guard_steps.py start_from): DRIVEN keeps its force
-        when it is finite, else the force that holds the body still."""
+        """x on the frame, P = P0 (estimation/guard_steps.py start_from); DRIVEN keeps its force
+        when it is finite, else starts from none (not the UKF's force that holds the body still:
+        docs/decisions/0210-the-linearised-filter-as-a-candidate.md)."""
         nq, nv = self.nq, self.nv
         qvel = _qvel(m)
-        x = np.empty(self.nq + self.n - nv)
+        x = np.zeros(self.nq + self.n - nv)
         x[:nq], x[nq : nq + nv] = m.qpos, qvel
         if self._driven:
             previous = self._x[nq + nv :]
             if keep_force and np.all(np.isfinite(previous)):
                 x[nq + nv :] = previous
-            else:
-                qacc = m.qacc if m.qacc is not None else np.zeros(nv)
-                x[nq + nv :] = self._inverse(m.qpos, qvel, qacc)
         self._x, self._P = x, self.P0.copy()
         self._last, self._last_qvel, self._since = m, np.array(qvel), 0
         self._guard.start()
