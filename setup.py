@@ -54,7 +54,7 @@ class BuildNative(build_ext):  # type: ignore[misc]
         super().run()
 
 
-# The three sources compile at once, on as many cores as there are (NPY_NUM_BUILD_JOBS caps it).
+# The sources compile at once, on as many cores as there are (NPY_NUM_BUILD_JOBS caps it).
 ParallelCompile("NPY_NUM_BUILD_JOBS").install()
 library = libmujoco()
 setup(
