@@ -61,9 +61,29 @@ setup(
     ext_modules=[
         Pybind11Extension(
             "jitdyn.server.estimation.native._ukf",
-            sources=[str(NATIVE / name) for name in ("bindings.cc", "ukf.cc", "adaptive.cc", "forecast.cc", "matching.cc")],
+            sources=[
+                str(NATIVE / name)
+                for name in (
+                    "bindings.cc",
+                    "ukf.cc",
+                    "adaptive.cc",
+                    "forecast.cc",
+                    "matching.cc",
+                    "linearised.cc",
+                )
+            ],
             include_dirs=[str(library.parent / "include"), eigen_include()],
-            depends=[str(NATIVE / name) for name in ("ukf.h", "adaptive.h", "forecast.h", "matching.h", "extrapolators.h")],
+            depends=[
+                str(NATIVE / name)
+                for name in (
+                    "ukf.h",
+                    "adaptive.h",
+                    "forecast.h",
+                    "matching.h",
+                    "extrapolators.h",
+                    "linearised.h",
+                )
+            ],
             cxx_std=17,
             # Linked by its full name (the wheel ships no unversioned libmujoco.so). At run time
             # the module finds it already loaded by `import mujoco` (by soname), or beside itself

@@ -19,6 +19,9 @@ excited motion, and that error against the first candidate's (the full UKF's).
     python -m benchmarks.cost_nv --candidates                    # ~10 minutes
     python -m benchmarks.cost_nv --candidates --rows myohand     # substrings of the model names
     python -m benchmarks.cost_nv --candidates --noise 0.005      # frames with a sensor's noise
+    python -m benchmarks.cost_nv --candidates --rows myolegs_osl --scenarios driven external
+    python -m benchmarks.cost_nv --candidates --rows myolegs_osl --recorded --noise 0.005
+    python -m benchmarks.cost_nv --candidates --rows myohand --rate 500 --scenarios external driven
 """
 
 from __future__ import annotations
@@ -171,6 +174,8 @@ def candidate_run(
     settings: dict[str, object],
     seconds: float,
     noise: float = 0.0,
+    *,
+    recorded: bool = False,
 ) -> tuple[float, float]:
     """(median CPU s of a cycle per tick, mean |q error| over the gaps' ticks against the truth) of
     one candidate on the model's own excited motion (`truth`), a 100 ms gap every 250 ms: a gap's
@@ -179,7 +184,12 @@ def candidate_run(
     rad/s on qvel (seeded), as benchmarks/linearised.py's `noisy` puts it."""
     dt = 1.0 / rate
     steps = round(dt / model.opt.timestep)
-    frames = excited_motion(model, scenario, steps, ticks=round(seconds / dt))
+    if recorded:  # iSen's gait on the hips and knees (benchmarks/linearised.py)
+        from benchmarks.linearised import gait
+
+        frames = gait(model, dt, seconds)
+    else:
+        frames = excited_motion(model, scenario, steps, ticks=round(seconds / dt))
     config = resolve_config(
         model=model, scenario=scenario, dt=dt, requested=settings, measured={"qpos", "qvel"}
     )
@@ -187,7 +197,20 @@ def candidate_run(
     return statistics.median(run.cycles), statistics.fmean(run.errors)
 
 
-def candidates_table(names: list[str] | None, seconds: float, noise: float) -> None:
+@dataclass(frozen=True)
+class CandidateRuns:
+    """What --candidates runs: the models (substrings), the motion, and the scenario and rate in
+    place of a model's own (None: its default scenario, its rate)."""
+
+    names: list[str] | None
+    seconds: float
+    noise: float
+    scenarios: list[Scenario] | None = None
+    rate: float | None = None
+    recorded: bool = False
+
+
+def candidates_table(runs: CandidateRuns) -> None:
     from jitdyn.server.estimation.config import default_scenario
     from jitdyn.server.runtime.choice import candidates
 
@@ -196,22 +219,25 @@ def candidates_table(names: list[str] | None, seconds: float, noise: float) -> N
         "| fits half of dt | mean |q error| over gaps (rad) | error / full UKF's |"
     )
     print("|---|---|---|---|---|---|---|---|---|")
-    for name, model, rate in candidate_models(names):
-        scenario, _ = default_scenario(model)
-        full = None
-        for estimator, sigma in candidates(model, scenario):
-            settings: dict[str, object] = {"estimator": estimator}
-            if sigma is not None:
-                settings["sigma_points"] = sigma
-            cycle, error = candidate_run(model, scenario, rate, settings, seconds, noise)
-            full = error if full is None else full
-            label = estimator.name if sigma is None else f"{estimator.name} {sigma.name}"
-            print(
-                f"| {name} | {model.nv} / {model.nu} / {model.na} | {scenario.name} {rate:g} Hz | {label} "
-                f"| {cycle * 1e6:.0f} | {cycle * rate:.2f} | {'yes' if cycle * rate <= 0.5 else 'no'} "
-                f"| {error:.2e} | {error / full:.2f} |",
-                flush=True,
-            )
+    for name, model, own_rate in candidate_models(runs.names):
+        rate = runs.rate or own_rate
+        for scenario in runs.scenarios or [default_scenario(model)[0]]:
+            full = None
+            for estimator, sigma in candidates(model, scenario):
+                settings: dict[str, object] = {"estimator": estimator}
+                if sigma is not None:
+                    settings["sigma_points"] = sigma
+                cycle, error = candidate_run(
+                    model, scenario, rate, settings, runs.seconds, runs.noise, recorded=runs.recorded
+                )
+                full = error if full is None else full
+                label = estimator.name if sigma is None else f"{estimator.name} {sigma.name}"
+                print(
+                    f"| {name} | {model.nv} / {model.nu} / {model.na} | {scenario.name} {rate:g} Hz | {label} "
+                    f"| {cycle * 1e6:.0f} | {cycle * rate:.2f} | {'yes' if cycle * rate <= 0.5 else 'no'} "
+                    f"| {error:.2e} | {error / full:.2f} |",
+                    flush=True,
+                )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -234,13 +260,36 @@ def main(argv: list[str] | None = None) -> int:
         default=0.0,
         help="rad of noise on the frames' qpos (10x on qvel) for --candidates",
     )
+    parser.add_argument(
+        "--scenarios",
+        nargs="+",
+        type=lambda name: Scenario[name.upper()],
+        help="for --candidates: these scenarios in place of each model's default one",
+    )
+    parser.add_argument("--rate", type=float, help="for --candidates: this rate (Hz) in place of the models'")
+    parser.add_argument(
+        "--recorded",
+        action="store_true",
+        help="for --candidates: recorded human gait on myolegs_osl's hips and knees (100 Hz), not the "
+        "model's own excited motion",
+    )
     args = parser.parse_args(argv)
     if args.candidates:
+        motion = "recorded gait" if args.recorded else "excited motion"
         print(
             f"# {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; mujoco {mujoco.__version__}; "
-            f"{args.seconds:g} s of motion a run, noise {args.noise:g}, one thread"
+            f"{args.seconds:g} s of {motion} a run, noise {args.noise:g}, one thread"
         )
-        candidates_table(args.rows, args.seconds, args.noise)
+        candidates_table(
+            CandidateRuns(
+                names=args.rows,
+                seconds=args.seconds,
+                noise=args.noise,
+                scenarios=args.scenarios,
+                rate=args.rate,
+                recorded=args.recorded,
+            )
+        )
         return 0
     rows = [r for r in ROWS if not args.rows or any(s in r.name for s in args.rows)]
     print(

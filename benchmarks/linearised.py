@@ -11,16 +11,18 @@ on the state its own excitation reaches, the CPU of:
 - the EKF's Jacobians over one tick: one mjd_transitionFD a step, chained (A = A_k ... A_1), or one
   at a single coarse step of the whole tick (`coarse`: the model's timestep set to dt);
 - the EKF's algebra in numpy: A P A' + Q and an update measuring qpos and qvel;
-- `LinearisedFilter`'s own predict at one coarse step a tick: n+1 steps of the process model,
-  the columns of the UKF's state (activations are inputs), numpy and the Python around them.
+- the linearised filter's own tick (server/estimation/linearised.py) at one coarse step a tick:
+  the mean, mjd_transitionFD's Jacobian of [q, qd] (and DRIVEN's force columns, forward
+  differences of the step) and A P A' + Q, in its Python reference and compiled (native).
 
 - with --accuracy, the prediction error over 100 ms gaps every 250 ms of the model's own excited
   motion (or, --recorded, of recorded human gait on myolegs_osl's hips and knees): the UKF as the
   server runs it (its filter's prediction alone: forecast FILTER, noise FIXED) against
-  `LinearisedFilter`, an EKF of the same algorithm (state, Q, P0, R, process model, restored force,
-  divergence guard and wrong_model restart) whose covariance is propagated by the Jacobian of the
-  tick, finite-differenced from the same physics (a reference of the algorithm, not of its price).
-  Why it is measured before it is chosen: docs/decisions/0189-a-linearised-filter-measured-before-it-is-chosen.md.
+  `LinearisedFilter` (native), the EKF of the same algorithm (state, Q, P0, R, process model,
+  restored force, divergence guard and wrong_model restart) whose covariance is propagated by the
+  tick's Jacobian. Why it was measured before it was chosen:
+  docs/decisions/0189-a-linearised-filter-measured-before-it-is-chosen.md; where it is chosen:
+  docs/decisions/0210-the-linearised-filter-as-a-candidate.md.
 
     python -m benchmarks.linearised                  # every model, ~1 minute
     python -m benchmarks.linearised --rows myohand   # substrings of the row names
@@ -32,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import os
 import statistics
 import time
@@ -40,15 +43,13 @@ import mujoco
 import numpy as np
 
 from benchmarks.cost_nv import ROWS, Row, load, truth
-from jitdyn.server.estimation.config import EstimatorConfig, resolve_config
-from jitdyn.server.estimation.guard import Guard
+from jitdyn.server.estimation.config import Engine, EstimatorConfig, resolve_config
 from jitdyn.server.estimation.interface import Measurement
+from jitdyn.server.estimation.linearised import LinearisedFilter
 from jitdyn.server.estimation.manifold import SplitManifold
-from jitdyn.server.estimation.noise import UkfNoise
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.propagate import process_model
 from jitdyn.server.estimation.ukf import UnscentedFilter
-from jitdyn.vocabulary import Scenario, WrongModel
+from jitdyn.vocabulary import EstimatorKind, Forecast, NoiseModel, Scenario, WrongModel
 
 
 def _cpu(work: object, repeats: int) -> float:
@@ -61,6 +62,21 @@ def _cpu(work: object, repeats: int) -> float:
         work()
         times.append(time.process_time() - c0)
     return statistics.median(times)
+
+
+def ekf_config(config: EstimatorConfig, *, engine: Engine = Engine.NATIVE) -> EstimatorConfig:
+    """The linearised filter's settings beside the UKF's `config`: the same noise, fixed, the
+    filter's own forecast, and PASSIVE's wrong_model RESTART (the switch to DRIVEN is the UKF's),
+    as resolve_config gives an EKF session."""
+    wrong_model = WrongModel.RESTART if config.wrong_model == WrongModel.DRIVEN else config.wrong_model
+    return dataclasses.replace(
+        config,
+        estimator=EstimatorKind.EKF,
+        noise_model=NoiseModel.FIXED,
+        forecast=Forecast.FILTER,
+        wrong_model=wrong_model,
+        engine=engine,
+    )
 
 
 def measure(row: Row, repeats: int) -> dict[str, float]:
@@ -119,16 +135,18 @@ def measure(row: Row, repeats: int) -> dict[str, float]:
         prior - gain @ s @ gain.T
 
     chain = _cpu(lambda: a @ a, repeats * 5) * (steps - 1)
-    reference = float("nan")
-    if row.scenario != Scenario.CONTROLLED:  # the reference's own predict, one coarse step a tick
-        ekf = LinearisedFilter(original, config, frames[-1], coarsen=steps)
-        x0, p0 = ekf.x.copy(), ekf.P.copy()
+    predicts = {Engine.FAST: float("nan"), Engine.NATIVE: float("nan")}
+    if row.scenario != Scenario.CONTROLLED:  # the filter's own predict, one coarse step a tick
+        for engine in predicts:
+            ekf = LinearisedFilter(original, ekf_config(config, engine=engine), coarsen=steps)
+            ekf.initialise(frames[-1])
+            start_ekf = ekf.snapshot()
 
-        def ekf_predict() -> None:
-            ekf.x[:], ekf.P = x0, p0
-            ekf.predict()
+            def ekf_predict(ekf: LinearisedFilter = ekf, start_ekf: object = start_ekf) -> None:
+                ekf.restore(start_ekf)
+                ekf.advance(ctrl=None)
 
-        reference = _cpu(ekf_predict, repeats)
+            predicts[engine] = _cpu(ekf_predict, repeats)
     return {
         "nv": model.nv,
         "na": model.na,
@@ -144,116 +162,9 @@ def measure(row: Row, repeats: int) -> dict[str, float]:
         "simplex_coarse": points * step,
         "algebra": _cpu(algebra, repeats),
         "rk4": rk4,
-        "reference": reference,
+        "reference": predicts[Engine.FAST],
+        "native": predicts[Engine.NATIVE],
     }
-
-
-class LinearisedFilter:
-    """An EKF of the UKF's own state ([q, qd], and f in DRIVEN) on the UKF's own process model
-    (estimation/propagate.py; in EXTERNAL the force mj_inverse restores from the frames, held over a
-    gap): the mean by the model's steps over the tick, the covariance by the tick's Jacobian,
-    finite differences of the same steps, one column a perturbed tangent direction; activations
-    carried as inputs, as the UKF does. A state with ball or free joints lives on the UKF's
-    manifold (estimation/manifold.py: mj_integratePos and mj_differentiatePos are its + and -).
-    `coarsen`: the process model's timestep times this (10 at 1 ms and 100 Hz: one step a tick),
-    its integrator implicitfast, as the issue's coarse candidate asks (on myolegs_osl the same
-    errors as Euler's: docs/decisions/0200-the-linearised-reference-is-the-ukfs-algorithm.md)."""
-
-    def __init__(
-        self, model: mujoco.MjModel, config: EstimatorConfig, first: Measurement, *, coarsen: int = 1
-    ) -> None:
-        self.model = process_model(model, scenario=config.scenario)  # the UKF's own process model
-        self.model.opt.timestep = coarsen * model.opt.timestep
-        if coarsen != 1:
-            self.model.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
-        self.steps, self.dt = round(config.dt / self.model.opt.timestep), config.dt
-        self.data = mujoco.MjData(self.model)
-        self.external = Scenario(config.scenario) == Scenario.EXTERNAL
-        self.qfrc = np.zeros(model.nv)
-        noise = UkfNoise.of(model, self.data, config)
-        self.n, self.nv, self.nq = noise.n, model.nv, model.nq
-        self.manifold = SplitManifold(model, rest=noise.n - model.nv)
-        self.Q, self.P0 = noise.process_noise(config.dt), noise.initial_covariance()
-        self.R = config.r * np.eye(2 * model.nv)
-        # The UKF's own guard (estimation/guard.py): EXTERNAL's wrong_model RESTART starts the
-        # filter again from a frame whose NIS stays far out, as the UKF does.
-        self.guard = Guard(
-            m=2 * model.nv,
-            restart=WrongModel(config.wrong_model) == WrongModel.RESTART,
-            driven=Scenario(config.scenario) == Scenario.DRIVEN,
-        )
-        self.restarts = 0
-        self.x = np.zeros(self.manifold.dim)  # [qpos (nq), qvel (nv), f (nv, DRIVEN)]
-        self.act = np.zeros(model.na)
-        self._start_from(first)
-
-    def _start_from(self, frame: Measurement) -> None:
-        """x on the frame, P = P0 (estimation/guard_steps.py start_from); DRIVEN keeps its force."""
-        self.x[: self.nq + self.nv] = np.concatenate([frame.qpos, frame.qvel])
-        self.P = self.P0.copy()
-        self.last, self.last_qvel, self.since = frame, np.array(frame.qvel), 0
-
-    def _step(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d, nq, nv = self.data, self.nq, self.nv
-        d.qpos[:], d.qvel[:], d.act[:] = x[:nq], x[nq : nq + nv], self.act
-        d.qfrc_applied[:] = x[nq + nv :] if self.n > 2 * nv else self.qfrc
-        mujoco.mj_step(self.model, d, self.steps)
-        out = x.copy()
-        out[:nq], out[nq : nq + nv] = d.qpos, d.qvel
-        return out, d.act.copy()
-
-    def _scale(self) -> np.ndarray:
-        """(n,) each tangent component's size, which its finite difference's step follows."""
-        scale = np.abs(self.x[self.nq - self.nv :])
-        if self.nq != self.nv:  # a quaternion's component is no tangent one
-            scale[: self.nv] = 1.0
-        return np.maximum(1.0, scale)
-
-    def predict(self) -> np.ndarray:
-        mean, act = self._step(self.x)
-        a = np.empty((self.n, self.n))
-        eps = 1e-6 * self._scale()
-        for i in range(self.n):  # forward differences, scaled to each component's size
-            direction = np.zeros(self.n)
-            direction[i] = eps[i]
-            a[:, i] = (
-                self.manifold.residual(self._step(self.manifold.add(self.x, direction))[0], mean) / eps[i]
-            )
-        self.x, self.act, self.since = mean, act, self.since + 1
-        self.P = a @ self.P @ a.T + self.Q
-        self.P = 0.5 * (self.P + self.P.T)
-        if self.guard.diverged(finite=self._finite(), largest_variance=float(self.P.diagonal().max())):
-            self._start_from(self.last)
-            self.guard.start()
-        return self.x[: self.nq].copy()
-
-    def _finite(self) -> bool:
-        return bool(np.all(np.isfinite(self.x)) and np.all(np.isfinite(self.P)))
-
-    def update(self, frame: Measurement) -> None:
-        h = np.eye(2 * self.nv, self.n)
-        s = h @ self.P @ h.T + self.R
-        gain = np.linalg.solve(s, h @ self.P).T
-        z = np.concatenate([frame.qpos, frame.qvel])
-        y = self.manifold.residual(np.concatenate([z, self.x[self.nq + self.nv :]]), self.x)[: 2 * self.nv]
-        nis = float(y @ np.linalg.solve(s, y))
-        self.x = self.manifold.add(self.x, gain @ y)
-        joseph = np.eye(self.n) - gain @ h
-        self.P = joseph @ self.P @ joseph.T + gain @ self.R @ gain.T
-        self.guard.count(nis if np.isfinite(nis) else None)
-        if self.guard.restart_due(finite=self._finite(), largest_variance=float(self.P.diagonal().max())):
-            # As guard_steps.restart: from the frame, the held force kept, the guard as new.
-            self.restarts += 1
-            self._start_from(frame)
-            self.guard.reset()
-            return
-        if self.external and self.since > 0:  # the force that acted, restored and held, as the UKF does
-            d = self.data
-            d.qpos[:], d.qvel[:], d.act[:] = frame.qpos, frame.qvel, self.act
-            d.qacc[:] = (frame.qvel - self.last_qvel) / (self.since * self.dt)
-            mujoco.mj_inverse(self.model, d)
-            self.qfrc = np.array(d.qfrc_inverse)
-        self.last, self.last_qvel, self.since = frame, np.array(frame.qvel), 0
 
 
 # The reference takes PASSIVE, EXTERNAL and DRIVEN, not CONTROLLED's [q, qd, qdd]. A row whose
@@ -355,16 +266,18 @@ def gap_errors(
     with WorkerPool(1) as pool:
         ukf = UnscentedFilter(model, config, pool=pool)
         ukf.initialise(sensed[0])
-        ekf = LinearisedFilter(model, config, sensed[0], coarsen=row.coarsen)
+        ekf = LinearisedFilter(model, ekf_config(config), coarsen=row.coarsen)
+        ekf.initialise(sensed[0])
         manifold = SplitManifold(model, rest=0)
         for k in range(1, len(frames)):
             in_gap = k > period and k % period < gap
-            ekf_q = ekf.predict()
             if in_gap:
+                ekf_q = ekf.predict(ctrl=None).qpos
                 ukf_q = ukf.predict(ctrl=None).qpos
                 errors["ukf"].append(float(np.mean(np.abs(manifold.residual(ukf_q, frames[k].qpos)))))
                 errors["ekf"].append(float(np.mean(np.abs(manifold.residual(ekf_q, frames[k].qpos)))))
             else:
+                ekf.advance(ctrl=None)
                 ukf.advance(ctrl=None)
                 ukf.update(sensed[k])
                 ekf.update(sensed[k])
@@ -404,9 +317,10 @@ def main(argv: list[str] | None = None) -> int:
     print(
         "| model, scenario | nv / na | UKF n, points x steps | mj_step us | simplex physics us/tick "
         "| FD us/step (2nv+na cols) | EKF Jacobians us/tick | EKF / simplex | one coarse FD us | its / simplex at one step "
-        "| EKF algebra us | reference EKF predict, one coarse step, us (n cols) | its / simplex at one step |"
+        "| EKF algebra us | reference EKF predict, one coarse step, us (n cols) | its / simplex at one step "
+        "| native EKF predict us | its / simplex at one step |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         r = measure(row, args.repeats)
         print(
@@ -414,7 +328,8 @@ def main(argv: list[str] | None = None) -> int:
             f"| {r['step'] * 1e6:.1f}{' (RK4; FD on Euler)' if r['rk4'] else ''} | {r['simplex'] * 1e6:.0f} | {r['fd'] * 1e6:.0f} ({r['nx']}) "
             f"| {r['ekf'] * 1e6:.0f} | {r['ekf'] / r['simplex']:.2f} | {r['ekf_coarse'] * 1e6:.0f} "
             f"| {r['ekf_coarse'] / r['simplex_coarse']:.2f} | {r['algebra'] * 1e6:.0f} "
-            f"| {r['reference'] * 1e6:.0f} ({r['n']}) | {r['reference'] / r['simplex_coarse']:.2f} |",
+            f"| {r['reference'] * 1e6:.0f} ({r['n']}) | {r['reference'] / r['simplex_coarse']:.2f} "
+            f"| {r['native'] * 1e6:.0f} | {r['native'] / r['simplex_coarse']:.2f} |",
             flush=True,
         )
     if args.accuracy:

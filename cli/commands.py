@@ -321,7 +321,8 @@ DEMO = Command(
             help="what answers a tick whose frame is late or lost (any case); default: the server's choice, "
             "the most accurate estimator whose cost (measured when the model was registered) fits the tick, "
             "said in the session's first line. UKF, the Unscented Kalman Filter on the model's dynamics; "
-            "STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION, dead reckoning from the last frames",
+            "STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION, dead reckoning from the last frames; "
+            "EKF, the filter linearised by MuJoCo (PASSIVE, EXTERNAL and DRIVEN)",
         ),
         option(
             "--seed",

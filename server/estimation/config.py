@@ -268,6 +268,16 @@ def _jitdyn_values(model: mujoco.MjModel, scenario: Scenario, n: int) -> dict[st
     }
 
 
+def _ekf_values(scenario: Scenario) -> dict[str, SettingValue]:
+    """What the linearised filter runs where a request or the model's defaults set nothing: fixed
+    noise, the filter's own answer over a gap, and in PASSIVE the guard's restart in place of the
+    switch to DRIVEN, which is the UKF's (estimation/linearised.py)."""
+    values: dict[str, SettingValue] = {"noise_model": NoiseModel.FIXED, "forecast": Forecast.FILTER}
+    if scenario == Scenario.PASSIVE:
+        values["wrong_model"] = WrongModel.RESTART
+    return values
+
+
 def _check_names(values: Mapping[str, object], argument: str) -> None:
     unknown = sorted(set(values) - set(SETTING_FIELDS))
     if unknown:
@@ -334,6 +344,8 @@ def resolve_config(
             # The preset's choice for its own force model; a request for another keeps the force
             # in the points, and the settings echoed back say so.
             values["sigma_points"] = SigmaScheme.SIMPLEX
+    if SETTINGS["estimator"].check(values["estimator"], argument="estimator") == EstimatorKind.EKF:
+        values.update({k: v for k, v in _ekf_values(scenario).items() if k not in chosen})
     # Checked and normalised against the table by EstimatorConfig itself.
     settings: dict[str, Any] = {name: values[name] for name in SETTING_FIELDS}
     config = EstimatorConfig(

@@ -52,8 +52,10 @@ class DeadReckoning:
     """An IEEE 1278 extrapolator (see the module docstring). Implements `Estimator`."""
 
     def __init__(self, model: mujoco.MjModel, config: EstimatorConfig) -> None:
-        if config.estimator == EstimatorKind.UKF:
-            raise InvalidArgument("config.estimator must be a dead-reckoning estimator, got UKF")
+        if config.estimator in (EstimatorKind.UKF, EstimatorKind.EKF):
+            raise InvalidArgument(
+                f"config.estimator must be a dead-reckoning estimator, got {config.estimator}"
+            )
         check_against_model(model, config)
         self._model = model
         self._config = config

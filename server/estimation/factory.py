@@ -12,6 +12,7 @@ import numpy as np
 from jitdyn.server.estimation.config import EstimatorConfig, check_against_model
 from jitdyn.server.estimation.deadreckoning import DeadReckoning
 from jitdyn.server.estimation.interface import Estimator, Measurement
+from jitdyn.server.estimation.linearised import LinearisedFilter
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.switch import SwitchingFilter
 from jitdyn.server.estimation.ukf import UnscentedFilter
@@ -27,6 +28,8 @@ def make_estimator(model: mujoco.MjModel, config: EstimatorConfig, *, pool: Work
         if config.scenario == Scenario.PASSIVE and config.wrong_model == WrongModel.DRIVEN:
             return SwitchingFilter(model, config, pool=pool)
         return UnscentedFilter(model, config, pool=pool)
+    if config.estimator == EstimatorKind.EKF:
+        return LinearisedFilter(model, config)
     return DeadReckoning(model, config)
 
 

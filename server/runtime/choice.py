@@ -10,7 +10,8 @@ most accurate candidate whose stored cost fits its tick, or is refused with the 
 
 The candidates of a scenario, most accurate first: the JITDYN preset's UKF (its own sigma points),
 the UKF on simplex points when the preset's are Merwe's (SIMPLEX_LINEAR_FORCE where it applies),
-and IEEE 1278's constant-velocity dead reckoning as the last resort.
+in EXTERNAL and DRIVEN the linearised filter (EKF, one linearisation a step of up to 10 ms), and
+IEEE 1278's constant-velocity dead reckoning as the last resort.
 """
 
 from __future__ import annotations
@@ -40,7 +41,16 @@ from jitdyn.vocabulary import EstimatorKind, ForceModel, Preset, Scenario, Sigma
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["CHOICE_RATES", "STEPS", "Chosen", "CostTable", "ModelCosts", "candidates", "measure_costs"]
+__all__ = [
+    "CHOICE_RATES",
+    "EKF_SCENARIOS",
+    "STEPS",
+    "Chosen",
+    "CostTable",
+    "ModelCosts",
+    "candidates",
+    "measure_costs",
+]
 
 # The physics steps a tick spans in the timed runs of each candidate. A tick's cost is not affine in
 # its steps: the forecast combination of DRIVEN scores every horizon up to 0.5 s, so a shorter tick
@@ -57,6 +67,9 @@ _SLOW_RUNS: Final = 4
 CHOICE_RATES: Final = (1000.0, 500.0, 250.0, 200.0, 100.0, 50.0, 20.0)
 _MAX_DT: Final = 10.0  # s: the contract's largest dt
 _REMEMBERED: Final = 4096  # models whose stored costs a process keeps once read
+# The scenarios whose candidates include the linearised filter (EKF), after the UKFs and before
+# dead reckoning (docs/decisions/0210-the-linearised-filter-as-a-candidate.md).
+EKF_SCENARIOS: Final = (Scenario.EXTERNAL, Scenario.DRIVEN)
 
 
 def candidates(model: mujoco.MjModel, scenario: Scenario) -> list[tuple[EstimatorKind, SigmaScheme | None]]:
@@ -71,6 +84,8 @@ def candidates(model: mujoco.MjModel, scenario: Scenario) -> list[tuple[Estimato
     found: list[tuple[EstimatorKind, SigmaScheme | None]] = [(EstimatorKind.UKF, first)]
     if simplex != first:
         found.append((EstimatorKind.UKF, simplex))
+    if scenario in EKF_SCENARIOS:
+        found.append((EstimatorKind.EKF, None))
     found.append((EstimatorKind.CONSTANT_VELOCITY, None))
     return found
 

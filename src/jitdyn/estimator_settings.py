@@ -109,7 +109,8 @@ _ROWS: Final = (
         choices=EstimatorKind,
         thesis="UKF",
         jitdyn="UKF",
-        doc="The estimator: the UKF, or an IEEE 1278 dead-reckoning extrapolator.",
+        doc="The estimator: the UKF, the linearised filter (EKF: PASSIVE, EXTERNAL and DRIVEN, fixed "
+        "noise, its own forecast), or an IEEE 1278 dead-reckoning extrapolator.",
     ),
     EstimatorSetting(
         name="preset",

@@ -134,6 +134,7 @@ class EstimatorKind(enum.StrEnum):
     STATIC = "STATIC"  # IEEE 1278 dead reckoning: hold the last state
     CONSTANT_VELOCITY = "CONSTANT_VELOCITY"
     CONSTANT_ACCELERATION = "CONSTANT_ACCELERATION"
+    EKF = "EKF"  # the linearised filter: server/estimation/linearised.py
 
 
 class EstimatorChoice(enum.StrEnum):

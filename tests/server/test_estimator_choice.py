@@ -30,6 +30,7 @@ pytest.importorskip("myo_sim")
 _SHARE = 0.5  # the server's --max-tick-share, its default
 _UKF = common_pb2.ESTIMATOR_UKF
 _DEAD_RECKONING = common_pb2.ESTIMATOR_CONSTANT_VELOCITY
+_EKF = common_pb2.ESTIMATOR_EKF
 
 # A pendulum on a 10 us timestep: a tick of 10 us leaves 5 us, which no estimator fits.
 _FAST_PENDULUM = """
@@ -93,16 +94,23 @@ def test_registration_stores_each_candidates_cost(client: Client, hand: model_re
         common_pb2.SCENARIO_DRIVEN,
     }
     external = _candidates(hand, common_pb2.SCENARIO_EXTERNAL)
-    # myoHand's state of 46 takes simplex points already; dead reckoning is the last resort.
+    # myoHand's state of 46 takes simplex points already; then the linearised filter; dead
+    # reckoning is the last resort.
     assert [(c.estimator, c.sigma_points) for c in external] == [
         (_UKF, common_pb2.SIGMA_POINTS_SIMPLEX),
+        (_EKF, common_pb2.SIGMA_POINTS_UNSPECIFIED),
         (_DEAD_RECKONING, common_pb2.SIGMA_POINTS_UNSPECIFIED),
     ]
+    passive = _candidates(hand, common_pb2.SCENARIO_PASSIVE)
+    assert _EKF not in [c.estimator for c in passive]  # EXTERNAL and DRIVEN only
+    assert _EKF in [c.estimator for c in _candidates(hand, common_pb2.SCENARIO_DRIVEN)]
     for cost in hand.estimator_costs:
         assert list(cost.steps) == [1, 2, 5, 10]
         assert all(seconds > 0 for seconds in cost.seconds), cost
-    ukf, reckoning = external
+    ukf, ekf, reckoning = external
     assert ukf.seconds[-1] > 20 * reckoning.seconds[-1]  # 47 points of 10 steps against none
+    # Ten steps a tick are two linearisations of 10 ms steps: far less than 47 points of ten.
+    assert ukf.seconds[-1] > 3 * ekf.seconds[-1] > 3 * reckoning.seconds[-1]
     # Stored, not measured again: the same figures on every read.
     again = client.get_model_message(name="hand")
     assert list(again.estimator_costs) == list(hand.estimator_costs)
@@ -115,24 +123,81 @@ def test_a_rate_the_ukf_cannot_fit_gets_the_cheaper_estimator_and_says_so(
     ukf = _candidates(hand, common_pb2.SCENARIO_EXTERNAL)[0]
     # One 2 ms step of 47 points' physics: far over the 1 ms a 500 Hz tick may take.
     assert ukf.seconds[0] > _SHARE * 0.002, f"this machine fits myoHand's UKF at 500 Hz: {ukf}"
+    # The linearised filter's cycle at one 2 ms step is about 1 ms, the budget: which of it and
+    # dead reckoning this machine stored decides.
     expected = _expected(hand, common_pb2.SCENARIO_EXTERNAL, 500.0)
-    assert expected.estimator == _DEAD_RECKONING
+    assert expected.estimator in (_EKF, _DEAD_RECKONING)
+    name = common_pb2.Estimator.Name(expected.estimator)
     options = SessionOptions(model_name="hand", scenario="EXTERNAL", dt=0.002, clock="REALTIME")
     reasons = []
     for _ in range(2):  # the choice comes from the stored cost: the same at every open
         with client.open_session(options) as session:
             opened = session.opened
-            assert opened.estimator["estimator"] == "CONSTANT_VELOCITY"
+            assert opened.estimator["estimator"] == name.removeprefix("ESTIMATOR_")
             assert opened.estimator_choice == "BY_COST"
             reasons.append(opened.estimator_reason)
     assert reasons[0] == reasons[1]
     assert re.match(
-        r"chosen by cost, measured once when the model was registered: ESTIMATOR_CONSTANT_VELOCITY costs "
+        rf"chosen by cost, measured once when the model was registered: {name} costs "
         r"[\d.]+ ms a tick, within 0.5 of dt 2 ms \(--max-tick-share\); ESTIMATOR_UKF with "
-        r"SIGMA_POINTS_SIMPLEX costs [\d.]+ ms, over it",
+        r"SIGMA_POINTS_SIMPLEX costs [\d.]+ ms(; ESTIMATOR_EKF costs [\d.]+ ms)?, over it",
         reasons[0],
     ), reasons[0]
     assert f"SIMPLEX costs {ukf.seconds[0] * 1e3:.3g} ms" in reasons[0]
+
+
+def test_a_rate_the_linearised_filter_fits_gets_it_and_it_answers(
+    client: Client, hand: model_registry_pb2.Model
+) -> None:
+    """myoHand EXTERNAL at 250 Hz: 47 simplex points of two 2 ms steps are far over the 2 ms a tick
+    may take; one linearisation of one 4 ms step is not (decision 0210). The session it gets
+    answers its ticks, a frame's and a skipped one's."""
+    expected = _expected(hand, common_pb2.SCENARIO_EXTERNAL, 250.0)
+    assert expected.estimator == _EKF, f"this machine stored another choice at 250 Hz: {expected}"
+    options = SessionOptions(model_name="hand", scenario="EXTERNAL", dt=0.004, clock="REALTIME")
+    with client.open_session(options) as session:
+        assert session.opened.estimator["estimator"] == "EKF"
+        assert session.opened.estimator["noise_model"] == "FIXED"
+        assert session.opened.estimator_choice == "BY_COST"
+        assert "ESTIMATOR_EKF costs" in session.opened.estimator_reason
+
+
+def test_the_linearised_filter_asked_by_name_runs_a_session(client: Client) -> None:
+    """pendulum_2 in DRIVEN with estimator EKF: asked for, it runs whatever the cost, and answers
+    a skipped tick from its own prediction."""
+    import numpy as np
+
+    from jitdyn.client import FrameData, TickResult
+
+    options = SessionOptions(
+        model_name="pendulum_2", scenario="DRIVEN", dt=0.05, estimator={"estimator": "EKF"}
+    )
+    with client.open_session(options) as session:
+        assert session.opened.estimator["estimator"] == "EKF"
+        assert session.opened.estimator_choice == "ASKED"
+        answers = []
+        for k in range(20):
+            q = [0.3 * np.cos(k * 0.05), 0.0]
+            v = [-0.3 * np.sin(k * 0.05), 0.0]
+            answer = (
+                session.skip(k)
+                if k % 5 == 4
+                else session.send_frame(FrameData(seq=k, t=k * 0.05, qpos=q, qvel=v))
+            )
+            assert isinstance(answer, TickResult), answer
+            answers.append(answer)
+    assert all(np.all(np.isfinite(a.qpos)) for a in answers)
+    assert answers[9].source != answers[8].source  # a skipped tick is predicted, not measured
+
+
+def test_the_linearised_filter_refuses_what_it_does_not_run(client: Client) -> None:
+    from jitdyn.errors import InvalidArgument
+
+    options = SessionOptions(
+        model_name="pendulum_2", scenario="CONTROLLED", dt=0.05, estimator={"estimator": "EKF"}
+    )
+    with pytest.raises(InvalidArgument, match="scenario must be PASSIVE, EXTERNAL or DRIVEN, got CONTROLLED"):
+        client.open_session(options)
 
 
 def test_an_explicit_choice_or_lockstep_overrides_the_cost(
@@ -210,7 +275,13 @@ def test_models_show_prints_the_costs_and_the_choice_at_a_few_rates(
     assert result.returncode == 0, result.stderr
     shown = json.loads(result.stdout)
     costs = shown["estimator_costs"]
-    assert len(costs) == len(hand.estimator_costs) == 8  # 4 scenarios x (UKF, dead reckoning)
+    # 4 scenarios x (UKF, dead reckoning), and the linearised filter in EXTERNAL and DRIVEN
+    assert len(costs) == len(hand.estimator_costs) == 10
+    assert [c["estimator"] for c in costs if c["scenario"] == "SCENARIO_EXTERNAL"] == [
+        "ESTIMATOR_UKF",
+        "ESTIMATOR_EKF",
+        "ESTIMATOR_CONSTANT_VELOCITY",
+    ]
     assert costs[0]["scenario"] == "SCENARIO_PASSIVE" and costs[0]["steps"] == [1, 2, 5, 10]
     choices = [c for c in shown["estimator_choices"] if c["scenario"] == "SCENARIO_EXTERNAL"]
     assert [c["rate"] for c in choices] == [500.0, 250.0, 100.0, 50.0, 20.0]

@@ -109,3 +109,23 @@ class Combiner:
     na: int
     window: int
     tick: int
+
+# The linearised filter (linearised.h).
+class Ekf:
+    def __init__(
+        self,
+        model_address: int,
+        linearised_address: int,
+        *,
+        driven: bool,
+        nstep: int,
+        Q: np.ndarray,
+        R: np.ndarray,
+        eps: float,
+        force_eps: float,
+    ) -> None: ...
+    def predict(
+        self, x: np.ndarray, P: np.ndarray, act: np.ndarray, qfrc: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+    def update(self, x: np.ndarray, P: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]: ...
+    n: int

@@ -9,6 +9,7 @@
 
 #include "adaptive.h"
 #include "forecast.h"
+#include "linearised.h"
 #include "ukf.h"
 
 namespace py = pybind11;
@@ -169,4 +170,20 @@ PYBIND11_MODULE(_ukf, module) {
       .def_property_readonly("S", [](const Ukf& u) { return u.S; })
       .def_property_readonly("SI", [](const Ukf& u) { return u.SI; })
       .def_property_readonly("propagated_act", [](const Ukf& u) { return u.propagated_act; });
+
+  // The linearised filter (linearised.h): server/estimation/native/linearised.py wraps it.
+  py::class_<jitdyn::Ekf>(module, "Ekf")
+      .def(py::init([](std::uintptr_t model_address, std::uintptr_t linearised_address, bool driven, int nstep, const jitdyn::Ekf::Matrix& Q,
+                       const jitdyn::Ekf::Matrix& R, double eps, double force_eps) {
+             return std::make_unique<jitdyn::Ekf>(reinterpret_cast<const mjModel*>(model_address),
+                                                  reinterpret_cast<const mjModel*>(linearised_address), driven, nstep,
+                                                  Q, R, eps, force_eps);
+           }),
+           py::arg("model_address"), py::arg("linearised_address"), py::kw_only(), py::arg("driven"), py::arg("nstep"), py::arg("Q"),
+           py::arg("R"), py::arg("eps"), py::arg("force_eps"))
+      .def("predict", &jitdyn::Ekf::Predict, py::arg("x"), py::arg("P"), py::arg("act"), py::arg("qfrc"),
+           py::call_guard<py::gil_scoped_release>())
+      .def("update", &jitdyn::Ekf::Update, py::arg("x"), py::arg("P"), py::arg("z"),
+           py::call_guard<py::gil_scoped_release>())
+      .def_property_readonly("n", &jitdyn::Ekf::n);
 }

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16jitdyn/v1/common.proto\x12\tjitdyn.v1\"\x82\x04\n\x11\x45stimatorSettings\x12\'\n\testimator\x18\x01 \x01(\x0e\x32\x14.jitdyn.v1.Estimator\x12!\n\x06preset\x18\x02 \x01(\x0e\x32\x11.jitdyn.v1.Preset\x12,\n\x0csigma_points\x18\x03 \x01(\x0e\x32\x16.jitdyn.v1.SigmaPoints\x12\x12\n\x05\x61lpha\x18\x04 \x01(\x01H\x00\x88\x01\x01\x12\x11\n\x04\x62\x65ta\x18\x05 \x01(\x01H\x01\x88\x01\x01\x12\x12\n\x05kappa\x18\x06 \x01(\x01H\x02\x88\x01\x01\x12\x0f\n\x02p0\x18\x07 \x01(\x01H\x03\x88\x01\x01\x12\x12\n\x05q_var\x18\x08 \x01(\x01H\x04\x88\x01\x01\x12\x0e\n\x01r\x18\t \x01(\x01H\x05\x88\x01\x01\x12*\n\x0b\x66orce_model\x18\n \x01(\x0e\x32\x15.jitdyn.v1.ForceModel\x12\x16\n\tforce_var\x18\x0b \x01(\x01H\x06\x88\x01\x01\x12*\n\x0bnoise_model\x18\x0c \x01(\x0e\x32\x15.jitdyn.v1.NoiseModel\x12%\n\x08\x66orecast\x18\r \x01(\x0e\x32\x13.jitdyn.v1.Forecast\x12*\n\x0bwrong_model\x18\x0e \x01(\x0e\x32\x15.jitdyn.v1.WrongModelB\x08\n\x06_alphaB\x07\n\x05_betaB\x08\n\x06_kappaB\x05\n\x03_p0B\x08\n\x06_q_varB\x04\n\x02_rB\x0c\n\n_force_var*\x7f\n\x08Scenario\x12\x18\n\x14SCENARIO_UNSPECIFIED\x10\x00\x12\x14\n\x10SCENARIO_PASSIVE\x10\x01\x12\x17\n\x13SCENARIO_CONTROLLED\x10\x02\x12\x15\n\x11SCENARIO_EXTERNAL\x10\x03\x12\x13\n\x0fSCENARIO_DRIVEN\x10\x04*F\n\x05\x43lock\x12\x15\n\x11\x43LOCK_UNSPECIFIED\x10\x00\x12\x12\n\x0e\x43LOCK_REALTIME\x10\x01\x12\x12\n\x0e\x43LOCK_LOCKSTEP\x10\x02*\x95\x01\n\tEstimator\x12\x19\n\x15\x45STIMATOR_UNSPECIFIED\x10\x00\x12\x11\n\rESTIMATOR_UKF\x10\x01\x12\x14\n\x10\x45STIMATOR_STATIC\x10\x02\x12\x1f\n\x1b\x45STIMATOR_CONSTANT_VELOCITY\x10\x03\x12#\n\x1f\x45STIMATOR_CONSTANT_ACCELERATION\x10\x04*\x9e\x01\n\x0bSigmaPoints\x12\x1c\n\x18SIGMA_POINTS_UNSPECIFIED\x10\x00\x12\x16\n\x12SIGMA_POINTS_MERWE\x10\x01\x12\x18\n\x14SIGMA_POINTS_SIMPLEX\x10\x02\x12\x18\n\x14SIGMA_POINTS_UNIFORM\x10\x03\x12%\n!SIGMA_POINTS_SIMPLEX_LINEAR_FORCE\x10\x04*F\n\x06Preset\x12\x16\n\x12PRESET_UNSPECIFIED\x10\x00\x12\x11\n\rPRESET_JITDYN\x10\x01\x12\x11\n\rPRESET_THESIS\x10\x02*n\n\nForceModel\x12\x1b\n\x17\x46ORCE_MODEL_UNSPECIFIED\x10\x00\x12\x1b\n\x17\x46ORCE_MODEL_RANDOM_WALK\x10\x01\x12&\n\"FORCE_MODEL_INTEGRATED_RANDOM_WALK\x10\x02*Z\n\nNoiseModel\x12\x1b\n\x17NOISE_MODEL_UNSPECIFIED\x10\x00\x12\x15\n\x11NOISE_MODEL_FIXED\x10\x01\x12\x18\n\x14NOISE_MODEL_ADAPTIVE\x10\x02*P\n\x08\x46orecast\x12\x18\n\x14\x46ORECAST_UNSPECIFIED\x10\x00\x12\x13\n\x0f\x46ORECAST_FILTER\x10\x01\x12\x15\n\x11\x46ORECAST_COMBINED\x10\x02*p\n\nWrongModel\x12\x1b\n\x17WRONG_MODEL_UNSPECIFIED\x10\x00\x12\x14\n\x10WRONG_MODEL_KEEP\x10\x01\x12\x16\n\x12WRONG_MODEL_DRIVEN\x10\x02\x12\x17\n\x13WRONG_MODEL_RESTART\x10\x03*j\n\x07\x43hannel\x12\x17\n\x13\x43HANNEL_UNSPECIFIED\x10\x00\x12\x10\n\x0c\x43HANNEL_QPOS\x10\x01\x12\x10\n\x0c\x43HANNEL_QVEL\x10\x02\x12\x10\n\x0c\x43HANNEL_QACC\x10\x03\x12\x10\n\x0c\x43HANNEL_CTRL\x10\x04*\x87\x01\n\x06Output\x12\x16\n\x12OUTPUT_UNSPECIFIED\x10\x00\x12\x1b\n\x17OUTPUT_INVERSE_DYNAMICS\x10\x01\x12\x1b\n\x17OUTPUT_FORWARD_DYNAMICS\x10\x02\x12\x12\n\x0eOUTPUT_SENSORS\x10\x03\x12\x17\n\x13OUTPUT_FILTER_STATE\x10\x04\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16jitdyn/v1/common.proto\x12\tjitdyn.v1\"\x82\x04\n\x11\x45stimatorSettings\x12\'\n\testimator\x18\x01 \x01(\x0e\x32\x14.jitdyn.v1.Estimator\x12!\n\x06preset\x18\x02 \x01(\x0e\x32\x11.jitdyn.v1.Preset\x12,\n\x0csigma_points\x18\x03 \x01(\x0e\x32\x16.jitdyn.v1.SigmaPoints\x12\x12\n\x05\x61lpha\x18\x04 \x01(\x01H\x00\x88\x01\x01\x12\x11\n\x04\x62\x65ta\x18\x05 \x01(\x01H\x01\x88\x01\x01\x12\x12\n\x05kappa\x18\x06 \x01(\x01H\x02\x88\x01\x01\x12\x0f\n\x02p0\x18\x07 \x01(\x01H\x03\x88\x01\x01\x12\x12\n\x05q_var\x18\x08 \x01(\x01H\x04\x88\x01\x01\x12\x0e\n\x01r\x18\t \x01(\x01H\x05\x88\x01\x01\x12*\n\x0b\x66orce_model\x18\n \x01(\x0e\x32\x15.jitdyn.v1.ForceModel\x12\x16\n\tforce_var\x18\x0b \x01(\x01H\x06\x88\x01\x01\x12*\n\x0bnoise_model\x18\x0c \x01(\x0e\x32\x15.jitdyn.v1.NoiseModel\x12%\n\x08\x66orecast\x18\r \x01(\x0e\x32\x13.jitdyn.v1.Forecast\x12*\n\x0bwrong_model\x18\x0e \x01(\x0e\x32\x15.jitdyn.v1.WrongModelB\x08\n\x06_alphaB\x07\n\x05_betaB\x08\n\x06_kappaB\x05\n\x03_p0B\x08\n\x06_q_varB\x04\n\x02_rB\x0c\n\n_force_var*\x7f\n\x08Scenario\x12\x18\n\x14SCENARIO_UNSPECIFIED\x10\x00\x12\x14\n\x10SCENARIO_PASSIVE\x10\x01\x12\x17\n\x13SCENARIO_CONTROLLED\x10\x02\x12\x15\n\x11SCENARIO_EXTERNAL\x10\x03\x12\x13\n\x0fSCENARIO_DRIVEN\x10\x04*F\n\x05\x43lock\x12\x15\n\x11\x43LOCK_UNSPECIFIED\x10\x00\x12\x12\n\x0e\x43LOCK_REALTIME\x10\x01\x12\x12\n\x0e\x43LOCK_LOCKSTEP\x10\x02*\xa8\x01\n\tEstimator\x12\x19\n\x15\x45STIMATOR_UNSPECIFIED\x10\x00\x12\x11\n\rESTIMATOR_UKF\x10\x01\x12\x14\n\x10\x45STIMATOR_STATIC\x10\x02\x12\x1f\n\x1b\x45STIMATOR_CONSTANT_VELOCITY\x10\x03\x12#\n\x1f\x45STIMATOR_CONSTANT_ACCELERATION\x10\x04\x12\x11\n\rESTIMATOR_EKF\x10\x05*\x9e\x01\n\x0bSigmaPoints\x12\x1c\n\x18SIGMA_POINTS_UNSPECIFIED\x10\x00\x12\x16\n\x12SIGMA_POINTS_MERWE\x10\x01\x12\x18\n\x14SIGMA_POINTS_SIMPLEX\x10\x02\x12\x18\n\x14SIGMA_POINTS_UNIFORM\x10\x03\x12%\n!SIGMA_POINTS_SIMPLEX_LINEAR_FORCE\x10\x04*F\n\x06Preset\x12\x16\n\x12PRESET_UNSPECIFIED\x10\x00\x12\x11\n\rPRESET_JITDYN\x10\x01\x12\x11\n\rPRESET_THESIS\x10\x02*n\n\nForceModel\x12\x1b\n\x17\x46ORCE_MODEL_UNSPECIFIED\x10\x00\x12\x1b\n\x17\x46ORCE_MODEL_RANDOM_WALK\x10\x01\x12&\n\"FORCE_MODEL_INTEGRATED_RANDOM_WALK\x10\x02*Z\n\nNoiseModel\x12\x1b\n\x17NOISE_MODEL_UNSPECIFIED\x10\x00\x12\x15\n\x11NOISE_MODEL_FIXED\x10\x01\x12\x18\n\x14NOISE_MODEL_ADAPTIVE\x10\x02*P\n\x08\x46orecast\x12\x18\n\x14\x46ORECAST_UNSPECIFIED\x10\x00\x12\x13\n\x0f\x46ORECAST_FILTER\x10\x01\x12\x15\n\x11\x46ORECAST_COMBINED\x10\x02*p\n\nWrongModel\x12\x1b\n\x17WRONG_MODEL_UNSPECIFIED\x10\x00\x12\x14\n\x10WRONG_MODEL_KEEP\x10\x01\x12\x16\n\x12WRONG_MODEL_DRIVEN\x10\x02\x12\x17\n\x13WRONG_MODEL_RESTART\x10\x03*j\n\x07\x43hannel\x12\x17\n\x13\x43HANNEL_UNSPECIFIED\x10\x00\x12\x10\n\x0c\x43HANNEL_QPOS\x10\x01\x12\x10\n\x0c\x43HANNEL_QVEL\x10\x02\x12\x10\n\x0c\x43HANNEL_QACC\x10\x03\x12\x10\n\x0c\x43HANNEL_CTRL\x10\x04*\x87\x01\n\x06Output\x12\x16\n\x12OUTPUT_UNSPECIFIED\x10\x00\x12\x1b\n\x17OUTPUT_INVERSE_DYNAMICS\x10\x01\x12\x1b\n\x17OUTPUT_FORWARD_DYNAMICS\x10\x02\x12\x12\n\x0eOUTPUT_SENSORS\x10\x03\x12\x17\n\x13OUTPUT_FILTER_STATE\x10\x04\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -36,23 +36,23 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_CLOCK']._serialized_start=683
   _globals['_CLOCK']._serialized_end=753
   _globals['_ESTIMATOR']._serialized_start=756
-  _globals['_ESTIMATOR']._serialized_end=905
-  _globals['_SIGMAPOINTS']._serialized_start=908
-  _globals['_SIGMAPOINTS']._serialized_end=1066
-  _globals['_PRESET']._serialized_start=1068
-  _globals['_PRESET']._serialized_end=1138
-  _globals['_FORCEMODEL']._serialized_start=1140
-  _globals['_FORCEMODEL']._serialized_end=1250
-  _globals['_NOISEMODEL']._serialized_start=1252
-  _globals['_NOISEMODEL']._serialized_end=1342
-  _globals['_FORECAST']._serialized_start=1344
-  _globals['_FORECAST']._serialized_end=1424
-  _globals['_WRONGMODEL']._serialized_start=1426
-  _globals['_WRONGMODEL']._serialized_end=1538
-  _globals['_CHANNEL']._serialized_start=1540
-  _globals['_CHANNEL']._serialized_end=1646
-  _globals['_OUTPUT']._serialized_start=1649
-  _globals['_OUTPUT']._serialized_end=1784
+  _globals['_ESTIMATOR']._serialized_end=924
+  _globals['_SIGMAPOINTS']._serialized_start=927
+  _globals['_SIGMAPOINTS']._serialized_end=1085
+  _globals['_PRESET']._serialized_start=1087
+  _globals['_PRESET']._serialized_end=1157
+  _globals['_FORCEMODEL']._serialized_start=1159
+  _globals['_FORCEMODEL']._serialized_end=1269
+  _globals['_NOISEMODEL']._serialized_start=1271
+  _globals['_NOISEMODEL']._serialized_end=1361
+  _globals['_FORECAST']._serialized_start=1363
+  _globals['_FORECAST']._serialized_end=1443
+  _globals['_WRONGMODEL']._serialized_start=1445
+  _globals['_WRONGMODEL']._serialized_end=1557
+  _globals['_CHANNEL']._serialized_start=1559
+  _globals['_CHANNEL']._serialized_end=1665
+  _globals['_OUTPUT']._serialized_start=1668
+  _globals['_OUTPUT']._serialized_end=1803
   _globals['_ESTIMATORSETTINGS']._serialized_start=38
   _globals['_ESTIMATORSETTINGS']._serialized_end=552
 # @@protoc_insertion_point(module_scope)

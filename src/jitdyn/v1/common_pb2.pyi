@@ -133,6 +133,13 @@ class _EstimatorEnumTypeWrapper(_enum_type_wrapper._EnumTypeWrapper[_Estimator.V
     """Dead reckoning (IEEE 1278): q advances with the last measured qd."""
     ESTIMATOR_CONSTANT_ACCELERATION: _Estimator.ValueType  # 4
     """Dead reckoning (IEEE 1278): q and qd advance with the last measured qd and qdd."""
+    ESTIMATOR_EKF: _Estimator.ValueType  # 5
+    """Extended Kalman filter on the UKF's state and noise, its covariance carried by the Jacobian
+    of the tick that MuJoCo's mjd_transitionFD finite-differences. Runs SCENARIO_PASSIVE,
+    SCENARIO_EXTERNAL and SCENARIO_DRIVEN with fixed noise and FORECAST_FILTER; an open in
+    SCENARIO_CONTROLLED, or asking for adaptive noise, the forecast combination,
+    WRONG_MODEL_DRIVEN or FORCE_MODEL_INTEGRATED_RANDOM_WALK with it, is refused INVALID_ARGUMENT.
+    """
 
 class Estimator(_Estimator, metaclass=_EstimatorEnumTypeWrapper):
     """The state estimator that fills in ticks without a frame."""
@@ -147,6 +154,13 @@ ESTIMATOR_CONSTANT_VELOCITY: Estimator.ValueType  # 3
 """Dead reckoning (IEEE 1278): q advances with the last measured qd."""
 ESTIMATOR_CONSTANT_ACCELERATION: Estimator.ValueType  # 4
 """Dead reckoning (IEEE 1278): q and qd advance with the last measured qd and qdd."""
+ESTIMATOR_EKF: Estimator.ValueType  # 5
+"""Extended Kalman filter on the UKF's state and noise, its covariance carried by the Jacobian
+of the tick that MuJoCo's mjd_transitionFD finite-differences. Runs SCENARIO_PASSIVE,
+SCENARIO_EXTERNAL and SCENARIO_DRIVEN with fixed noise and FORECAST_FILTER; an open in
+SCENARIO_CONTROLLED, or asking for adaptive noise, the forecast combination,
+WRONG_MODEL_DRIVEN or FORCE_MODEL_INTEGRATED_RANDOM_WALK with it, is refused INVALID_ARGUMENT.
+"""
 Global___Estimator: _TypeAlias = Estimator  # noqa: Y015
 
 class _SigmaPoints:
