@@ -586,16 +586,17 @@ class ForecastCombiner:
         other extrapolators and PRIOR, blended with the session's as a fading memory holds a score
         made before the session's n: FORGETTING^n of the prior's, the rest the session's
         (docs/decisions/0186-prior-predictor.md). Once the session has a score at h, the prior's
-        covariances are taken at the session's scale, their STATIC variance the session's: the prior
-        says how the predictors compare, the session how large its motion's errors are
-        (docs/decisions/0192-the-prior-at-the-sessions-scale.md)."""
-        if self._prior_cov is None:
+        covariances are taken at the session's scale, the variance of the best of the prior's
+        predictors the session's best: the prior says how the predictors compare, the session how
+        well the best of them forecasts its motion
+        (docs/decisions/0211-the-prior-at-its-best-predictors-scale.md)."""
+        if self._prior_cov is None or self._prior_block is None:
             return self._cov[h], self._cov_v[h]
         share = _PRIOR_SHARE[min(int(self._count[h]), _PRIOR_SHARE.size - 1)]
         block, prior = self._prior_mask, self._prior_cov
         C0, D0 = (
-            _at_scale(prior[0][h], self._cov[h], self._static),
-            _at_scale(prior[1][h], self._cov_v[h], self._static),
+            _at_scale(prior[0][h], self._cov[h], self._prior_block),
+            _at_scale(prior[1][h], self._cov_v[h], self._prior_block),
         )
         C = np.where(block, share * C0 + (1.0 - share) * self._cov[h], self._cov[h])
         D = np.where(block, share * D0 + (1.0 - share) * self._cov_v[h], self._cov_v[h])
@@ -824,10 +825,12 @@ _FADING: Final = np.array(
 _PRIOR_SHARE: Final = np.array([FORGETTING**n for n in range(200)] + [0.0])
 
 
-def _at_scale(prior: np.ndarray, session: np.ndarray, static: int) -> np.ndarray:
-    """The prior's covariance (P, P) times the session's STATIC variance over its own (as it is
-    while the session has no score there, or either is nil)."""
-    ours, theirs = float(session[static, static]), float(prior[static, static])
+def _at_scale(prior: np.ndarray, session: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """The prior's covariance (P, P) times the session's lowest variance among the prior's
+    predictors `block` over the prior's own lowest (as it is while the session has no score there,
+    or either is nil): STATIC's variance is the motion's size, which says little of how well a
+    smooth motion that is not gait is forecast."""
+    ours, theirs = float(np.min(np.diagonal(session)[block])), float(np.min(np.diagonal(prior)[block]))
     return prior if ours <= 0.0 or theirs <= 0.0 else prior * (ours / theirs)
 
 

@@ -96,6 +96,35 @@ def test_a_restored_combiner_with_the_prior_answers_as_the_first_pass() -> None:
     assert all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
 
 
+def test_the_priors_covariances_take_the_scale_of_the_sessions_best_predictor() -> None:
+    """A slow smooth swing that is not gait (0.3 sin t on every joint), scored for a second: at
+    35 ms the session's CONSTANT_ACCELERATION errs far less than its STATIC, relative to each
+    other, than gait's do. The prior's covariances the weights are blended from are the prior's
+    times the session's lowest variance among the prior's predictors over the prior's own lowest
+    (docs/decisions/0211-the-prior-at-its-best-predictors-scale.md), so constant acceleration does
+    not look worse than the session scores it; at STATIC's scale it looked several times worse."""
+    t = np.arange(100) * DT
+    q = np.stack([0.3 * np.sin(t + phase) for phase in (0.0, 1.0, 2.0)], axis=1)
+    combiner = _combiner(prior=True)
+    _feed(combiner, q, range(100))
+    h = 4
+    assert combiner._count[h] >= MIN_SAMPLES
+    names = combiner.predictors
+    block = np.array(
+        [names.index(n) for n in ("STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION", "PRIOR")]
+    )
+    assert combiner._prior_cov is not None
+    prior, session = combiner._prior_cov[0][h], combiner._cov[h]
+    share = 0.8 ** int(combiner._count[h])
+    blended = combiner._weighing(h)[0]
+    scaled = (blended - (1.0 - share) * session)[np.ix_(block, block)] / share
+    theirs, ours = np.diagonal(prior)[block], np.diagonal(session)[block]
+    np.testing.assert_allclose(scaled, prior[np.ix_(block, block)] * ours.min() / theirs.min(), rtol=1e-6)
+    ca, static = names.index("CONSTANT_ACCELERATION"), names.index("STATIC")
+    at_static = prior[ca, ca] * session[static, static] / prior[static, static]
+    assert at_static > 3.0 * scaled[2, 2], (at_static, scaled[2, 2], session[ca, ca])
+
+
 def test_the_shipped_prior_holds_its_six_people_under_5_mb() -> None:
     assert PRIOR_FILE.stat().st_size < 5e6
     full = PriorLibrary.load()
