@@ -21,6 +21,8 @@ from pybind11.setup_helpers import ParallelCompile, Pybind11Extension, build_ext
 from setuptools import setup
 
 NATIVE = Path("server/estimation/native")
+# A tick in one native call (tick.h), its own block.
+TICK_SOURCES, TICK_HEADERS = ("tick.cc",), ("tick.h",)
 
 
 def eigen_include() -> str:
@@ -61,9 +63,9 @@ setup(
     ext_modules=[
         Pybind11Extension(
             "jitdyn.server.estimation.native._ukf",
-            sources=[str(NATIVE / name) for name in ("bindings.cc", "ukf.cc", "adaptive.cc", "forecast.cc", "matching.cc")],
+            sources=[str(NATIVE / name) for name in ("bindings.cc", "ukf.cc", "adaptive.cc", "forecast.cc", "matching.cc") + TICK_SOURCES],
             include_dirs=[str(library.parent / "include"), eigen_include()],
-            depends=[str(NATIVE / name) for name in ("ukf.h", "adaptive.h", "forecast.h", "matching.h", "extrapolators.h")],
+            depends=[str(NATIVE / name) for name in ("ukf.h", "adaptive.h", "forecast.h", "matching.h", "extrapolators.h") + TICK_HEADERS],
             cxx_std=17,
             # Linked by its full name (the wheel ships no unversioned libmujoco.so). At run time
             # the module finds it already loaded by `import mujoco` (by soname), or beside itself

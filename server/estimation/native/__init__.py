@@ -1,7 +1,8 @@
 """jitdyn's native estimation engine: the unscented filter's numeric work (sigma points, their
 propagation through MuJoCo's C API, the unscented transform and the update) in one compiled
 module, ukf.cc, which holds the filter's state and releases the GIL while it works; and a DRIVEN
-session's forecast combination (forecast.cc, matching.cc; native/combiner.py wraps it).
+session's forecast combination (forecast.cc, matching.cc; native/combiner.py wraps it); and a
+tick's steps in one call over the three (tick.cc; native/tick.py).
 
 The module is built by `pip install` (setup.py) against the headers of the pinned mujoco, and
 handed that MuJoCo's pointers: importing it beside any other MuJoCo is refused, in one line.

@@ -109,3 +109,22 @@ class Combiner:
     na: int
     window: int
     tick: int
+
+class Tick:
+    def __init__(
+        self,
+        ukf: Ukf,
+        *,
+        adapter: Adapter | None,
+        combiner: Combiner | None,
+        act_low: np.ndarray,
+        act_high: np.ndarray,
+        covariance_limit: float,
+        force: int,
+    ) -> None: ...
+    def advance(self, gap: bool) -> tuple[bool, float, bool, np.ndarray]: ...
+    def step(
+        self, z: np.ndarray
+    ) -> tuple[
+        bool, bool, float, float, bool, bool, bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None
+    ]: ...
