@@ -29,7 +29,7 @@ from jitdyn.errors import InvalidArgument
 from jitdyn.server.estimation.config import SETTING_FIELDS, EstimatorConfig, preset_values
 from jitdyn.server.estimation.interface import Estimate, Measurement
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.ukf import FilterSnapshot, UnscentedFilter
+from jitdyn.server.estimation.ukf import FilterSnapshot, NativeSnapshot, UnscentedFilter
 from jitdyn.vocabulary import Channel, Preset, Scenario, WrongModel
 
 __all__ = ["ABSORB_QUANTILE", "WINDOW", "SwitchingFilter"]
@@ -50,8 +50,8 @@ _DRIVEN_FIELDS: Final = tuple(name for name in SETTING_FIELDS if name not in _KE
 class _Snapshot:
     owner: int
     switched: bool
-    first: FilterSnapshot
-    second: FilterSnapshot | None
+    first: FilterSnapshot | NativeSnapshot
+    second: FilterSnapshot | NativeSnapshot | None
     nis: tuple[float, ...]
     log: tuple[Measurement | None, ...]
 

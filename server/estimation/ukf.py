@@ -73,10 +73,17 @@ from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
 from jitdyn.server.estimation.native.tick import NativeTick, Step
 from jitdyn.server.estimation.parts import FilterParts, build_parts
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.snapshot import FilterSnapshot, restore_snapshot, take_snapshot
+from jitdyn.server.estimation.snapshot import (
+    FilterSnapshot,
+    NativeSnapshot,
+    bookkeeping,
+    restore_bookkeeping,
+    restore_snapshot,
+    take_snapshot,
+)
 from jitdyn.vocabulary import Channel, EstimatorKind, Scenario
 
-__all__ = ["FilterSnapshot", "UnscentedFilter"]
+__all__ = ["FilterSnapshot", "NativeSnapshot", "UnscentedFilter"]
 
 
 class UnscentedFilter:
@@ -213,7 +220,7 @@ class UnscentedFilter:
             state.ctrl = check_vector(ctrl, layout.nu, "ctrl").copy()
         m = check_measurement(m, parts.model, self._config.measured)
         kf.set_inputs(act=state.act, ctrl=state.ctrl, qfrc=state.qfrc)
-        step = self._tick.step(self._z(m))
+        step = self._tick.step(self._z(m), quiet=self._guard.quiet(), qvel=m.qvel)
         state.act = step.act
         state.ticks_since_update += 1
         if not step.updated:
@@ -239,8 +246,10 @@ class UnscentedFilter:
             guard_steps.restart(parts, m)
         else:
             self._accept(m)
+        if reinitialised and step.observed_frame:
+            raise RuntimeError("unreachable: the native tick observed a posterior the guard restarted")
         x = kf.x if reinitialised else step.x
-        if parts.foresight is not None:
+        if parts.foresight is not None and not step.observed_frame:
             parts.foresight.observe(m, x=x, act=state.act)
         if m.ctrl is not None:
             state.ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
@@ -313,8 +322,12 @@ class UnscentedFilter:
         self._require_initialised("glance")
         return self._lookahead.glance(seconds)
 
-    def snapshot(self) -> FilterSnapshot:
+    def snapshot(self) -> FilterSnapshot | NativeSnapshot:
         parts = self._parts
+        if self._tick is not None:
+            return NativeSnapshot(
+                owner=id(self), kept=bookkeeping(self._state, self._guard), native=self._tick.snapshot()
+            )
         return take_snapshot(
             id(self),
             self._state,
@@ -325,9 +338,17 @@ class UnscentedFilter:
         )
 
     def restore(self, snap: object) -> None:
-        if not isinstance(snap, FilterSnapshot) or snap.owner != id(self):
+        if not isinstance(snap, FilterSnapshot | NativeSnapshot) or snap.owner != id(self):
             raise InvalidArgument(f"snap must be a snapshot of this estimator, got {type(snap).__name__}")
         parts = self._parts
+        if isinstance(snap, NativeSnapshot):
+            if self._tick is None:
+                raise RuntimeError("unreachable: only a filter with a native tick takes NativeSnapshots")
+            self._tick.restore(snap.native)
+            restore_bookkeeping(snap.kept, self._state, self._guard)
+            return
+        if self._tick is not None:
+            raise RuntimeError("unreachable: a filter with a native tick takes NativeSnapshots")
         restore_snapshot(
             snap, self._state, parts.kf, guard=self._guard, adapter=parts.adapter, foresight=parts.foresight
         )

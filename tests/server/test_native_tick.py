@@ -18,7 +18,8 @@ from jitdyn.server.estimation.config import Engine, EstimatorConfig
 from jitdyn.server.estimation.interface import Estimate, Measurement
 from jitdyn.server.estimation.native.tick import NativeTick
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.ukf import UnscentedFilter
+from jitdyn.server.estimation.ukf import NativeSnapshot, UnscentedFilter
+from jitdyn.server.runtime.costs import snapshot_bytes
 from tests.server.test_native import REPEATED, REPLAYED, SKIPPED, flatten, frames_for
 from tests.server.test_ukf import config_for, pendulum
 
@@ -29,8 +30,9 @@ BLOWN = {200, 330}
 
 def run(
     model: mujoco.MjModel, config: EstimatorConfig, frames: list[Measurement]
-) -> tuple[list[np.ndarray], Counter[str]]:
-    """Every answer of a session fed through step(), flattened, and the branches seen."""
+) -> tuple[list[np.ndarray], Counter[str], int]:
+    """Every answer of a session fed through step(), flattened, the branches seen, and the size of
+    its last snapshot (snapshot_bytes)."""
     out: list[np.ndarray] = []
     seen: Counter[str] = Counter()
 
@@ -66,7 +68,8 @@ def run(
             if k in REPEATED:
                 answer(f.update(frames[k]))
         seen["repairs"] = f.covariance_repairs
-    return out, seen
+        size = snapshot_bytes(f.snapshot())
+    return out, seen, size
 
 
 @pytest.mark.parametrize(
@@ -81,10 +84,19 @@ def test_a_tick_in_one_call_is_the_steps_one_call_each(scenario: str, noise_mode
     assert one_call.engine == Engine.NATIVE and one_call.native_tick
     steps = dataclasses.replace(one_call, native_tick=False)
     with WorkerPool(1) as pool:
-        assert NativeTick.of(UnscentedFilter(model, one_call, pool=pool).parts) is not None
+        native = UnscentedFilter(model, one_call, pool=pool)
+        assert NativeTick.of(native.parts) is not None
+        native.initialise(Measurement(qpos=np.zeros(2), qvel=np.zeros(2)))
+        assert isinstance(native.snapshot(), NativeSnapshot)
         assert NativeTick.of(UnscentedFilter(model, steps, pool=pool).parts) is None
     frames = frames_for(model, one_call)
-    (got, seen), (expected, seen_steps) = run(model, one_call, frames), run(model, steps, frames)
+    (got, seen, size), (expected, seen_steps, size_steps) = (
+        run(model, one_call, frames),
+        run(model, steps, frames),
+    )
+    # The native snapshot says its size: x, P, sigmas_f and the combiner's as the steps' do, and
+    # the adapter's state, which their opaque AdapterState does not report.
+    assert size >= size_steps > 0 and (size > size_steps) == (noise_model == "ADAPTIVE"), (size, size_steps)
     assert seen == seen_steps
     assert len(got) == len(expected)
     for i, (a, b) in enumerate(zip(got, expected, strict=True)):

@@ -22,7 +22,7 @@ except ImportError as error:  # pragma: no cover - a broken install, said in one
         "present (pip install -e . in the checkout)"
     ) from error
 
-__all__ = ["MUJOCO_VERSION", "AdapterState", "CombinerState", "SingularMatrix", "Ukf"]
+__all__ = ["MUJOCO_VERSION", "AdapterState", "CombinerState", "SingularMatrix", "TickState", "Ukf"]
 
 MUJOCO_VERSION = int(_ukf.MUJOCO_HEADER_VERSION)
 
@@ -36,3 +36,4 @@ Ukf = _ukf.Ukf
 AdapterState = _ukf.AdapterState
 CombinerState = _ukf.CombinerState
 SingularMatrix = _ukf.SingularMatrix
+TickState = _ukf.TickState

@@ -110,6 +110,10 @@ class Combiner:
     window: int
     tick: int
 
+class TickState:
+    @property
+    def nbytes(self) -> int: ...
+
 class Tick:
     def __init__(
         self,
@@ -124,7 +128,20 @@ class Tick:
     ) -> None: ...
     def advance(self, gap: bool) -> tuple[bool, float, bool, np.ndarray]: ...
     def step(
-        self, z: np.ndarray
+        self, z: np.ndarray, *, quiet: bool, qvel: np.ndarray | None
     ) -> tuple[
-        bool, bool, float, float, bool, bool, bool, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None
+        bool,
+        bool,
+        float,
+        float,
+        bool,
+        bool,
+        bool,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray | None,
+        bool,
     ]: ...
+    def snapshot(self) -> TickState: ...
+    def restore(self, state: TickState) -> None: ...

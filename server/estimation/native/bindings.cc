@@ -175,6 +175,9 @@ PYBIND11_MODULE(_ukf, module) {
   {
     using jitdyn::Tick;
     using jitdyn::TickSpec;
+    using jitdyn::TickState;
+    py::class_<TickState>(module, "TickState")
+        .def_property_readonly("nbytes", [](const TickState& s) { return s.Bytes(); });
     py::class_<Tick>(module, "Tick")
         .def(py::init([](Ukf* ukf, jitdyn::Adapter* adapter, jitdyn::Combiner* combiner, const Vector& act_low,
                          const Vector& act_high, double covariance_limit, int force) {
@@ -197,19 +200,22 @@ PYBIND11_MODULE(_ukf, module) {
               return py::make_tuple(p.finite, p.largest_variance, p.diverged, t.act());
             },
             py::arg("gap"))
-        // (updated, finite, nis, largest_variance, observed, adapted, absorb, act, x, P, qacc or None)
+        // (updated, finite, nis, largest_variance, observed, adapted, absorb, act, x, P, qacc or None,
+        //  observed_frame)
         .def(
             "step",
-            [](Tick& t, const Vector& z) {
+            [](Tick& t, const Vector& z, bool quiet, const std::optional<Vector>& qvel) {
               jitdyn::TickUpdate u;
               {
                 py::gil_scoped_release release;
-                u = t.Step(z);
+                u = t.Step(z, quiet, qvel);
               }
               py::object qacc = u.has_qacc ? py::cast(u.qacc) : py::none();
               return py::make_tuple(u.updated, u.finite, u.nis, u.largest_variance, u.observed, u.adapted, u.absorb,
-                                    t.act(), t.x(), t.P(), qacc);
+                                    t.act(), t.x(), t.P(), qacc, u.observed_frame);
             },
-            py::arg("z"));
+            py::arg("z"), py::kw_only(), py::arg("quiet"), py::arg("qvel"))
+        .def("snapshot", &Tick::Snapshot, py::call_guard<py::gil_scoped_release>())
+        .def("restore", &Tick::Restore, py::arg("state"), py::call_guard<py::gil_scoped_release>());
   }
 }

@@ -47,7 +47,7 @@ TickPrediction Tick::Advance(bool gap) {
   return out;
 }
 
-TickUpdate Tick::Step(const Vector& z) {
+TickUpdate Tick::Step(const Vector& z, bool quiet, const std::optional<Vector>& qvel) {
   TickUpdate out;
   out.prediction = Advance(false);
   if (out.prediction.diverged) return out;
@@ -86,7 +86,49 @@ TickUpdate Tick::Step(const Vector& z) {
       out.qacc = Vector::Constant(nv_, std::numeric_limits<double>::quiet_NaN());
     }
   }
+  // foresight.py observe, where no restart can follow this update (ukf.py _stepped).
+  const bool kept = out.finite && out.largest_variance <= spec_.covariance_limit && !out.absorb;
+  if (combiner_ != nullptr && quiet && kept && x.allFinite()) {
+    const int fblocks = ukf_->spec().fblocks;
+    std::optional<Vector> rate;
+    if (fblocks == 2) rate = x.segment(nq_ + 2 * nv_, nv_);
+    combiner_->Observe(z.head(nq_), qvel ? *qvel : Vector(x.segment(nq_, nv_)), x.head(nq_), x.segment(nq_, nv_),
+                       ukf_->act, x.segment(nq_ + nv_, nv_), rate);
+    out.observed_frame = true;
+  }
   return out;
+}
+
+std::size_t TickState::Bytes() const {
+  std::size_t doubles = x.size() + P.size() + sigmas_f.size();
+  if (adapter) {
+    const AdapterState& a = *adapter;
+    doubles += a.r.size() + a.q_est.size() + a.nis.size() + a.d4.size() + a.reported_r.size() + a.reported_s.size();
+    for (const Eigen::VectorXd& v : a.recent) doubles += v.size();
+  }
+  return doubles * sizeof(double) + (combiner ? combiner->Bytes() : 0);
+}
+
+TickState Tick::Snapshot() {
+  TickState state;
+  state.sigmas_f = ukf_->sigmas_f();
+  state.x = ukf_->x;
+  state.P = ukf_->P;
+  if (adapter_ != nullptr) state.adapter = adapter_->state();
+  if (combiner_ != nullptr) state.combiner = combiner_->Snapshot();
+  return state;
+}
+
+void Tick::Restore(const TickState& state) {
+  if (state.adapter.has_value() != (adapter_ != nullptr) || state.combiner.has_value() != (combiner_ != nullptr) ||
+      state.x.size() != ukf_->x.size() || state.P.rows() != ukf_->P.rows()) {
+    throw std::invalid_argument("a TickState of another filter");
+  }
+  ukf_->x = state.x;
+  ukf_->P = state.P;
+  ukf_->set_sigmas_f(state.sigmas_f);
+  if (adapter_ != nullptr) adapter_->Restore(*state.adapter);
+  if (combiner_ != nullptr) combiner_->Restore(*state.combiner);
 }
 
 }  // namespace jitdyn

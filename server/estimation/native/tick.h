@@ -11,6 +11,8 @@
 #include "forecast.h"
 #include "ukf.h"
 
+#include <optional>
+
 namespace jitdyn {
 
 // What the estimate's qacc is computed under: none (CONTROLLED: qacc is in x; EXTERNAL: the
@@ -22,6 +24,16 @@ struct TickSpec {
   Vector act_low, act_high;     // (na,) the activations' bounds (answer.py activation_bounds)
   double covariance_limit = 0;  // guard.py COVARIANCE_LIMIT: a larger variance is a divergence
   TickForce force = TickForce::kNone;
+};
+
+// Everything of the filter's numbers a timewarp snapshot holds: x, P, the update's sigma points,
+// the adapter's and the combiner's states. Opaque to Python, which reads its size.
+struct TickState {
+  Vector x;
+  Matrix P, sigmas_f;
+  std::optional<AdapterState> adapter;
+  std::optional<CombinerState> combiner;
+  std::size_t Bytes() const;
 };
 
 struct TickPrediction {
@@ -40,6 +52,7 @@ struct TickUpdate {
   bool adapted = false, absorb = false;
   bool has_qacc = false;     // qacc below is the estimate's (TickForce not kNone)
   Vector qacc;
+  bool observed_frame = false;  // the combiner observed the frame and the posterior
 };
 
 class Tick {
@@ -49,8 +62,16 @@ class Tick {
 
   // A tick's prediction; gap: a tick after one without its frame (the adapter's gap Q).
   TickPrediction Advance(bool gap);
-  // An on-time tick: Advance(false), then, unless it diverged, the update with z (dim_z,).
-  TickUpdate Step(const Vector& z);
+  // An on-time tick: Advance(false), then, unless it diverged, the update with z (dim_z,). Then
+  // the combiner observes the frame (qpos: z's head; qvel, or x's when empty) when `quiet` (the
+  // guard's runs cannot restart the filter on this update) and x and P are no divergence and
+  // were not absorbed: the cases in which Python would keep this posterior.
+  TickUpdate Step(const Vector& z, bool quiet, const std::optional<Vector>& qvel);
+
+  // The whole numeric state, in one copy, and back (the sigma points drawn first, as a read of
+  // sigmas_f draws them).
+  TickState Snapshot();
+  void Restore(const TickState& state);
 
   // The filter as the last call left it: activations (na,), x (size,), P (n, n).
   const Vector& act() const { return ukf_->act; }

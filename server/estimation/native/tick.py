@@ -1,7 +1,7 @@
 """A tick's numeric steps in one native call (tick.cc) for an UnscentedFilter on the native engine:
 the process noise, the forecast combination's advance, predict, the activations' clip and tidy; on
 a frame that is on time also the update's noise, the update, tidy, the adaptive noise's
-observation and the estimate's qacc. What stays in Python, and why:
+observation, the estimate's qacc and the combiner's observation of the frame. What stays in Python, and why:
 docs/decisions/0212-one-native-call-a-tick.md.
 
     tick = NativeTick.of(parts)           # None: this filter runs its steps one call each
@@ -17,7 +17,7 @@ import numpy as np
 
 from jitdyn.server.estimation.answer import activation_bounds
 from jitdyn.server.estimation.guard import COVARIANCE_LIMIT
-from jitdyn.server.estimation.native import _ukf
+from jitdyn.server.estimation.native import TickState, _ukf
 from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
 from jitdyn.server.estimation.native.combiner import NativeCombiner
 from jitdyn.server.estimation.native.filter import NativeUKF
@@ -59,6 +59,7 @@ class Step:
     x: np.ndarray
     P: np.ndarray
     qacc: np.ndarray | None
+    observed_frame: bool  # the combiner observed the frame and this posterior
 
 
 class NativeTick:
@@ -103,12 +104,22 @@ class NativeTick:
         self._kf.held_act(act)
         return Prediction(finite=finite, largest_variance=largest, diverged=diverged, act=act)
 
-    def step(self, z: np.ndarray) -> Step:
-        """An on-time tick: advance(gap=False), then, unless it diverged, the update with z."""
-        updated, finite, nis, largest, observed, adapted, absorb, act, x, P, qacc = self._tick.step(z)
+    def snapshot(self) -> TickState:
+        """x, P, the update's sigma points, the adapter's and the combiner's states: one copy."""
+        return self._tick.snapshot()
+
+    def restore(self, state: TickState) -> None:
+        self._tick.restore(state)
+
+    def step(self, z: np.ndarray, *, quiet: bool, qvel: np.ndarray | None) -> Step:
+        """An on-time tick: advance(gap=False), then, unless it diverged, the update with z; the
+        combiner observes the frame (qvel: its measured qvel) where the posterior is kept for
+        sure (quiet: the guard's runs cannot restart the filter on this update; tick.h)."""
+        answer = self._tick.step(z, quiet=quiet, qvel=qvel)
+        updated, finite, nis, largest, observed, adapted, absorb, act, x, P, qacc, observed_frame = answer
         self._kf.held_act(act)
         return Step(
             updated=updated, finite=finite, nis=None if np.isnan(nis) else float(nis),
             largest_variance=largest, observed=observed, adapted=adapted, absorb=absorb, act=act,
-            x=x, P=P, qacc=qacc,
+            x=x, P=P, qacc=qacc, observed_frame=observed_frame,
         )  # fmt: skip
