@@ -1,7 +1,8 @@
 // One tick of a session's UKF in one call (server/estimation/ukf.py's steps, in its order): the
 // process noise of the tick, the forecast combination's advance, predict, the activations'
 // clip, tidy; with a frame on time also the noise of the update, the update, tidy, the adaptive
-// noise's observation, and the estimate's forward dynamics. The guard's bookkeeping, restarts,
+// noise's observation, the estimate's forward dynamics and the combiner's observation of the
+// frame; and the timewarp's snapshot of all of it in one copy. The guard's bookkeeping, restarts,
 // absorptions and a gap's answers stay in Python (docs/decisions/0212-one-native-call-a-tick.md).
 // Holds pointers to the session's Ukf, Adapter and Combiner, which the Python objects own.
 #ifndef JITDYN_SERVER_ESTIMATION_NATIVE_TICK_H_

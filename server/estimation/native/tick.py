@@ -1,7 +1,8 @@
 """A tick's numeric steps in one native call (tick.cc) for an UnscentedFilter on the native engine:
 the process noise, the forecast combination's advance, predict, the activations' clip and tidy; on
 a frame that is on time also the update's noise, the update, tidy, the adaptive noise's
-observation, the estimate's qacc and the combiner's observation of the frame. What stays in Python, and why:
+observation, the estimate's qacc and the combiner's observation of the frame; and the timewarp's
+snapshot of all of it in one copy (TickState). What stays in Python, and why:
 docs/decisions/0212-one-native-call-a-tick.md.
 
     tick = NativeTick.of(parts)           # None: this filter runs its steps one call each
