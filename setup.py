@@ -70,6 +70,7 @@ setup(
                     "forecast.cc",
                     "matching.cc",
                     "linearised.cc",
+                    "tick.cc",
                 )
             ],
             include_dirs=[str(library.parent / "include"), eigen_include()],
@@ -82,6 +83,7 @@ setup(
                     "matching.h",
                     "extrapolators.h",
                     "linearised.h",
+                    "tick.h",
                 )
             ],
             cxx_std=17,

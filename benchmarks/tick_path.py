@@ -6,6 +6,7 @@ dynamics, the record, the metrics, the result message and its serialisation), on
     python -m benchmarks.tick_path --model biped --scenario CONTROLLED --rate 200
     python -m benchmarks.tick_path --profile 25                      # where it goes, by function
     python -m benchmarks.tick_path --grpc --sessions 8               # the whole tick, by thread
+    python -m benchmarks.tick_path --arms native steps static         # a tick in one native call
 
 It opens a LOCKSTEP session on a server built as `jitdyn serve` builds one (not listening), in a
 temporary data folder, and feeds it the load generator's trajectory. Per tick it reports the
@@ -25,7 +26,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import cProfile
+import dataclasses
 import os
 import pstats
 import re
@@ -34,15 +37,19 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
 from benchmarks.load import _frames, run, trajectory
 from jitdyn.client import SessionOptions
-from jitdyn.server.estimation.config import Engine
+from jitdyn.server.estimation.config import Engine, EstimatorConfig
+from jitdyn.server.estimation.interface import Estimator
+from jitdyn.server.estimation.pool import WorkerPool
+from jitdyn.server.runtime import opening
 from jitdyn.server.runtime.opening import SessionOpener
 from jitdyn.server.transport.app import ServerConfig, create_server
 from jitdyn.server.transport.background import BackgroundServer
@@ -51,7 +58,31 @@ from jitdyn.server.transport.opening import open_request
 from jitdyn.v1 import dynamics_pb2
 from jitdyn.vocabulary import Clock, Scenario
 
-_ARMS = {"native": (Engine.NATIVE, None), "python": (Engine.FAST, None), "static": (Engine.NATIVE, "STATIC")}
+_ARMS = {
+    "native": (Engine.NATIVE, None),
+    "steps": (Engine.NATIVE, None),
+    "python": (Engine.FAST, None),
+    "static": (Engine.NATIVE, "STATIC"),
+}
+
+
+@contextlib.contextmanager
+def _native_tick(on: bool) -> Iterator[None]:
+    """Sessions opened inside run the native engine's tick in one call (on) or one call a step
+    (off: the config's `native_tick` False, their reference; server/estimation/native/tick.py)."""
+    if on:
+        yield
+        return
+    built = opening.make_estimator
+
+    def steps(model: mujoco.MjModel, config: EstimatorConfig, *, pool: WorkerPool) -> Estimator:
+        return built(model, dataclasses.replace(config, native_tick=False), pool=pool)
+
+    opening.make_estimator = steps
+    try:
+        yield
+    finally:
+        opening.make_estimator = built
 
 
 @dataclass(frozen=True)
@@ -76,13 +107,19 @@ def _options(model: str, scenario: str, rate: float, estimator: str | None) -> S
 
 
 async def _feed(
-    engine: Engine, options: SessionOptions, frames: list[dynamics_pb2.Frame], folder: Path, profile: bool
+    arm: str,
+    engine: Engine,
+    options: SessionOptions,
+    frames: list[dynamics_pb2.Frame],
+    folder: Path,
+    profile: bool,
 ) -> tuple[float, float, pstats.Stats | None]:
     """Thread and process CPU seconds per tick of one session fed `frames` (the first tenth warms up)."""
     config = ServerConfig(address="127.0.0.1:0", data_root=folder, engine=engine, shares_process=True)
     server, _, services = await create_server(config)
     try:
-        opened = SessionOpener(services).open_session(open_request(options.to_message(), tenant="bench"))
+        with _native_tick(arm != "steps"):
+            opened = SessionOpener(services).open_session(open_request(options.to_message(), tenant="bench"))
         stream = _Stream(opened)
         warm = len(frames) // 10
         for frame in frames[:warm]:
@@ -125,7 +162,7 @@ def _over_grpc(arm: str, args: argparse.Namespace, states: dict[str, np.ndarray]
     """us of CPU per answered tick, by thread name, of a server in this process serving
     `args.sessions` REALTIME sessions of `arm` from the load generator's client processes."""
     engine, estimator = _ARMS[arm]
-    with tempfile.TemporaryDirectory(prefix="jitdyn-tick-path-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="jitdyn-tick-path-") as tmp, _native_tick(arm != "steps"):
         server = BackgroundServer(ServerConfig(address="127.0.0.1:0", data_root=Path(tmp), engine=engine))
         try:
             before = _thread_cpu()
@@ -199,7 +236,7 @@ def _path_table(args: argparse.Namespace, states: dict[str, np.ndarray]) -> None
                 data = folder / f"data-{arm}-{r}"
                 last = r == args.rounds - 1
                 thread, process, stats[arm] = asyncio.run(
-                    _feed(engine, options, frames, data, bool(args.profile) and last)
+                    _feed(arm, engine, options, frames, data, bool(args.profile) and last)
                 )
                 samples[arm].append((thread, process))
                 print(
@@ -234,7 +271,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         nargs="+",
         choices=sorted(_ARMS),
         default=["native", "python", "static"],
-        help="native / python: the UKF on that engine; static: no filter (default all three)",
+        help="native / python: the UKF on that engine; steps: the native engine one call a step "
+        "(native_tick off); static: no filter (default: native, python, static)",
     )
     parser.add_argument(
         "--profile",

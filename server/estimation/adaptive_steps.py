@@ -14,7 +14,7 @@ import numpy as np
 from jitdyn.server.estimation.core import correct
 from jitdyn.server.estimation.parts import FilterParts
 
-__all__ = ["adapt", "correct_widened", "gap_prior", "observe_gap"]
+__all__ = ["adapt", "correct_widened", "gap_prior", "observe_gap", "verdict_taken"]
 
 
 def gap_prior(parts: FilterParts) -> tuple[np.ndarray, np.ndarray] | None:
@@ -62,10 +62,19 @@ def adapt(parts: FilterParts, nis: float | None, *, finite: bool) -> tuple[bool,
         nis=nis,
         noise_share=float(np.diagonal(kf.SI) @ np.diagonal(kf.R)) / parts.layout.z_tangent,
     )
-    if not verdict.absorb:
+    return verdict_taken(parts, adapted=verdict.adapted, absorb=verdict.absorb)
+
+
+def verdict_taken(parts: FilterParts, *, adapted: bool, absorb: bool) -> tuple[bool, bool]:
+    """What the guard makes of the adapter's verdict on an update (adapt's second half, which a
+    native tick runs after its observation): whether it adapted, and whether it absorbed."""
+    adapter, kf = parts.adapter, parts.kf
+    if adapter is None:
+        raise RuntimeError("unreachable: a verdict comes from an adapter")
+    if not absorb:
         if adapter.window_full:
             parts.guard.settle()
-        return verdict.adapted, False
+        return adapted, False
     if parts.guard.absorb():
         # The model is wrong, not the noise: forget what P says was known, and let Q follow
         # the corrections the filter has to make. Only q and qd widen: a force spread as wide
@@ -75,4 +84,4 @@ def adapt(parts: FilterParts, nis: float | None, *, finite: bool) -> tuple[bool,
         P[:k, :k] += parts.P0[:k, :k]
         kf.P = P
         adapter.absorbed()
-    return verdict.adapted, True
+    return adapted, True

@@ -125,13 +125,17 @@ class Answers:
         reinitialised: bool = False,
         adapted: bool = False,
         absorbed: bool = False,
+        qacc: np.ndarray | None = None,
     ) -> Estimate:
-        """The estimate of mean x and covariance P, with activations act; qacc by forward()."""
+        """The estimate of mean x and covariance P, with activations act; qacc by forward(), or
+        the one given (a native tick's, computed the same way)."""
         nq, nv = self._layout.nq, self._layout.nv
         state = read_only(x)
         qpos, qvel = state[:nq], state[nq : nq + nv]  # views of a read-only copy are read-only
         if self._layout.controlled:
             qacc = state[nq + nv :]
+        elif qacc is not None:
+            qacc = read_only(qacc)
         elif np.isfinite(state).all():
             force = state[nq + nv : nq + 2 * nv] if self._layout.driven else None
             qacc = read_only(self.forward(qpos, qvel, act, force=force))

@@ -120,6 +120,9 @@ class EstimatorConfig:
     # Not a setting: with the NATIVE engine, the forecast combination in it too (False: the Python
     # ForecastCombiner, its reference, which tests and benchmarks run beside it; foresight.py).
     native_forecast: bool = True
+    # Not a setting: with the NATIVE engine, a tick's numeric steps in one native call (False: one
+    # call a step, their reference, which tests and benchmarks run beside it; native/tick.py).
+    native_tick: bool = True
     # Not settings: the model's joint roles (jitdyn.roles), which the prior of human motion matches
     # (estimation/prior.py; none: no prior), and the prior's subjects left out (model tags
     # "prior.without.<subject>": a recording of that person is never scored by a prior of it).

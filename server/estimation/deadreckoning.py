@@ -96,6 +96,10 @@ class DeadReckoning:
         self._require_anchor("advance")
         self._elapsed += 1
 
+    def step(self, *, ctrl: np.ndarray | None, m: Measurement) -> Estimate:
+        self.advance(ctrl=ctrl)
+        return self.update(m)
+
     def update(self, m: Measurement) -> Estimate:
         anchor = self._require_anchor("update")
         m = check_measurement(m, self._model, self._config.measured)

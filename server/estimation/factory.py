@@ -58,7 +58,6 @@ def measure_cycle(
     best = float("inf")
     for _ in range(repeats):
         started = time.thread_time()
-        estimator.advance(ctrl=ctrl)
-        estimator.update(measurement)
+        estimator.step(ctrl=ctrl, m=measurement)
         best = min(best, time.thread_time() - started)
     return best

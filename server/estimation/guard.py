@@ -102,6 +102,16 @@ class Guard:
         s = self._state
         self._state = GuardState(nis_run=s.nis_run, far_run=s.far_run, absorptions=0)
 
+    def quiet(self) -> bool:
+        """Whether the next update, whatever its NIS and short of an absorption, cannot restart the
+        filter by the runs (only a divergence of x or P could): what a native tick checks itself."""
+        s = self._state
+        return (
+            s.nis_run + 1 < DIVERGENCE_TICKS
+            and (self._restart_nis is None or s.far_run + 1 < RESTART_UPDATES)
+            and (self._driven or s.absorptions < ABSORPTIONS_BEFORE_REINIT)
+        )
+
     def diverged(self, *, finite: bool, largest_variance: float) -> bool:
         """A state or covariance that is no estimate: non-finite, or a variance past the limit."""
         return not finite or largest_variance > COVARIANCE_LIMIT

@@ -158,6 +158,11 @@ class Estimator(Protocol):
         """Correct the tick just predicted with its frame; may re-initialise (divergence guard)."""
         ...
 
+    def step(self, *, ctrl: np.ndarray | None, m: Measurement) -> Estimate:
+        """advance(ctrl=ctrl) then update(m): a tick whose frame is there, the same state and
+        estimate as the two calls (in fewer native calls where the engine can)."""
+        ...
+
     def extrapolate(self, seconds: float) -> Estimate:
         """The estimate `seconds` ahead (rounded to physics steps), without changing the estimator;
         0 gives the current estimate."""

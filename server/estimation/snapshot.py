@@ -1,6 +1,7 @@
 """A UKF's mutable bookkeeping beside its core's x and P (`FilterState`), and the timewarp's
-snapshots of the two (`FilterSnapshot`): immutable, cheap, and exact, so that replaying the same
-inputs from a restored snapshot gives the same states bit for bit::
+snapshots of the two (`FilterSnapshot`; `NativeSnapshot` where a native tick holds the numbers,
+native/tick.py): immutable, cheap, and exact, so that replaying the same inputs from a restored
+snapshot gives the same states bit for bit::
 
     snap = take_snapshot(owner, state, kf, guard=guard, adapter=adapter, foresight=foresight)
     restore_snapshot(snap, state, kf, guard=guard, adapter=adapter, foresight=foresight)
@@ -18,10 +19,19 @@ from jitdyn.server.estimation.forecast import CombinerSnapshot
 from jitdyn.server.estimation.foresight import Foresight
 from jitdyn.server.estimation.guard import Guard, GuardState
 from jitdyn.server.estimation.interface import Measurement, read_only
-from jitdyn.server.estimation.native import AdapterState, CombinerState
+from jitdyn.server.estimation.native import AdapterState, CombinerState, TickState
 from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
 
-__all__ = ["FilterSnapshot", "FilterState", "restore_snapshot", "take_snapshot"]
+__all__ = [
+    "Bookkeeping",
+    "FilterSnapshot",
+    "FilterState",
+    "NativeSnapshot",
+    "bookkeeping",
+    "restore_bookkeeping",
+    "restore_snapshot",
+    "take_snapshot",
+]
 
 
 @dataclass(slots=True)
@@ -69,6 +79,55 @@ class FilterSnapshot:
     guard: GuardState
     adapter: NoiseSnapshot | AdapterState | None
     forecasts: CombinerSnapshot | CombinerState | None
+
+
+@dataclass(frozen=True)
+class Bookkeeping:
+    """A FilterState's copy, and the guard's, as a snapshot holds them; arrays read-only."""
+
+    initialised: bool
+    act: np.ndarray
+    ctrl: np.ndarray
+    qfrc: np.ndarray
+    last: Measurement | None
+    last_qvel: np.ndarray
+    ticks_since_update: int
+    guard: GuardState
+
+
+def bookkeeping(state: FilterState, guard: Guard) -> Bookkeeping:
+    """A read-only copy of `state` and the guard's state."""
+    return Bookkeeping(
+        initialised=state.initialised,
+        act=read_only(state.act),
+        ctrl=read_only(state.ctrl),
+        qfrc=read_only(state.qfrc),
+        last=state.last,  # immutable: check_measurement made it read-only
+        last_qvel=read_only(state.last_qvel),
+        ticks_since_update=state.ticks_since_update,
+        guard=guard.state,
+    )
+
+
+def restore_bookkeeping(kept: Bookkeeping, state: FilterState, guard: Guard) -> None:
+    """`state` and the guard back to `kept` (bookkeeping's copy)."""
+    state.initialised = kept.initialised
+    state.act, state.ctrl, state.qfrc = kept.act.copy(), kept.ctrl.copy(), kept.qfrc.copy()
+    state.last = kept.last
+    state.last_qvel = kept.last_qvel.copy()
+    state.ticks_since_update = kept.ticks_since_update
+    guard.restore(kept.guard)
+
+
+@dataclass(frozen=True)
+class NativeSnapshot:
+    """An UnscentedFilter's whole mutable state where a native tick holds its numbers: the
+    bookkeeping, and x, P, sigmas_f, the adapter's and the combiner's states in one opaque
+    TickState (its size: `native.nbytes`)."""
+
+    owner: int  # id() of the filter it came from
+    kept: Bookkeeping
+    native: TickState
 
 
 def take_snapshot(

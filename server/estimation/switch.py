@@ -29,7 +29,7 @@ from jitdyn.errors import InvalidArgument
 from jitdyn.server.estimation.config import SETTING_FIELDS, EstimatorConfig, preset_values
 from jitdyn.server.estimation.interface import Estimate, Measurement
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.ukf import FilterSnapshot, UnscentedFilter
+from jitdyn.server.estimation.ukf import FilterSnapshot, NativeSnapshot, UnscentedFilter
 from jitdyn.vocabulary import Channel, Preset, Scenario, WrongModel
 
 __all__ = ["ABSORB_QUANTILE", "WINDOW", "SwitchingFilter"]
@@ -50,8 +50,8 @@ _DRIVEN_FIELDS: Final = tuple(name for name in SETTING_FIELDS if name not in _KE
 class _Snapshot:
     owner: int
     switched: bool
-    first: FilterSnapshot
-    second: FilterSnapshot | None
+    first: FilterSnapshot | NativeSnapshot
+    second: FilterSnapshot | NativeSnapshot | None
     nis: tuple[float, ...]
     log: tuple[Measurement | None, ...]
 
@@ -124,8 +124,16 @@ class SwitchingFilter:
             self._log.append(None)
         self._active.advance(ctrl=ctrl)
 
+    def step(self, *, ctrl: np.ndarray | None, m: Measurement) -> Estimate:
+        if not self._switched:
+            self._log.append(None)
+        return self._after(m, self._active.step(ctrl=ctrl, m=m))
+
     def update(self, m: Measurement) -> Estimate:
-        estimate = self._active.update(m)
+        return self._after(m, self._active.update(m))
+
+    def _after(self, m: Measurement, estimate: Estimate) -> Estimate:
+        """What the active filter's estimate of frame m makes the switch do."""
         if self._switched:
             return estimate
         if self._log and self._log[-1] is None:
@@ -156,8 +164,7 @@ class SwitchingFilter:
             if entry is None:
                 second.predict(ctrl=None)
             else:
-                second.advance(ctrl=None)
-                answer = second.update(entry)
+                answer = second.step(ctrl=None, m=entry)
         self._switched = True
         self._log = []
         return dataclasses.replace(answer, nis=estimate.nis, absorbed=True)

@@ -16,6 +16,11 @@ process model. This module runs a tick through its steps, each in one place:
 | extrapolate, glance | estimation/lookahead.py | | |
 | snapshots (timewarp) | estimation/snapshot.py | | |
 
+On the native engine a tick's steps on the native side run in one call (native/tick.py: predict
+with its noise, clip and tidy; on a frame on time also the update, the adaptive noise's
+observation and the estimate's qacc), the rest of the table in Python
+(docs/decisions/0212-one-native-call-a-tick.md).
+
 The engines differ by their FilterCore (estimation/core.py): the compiled one, or the Python one
 (filterpy's UnscentedKalmanFilter or its faster FastUKF, the sigma points propagated in one
 batched call by estimation/process.py). Dead reckoning, the estimator without a filter, is
@@ -24,8 +29,7 @@ estimation/deadreckoning.py. Why it is split so: docs/decisions/0195-the-filter-
     estimator = UnscentedFilter(model, config, pool=pool)
     estimator.initialise(Measurement(qpos=q0, qvel=v0))
     prior = estimator.predict(ctrl=None)                              # a tick without its frame
-    estimator.advance(ctrl=None)                                      # a tick with its frame
-    posterior = estimator.update(Measurement(qpos=q1, qvel=v1))      # posterior.nis
+    posterior = estimator.step(ctrl=None, m=Measurement(qpos=q1, qvel=v1))  # a tick with its frame
 
 The scenarios are the thesis' (experiments/thesis.py holds its numbers):
 - PASSIVE, x = [q, qd]: the sigma points move under the model's own forces, no control.
@@ -66,12 +70,20 @@ from jitdyn.server.estimation.core import FilterCore, correct
 from jitdyn.server.estimation.interface import Estimate, Measurement, check_measurement, check_vector
 from jitdyn.server.estimation.lookahead import Lookahead
 from jitdyn.server.estimation.native.adaptive import NativeNoiseAdapter
+from jitdyn.server.estimation.native.tick import NativeTick, Step
 from jitdyn.server.estimation.parts import FilterParts, build_parts
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.snapshot import FilterSnapshot, restore_snapshot, take_snapshot
+from jitdyn.server.estimation.snapshot import (
+    FilterSnapshot,
+    NativeSnapshot,
+    bookkeeping,
+    restore_bookkeeping,
+    restore_snapshot,
+    take_snapshot,
+)
 from jitdyn.vocabulary import Channel, EstimatorKind, Scenario
 
-__all__ = ["FilterSnapshot", "UnscentedFilter"]
+__all__ = ["FilterSnapshot", "NativeSnapshot", "UnscentedFilter"]
 
 
 class UnscentedFilter:
@@ -88,6 +100,7 @@ class UnscentedFilter:
         self._layout, self._state, self._guard = parts.layout, parts.state, parts.guard
         self._answers = parts.answers
         self._lookahead = Lookahead(parts)
+        self._tick = NativeTick.of(parts)
         x = np.zeros(parts.layout.size)
         x[: parts.layout.nq] = parts.model.qpos0
         parts.kf.x = x
@@ -170,31 +183,94 @@ class UnscentedFilter:
         parts, state, kf = self._parts, self._state, self._parts.kf
         if self._layout.controlled and ctrl is not None:
             state.ctrl = check_vector(ctrl, self._layout.nu, "ctrl").copy()
-        if parts.adapter is not None:
-            # The first tick after a frame is an ordinary tick; the next ones are a gap's.
-            kf.Q = parts.adapter.Q if state.ticks_since_update == 0 else parts.adapter.Q_gap
-        if parts.foresight is not None:
-            parts.foresight.advance()
-        kf.set_inputs(act=state.act, ctrl=state.ctrl, qfrc=state.qfrc)
-        kf.predict()
-        state.act = self._answers.clip_act(kf.propagated_act)
-        state.ticks_since_update += 1
-        finite = kf.tidy()
-        if not self._guard.diverged(finite=finite, largest_variance=kf.largest_variance()):
-            return False
+        if self._tick is not None:
+            kf.set_inputs(act=state.act, ctrl=state.ctrl, qfrc=state.qfrc)
+            prediction = self._tick.advance(gap=state.ticks_since_update != 0)
+            state.act = prediction.act
+            state.ticks_since_update += 1
+            if not prediction.diverged:
+                return False
+        else:
+            if parts.adapter is not None:
+                # The first tick after a frame is an ordinary tick; the next ones are a gap's.
+                kf.Q = parts.adapter.Q if state.ticks_since_update == 0 else parts.adapter.Q_gap
+            if parts.foresight is not None:
+                parts.foresight.advance()
+            kf.set_inputs(act=state.act, ctrl=state.ctrl, qfrc=state.qfrc)
+            kf.predict()
+            state.act = self._answers.clip_act(kf.propagated_act)
+            state.ticks_since_update += 1
+            finite = kf.tidy()
+            if not self._guard.diverged(finite=finite, largest_variance=kf.largest_variance()):
+                return False
         # No new measurement to start from: the last one is the best that is known.
         if state.last is None:
             raise RuntimeError("unreachable: an initialised filter has a last measurement")
         guard_steps.reinitialise(parts, state.last)
         return True
 
+    def step(self, *, ctrl: np.ndarray | None, m: Measurement) -> Estimate:
+        """advance(ctrl) then update(m), in one native call where the native tick runs a frame on
+        time (estimation/native/tick.py); the same numbers either way."""
+        if self._tick is None or self._state.ticks_since_update != 0 or not self._state.initialised:
+            self.advance(ctrl=ctrl)
+            return self.update(m)
+        parts, state, kf, layout = self._parts, self._state, self._parts.kf, self._layout
+        if layout.controlled and ctrl is not None:
+            state.ctrl = check_vector(ctrl, layout.nu, "ctrl").copy()
+        m = check_measurement(m, parts.model, self._config.measured)
+        kf.set_inputs(act=state.act, ctrl=state.ctrl, qfrc=state.qfrc)
+        step = self._tick.step(self._z(m), quiet=self._guard.quiet(), qvel=m.qvel)
+        state.act = step.act
+        state.ticks_since_update += 1
+        if not step.updated:
+            # The prediction diverged: the guard's restart from the last frame, then the update.
+            if state.last is None:
+                raise RuntimeError("unreachable: an initialised filter has a last measurement")
+            guard_steps.reinitialise(parts, state.last)
+            return self.update(m)
+        return self._stepped(m, step)
+
+    def _stepped(self, m: Measurement, step: Step) -> Estimate:
+        """update()'s steps after a native tick's update: the guard, its restart, the frame kept."""
+        parts, state, kf = self._parts, self._state, self._parts.kf
+        self._guard.count(step.nis)
+        adapted = absorbed = False
+        largest = step.largest_variance
+        if step.observed:
+            adapted, absorbed = adaptive_steps.verdict_taken(parts, adapted=step.adapted, absorb=step.absorb)
+            if absorbed:
+                largest = kf.largest_variance()  # P widened
+        reinitialised = self._guard.restart_due(finite=step.finite, largest_variance=largest)
+        if reinitialised:
+            guard_steps.restart(parts, m)
+        else:
+            self._accept(m)
+        if reinitialised and step.observed_frame:
+            raise RuntimeError("unreachable: the native tick observed a posterior the guard restarted")
+        x = kf.x if reinitialised else step.x
+        if parts.foresight is not None and not step.observed_frame:
+            parts.foresight.observe(m, x=x, act=state.act)
+        if m.ctrl is not None:
+            state.ctrl = m.ctrl.copy()  # held by predict(ctrl=None)
+        if reinitialised or absorbed:
+            return self._answers.estimate(
+                nis=step.nis, reinitialised=reinitialised, adapted=adapted, absorbed=absorbed
+            )
+        return self._answers.make(x, step.P, act=state.act, nis=step.nis, adapted=adapted, qacc=step.qacc)
+
+    def _z(self, m: Measurement) -> np.ndarray:
+        """The measurement vector of a checked frame: qpos, then the measured qvel and qacc."""
+        layout = self._layout
+        return np.concatenate(
+            [m.qpos] + [getattr(m, c) for c in (Channel.QVEL, Channel.QACC) if layout.measures(c)]
+        )
+
     def update(self, m: Measurement) -> Estimate:
         self._require_initialised("update")
         parts, state, kf, layout = self._parts, self._state, self._parts.kf, self._layout
         m = check_measurement(m, parts.model, self._config.measured)
-        z = np.concatenate(
-            [m.qpos] + [getattr(m, c) for c in (Channel.QVEL, Channel.QACC) if layout.measures(c)]
-        )
+        z = self._z(m)
         if parts.adapter is not None:
             kf.R = parts.adapter.R
         prior = adaptive_steps.gap_prior(parts)
@@ -246,8 +322,12 @@ class UnscentedFilter:
         self._require_initialised("glance")
         return self._lookahead.glance(seconds)
 
-    def snapshot(self) -> FilterSnapshot:
+    def snapshot(self) -> FilterSnapshot | NativeSnapshot:
         parts = self._parts
+        if self._tick is not None:
+            return NativeSnapshot(
+                owner=id(self), kept=bookkeeping(self._state, self._guard), native=self._tick.snapshot()
+            )
         return take_snapshot(
             id(self),
             self._state,
@@ -258,9 +338,17 @@ class UnscentedFilter:
         )
 
     def restore(self, snap: object) -> None:
-        if not isinstance(snap, FilterSnapshot) or snap.owner != id(self):
+        if not isinstance(snap, FilterSnapshot | NativeSnapshot) or snap.owner != id(self):
             raise InvalidArgument(f"snap must be a snapshot of this estimator, got {type(snap).__name__}")
         parts = self._parts
+        if isinstance(snap, NativeSnapshot):
+            if self._tick is None:
+                raise RuntimeError("unreachable: only a filter with a native tick takes NativeSnapshots")
+            self._tick.restore(snap.native)
+            restore_bookkeeping(snap.kept, self._state, self._guard)
+            return
+        if self._tick is not None:
+            raise RuntimeError("unreachable: a filter with a native tick takes NativeSnapshots")
         restore_snapshot(
             snap, self._state, parts.kf, guard=self._guard, adapter=parts.adapter, foresight=parts.foresight
         )

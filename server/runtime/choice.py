@@ -131,8 +131,7 @@ def _cycle_seconds(
     runs = _WARM + _TIMED
     while len(timed) < runs:
         started = time.thread_time()
-        estimator.advance(ctrl=ctrl)
-        estimator.update(measurement)
+        estimator.step(ctrl=ctrl, m=measurement)
         timed.append(time.thread_time() - started)
         if timed[0] > _SLOW_CYCLE:
             runs = _SLOW_RUNS  # a model this slow costs seconds a run: fewer cycles, the median still

@@ -536,8 +536,7 @@ class SessionRuntime:
                 self._restarted = False
                 return dataclasses.replace(self._estimator.extrapolate(0.0), reinitialised=True)
             return self._estimator.extrapolate(0.0)
-        self._estimator.advance(ctrl=tick.ctrl if self._controlled else None)
-        return self._estimator.update(measurement)
+        return self._estimator.step(ctrl=tick.ctrl if self._controlled else None, m=measurement)
 
     def _frame_qacc(self, tick: _Tick, estimate: Estimate | None) -> np.ndarray:
         """qacc of a measured tick: the frame's, else the backward difference of qvel, else the estimate's."""

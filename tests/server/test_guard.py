@@ -87,3 +87,25 @@ def test_state_restores_and_start_keeps_the_absorptions() -> None:
     assert guard.state == saved
     guard.reset()
     assert guard.state == GuardState()
+
+
+@pytest.mark.parametrize("restart", [False, True])
+def test_quiet_says_when_no_nis_of_the_next_update_can_restart(restart: bool) -> None:
+    """Guard.quiet, which lets a native tick observe its posterior: false exactly when some NIS of
+    the next update (here the worst, None) would make restart_due true."""
+    far = float(chi2.ppf(RESTART_QUANTILE, M)) * 1.01
+    absurd = NIS_LIMIT_PER_DIMENSION * M * 2
+    for run in ([far] * 3, [absurd] * DIVERGENCE_TICKS, [far, 1.0, absurd, absurd]):
+        guard = Guard(m=M, restart=restart, driven=False)
+        for nis in run:
+            quiet = guard.quiet()
+            probe = Guard(m=M, restart=restart, driven=False)
+            probe.restore(guard.state)
+            probe.count(None)
+            assert quiet is not probe.restart_due(**FINE), (run, guard.state)
+            guard.count(nis)
+    guard = Guard(m=M, restart=restart, driven=False)
+    for _ in range(ABSORPTIONS_BEFORE_REINIT):
+        guard.absorb()
+    assert not guard.quiet()
+    assert Guard(m=M, restart=restart, driven=True).quiet()

@@ -55,6 +55,10 @@ class Counting:
     def update(self, m: Measurement) -> Estimate:
         return self.inner.update(m)
 
+    def step(self, *, ctrl: np.ndarray | None, m: Measurement) -> Estimate:
+        self.ticks += 1
+        return self.inner.step(ctrl=ctrl, m=m)
+
 
 def _frames(model: mujoco.MjModel, case: Case, ticks: int) -> list[FrameIn]:
     data = mujoco.MjData(model)

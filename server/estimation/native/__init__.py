@@ -1,7 +1,8 @@
 """jitdyn's native estimation engine: the unscented filter's numeric work (sigma points, their
 propagation through MuJoCo's C API, the unscented transform and the update) in one compiled
 module, ukf.cc, which holds the filter's state and releases the GIL while it works; and a DRIVEN
-session's forecast combination (forecast.cc, matching.cc; native/combiner.py wraps it).
+session's forecast combination (forecast.cc, matching.cc; native/combiner.py wraps it); and a
+tick's steps in one call over the three (tick.cc; native/tick.py).
 
 The module is built by `pip install` (setup.py) against the headers of the pinned mujoco, and
 handed that MuJoCo's pointers: importing it beside any other MuJoCo is refused, in one line.
@@ -21,7 +22,7 @@ except ImportError as error:  # pragma: no cover - a broken install, said in one
         "present (pip install -e . in the checkout)"
     ) from error
 
-__all__ = ["MUJOCO_VERSION", "AdapterState", "CombinerState", "SingularMatrix", "Ukf"]
+__all__ = ["MUJOCO_VERSION", "AdapterState", "CombinerState", "SingularMatrix", "TickState", "Ukf"]
 
 MUJOCO_VERSION = int(_ukf.MUJOCO_HEADER_VERSION)
 
@@ -35,3 +36,4 @@ Ukf = _ukf.Ukf
 AdapterState = _ukf.AdapterState
 CombinerState = _ukf.CombinerState
 SingularMatrix = _ukf.SingularMatrix
+TickState = _ukf.TickState

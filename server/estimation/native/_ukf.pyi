@@ -129,3 +129,38 @@ class Ekf:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
     def update(self, x: np.ndarray, P: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]: ...
     n: int
+class TickState:
+    @property
+    def nbytes(self) -> int: ...
+
+class Tick:
+    def __init__(
+        self,
+        ukf: Ukf,
+        *,
+        adapter: Adapter | None,
+        combiner: Combiner | None,
+        act_low: np.ndarray,
+        act_high: np.ndarray,
+        covariance_limit: float,
+        force: int,
+    ) -> None: ...
+    def advance(self, gap: bool) -> tuple[bool, float, bool, np.ndarray]: ...
+    def step(
+        self, z: np.ndarray, *, quiet: bool, qvel: np.ndarray | None
+    ) -> tuple[
+        bool,
+        bool,
+        float,
+        float,
+        bool,
+        bool,
+        bool,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray,
+        np.ndarray | None,
+        bool,
+    ]: ...
+    def snapshot(self) -> TickState: ...
+    def restore(self, state: TickState) -> None: ...

@@ -45,6 +45,11 @@ class NativeNoiseAdapter:
         self._q0 = q0
         self._m = m
 
+    @property
+    def native(self) -> _ukf.Adapter:
+        """The compiled adapter, for native/tick.py."""
+        return self._adapter
+
     def reset(self) -> None:
         self._adapter.reset()
 

@@ -10,6 +10,7 @@
 #include "adaptive.h"
 #include "forecast.h"
 #include "linearised.h"
+#include "tick.h"
 #include "ukf.h"
 
 namespace py = pybind11;
@@ -186,4 +187,51 @@ PYBIND11_MODULE(_ukf, module) {
       .def("update", &jitdyn::Ekf::Update, py::arg("x"), py::arg("P"), py::arg("z"),
            py::call_guard<py::gil_scoped_release>())
       .def_property_readonly("n", &jitdyn::Ekf::n);
+  // One tick in one call (tick.h): its own block, apart from the other engines' bindings.
+  {
+    using jitdyn::Tick;
+    using jitdyn::TickSpec;
+    using jitdyn::TickState;
+    py::class_<TickState>(module, "TickState")
+        .def_property_readonly("nbytes", [](const TickState& s) { return s.Bytes(); });
+    py::class_<Tick>(module, "Tick")
+        .def(py::init([](Ukf* ukf, jitdyn::Adapter* adapter, jitdyn::Combiner* combiner, const Vector& act_low,
+                         const Vector& act_high, double covariance_limit, int force) {
+               if (force < 0 || force > 2) throw std::invalid_argument("force must be 0, 1 or 2, got " + std::to_string(force));
+               TickSpec spec{act_low, act_high, covariance_limit, static_cast<jitdyn::TickForce>(force)};
+               return std::make_unique<Tick>(ukf, adapter, combiner, std::move(spec));
+             }),
+             py::arg("ukf"), py::kw_only(), py::arg("adapter"), py::arg("combiner"), py::arg("act_low"),
+             py::arg("act_high"), py::arg("covariance_limit"), py::arg("force"), py::keep_alive<1, 2>(),
+             py::keep_alive<1, 3>(), py::keep_alive<1, 4>())
+        // (finite, largest_variance, diverged, act)
+        .def(
+            "advance",
+            [](Tick& t, bool gap) {
+              jitdyn::TickPrediction p;
+              {
+                py::gil_scoped_release release;
+                p = t.Advance(gap);
+              }
+              return py::make_tuple(p.finite, p.largest_variance, p.diverged, t.act());
+            },
+            py::arg("gap"))
+        // (updated, finite, nis, largest_variance, observed, adapted, absorb, act, x, P, qacc or None,
+        //  observed_frame)
+        .def(
+            "step",
+            [](Tick& t, const Vector& z, bool quiet, const std::optional<Vector>& qvel) {
+              jitdyn::TickUpdate u;
+              {
+                py::gil_scoped_release release;
+                u = t.Step(z, quiet, qvel);
+              }
+              py::object qacc = u.has_qacc ? py::cast(u.qacc) : py::none();
+              return py::make_tuple(u.updated, u.finite, u.nis, u.largest_variance, u.observed, u.adapted, u.absorb,
+                                    t.act(), t.x(), t.P(), qacc, u.observed_frame);
+            },
+            py::arg("z"), py::kw_only(), py::arg("quiet"), py::arg("qvel"))
+        .def("snapshot", &Tick::Snapshot, py::call_guard<py::gil_scoped_release>())
+        .def("restore", &Tick::Restore, py::arg("state"), py::call_guard<py::gil_scoped_release>());
+  }
 }

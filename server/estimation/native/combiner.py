@@ -50,6 +50,11 @@ class NativeCombiner:
         self._predictors = (*PREDICTORS, LEARNED)
 
     @property
+    def native(self) -> _ukf.Combiner:
+        """The compiled combiner, for native/tick.py."""
+        return self._combiner
+
+    @property
     def horizon(self) -> int:
         return int(self._combiner.horizon)
 

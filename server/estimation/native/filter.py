@@ -106,6 +106,16 @@ class NativeUKF:
             u.qfrc = qfrc
         self._inputs = (act, ctrl, qfrc)
 
+    def held_act(self, act: np.ndarray) -> None:
+        """act (na,) is what the compiled filter holds now (a native tick set it): handed over
+        again by set_inputs, it is not copied."""
+        self._inputs = (act, self._inputs[1], self._inputs[2])
+
+    @property
+    def native(self) -> Ukf:
+        """The compiled filter, for native/tick.py."""
+        return self._ukf
+
     def tidy(self) -> bool:
         """Whether x and P are finite; if so P symmetrised, and repaired when indefinite."""
         return bool(self._ukf.tidy())
