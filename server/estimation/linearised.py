@@ -315,6 +315,10 @@ class LinearisedFilter:
     def advance(self, *, ctrl: np.ndarray | None) -> None:
         self._predict("advance")
 
+    def step(self, *, ctrl: np.ndarray | None, m: Measurement) -> Estimate:
+        self.advance(ctrl=ctrl)
+        return self.update(m)
+
     def update(self, m: Measurement) -> Estimate:
         self._require_initialised("update")
         m = check_measurement(m, self._model, self._config.measured)
