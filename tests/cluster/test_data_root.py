@@ -65,6 +65,8 @@ def sessions_cli(*args: str, cwd: Path, env: dict[str, str]) -> str:
     return result.stdout
 
 
+# 12 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.slow
 def test_two_replicas_publish_to_one_bucket_that_a_third_machine_reads(
     start_replica: Callable[..., Replica], index_url: str, moto_s3: MotoS3, tmp_path: Path
 ) -> None:

@@ -69,6 +69,8 @@ def test_resumes_fences_and_claims_are_counted_where_they_happen(
     assert counts["old"]["claimed"] + counts["new"]["claimed"] == 1
 
 
+# 13 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.slow
 def test_commit_errors_and_files_awaiting_upload_are_counted(
     start_replica: Callable[..., Replica], index_url: str, tmp_path: Path
 ) -> None:

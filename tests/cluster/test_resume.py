@@ -161,6 +161,8 @@ def test_round_robin_over_several_addresses_and_a_bounded_resume_buffer(
         assert type(broken.value).__name__ in ("Unavailable", "JitdynError")
 
 
+# 10 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes; its async variant runs in CI.
+@pytest.mark.slow
 def test_a_realtime_session_resumes_and_its_record_keeps_every_frame(
     start_replica: Callable[..., Replica],
     start_balancer: Callable[..., Balancer],
@@ -231,6 +233,8 @@ def test_an_async_session_resumes_after_its_replica_is_killed(
     assert stored_seqs(tmp_path / "shared-folder", str(row["location"])) == list(range(80))
 
 
+# 8 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes; the session variant runs in CI.
+@pytest.mark.slow
 def test_a_draining_replica_moves_its_async_session(
     start_replica: Callable[..., Replica],
     start_balancer: Callable[..., Balancer],

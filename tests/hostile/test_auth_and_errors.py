@@ -45,6 +45,8 @@ def test_several_authorization_headers_are_unauthenticated(
     assert "send one metadata `authorization: Bearer <key>`" in (caught.value.details() or "")
 
 
+# 9 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.slow
 def test_repeated_failures_from_one_peer_are_slowed(serve: Callable[..., Served], tmp_path: Path) -> None:
     served = serve("--api-keys", str(_keys(tmp_path)))
     waits = []

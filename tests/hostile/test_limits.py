@@ -87,6 +87,8 @@ def test_a_tenant_has_a_model_quota(serve: Callable[..., Served]) -> None:
     register(served, "m0", hfield(10))  # identical content: the existing model, no new one
 
 
+# 14 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.slow
 def test_history_is_bounded_by_memory(serve: Callable[..., Served]) -> None:
     served = serve()
     register(served, "chain100", chain(100))

@@ -22,7 +22,8 @@ DT = 0.05
 TICKS = 60  # 3 s
 
 
-@pytest.mark.parametrize("processes", [1, 2])
+# Two processes (9 s) run with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.parametrize("processes", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_twice_the_capacity_admitted_on_time_surplus_refused_metrics_show_it(
     tmp_path: Path, processes: int
 ) -> None:

@@ -91,7 +91,8 @@ def _truth(ticks: int) -> list[tuple[np.ndarray, np.ndarray]]:
     ]
 
 
-@pytest.mark.parametrize("processes", [1, 2])
+# Two processes (13 s) run with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.parametrize("processes", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_kill_9_loses_no_durable_frame(tmp_path: Path, env: dict[str, str], processes: int) -> None:
     # With several processes, kill -9 of `jitdyn serve` takes its serving processes with it.
     data = tmp_path / "data"

@@ -55,6 +55,8 @@ def _lockstep_load(address: str, *, seconds: float) -> None:
         session.close()
 
 
+# 16 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.slow
 @pytest.mark.skipif(
     shutil.which("prometheus") is None,
     reason="the prometheus binary is not installed (Debian package prometheus; .ci/run installs it)",

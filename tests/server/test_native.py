@@ -242,7 +242,8 @@ def _lockstep_answers(address: str, frames: list[Measurement], *, scenario: str)
     return out
 
 
-@pytest.mark.parametrize("scenario", ["PASSIVE", "DRIVEN"])
+# PASSIVE (10 s) runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.parametrize("scenario", [pytest.param("PASSIVE", marks=pytest.mark.slow), "DRIVEN"])
 def test_a_server_on_either_engine_answers_the_same(tmp_path: Path, scenario: str) -> None:
     """`jitdyn serve --engine python` runs the reference, and says so; a LOCKSTEP session through
     it and through a default server gets the same answers to 1e-9 (1e-8 under DRIVEN's adaptive

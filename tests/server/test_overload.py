@@ -90,6 +90,8 @@ def test_a_session_the_server_cannot_serve_on_time_is_told_in_band_and_goes_on(t
     assert any("told it may go late" in line for line in server.lines), "".join(server.lines[-20:])
 
 
+# 12 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.slow
 def test_a_session_still_unaffordable_after_the_late_timeout_is_ended_and_the_first_recovers(
     tmp_path: Path,
 ) -> None:

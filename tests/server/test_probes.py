@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import grpc
+import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 SESSION_SERVICE = "jitdyn.v1.DynamicsService"
@@ -140,6 +141,8 @@ def test_a_server_whose_loop_is_held_answers_its_probes_on_time(tmp_path: Path) 
     assert len(liveness) >= 5 and slowest < 0.5 * PROBE_TIMEOUT
 
 
+# 9 s: runs with the slow tests (pytest -m slow), to keep CI under 20 minutes.
+@pytest.mark.slow
 def test_liveness_fails_for_a_loop_silent_past_the_hang_limit_and_recovers(tmp_path: Path) -> None:
     hung_after = 1.0
     with _server(tmp_path, hung_after=hung_after) as server:
