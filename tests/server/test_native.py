@@ -29,7 +29,7 @@ TICKS = 500
 SKIPPED = {k for k in range(1, TICKS) if k % 40 in (7, 15, 16, 17) or 25 <= k % 40 <= 30}
 REPEATED = {60, 260}  # a second frame for the same tick
 FAR_OFF = {150, 151, 152, 153}  # frames OFFSET rad off: the guard's business
-OFFSET = 0.5
+OFFSET = 1.0
 REPLAYED = {100, 300, 420}  # a late frame: back to the snapshot before its tick, then replay
 # |native - python| <= TOL (1 + |python|), entry by entry.
 TOL = 1e-9
