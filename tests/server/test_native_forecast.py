@@ -27,7 +27,7 @@ from jitdyn.server.estimation.prior import legs_of
 from jitdyn.server.estimation.propagate import process_model
 from jitdyn.server.estimation.ukf import UnscentedFilter
 from jitdyn.server.runtime.costs import snapshot_bytes
-from tests.server.test_native import REPLAYED, frames_for, run
+from tests.server.test_native import ADAPTIVE_TOL, REPLAYED, frames_for, run
 from tests.server.test_ukf import config_for, pendulum
 
 MODELS = Path(__file__).resolve().parents[2] / "models"
@@ -221,7 +221,7 @@ def test_a_driven_estimator_answers_alike_with_either_combiner() -> None:
     """A DRIVEN session's whole estimator (the JITDYN preset: native engine, adaptive noise, the
     forecast combination), with the native combiner and with the Python one (`native_forecast`
     False): the same states, covariances, NIS, weights and flags over 500 ticks of noisy frames
-    with gaps, repeated frames and late frames' replays."""
+    with gaps, repeated frames and late frames' replays, to the adaptive noise's tolerance."""
     model = pendulum(2)
     native = config_for(model, "DRIVEN")
     assert native.engine == Engine.NATIVE
@@ -238,8 +238,10 @@ def test_a_driven_estimator_answers_alike_with_either_combiner() -> None:
     assert seen["forecast"] > 50 and seen["replayed"] == len(REPLAYED), seen
     assert len(got) == len(expected)
     for i, (a, b) in enumerate(zip(got, expected, strict=True)):
-        # 1e-9 absolute, and relative past 1 (a far-off frame's NIS, 1.4e4, differs by 2.5e-9).
-        np.testing.assert_allclose(a, b, rtol=TOLERANCE, atol=TOLERANCE, err_msg=f"output {i}")
+        # The combiners agree to 1e-9 tick by tick (the tests above); here the adaptive noise feeds
+        # each tick's rounding back into Q and R, and over 500 ticks it grows to 3.6e-9 on a qacc
+        # of 0.6, as it does between the engines themselves (test_native's ADAPTIVE_TOL).
+        np.testing.assert_allclose(a, b, rtol=ADAPTIVE_TOL, atol=ADAPTIVE_TOL, err_msg=f"output {i}")
 
 
 def test_the_fast_engine_and_the_prior_keep_the_python_combiner() -> None:
