@@ -49,6 +49,10 @@ DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
 # with its own, learnt from its CPU and its ticks (docs/decisions/0005-admission-starting-guesses.md).
 TRANSPORT_COST: Final = 1e-3  # s
 _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
+# A lone session's tick costs up to this many times the overhead figure (learnt among many
+# sessions, or guessed) around its filter: where that decides whether it fits, it is rehearsed
+# (docs/decisions/0214-a-tick-priced-whole.md).
+REHEARSE_SPAN: Final = 3.0
 # Cores of the machine kept free of new sessions: the slack that keeps ticks on time when the
 # machine is nearly full (a tick late by a scheduling quantum is late).
 MACHINE_HEADROOM: Final = 0.1
@@ -78,6 +82,11 @@ def _machine_times() -> tuple[int, int] | None:
     total = sum(fields[:8])
     free = fields[3] + (fields[4] if len(fields) > 4 else 0)
     return total - free, total
+
+
+def _rate(hz: float) -> str:
+    """A rate for a refusal: "412 Hz", "2.5 Hz"."""
+    return f"{hz:.0f} Hz" if hz >= 10 else f"{hz:.2g} Hz"
 
 
 def _usable_cpus() -> int:
@@ -194,6 +203,7 @@ class Admission:
     _cpu_load: float = 0.0
     refused: int = 0
     overhead: float = TRANSPORT_COST  # s per tick outside the estimator, learnt from this process's CPU
+    overhead_measured: bool = False  # the overhead is this process's own figure, not the starting guess
     _window_ticks: int = 0
     _window_compute: float = 0.0
     _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
@@ -254,6 +264,7 @@ class Admission:
                     # What a tick cost this process beyond its estimator: its CPU per tick, less compute.
                     per_tick = (cpu - used) / self._window_ticks - self._window_compute / self._window_ticks
                     self.overhead += 0.5 * (max(per_tick, 100e-6) - self.overhead)
+                    self.overhead_measured = True
                 self._sample_machine()
             self._window_ticks, self._window_compute = 0, 0.0
             self._cpu_mark = (wall, cpu)
@@ -487,6 +498,7 @@ class Admission:
         filter_seconds: float | None = None,
         grace: float | None = None,
         resumed: bool = False,
+        priced_by: str | None = None,
     ) -> Ticket:
         """A ticket for a session costing `cost_per_tick` seconds every `dt`, or ResourceExhausted
         saying why (the measured load, the session's estimated cost, the setting that raises it).
@@ -494,8 +506,10 @@ class Admission:
         is admitted whatever the load, since refusing it would lose it; its cost counts from now,
         so that new sessions are refused until the load falls.
         filter_seconds: the part of the cost that is the session's own filter, measured (the rest is
-        the guessed transport); an idle process admits the session if that part fits.
-        grace: the session's grace, for the process's switch interval while it is open."""
+        the process's overhead per tick); the refusal of a session that cannot fit alone says both.
+        grace: the session's grace, for the process's switch interval while it is open.
+        priced_by: where the price comes from when not the filter and this process's overhead (a
+        rehearsal), for the refusal."""
         if filter_seconds is None:
             filter_seconds = cost_per_tick
         if not dt > 0:
@@ -520,27 +534,84 @@ class Admission:
                         100 * self.budget,
                     )
             else:
-                self._check(ticket, filter_seconds=filter_seconds, what=what)
+                self._check(ticket, filter_seconds=filter_seconds, what=what, priced_by=priced_by)
             self._by_id[id(ticket)] = ticket
         if grace is not None and self.switch is not None:
             self.switch.add(grace)
         return ticket
 
-    def _check(self, ticket: Ticket, *, filter_seconds: float, what: str) -> None:
+    def _check(self, ticket: Ticket, *, filter_seconds: float, what: str, priced_by: str | None) -> None:
         """ResourceExhausted, saying why, when a new session of `ticket` is not admitted now. Under
         the lock."""
+        self._check_alone(ticket, filter_seconds=filter_seconds, what=what, priced_by=priced_by)
         current = max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
-        # A process with nothing to serve takes a session whose own filter fits the budget,
-        # whatever the guess of the transport's cost: its ticks then measure what they cost
-        # (with the starting guess alone, a 500 Hz session's filter and the guess could pass the
-        # budget of its 2 ms tick and never open).
-        if not self._by_id and current < self.budget / 2 and filter_seconds / ticket.dt <= self.budget:
-            # Its own filter must still find the machine's CPU free.
-            self._check_machine(ticket, load=filter_seconds / ticket.dt, what=what)
-        else:
-            self._check_room(ticket, current=current, what=what)
+        self._check_room(ticket, current=current, what=what)
 
-    def refusal(self, *, cost_per_tick: float, filter_seconds: float, dt: float, what: str) -> str | None:
+    def _check_alone(
+        self, ticket: Ticket, *, filter_seconds: float, what: str, priced_by: str | None
+    ) -> None:
+        """ResourceExhausted, saying why and what rate would fit, when `ticket`'s session does not
+        fit the budget even alone: its filter and the server's CPU around it (the overhead) at its
+        rate. Whatever else the process serves: an idle process used to take a session whose filter
+        alone fitted, and a 500 Hz session whose tick cost the server 2 ms of CPU was answered
+        MEASURED on a third of its ticks (docs/decisions/0214-a-tick-priced-whole.md). Under the
+        lock."""
+        if ticket.load <= self.budget:
+            return
+        self.refused += 1
+        around = ticket.cost_per_tick - filter_seconds
+        if priced_by is not None:
+            source = priced_by
+        elif self.overhead_measured:
+            source = "measured on this process's own ticks"
+        else:
+            source = "the starting guess, until this process has measured its own ticks"
+        fits = self.budget / ticket.cost_per_tick
+        raise ResourceExhausted(
+            f"a session of {what} is estimated at {1e6 * ticket.cost_per_tick:.0f} us of this server's "
+            f"CPU per tick: its filter {1e6 * filter_seconds:.0f} us and {1e6 * around:.0f} us around it "
+            f"(the frame's read, the result's dynamics and message, the write, the record, the event "
+            f"loop; {source}), {100 * ticket.load:.0f} % of a core against the tick budget of "
+            f"{100 * self.budget:.0f} % (--tick-budget {self.budget:g}) on its own: its answers could "
+            f"not be on time. At most {_rate(fits)} fits here. {_TRY_ELSEWHERE}"
+        )
+
+    def wants_rehearsal(self, *, filter_seconds: float, dt: float) -> bool:
+        """Whether a session whose filter takes `filter_seconds` every `dt` should be rehearsed
+        before it is priced: whether it fits alone hangs on the CPU a tick costs around its filter
+        (fits with half this process's overhead figure, not with REHEARSE_SPAN times it: a lone
+        session's tick pays the wake-ups and writes that many sessions share), and this process can
+        measure it (it counts its own CPU and serves no session now)."""
+        with self._lock:
+            if not self.count_process_cpu or self._by_id:
+                return False
+            fits = (filter_seconds + 0.5 * self.overhead) / dt <= self.budget
+            return fits and (filter_seconds + REHEARSE_SPAN * self.overhead) / dt > self.budget
+
+    def count_refusal(self) -> None:
+        """A REALTIME open was refused by what its rehearsal measured (server/runtime/opening.py)."""
+        with self._lock:
+            self.refused += 1
+
+    def rehearsed(self) -> None:
+        """A rehearsal ran on this process (server/transport/rehearsal.py): its CPU is not the load
+        of sessions, and no session counted its ticks. While no session is admitted the windows
+        start again after it, as after the start-up, and the next admission looks at the machine
+        afresh (the rehearsal's CPU was in the machine's last figures)."""
+        if self.sessions == 0:
+            self.start_window()
+            with self._lock:
+                self.machine_free, self.recent_free, self._looked = None, None, False
+
+    def refusal(
+        self,
+        *,
+        cost_per_tick: float,
+        filter_seconds: float,
+        dt: float,
+        what: str,
+        priced_by: str | None = None,
+    ) -> str | None:
         """Why `admit` would refuse a new session of this price now, or None; nothing is admitted.
         For the door, which prices a request from an identical open a moment ago, without its
         model (a burst of 375 surplus opens, priced one by one, cost the server 3.4 ms of CPU each
@@ -551,7 +622,7 @@ class Admission:
         ticket = Ticket(self, dt=dt, cost_per_tick=cost_per_tick, compute_per_tick=filter_seconds)
         with self._lock:
             try:
-                self._check(ticket, filter_seconds=filter_seconds, what=what)
+                self._check(ticket, filter_seconds=filter_seconds, what=what, priced_by=priced_by)
             except ResourceExhausted as error:
                 return str(error)
         return None
@@ -565,8 +636,8 @@ class Admission:
         refuses only what admit would."""
         with self._lock:
             current = max(sum(t.load for t in self._by_id.values()), self._sample_cpu())
-            # A process with no session may still take one (admit's first rule): only the machine
-            # can say no before its price is known. Its lateness was its last sessions'.
+            # A process with no session may still take one: only the machine can say no before its
+            # price is known. Its lateness was its last sessions'.
             behind = self._behind() if self._by_id else None
             if behind is not None:
                 return self._late_refusal(behind, current, what)
@@ -612,8 +683,9 @@ class Admission:
 
     def _check_room(self, ticket: Ticket, *, current: float, what: str) -> None:
         """ResourceExhausted, saying why, when `ticket` does not fit the process's budget or the
-        machine's idle CPU, or while the process's answers go late. Under the lock."""
-        behind = self._behind()
+        machine's idle CPU, or while the process's answers go late (the lateness of an idle
+        process was its last sessions', late for no one now). Under the lock."""
+        behind = self._behind() if self._by_id else None
         if behind is not None:
             self.refused += 1
             raise ResourceExhausted(self._late_refusal(behind, current, what))

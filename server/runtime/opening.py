@@ -51,7 +51,43 @@ from jitdyn.storage.records import SessionHeader
 from jitdyn.storage.shared import TakenOver
 from jitdyn.vocabulary import Clock, EstimatorChoice, JointType, Preset, Scenario
 
-__all__ = ["OpenedSession", "SessionOpener", "TickPrice"]
+__all__ = ["OpenedSession", "Rehearsal", "SessionOpener", "TickPrice", "Unrehearsed"]
+
+
+class Unrehearsed(Exception):
+    """A REALTIME open whose fit hangs on what a tick costs this process around its filter, not yet
+    measured for such a session: the servicer rehearses it (server/transport/rehearsal.py), tells
+    the opener what it measured (`SessionOpener.rehearsed`) and opens again."""
+
+    def __init__(self, key: tuple[object, ...], model: mujoco.MjModel, name: str) -> None:
+        super().__init__("this open waits for a rehearsal of its ticks")
+        self.key = key
+        self.model = model  # what the rehearsal's frames are of
+        self.name = name  # the model's name, for the log
+
+
+@dataclass(frozen=True, slots=True)
+class Rehearsal:
+    """What a rehearsal of a REALTIME session measured: this process's CPU per tick of it, alone,
+    at its rate, the filter included; and how long it ran."""
+
+    cost: float  # s of process CPU per tick
+    ticks: int
+    seconds: float  # s of wall time
+    measured: int  # ticks answered MEASURED by their deadlines (the filter run, not shed)
+
+    @property
+    def on_time(self) -> float:
+        """The share of its ticks answered MEASURED by their deadlines."""
+        return self.measured / self.ticks if self.ticks else 0.0
+
+
+# The share of a rehearsal's ticks that must be answered MEASURED by their deadlines for such a
+# session to be admitted: what an admitted session is promised (at least 99 %).
+ON_TIME: Final = 0.99
+# How long a rehearsal stands for the sessions of its kind: the machine's load and the process's
+# code around the filter change; a minute of opens at most is priced from it.
+_REHEARSAL_AGE: Final = 60.0  # s
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,6 +108,7 @@ class _DoorPrice:
     filter_seconds: float  # s: the measured predict + update
     what: str  # the session as admission names it ("pendulum_3 (passive) at 20 Hz")
     at: float  # monotonic s when it was priced
+    rehearsed: Rehearsal | None = None  # what a rehearsal of such a session measured
 
 
 # How long a remembered price stands for its request: a name's newest version may change (a new
@@ -194,6 +231,11 @@ class SessionOpener:
         # throwaway filter while the others' ticks wait.
         self._prices: dict[tuple[str, EstimatorConfig], TickPrice] = {}
         self._prices_lock = threading.Lock()
+        # What rehearsals measured, by model, settings and what the session asks of each tick (None:
+        # tried, and it did not run), and when.
+        self._rehearsals: dict[tuple[object, ...], tuple[Rehearsal | None, float]] = {}
+        # Whether the transport rehearses the opens that raise Unrehearsed (it sets this).
+        self.rehearsals = False
         # The door's memory: what the last opens cost, by request (insertion-ordered, oldest first).
         self._door_prices: dict[tuple[object, ...], _DoorPrice] = {}
         self._door_lock = threading.Lock()  # never held for more than a lookup or an insert
@@ -226,11 +268,15 @@ class SessionOpener:
         reason = admission.full(f"{named} at {1 / request.dt:g} Hz")
         known = None if reason is not None else self._door_price(request)
         if known is not None:
+            rehearsed = known.rehearsed
             reason = admission.refusal(
-                cost_per_tick=known.filter_seconds + admission.overhead,
+                cost_per_tick=known.filter_seconds + admission.overhead
+                if rehearsed is None
+                else max(known.filter_seconds, rehearsed.cost),
                 filter_seconds=known.filter_seconds,
                 dt=request.dt,
                 what=known.what,
+                priced_by=None if rehearsed is None else _rehearsed_words(rehearsed),
             )
         if reason is not None:
             if self._on_admission is not None:
@@ -247,20 +293,25 @@ class SessionOpener:
             return None
         return known
 
-    def _remember_price(self, request: OpenRequest, filter_seconds: float, what: str) -> None:
+    def _remember_price(
+        self, request: OpenRequest, filter_seconds: float, what: str, rehearsed: Rehearsal | None
+    ) -> None:
         key = _door_key(request)
         if key is None:
             return
         with self._door_lock:
             self._door_prices.pop(key, None)
-            self._door_prices[key] = _DoorPrice(filter_seconds, what, time.monotonic())
+            self._door_prices[key] = _DoorPrice(filter_seconds, what, time.monotonic(), rehearsed)
             while len(self._door_prices) > _DOOR_PRICES:
                 del self._door_prices[next(iter(self._door_prices))]
 
-    def open_session(self, request: OpenRequest) -> OpenedSession:
+    def open_session(self, request: OpenRequest, *, rehearsal: bool = False) -> OpenedSession:
         """Open `request`'s session, or continue the one it resumes. Blocking (the model, the
-        estimator, the log's first write)."""
+        estimator, the log's first write). Unrehearsed when its admission waits for a rehearsal;
+        `rehearsal`: open it as that rehearsal, admitted by no one, to be discarded."""
         try:
+            if rehearsal:
+                return self._open(dataclasses.replace(request, resume=None), None, rehearsal=True)
             return self._open_or_resume(request)
         except STORAGE_ERRORS as error:
             # The registry or the index (the shared tier's database) did not answer.
@@ -295,7 +346,9 @@ class SessionOpener:
         )
         return shared.take_over(resume.session_id, tenant=request.tenant, token_epoch=epoch)
 
-    def _open(self, request: OpenRequest, taken: TakenOver | None) -> OpenedSession:
+    def _open(
+        self, request: OpenRequest, taken: TakenOver | None, *, rehearsal: bool = False
+    ) -> OpenedSession:
         info, model = self._model(request)
         plan = plan_session(request, timestep=info.timestep)
         limit = self._services.limits.max_state_dimension
@@ -325,7 +378,7 @@ class SessionOpener:
         # sessions already running next to nothing.
         ticket = (
             self._admit(request, info, model, config, plan, resumed=taken is not None)
-            if plan.clock == Clock.REALTIME
+            if plan.clock == Clock.REALTIME and not rehearsal
             else None
         )
         try:
@@ -439,6 +492,20 @@ class SessionOpener:
                 known = self._prices[key] = dataclasses.replace(known, cycle=measured)
             return known
 
+    def rehearsed(self, key: tuple[object, ...], rehearsal: Rehearsal | None) -> None:
+        """What the rehearsal of an open that raised Unrehearsed(key) measured (None: it did not
+        run; such opens are then priced without one, until the rehearsal's age)."""
+        with self._prices_lock:
+            self._rehearsals[key] = (rehearsal, time.monotonic())
+
+    def _rehearsal(self, key: tuple[object, ...]) -> tuple[bool, Rehearsal | None]:
+        """Whether an open of `key` was rehearsed lately, and what its rehearsal measured."""
+        with self._prices_lock:
+            known = self._rehearsals.get(key)
+        if known is None or time.monotonic() - known[1] > _REHEARSAL_AGE:
+            return False, None
+        return True, known[0]
+
     def _admit(
         self,
         request: OpenRequest,
@@ -461,27 +528,42 @@ class SessionOpener:
             steps=plan.steps_per_tick,
         )
         admission = self._services.admission
-        refused = False
+        refused, decided = False, True
         try:
             cycle = self.tick_price(info, model, config, cycle=True).cycle
             if cycle is None:  # pragma: no cover - measured just above
                 raise RuntimeError("the filter cycle was not measured")
             what = f"{info.name} ({str(plan.scenario).lower()}) at {1 / plan.dt:g} Hz"
+            key = _rehearsal_key(info, config, plan)
+            tried, rehearsed = self._rehearsal(key)
             if not resumed:
-                self._remember_price(request, cycle, what)
+                self._remember_price(request, cycle, what, rehearsed)
+            if (
+                not (tried or resumed)
+                and self.rehearsals
+                and admission.wants_rehearsal(filter_seconds=cycle, dt=plan.dt)
+            ):
+                raise Unrehearsed(key, model, info.name)
+            if rehearsed is not None and not resumed and rehearsed.on_time < ON_TIME:
+                admission.count_refusal()
+                raise ResourceExhausted(_late_rehearsal(what, rehearsed, budget=admission.budget, dt=plan.dt))
             return admission.admit(
-                cost_per_tick=cycle + admission.overhead,
+                cost_per_tick=cycle + admission.overhead if rehearsed is None else max(cycle, rehearsed.cost),
                 filter_seconds=cycle,
                 grace=plan.grace,
                 dt=plan.dt,
                 what=what,
                 resumed=resumed,
+                priced_by=None if rehearsed is None else _rehearsed_words(rehearsed),
             )
         except ResourceExhausted:
             refused = True
             raise
+        except Unrehearsed:
+            decided = False  # decided once rehearsed, when it opens again
+            raise
         finally:
-            if self._on_admission is not None:
+            if self._on_admission is not None and decided:
                 self._on_admission(refused)
 
     def _start(self, resolved: _Resolved) -> OpenedSession:
@@ -544,6 +626,32 @@ class SessionOpener:
         except BaseException:
             recorder.discard()
             raise
+
+
+def _rehearsal_key(info: ModelInfo, config: EstimatorConfig, plan: SessionPlan) -> tuple[object, ...]:
+    """What a rehearsal measures a tick of: the model, the estimator, the rate and what each tick
+    answers."""
+    return (info.id, config, plan.dt, plan.measured, plan.outputs, plan.horizon)
+
+
+def _late_rehearsal(what: str, rehearsal: Rehearsal, *, budget: float, dt: float) -> str:
+    """Why a session whose rehearsal was not answered on time is refused."""
+    fits = min(budget / rehearsal.cost, 0.8 / dt) if rehearsal.cost > 0 else 0.8 / dt
+    return (
+        f"a session of {what} was rehearsed alone on this server process: {rehearsal.measured} of its "
+        f"{rehearsal.ticks} ticks were answered MEASURED by their deadlines ({100 * ON_TIME:g} % are "
+        f"promised), at {1e6 * rehearsal.cost:.0f} us of the process's CPU a tick: its answers could not "
+        f"be on time. A rate of at most {fits:.0f} Hz may fit here. Try again later, on another server, "
+        "or at a lower rate"
+    )
+
+
+def _rehearsed_words(rehearsal: Rehearsal) -> str:
+    """Where a rehearsed price comes from, for a refusal."""
+    return (
+        f"rehearsed: this process ran {rehearsal.ticks} ticks of such a session alone over "
+        f"{rehearsal.seconds:.2f} s and measured its CPU"
+    )
 
 
 def _preset_reason(plan: SessionPlan, *, by_cost: bool) -> str:

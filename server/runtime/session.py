@@ -203,6 +203,10 @@ class SessionRuntime:
             return Place.TOO_OLD
         return Place.DUPLICATE if tick.frame is not None else Place.LATE
 
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self._model
+
     def release(self) -> None:
         """Drop the history (its snapshots are most of a session's memory) once the session has
         ended, whatever still refers to the runtime (an exception's traceback, until the garbage

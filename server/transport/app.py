@@ -379,6 +379,13 @@ async def create_server(config: ServerConfig) -> tuple[grpc.aio.Server, int, Ser
         await server.stop(None)
         raise
     server.health = health_servicer  # type: ignore[attr-defined]
+    if not (config.api_keys or config.shares_process):
+        # A loopback port of this process alone (not shared by SO_REUSEPORT with its siblings), for
+        # the rehearsals of its opens (server/transport/rehearsal.py). With API keys nothing
+        # unauthenticated is served; there sessions are priced without rehearsals.
+        private = server.add_insecure_port("127.0.0.1:0")
+        if private:
+            server.dynamics.rehearse_at(f"127.0.0.1:{private}")  # type: ignore[attr-defined]
     return server, port, services
 
 

@@ -15,6 +15,7 @@ import contextvars
 import functools
 import logging
 import math
+import secrets
 import time
 import traceback
 from collections.abc import AsyncIterator, Callable
@@ -30,7 +31,7 @@ from jitdyn.server.runtime.clients import LocalClients
 from jitdyn.server.runtime.clock import ClockSync, MonotonicClock
 from jitdyn.server.runtime.frames import FrameIn, Rejection
 from jitdyn.server.runtime.limits import DEFAULT_STREAM_LIMITS, IdleTimeout, StreamLimits
-from jitdyn.server.runtime.opening import OpenedSession, SessionOpener
+from jitdyn.server.runtime.opening import OpenedSession, SessionOpener, Unrehearsed
 from jitdyn.server.runtime.plan import OpenRequest
 from jitdyn.server.runtime.services import Services
 from jitdyn.server.runtime.session import Place, TickOutcome
@@ -45,6 +46,7 @@ from jitdyn.server.transport.messages import (
 )
 from jitdyn.server.transport.metrics import metrics
 from jitdyn.server.transport.opening import open_request, opened_message
+from jitdyn.server.transport.rehearsal import REHEARSAL_KEY, Rehearser, rehearse
 from jitdyn.server.transport.session_service import summary_to_pb
 from jitdyn.server.transport.status import abort
 from jitdyn.server.transport.tally import FLUSH_EVERY, CounterTally, HistogramTally
@@ -121,8 +123,11 @@ def _counting_warnings(method: Callable[..., _R]) -> Callable[..., _R]:
 class _Stream:
     """One open session on one stream: the runtime, the recorder, the clock."""
 
-    def __init__(self, opened: OpenedSession, limits: StreamLimits = DEFAULT_STREAM_LIMITS) -> None:
+    def __init__(
+        self, opened: OpenedSession, limits: StreamLimits = DEFAULT_STREAM_LIMITS, *, rehearsal: bool = False
+    ) -> None:
         self.ticket = opened.ticket  # REALTIME: this session's share of the process's tick budget
+        self.rehearsal = rehearsal  # a rehearsal (server/transport/rehearsal.py): discarded at its end
         self.limits = limits
         # The tick's metrics, counted here and added to the process's once a window (flush_metrics).
         m, process, model = metrics(), metrics().process, opened.info.name
@@ -620,6 +625,20 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         self._all_moved = asyncio.Event()
         admission = services.admission
         self._clients = LocalClients(admission.observe_client, needed=admission.machine_short)
+        self._rehearser: Rehearser | None = None
+
+    def rehearse_at(self, address: str) -> None:
+        """Rehearse the opens that ask for it (server/runtime/opening.py Unrehearsed) from a client
+        of this process's own on `address`, a loopback port only this process listens on."""
+        self._rehearser = Rehearser(address, secrets.token_hex(16))
+        self._opener.rehearsals = True
+
+    def _is_rehearsal(self, context: _Context) -> bool:
+        rehearser = self._rehearser
+        if rehearser is None:
+            return False
+        sent = dict(context.invocation_metadata() or ()).get(REHEARSAL_KEY)
+        return isinstance(sent, str) and secrets.compare_digest(sent, rehearser.secret)
 
     def _count_admission(self, refused: bool) -> None:
         if refused:
@@ -700,10 +719,12 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             )
         try:
             request = open_request(first.open, tenant=tenant_of(context))
+            if self._is_rehearsal(context):
+                return await self._open(request, first.open, rehearsal=True)
             if request.clock == Clock.REALTIME:
                 # A client on this machine: its start-up is not load (server/runtime/clients.py).
                 await self._clients.look(context.peer())
-            return await self._open(request)
+            return await self._open(request, first.open)
         except JitdynError as error:
             # Logged too: a balancer may not pass the status on (HAProxy 2.6 resets the stream
             # instead, docs/decisions/0121-refusals-through-a-balancer.md), and the operator should know.
@@ -770,17 +791,25 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         except Exception:  # noqa: BLE001 (a stream that has just ended: nothing to tell)
             _log.debug("session %s: `moving` not sent", recorder.header.session_id, exc_info=True)
 
-    async def _open(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+    async def _open(
+        self, request: OpenRequest, message: dynamics_pb2.OpenSession, *, rehearsal: bool = False
+    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
         services, tenant = self._services, request.tenant
         services.admit(tenant)
         try:
-            self._opener.check_door(request)
+            if not rehearsal:
+                self._opener.check_door(request)
         except JitdynError:
             services.release(tenant)
             raise
-        opening = asyncio.ensure_future(self._slow(self._open_sync, request))
+        opening = asyncio.ensure_future(self._slow(self._open_sync, request, rehearsal))
         try:
-            return await asyncio.shield(opening)
+            try:
+                return await asyncio.shield(opening)
+            except Unrehearsed as need:
+                await self._rehearse(message, need)
+                opening = asyncio.ensure_future(self._slow(self._open_sync, request, rehearsal))
+                return await asyncio.shield(opening)
         except JitdynError as error:
             # The refused open's frames (the model, an estimator of hundreds of MB for a large
             # model) would otherwise live in the error's traceback, kept in a reference cycle by
@@ -797,6 +826,28 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         except BaseException:
             services.release(tenant)
             raise
+
+    async def _rehearse(self, message: dynamics_pb2.OpenSession, need: Unrehearsed) -> None:
+        """Rehearse the session `message` opens, alone on this process, and tell the opener and
+        admission what its ticks cost (server/transport/rehearsal.py)."""
+        rehearser = self._rehearser
+        assert rehearser is not None  # the opener asks only once told it may (rehearse_at)
+        rehearsal = await asyncio.to_thread(rehearse, rehearser, message, need.model)
+        self._opener.rehearsed(need.key, rehearsal)
+        self._services.admission.rehearsed()
+        if rehearsal is None:
+            _log.warning("a rehearsal at %g Hz did not run; the session is priced without it", 1 / message.dt)
+            return
+        _log.info(
+            "rehearsed a session of %s at %g Hz: %d ticks in %.2f s, %d answered MEASURED by their "
+            "deadlines, %.0f us of this process's CPU a tick",
+            need.name,
+            1 / message.dt,
+            rehearsal.ticks,
+            rehearsal.seconds,
+            rehearsal.measured,
+            1e6 * rehearsal.cost,
+        )
 
     async def _abandon_open(
         self, opening: asyncio.Future[tuple[_Stream, dynamics_pb2.SessionOpened]], tenant: str
@@ -837,10 +888,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         context = contextvars.copy_context()
         return await asyncio.get_running_loop().run_in_executor(self._slow_steps, context.run, step)
 
-    def _open_sync(self, request: OpenRequest) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
-        opened = self._opener.open_session(request)
+    def _open_sync(self, request: OpenRequest, rehearsal: bool) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        opened = self._opener.open_session(request, rehearsal=rehearsal)
         try:
-            return _Stream(opened, self._limits), opened_message(opened)
+            return _Stream(opened, self._limits, rehearsal=rehearsal), opened_message(opened)
         except BaseException:
             opened.discard()
             raise
@@ -1008,7 +1059,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         stream.runtime.release()
         stream.pending.clear()
         try:
-            if status == SessionStatus.ABANDONED and stream.recorder.resumable:
+            if stream.rehearsal:
+                await self._slow(stream.opened.discard)
+                location = ""
+            elif status == SessionStatus.ABANDONED and stream.recorder.resumable:
                 await self._slow(stream.recorder.park)
                 location = ""
             else:

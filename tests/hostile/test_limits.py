@@ -25,7 +25,7 @@ from _hostile import (
     stored,
 )
 
-from jitdyn.v1 import common_pb2, dynamics_pb2
+from jitdyn.v1 import common_pb2, dynamics_pb2, session_pb2
 
 
 def _refused(call: Callable[[], object], code: grpc.StatusCode) -> str:
@@ -187,6 +187,79 @@ def test_a_tick_that_cannot_fit_dt_is_refused_at_open(serve: Callable[..., Serve
         served, iter([open_request(clock="REALTIME"), Request(close=dynamics_pb2.CloseSession())])
     )
     assert error is None and kinds[0] == "opened" and kinds[-1] == "closed"
+
+
+def test_a_session_whose_tick_cannot_fit_alone_is_refused_at_open_saying_what_rate_fits(
+    serve: Callable[..., Served],
+) -> None:
+    """A 5 kHz session of one hinge: its filter alone takes a few tens of us of its 200 us tick,
+    but the server's CPU around a tick (the frame's read, the result, the write, the record, the
+    event loop) cannot fit in the rest, on any machine: refused, naming both figures and the rate
+    that fits, before anything of the session is built. An idle server used to take it on its
+    filter alone."""
+    served = serve("--verbose")
+    register(served, "hinge5k", chain(1, timestep=0.0002))
+    details = _refused(
+        lambda: list(
+            served.dynamics.StreamSession(
+                iter([open_request(model="hinge5k", dt=0.0002, clock="REALTIME")]), timeout=60
+            )
+        ),
+        grpc.StatusCode.RESOURCE_EXHAUSTED,
+    )
+    match = re.fullmatch(
+        r"a session of hinge5k \(passive\) at 5000 Hz is estimated at (\d+) us of this server's CPU per "
+        r"tick: its filter (\d+) us and (\d+) us around it \(the frame's read, the result's dynamics and "
+        r"message, the write, the record, the event loop; [^)]+\), (\d+) % of a core against the tick "
+        r"budget of 75 % \(--tick-budget 0.75\) on its own: its answers could not be on time\. At most "
+        r"(\d+) Hz fits here\. Try again later, on another server, or at a lower rate",
+        details,
+    )
+    assert match is not None, details
+    cost, filter_us, around, share, fits = (int(g) for g in match.groups())
+    assert filter_us < 0.75 * 200 < cost and abs(cost - filter_us - around) <= 1 and share > 75
+    assert fits < 5000 and abs(fits - 0.75e6 / cost) <= 1
+    assert "an open was refused: RESOURCE_EXHAUSTED: a session of hinge5k" in served.text()
+
+
+def test_a_rehearsed_session_is_priced_by_what_its_rehearsal_measured(serve: Callable[..., Served]) -> None:
+    """At 1250 Hz a hinge's fit hangs on what a tick costs around its filter, which an idle server
+    has not measured: it rehearses such a session alone, says what a tick cost, and admits or
+    refuses by that figure (either may happen on a shared machine; the decision must follow the
+    figure). The rehearsal leaves no session behind."""
+    served = serve("--verbose")
+    register(served, "hinge", chain(1, timestep=0.0008))
+    kinds, error = _realtime(
+        served, iter([open_request(model="hinge", dt=0.0008, clock="REALTIME"), close()])
+    )
+    rehearsed = re.search(
+        r"rehearsed a session of hinge at 1250 Hz: (\d+) ticks in [\d.]+ s, (\d+) answered MEASURED by "
+        r"their deadlines, (\d+) us of this process's CPU a tick",
+        served.text(),
+    )
+    assert rehearsed is not None, served.text()
+    ticks, measured, cost = (int(g) for g in rehearsed.groups())
+    assert ticks == 180 and cost > 0 and 0 <= measured <= ticks  # 200, the first 20 to warm up
+    details = "" if error is None else error.details() or ""
+    if measured < 0.99 * ticks:
+        assert error is not None and error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        assert details.startswith(
+            f"a session of hinge (passive) at 1250 Hz was rehearsed alone on this server process: "
+            f"{measured} of its 180 ticks were answered MEASURED by their deadlines (99 % are promised), "
+            f"at {cost} us of the process's CPU a tick: its answers could not be on time."
+        ), details
+    elif cost > 0.75 * 800:
+        assert error is not None and error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        assert f"a session of hinge (passive) at 1250 Hz is estimated at {cost} us" in details, details
+        assert "rehearsed: this process ran 180 ticks of such a session alone over " in details, details
+        assert "on its own: its answers could not be on time" in details, details
+    else:
+        # Opened, or refused for what else the machine runs (a shared machine), never on its own.
+        assert error is None or "on its own" not in details, details
+        assert error is None or error.code() == grpc.StatusCode.RESOURCE_EXHAUSTED, details
+        assert error is not None or (kinds[0] == "opened" and kinds[-1] == "closed"), kinds
+    listed = served.sessions.ListSessions(session_pb2.ListSessionsRequest(), timeout=30).sessions
+    assert len(listed) == (1 if error is None else 0)  # the rehearsal's was discarded
 
 
 def test_history_stays_bounded_when_a_passive_filter_turns_driven(serve: Callable[..., Served]) -> None:
