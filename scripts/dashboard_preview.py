@@ -462,8 +462,8 @@ _TOO_FAST = """<mujoco model="fast_slider"><option timestep="0.001"/><worldbody>
 
 def refuse_one(address: str) -> str:
     """Open REALTIME sessions at 1 kHz until the server refuses one, so that the admission
-    refusals show; the server's reason. An idle process admits the first whatever its transport
-    costs (server/runtime/admission.py), and the second then finds no room; admitted ones are
+    refusals show; the server's reason. A session that cannot fit alone is refused at once, one
+    that can takes the room the next would need (server/runtime/admission.py); admitted ones are
     closed at once."""
     from jitdyn.client import Client, SessionOptions
     from jitdyn.errors import ResourceExhausted

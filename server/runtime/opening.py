@@ -498,6 +498,10 @@ class SessionOpener:
         with self._prices_lock:
             self._rehearsals[key] = (rehearsal, time.monotonic())
 
+    def was_rehearsed(self, key: tuple[object, ...]) -> bool:
+        """Whether an open of `key` was rehearsed lately (whether or not its rehearsal ran)."""
+        return self._rehearsal(key)[0]
+
     def _rehearsal(self, key: tuple[object, ...]) -> tuple[bool, Rehearsal | None]:
         """Whether an open of `key` was rehearsed lately, and what its rehearsal measured."""
         with self._prices_lock:

@@ -46,7 +46,7 @@ from jitdyn.server.transport.messages import (
 )
 from jitdyn.server.transport.metrics import metrics
 from jitdyn.server.transport.opening import open_request, opened_message
-from jitdyn.server.transport.rehearsal import REHEARSAL_KEY, Rehearser, rehearse
+from jitdyn.server.transport.rehearsal import REHEARSAL_KEY, Marks, Rehearser, rehearse, warm_up
 from jitdyn.server.transport.session_service import summary_to_pb
 from jitdyn.server.transport.status import abort
 from jitdyn.server.transport.tally import FLUSH_EVERY, CounterTally, HistogramTally
@@ -124,10 +124,16 @@ class _Stream:
     """One open session on one stream: the runtime, the recorder, the clock."""
 
     def __init__(
-        self, opened: OpenedSession, limits: StreamLimits = DEFAULT_STREAM_LIMITS, *, rehearsal: bool = False
+        self,
+        opened: OpenedSession,
+        limits: StreamLimits = DEFAULT_STREAM_LIMITS,
+        *,
+        marks: Marks | None = None,
     ) -> None:
         self.ticket = opened.ticket  # REALTIME: this session's share of the process's tick budget
-        self.rehearsal = rehearsal  # a rehearsal (server/transport/rehearsal.py): discarded at its end
+        # A rehearsal's (server/transport/rehearsal.py): its ticks marked, the session discarded.
+        self.marks = marks
+        self.rehearsal = marks is not None
         self.limits = limits
         # The tick's metrics, counted here and added to the process's once a window (flush_metrics).
         m, process, model = metrics(), metrics().process, opened.info.name
@@ -471,6 +477,8 @@ class _Stream:
             if self.ticket is not None:
                 self._observe_tick(outcome.compute_us / 1e6, cpu=time.thread_time() - cpu)
         response = Response(result=self.record_result(outcome, arrived=due))
+        if self.marks is not None:
+            self.marks.tick(outcome.seq)
         lateness = max(0.0, self.clock.now() - self.deadline(outcome.seq))
         self._m_lateness.observe(lateness)
         if self.ticket is not None:
@@ -626,6 +634,10 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         admission = services.admission
         self._clients = LocalClients(admission.observe_client, needed=admission.machine_short)
         self._rehearser: Rehearser | None = None
+        # One rehearsal at a time: each measures the process's CPU, which another would share. Its
+        # stream marks its ticks here.
+        self._rehearsing = asyncio.Lock()
+        self._marks: Marks | None = None
 
     def rehearse_at(self, address: str) -> None:
         """Rehearse the opens that ask for it (server/runtime/opening.py Unrehearsed) from a client
@@ -635,7 +647,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
 
     def _is_rehearsal(self, context: _Context) -> bool:
         rehearser = self._rehearser
-        if rehearser is None:
+        if rehearser is None or self._marks is None:
             return False
         sent = dict(context.invocation_metadata() or ()).get(REHEARSAL_KEY)
         return isinstance(sent, str) and secrets.compare_digest(sent, rehearser.secret)
@@ -802,13 +814,14 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         except JitdynError:
             services.release(tenant)
             raise
-        opening = asyncio.ensure_future(self._slow(self._open_sync, request, rehearsal))
+        marks = self._marks if rehearsal else None
+        opening = asyncio.ensure_future(self._slow(self._open_sync, request, marks))
         try:
             try:
                 return await asyncio.shield(opening)
             except Unrehearsed as need:
                 await self._rehearse(message, need)
-                opening = asyncio.ensure_future(self._slow(self._open_sync, request, rehearsal))
+                opening = asyncio.ensure_future(self._slow(self._open_sync, request, marks))
                 return await asyncio.shield(opening)
         except JitdynError as error:
             # The refused open's frames (the model, an estimator of hundreds of MB for a large
@@ -832,9 +845,16 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         admission what its ticks cost (server/transport/rehearsal.py)."""
         rehearser = self._rehearser
         assert rehearser is not None  # the opener asks only once told it may (rehearse_at)
-        rehearsal = await asyncio.to_thread(rehearse, rehearser, message, need.model)
-        self._opener.rehearsed(need.key, rehearsal)
-        self._services.admission.rehearsed()
+        async with self._rehearsing:
+            if self._opener.was_rehearsed(need.key):
+                return  # opens of one kind arriving together: the first one's rehearsal prices all
+            self._marks = marks = Marks(warm=warm_up(message.dt))
+            try:
+                rehearsal = await asyncio.to_thread(rehearse, rehearser, message, need.model, marks=marks)
+            finally:
+                self._marks = None
+            self._opener.rehearsed(need.key, rehearsal)
+            self._services.admission.rehearsed()
         if rehearsal is None:
             _log.warning("a rehearsal at %g Hz did not run; the session is priced without it", 1 / message.dt)
             return
@@ -888,10 +908,12 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         context = contextvars.copy_context()
         return await asyncio.get_running_loop().run_in_executor(self._slow_steps, context.run, step)
 
-    def _open_sync(self, request: OpenRequest, rehearsal: bool) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
-        opened = self._opener.open_session(request, rehearsal=rehearsal)
+    def _open_sync(
+        self, request: OpenRequest, marks: Marks | None
+    ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
+        opened = self._opener.open_session(request, rehearsal=marks is not None)
         try:
-            return _Stream(opened, self._limits, rehearsal=rehearsal), opened_message(opened)
+            return _Stream(opened, self._limits, marks=marks), opened_message(opened)
         except BaseException:
             opened.discard()
             raise
