@@ -8,7 +8,9 @@ of this process's tick budget (a fraction of one core: one process runs Python o
     ticket.answered(lateness)        # each REALTIME answer's lateness
     ticket.release()                 # when the session ends (safe twice)
 
-A session's load is its cost per tick divided by dt: CPU seconds per second. The process's load is
+A session's load is its cost per tick divided by dt: CPU seconds per second. A session must fit the
+budget alone, whatever else runs; where the CPU around its filter decides that, the servicer
+rehearses it first (docs/decisions/0214-a-tick-priced-whole.md). The process's load is
 the larger of the sum over its sessions and its CPU actually used over the last seconds (which
 also counts what no estimate sees: the gRPC transport of LOCKSTEP sessions, compaction, GC).
 A tick is counted on its ticket, in plain numbers its session's thread alone writes; the process
