@@ -208,8 +208,10 @@ class _Stream:
 
     def flush_metrics(self) -> None:
         """Add what this session's ticks counted to the process's metrics: once a window, and when
-        it ends."""
+        it ends. A rehearsal's ticks are not the process's sessions': dropped."""
         self._m_flush_at = time.monotonic() + FLUSH_EVERY
+        if self.rehearsal:
+            return
         for tally in (*self._m_ticks.values(), self._m_shed, self._m_restarts):
             tally.flush()
         for histogram in (self._m_compute, self._m_lateness, self._m_lag):
@@ -512,7 +514,8 @@ class _Stream:
         if newest - seq < 1:
             return []
         waiting = [frame for k in range(seq, newest) if (frame := self.pending.pop(k, None)) is not None]
-        _log.warning(
+        # A rehearsal's lateness is what it measures, and its session id is discarded: not logged.
+        (_log.debug if self.rehearsal else _log.warning)(
             "session %s: the loop reached tick %d %.0f ms after its deadline; ticks %d-%d skipped",
             self.recorder.header.session_id,
             seq,
