@@ -54,7 +54,7 @@ _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 # A lone session's tick costs up to this many times the overhead figure (learnt among many
 # sessions, or guessed) around its filter: where that decides whether it fits, it is rehearsed
 # (docs/decisions/0214-a-tick-priced-whole.md).
-REHEARSE_SPAN: Final = 3.0
+REHEARSE_SPAN: Final = 2.5
 # Cores of the machine kept free of new sessions: the slack that keeps ticks on time when the
 # machine is nearly full (a tick late by a scheduling quantum is late).
 MACHINE_HEADROOM: Final = 0.1

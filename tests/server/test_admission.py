@@ -47,7 +47,7 @@ def test_a_session_that_cannot_fit_alone_is_refused_by_an_idle_process_saying_wh
 def test_a_rehearsal_is_wanted_only_where_the_overhead_decides_and_can_be_measured() -> None:
     admission = Admission(budget=0.75, count_machine_cpu=False)
     guess = admission.overhead
-    # myoElbow at 500 Hz: fits with half the overhead figure, not with three times it.
+    # myoElbow at 500 Hz: fits with half the overhead figure, not with REHEARSE_SPAN times it.
     assert admission.wants_rehearsal(filter_seconds=0.3e-3, dt=2e-3)
     # pendulum_3 at 20 Hz fits whatever the overhead; at 5 kHz nothing around the filter fits.
     assert not admission.wants_rehearsal(filter_seconds=0.23e-3, dt=0.05)
