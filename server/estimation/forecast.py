@@ -126,8 +126,9 @@ PENDING: Final = 16
 # m^2, (rad/s)^2, (m/s)^2) below which no answer claims to know a dof.
 MAX_NOISE_SHARE: Final = 0.9
 VARIANCE_FLOOR: Final = 1e-12
-# The novelty guard over a gap: a predictor departing from STATIC by more than NOVELTY times the RMS
-# departure of its scored past at that horizon has its errors taken as larger by the ratio over
+# The novelty guard over a gap: a predictor departing from its reference (STATIC moved towards
+# CONSTANT_ACCELERATION as far as the last two frames' velocities agree) by more than NOVELTY times
+# the RMS departure of its scored past at that horizon has its errors taken as larger by the ratio over
 # NOVELTY, at most MAX_NOVELTY times (its variance 1e6 times: all but dropped; far larger factors
 # would let the solver's ridge, 1e-9 of the mean variance, swamp the others' variances). NOVELTY
 # measured on the recordings at 1.5, 2 and 3 (docs/decisions/0027-forecast-novelty-guard.md).
