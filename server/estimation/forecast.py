@@ -30,14 +30,18 @@ predictor's error (its covariance is R 11'), which moves no weight.
 
 Novelty guard: the scores describe the motion before the gap, and a predictor far out of its
 scored regime (constant acceleration over the take-off of a jump, the model's rollout of it) is
-not described by them. Over a gap, a predictor whose departure from STATIC now, the RMS over dofs
-of q_p - q_STATIC, exceeds NOVELTY times the RMS departure of its scored past at that horizon
-(e_p - e_STATIC is q_p - q_STATIC, the frame cancels, so its mean square is C_pp + C_ss - 2 C_ps
-of C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row and column p
-times s_p (and D_h's, for the answer's variances), and the weights are solved again on that. The
-answer falls back on the predictors still in their regime, STATIC at least. It costs a gap tick
+not described by them. Over a gap, a predictor whose departure from a reference now, the RMS over
+dofs of q_p - r @ q, exceeds NOVELTY times the RMS departure of its scored past at that horizon
+(e_p - r @ e is q_p - r @ q, the frame cancels, so its mean square is C_pp - 2 (C r)_p + r'C r of
+C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row and column p times
+s_p (and D_h's, for the answer's variances), and the weights are solved again on that. The answer
+falls back on the predictors still in their regime, STATIC at least. The reference r is STATIC
+moved towards CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start
+of motion builds its speed over frames and is measured from what they extrapolate; a glitch of one
+frame's velocity has none of it the frame before and is measured from STATIC. It costs a gap tick
 O(P nv), and a solve of the weights on the ticks where it acts
-(docs/decisions/0027-forecast-novelty-guard.md).
+(docs/decisions/0027-forecast-novelty-guard.md; its reference:
+docs/decisions/0216-a-start-of-motion-is-not-a-glitch.md).
 
 Regime change: a score at which every one of PREDICTORS erred by more than SURPRISE times the RMS
 error of its scored past at that horizon is a change of the motion none of them foresaw (a
@@ -122,8 +126,9 @@ PENDING: Final = 16
 # m^2, (rad/s)^2, (m/s)^2) below which no answer claims to know a dof.
 MAX_NOISE_SHARE: Final = 0.9
 VARIANCE_FLOOR: Final = 1e-12
-# The novelty guard over a gap: a predictor departing from STATIC by more than NOVELTY times the RMS
-# departure of its scored past at that horizon has its errors taken as larger by the ratio over
+# The novelty guard over a gap: a predictor departing from its reference (STATIC moved towards
+# CONSTANT_ACCELERATION as far as the last two frames' velocities agree) by more than NOVELTY times
+# the RMS departure of its scored past at that horizon has its errors taken as larger by the ratio over
 # NOVELTY, at most MAX_NOVELTY times (its variance 1e6 times: all but dropped; far larger factors
 # would let the solver's ridge, 1e-9 of the mean variance, swamp the others' variances). NOVELTY
 # measured on the recordings at 1.5, 2 and 3 (docs/decisions/0027-forecast-novelty-guard.md).
@@ -266,13 +271,14 @@ class ForecastCombiner:
         self._predictors = predictors.names(self._families)
         # Which predictors learn from the session's frames (no weight before LEARNED_SAMPLES real
         # matches, no vote on a regime change); which vote on one (neither they nor the prior);
-        # STATIC, which the novelty guard measures from.
+        # STATIC and CONSTANT_ACCELERATION, between which the novelty guard's reference lies.
         self._learned_mask = np.array([f.learned for f in self._families for _ in f.names], dtype=bool)
         self._fixed = np.flatnonzero(~self._learned_mask)
         self._voters = np.array(
             [i for i in self._fixed if self._predictors[i] != PRIOR.names[0]], dtype=np.intp
         )
         self._static = self._predictors.index("STATIC")
+        self._accelerating = self._predictors.index("CONSTANT_ACCELERATION")
         self._prior_cols = PRIOR_K * prior.legs if prior is not None else 0
         self._prior_block, self._prior_mask, self._prior_cov = self._prior_scores(prior)
         self._columns = _Columns.of(
@@ -462,7 +468,9 @@ class ForecastCombiner:
             weights = self._weights[h] = self._solve_weights(h)
             weights.flags.writeable = False
         q, v, a = self._predictions(i)
-        scale = _novelty(q, self._weighing(h)[0], self._static)
+        row = self._table[i]
+        reference = self._reference(_confirmed(row[self._columns.v0], row[self._columns.a0], self._dt))
+        scale = _novelty(q, self._weighing(h)[0], reference, self._static)
         if scale is not None:
             weights = self._solve_weights(h, scale, matched=matched)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd, scale)
@@ -553,6 +561,14 @@ class ForecastCombiner:
         self._qfrc, self._qacc = b.bind("qfrc_applied"), b.bind("qacc")
         b.bind("ctrl")[:] = 0.0  # actuation is off in the process model; ctrl stays zero
         self._capacity = capacity
+
+    def _reference(self, confirmed: float) -> np.ndarray:
+        """(P,) the novelty guard's reference as weights on the predictors: STATIC moved towards
+        CONSTANT_ACCELERATION by `confirmed`, how far the last two frames' velocities agree."""
+        reference = np.zeros(len(self._predictors))
+        reference[self._static] = 1.0 - confirmed
+        reference[self._accelerating] += confirmed
+        return reference
 
     def _last_origin(self) -> int:
         return -1 if self._anchor is None else self._anchor[2]
@@ -834,14 +850,28 @@ def _at_scale(prior: np.ndarray, session: np.ndarray, block: np.ndarray) -> np.n
     return prior if ours <= 0.0 or theirs <= 0.0 else prior * (ours / theirs)
 
 
-def _novelty(q: np.ndarray, C: np.ndarray, static: int) -> np.ndarray | None:
+def _confirmed(v0: np.ndarray, a0: np.ndarray, dt: float) -> float:
+    """How far the last two frames' velocities agree, in [0, 1]: v0 (nv,) and the velocity one tick
+    before it, v0 - a0 dt, their product over the larger square (1: the same; 0: a still frame, or
+    opposed). A real start of motion builds its velocity over several frames; a glitch of one
+    frame's velocity has none of it the frame before (or after)."""
+    before = v0 - a0 * dt
+    larger = max(float(v0 @ v0), float(before @ before))
+    if not larger > 0.0:
+        return 0.0
+    return min(max(float(v0 @ before) / larger, 0.0), 1.0)
+
+
+def _novelty(q: np.ndarray, C: np.ndarray, reference: np.ndarray, static: int) -> np.ndarray | None:
     """(P,) the novelty guard's factors on the predictors' errors at a gap, or None where none is
-    novel: a predictor whose departure from STATIC now (the RMS over dofs of q_p - q_STATIC)
-    exceeds NOVELTY times the RMS departure of its scored past at this horizon (e_p - e_STATIC,
-    from the pooled covariance: C_pp + C_ss - 2 C_ps) has its errors taken as larger by the ratio
-    of the two over NOVELTY, at most MAX_NOVELTY (STATIC never departs)."""
-    now = np.mean(np.square(q - q[static]), axis=1)
-    limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) + C[static, static] - 2.0 * C[:, static], 0.0)
+    novel: a predictor whose departure now from the reference (reference (P,): weights on the
+    predictors; the RMS over dofs of q_p - reference @ q) exceeds NOVELTY times the RMS departure
+    of its scored past at this horizon (e_p - reference @ e, from the pooled covariance:
+    C_pp - 2 (C r)_p + r'C r) has its errors taken as larger by the ratio of the two over NOVELTY,
+    at most MAX_NOVELTY (STATIC is never novel: the answer falls back on it at least)."""
+    now = np.mean(np.square(q - reference @ q), axis=1)
+    Cr = C @ reference
+    limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) - 2.0 * Cr + float(reference @ Cr), 0.0)
     novel = now > limit
     novel[static] = False
     if not novel.any():

@@ -17,6 +17,7 @@ import pytest
 from scipy.optimize import minimize
 
 from jitdyn.client import FrameData, SessionOptions, TickResult
+from jitdyn.server.estimation import forecast
 from jitdyn.server.estimation.config import resolve_config
 from jitdyn.server.estimation.extrapolators import EXTRAPOLATORS, extrapolate
 from jitdyn.server.estimation.forecast import (
@@ -27,6 +28,7 @@ from jitdyn.server.estimation.forecast import (
     PREDICTORS,
     PROBES,
     SURPRISE,
+    CombinedForecast,
     ForecastCombiner,
     _min_variance_weights,
 )
@@ -188,10 +190,17 @@ class _ReferenceCombiner:
         v = np.stack([p.qvel, *(m[1] for m in moved)])
         a = np.stack([p.qacc, *(m[2] for m in moved)])
         C = self.cov[h]
-        # The novelty guard: a predictor departing from STATIC (row 1) by more than NOVELTY times
-        # the RMS departure of its scored past has its errors scaled by the ratio over NOVELTY.
-        now = np.mean(np.square(q - q[1]), axis=1)
-        limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) + C[1, 1] - 2.0 * C[:, 1], 0.0)
+        # The novelty guard: a predictor departing from the reference by more than NOVELTY times
+        # the RMS departure of its scored past has its errors scaled by the ratio over NOVELTY. The
+        # reference is STATIC (row 1) moved towards CONSTANT_ACCELERATION (row 3) as far as the
+        # last two frames' velocities agree (v0 and v0 - a0 dt: their product over the larger square).
+        before = p.v0 - p.a0 * self.dt
+        larger = max(float(p.v0 @ p.v0), float(before @ before))
+        share = min(max(float(p.v0 @ before) / larger, 0.0), 1.0) if larger > 0.0 else 0.0
+        r = np.array([0.0, 1.0 - share, 0.0, share])
+        now = np.mean(np.square(q - r @ q), axis=1)
+        Cr = C @ r
+        limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) - 2.0 * Cr + float(r @ Cr), 0.0)
         novel = now > limit
         novel[1] = False
         if novel.any():
@@ -449,6 +458,47 @@ def test_a_predictor_departing_far_beyond_its_scored_past_weighs_less_over_a_gap
         answer.qpos,
         constant_acceleration,
     )
+
+
+def _onset_answer(*, confirmed: bool, monkeypatch: pytest.MonkeyPatch) -> tuple[CombinedForecast, float]:
+    """The swing of the jolted test scored for 2 s, then a real start of motion: 40 rad/s^2 more
+    over its last three frames (qd built over them, q integrated with it), then 200 ms of gap:
+    the answer and the truth's q at its end; confirmed False: the guard measures from STATIC alone
+    (the last two frames' velocities taken as not agreeing)."""
+    if not confirmed:
+        monkeypatch.setattr(forecast, "_confirmed", lambda *_: 0.0)
+    model = _pendulum(1)
+    dt, frames, onset, push = 0.05, 40, 36, 40.0
+
+    def motion(t: float) -> tuple[float, float]:
+        s = max(0.0, t - onset * dt)
+        return 0.1 + 0.2 * np.sin(4 * t) + 0.5 * push * s * s, 0.8 * np.cos(4 * t) + push * s
+
+    combiner = ForecastCombiner(model, dt=dt, steps_per_tick=10, horizon=4)
+    for k in range(frames):
+        if k:
+            combiner.advance()
+        q, v = (np.array([x]) for x in motion(k * dt))
+        combiner.observe(q, v, mean_qpos=q, mean_qvel=v, act=np.zeros(0), force=np.zeros(1), rate=None)
+    for _ in range(4):
+        combiner.advance()
+        answer = combiner.forecast()
+        assert answer is not None
+    return answer, motion((frames + 3) * dt)[0]
+
+
+def test_a_real_start_of_motion_is_not_taken_for_a_glitch(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the last frames' velocities agree (the motion built its speed over them, as a real
+    start does; the jolted frame above has none of its jolt the frame before), the guard measures
+    from what they extrapolate, not from STATIC: the answer follows the motion. Measured: STATIC
+    0, CONSTANT_VELOCITY 1.0, 0.74 rad short of the truth after 200 ms; measured from STATIC
+    alone, STATIC 1.0 and 1.95 rad short."""
+    static = PREDICTORS.index("STATIC")
+    answer, truth = _onset_answer(confirmed=True, monkeypatch=monkeypatch)
+    from_static, _ = _onset_answer(confirmed=False, monkeypatch=monkeypatch)
+    assert answer.weights[static] < 0.1, answer.weights
+    assert from_static.weights[static] > 0.9, from_static.weights
+    assert abs(float(answer.qpos[0]) - truth) < 0.5 * abs(float(from_static.qpos[0]) - truth)
 
 
 def _scored_covariances(earlier: float, jolt: float) -> np.ndarray:

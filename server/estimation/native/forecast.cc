@@ -29,7 +29,7 @@ constexpr double kMaxNovelty = 1e3;
 constexpr double kSurprise = 2.0;
 // The predictors' rows: MODEL, the extrapolators (STATIC first), LEARNED; which vote on a regime
 // change and weigh before LEARNED has its samples (all but LEARNED).
-constexpr int kModel = 0, kStatic = 1, kLearned = 4, kFixed = 4;
+constexpr int kModel = 0, kStatic = 1, kAcceleration = 3, kLearned = 4, kFixed = 4;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 // The probes' integer marks.
 constexpr int kOrigin = 0, kAge = 1, kKeep = 2, kRamp = 3, kMatched = 4;
@@ -48,6 +48,16 @@ const std::vector<double>& Fading() {
     return out;
   }();
   return table;
+}
+
+// forecast.py's _confirmed: how far the last two frames' velocities agree, in [0, 1]: v0 and the
+// velocity one tick before it, v0 - a0 dt, their product over the larger square; 0 for a still
+// frame. Expressions, no allocation.
+template <typename V, typename A>
+double Confirmed(const Eigen::MatrixBase<V>& v0, const Eigen::MatrixBase<A>& a0, double dt) {
+  const double larger = std::max(v0.dot(v0), (v0 - a0 * dt).squaredNorm());
+  if (!(larger > 0.0)) return 0.0;
+  return std::min(std::max(v0.dot(v0 - a0 * dt) / larger, 0.0), 1.0);
 }
 
 // Every subset of range(p), by size, each size in itertools.combinations' order.
@@ -202,7 +212,7 @@ Combiner::Combiner(const mjModel* model, double dt, int steps_per_tick, int hori
   pv_ = Matrix::Zero(kPredictors, nv_);
   pa_ = Matrix::Zero(kPredictors, nv_);
   errors_ = verrors_ = Matrix::Zero(kPredictors, nv_);
-  lq_ = lv_ = la_ = a0_ = anchor_q_ = anchor_v_ = Vector::Zero(nv_);
+  lq_ = lv_ = la_ = a0_ = at_ = anchor_q_ = anchor_v_ = Vector::Zero(nv_);
   Grow((horizon_ + stride_ - 1) / stride_ + 3);
   Reset();
 }
@@ -414,14 +424,24 @@ std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& 
     cached_[h] = true;
   }
   Predict(i);
-  // The novelty guard: a predictor departing from STATIC by more than NOVELTY times its scored past.
+  // The novelty guard: a predictor departing from the reference (STATIC moved towards
+  // CONSTANT_ACCELERATION as far as the last two frames' velocities agree) by more than NOVELTY
+  // times its scored past.
   const PMatrix& C = cov_[h];
+  const auto row = table_.row(i);
+  const double confirmed = Confirmed(row.segment(c_.v0, nv_), row.segment(c_.a0, nv_), dt_);
+  PVector reference = PVector::Zero();
+  reference[kStatic] = 1.0 - confirmed;
+  reference[kAcceleration] += confirmed;
+  at_.noalias() = pq_.transpose() * reference;
+  const PVector Cr = C * reference;
+  const double rCr = reference.dot(Cr);
   PVector scale = PVector::Ones();
   bool novel = false;
   for (int p = 0; p < kPredictors; ++p) {
     if (p == kStatic) continue;
-    const double now = (pq_.row(p) - pq_.row(kStatic)).squaredNorm() / nv_;
-    const double limit = kNovelty * kNovelty * std::max(C(p, p) + C(kStatic, kStatic) - 2.0 * C(p, kStatic), 0.0);
+    const double now = (pq_.row(p) - at_.transpose()).squaredNorm() / nv_;
+    const double limit = kNovelty * kNovelty * std::max(C(p, p) - 2.0 * Cr[p] + rCr, 0.0);
     if (now > limit) {
       novel = true;
       scale[p] = std::min(std::sqrt(now / limit), kMaxNovelty);

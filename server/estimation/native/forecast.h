@@ -111,9 +111,10 @@ class Combiner {
   bool has_anchor_ = false;
   Vector anchor_q_, anchor_v_;
   std::int64_t anchor_tick_ = -1;
-  // Scratch, sized once: the predictors' answers of one probe and their errors; LEARNED's; a0.
+  // Scratch, sized once: the predictors' answers of one probe and their errors; LEARNED's; a0; the
+  // novelty guard's reference position.
   Matrix pq_, pv_, pa_, errors_, verrors_;
-  Vector lq_, lv_, la_, a0_;
+  Vector lq_, lv_, la_, a0_, at_;
 };
 
 }  // namespace jitdyn
