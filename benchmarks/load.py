@@ -283,8 +283,9 @@ def _opened_with(opened: Any) -> str:
     from jitdyn.v1 import common_pb2, dynamics_pb2
 
     estimator = common_pb2.Estimator.Name(opened.estimator.estimator)
-    sigma = opened.estimator.sigma_points
-    scheme = f" {common_pb2.SigmaPoints.Name(sigma)}" if sigma else ""
+    sigma = opened.estimator.sigma_points  # resolved for every estimator: a UKF's points only
+    ukf = opened.estimator.estimator == common_pb2.ESTIMATOR_UKF
+    scheme = f" {common_pb2.SigmaPoints.Name(sigma)}" if sigma and ukf else ""
     return (
         f"{common_pb2.Scenario.Name(opened.scenario)}, {estimator}{scheme} "
         f"({dynamics_pb2.EstimatorChoice.Name(opened.estimator_choice)}: {opened.estimator_reason})"
