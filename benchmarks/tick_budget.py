@@ -550,6 +550,18 @@ def progress(text: str) -> None:
     print(f"# {text}", file=sys.stderr, flush=True)
 
 
+def register(address: str, model: str) -> None:
+    """Registers a model that is not built in before the sampler starts: registration times every
+    candidate estimator (seconds of a big model's UKF), which would otherwise fall in the sampled
+    window and be charged to the ticks. The load's own registration then finds it, costs stored."""
+    from jitdyn.client import Client
+
+    source = model_source(model)
+    if not source.builtin:
+        with Client(address) as client:
+            client.register_model(name=source.name, mjcf=source.mjcf, assets=source.assets)
+
+
 def one_run(
     options: Options, states: dict[str, np.ndarray], ukf_us: float, *, index: int = 1
 ) -> Budget | None:
@@ -557,6 +569,7 @@ def one_run(
     None when admission refused every session (a busy machine: there was no tick to attribute) or
     the sampler failed."""
     with local_server(("--processes", "1", *options.serve_args)) as (address, pid):
+        register(address, options.model)
         begin, end = window(options.seconds)
         progress(
             f"server {address} (pid {pid}); {options.sessions} sessions for {options.seconds:g} s, py-spy "
