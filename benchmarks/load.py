@@ -21,6 +21,14 @@ reports:
     python -m benchmarks.load --sweep                 # the four targets of RESULTS.md, largest N each
     python -m benchmarks.load --server 127.0.0.1:50051 --model biped --scenario CONTROLLED --rate 200 --sessions 6
     python -m benchmarks.load --sessions 16 --estimator STATIC --floor   # what a tick costs without the filter
+    python -m benchmarks.load --model myolegs_osl --scenario DEFAULT --rate 100 --sessions 1 --seconds 60
+
+--model is a built-in model or any myo-sim model that compiles here (as `jitdyn models register
+--myo NAME` takes them), registered inline by the generator. The pendulums, the biped, myoElbow and
+myoHand move as the experiments move them; any other model under slow out-of-phase excitations of
+its actuators (experiments/accuracy.py's excited motion). --scenario DEFAULT names no scenario in
+the open: the session gets the server's default for the model, and with no --estimator the
+server's choice of estimator by the model's stored cost (each printed with the report).
 
 Without --server it starts `jitdyn serve` with default settings on a free port and a temporary
 data folder, and stops it after each run (a fresh server per trial in a sweep).
@@ -94,8 +102,65 @@ TARGETS = (
 # The trajectory every session replays.
 
 
+# The research objects of the experiments, which move as the experiments move them.
+OBJECTS = ("pendulum_1", "pendulum_2", "pendulum_3", "biped", "myoelbow", "myohand")
+BUILTINS = ("pendulum_1", "pendulum_2", "pendulum_3", "biped")
+# --scenario DEFAULT: the open names no scenario, and the server gives the model's default.
+DEFAULT_SCENARIO = "DEFAULT"
+
+
+def model_source(name: str) -> Any:
+    """The `ModelSource` of `name`: a built-in model (the server knows it by name) or any myo-sim
+    model that compiles here (registered inline), matched ignoring case; SystemExit naming the
+    choices otherwise."""
+    from jitdyn.client.myo import pack_myo_model, registrable_myo_models
+    from jitdyn.experiments.objects import ModelSource, load_source
+
+    if name in BUILTINS:
+        return load_source(name)
+    myo = {m.name.lower(): m.name for m in registrable_myo_models()}
+    if name.lower() not in myo:
+        raise SystemExit(
+            f"--model must be a built-in model ({', '.join(BUILTINS)}) or a myo-sim model that compiles "
+            f"here ({', '.join(sorted(myo.values()))}), got {name!r}"
+        )
+    mjcf, assets = pack_myo_model(myo[name.lower()])
+    return ModelSource(name=myo[name.lower()], mjcf=mjcf, assets=assets, builtin=False)
+
+
+def resolve_scenario(model: str, scenario: str) -> Scenario:
+    """`scenario`, or for DEFAULT the scenario the server gives a session of `model` that names none."""
+    if scenario != DEFAULT_SCENARIO:
+        return Scenario(scenario)
+    from jitdyn.server.estimation.config import default_scenario
+
+    return default_scenario(model_source(model).compile())[0]
+
+
+def _excited(model: str, scenario: str, rate: float, ticks: int) -> dict[str, np.ndarray]:
+    """A model that is no research object, under experiments/accuracy.py's excitations."""
+    from jitdyn.experiments.accuracy import excited_motion
+
+    mj = model_source(model).compile()
+    steps = round(1.0 / rate / float(mj.opt.timestep))
+    if steps < 1 or abs(steps * float(mj.opt.timestep) * rate - 1.0) > 1e-6:
+        raise SystemExit(
+            f"--rate must make a tick a whole number of {model}'s {float(mj.opt.timestep) * 1e3:g} ms "
+            f"timesteps, got {rate:g} Hz"
+        )
+    # DRIVEN is how the filter models the unknown force: the body moves as in EXTERNAL.
+    motion = Scenario.EXTERNAL if scenario == Scenario.DRIVEN else Scenario(scenario)
+    frames = excited_motion(mj, motion, steps, ticks)
+    return {
+        "qpos": np.array([f.qpos for f in frames]),
+        "qvel": np.array([f.qvel for f in frames]),
+        "ctrl": np.array([f.ctrl for f in frames]),
+    }
+
+
 def trajectory(model: str, scenario: str, rate: float, ticks: int) -> dict[str, np.ndarray]:
-    """qpos, qvel, ctrl of the research object `model` driven as the experiments drive it, at `rate`."""
+    """qpos, qvel, ctrl of `model` at `rate`: a research object driven as the experiments drive it,
+    any other model under slow excitations of its actuators."""
     from jitdyn.experiments import objects
 
     dt = 1.0 / rate
@@ -108,7 +173,7 @@ def trajectory(model: str, scenario: str, rate: float, ticks: int) -> dict[str, 
         "myohand": (objects.MyoHand, ()),
     }
     if model not in kinds:
-        raise SystemExit(f"--model must be one of {sorted(kinds)}, got {model!r}")
+        return _excited(model, scenario, rate, ticks)
     cls, args = kinds[model]
     # DRIVEN is how the filter models the unknown force: the body moves as in EXTERNAL.
     motion = Scenario.EXTERNAL if scenario == Scenario.DRIVEN else Scenario(scenario)
@@ -164,6 +229,8 @@ class WorkerResult:
     # it told them they may go late), each its status details.
     ended: list[str] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
+    # What the server opened the first session with: its scenario, estimator and why.
+    opened_with: str = ""
     cpu_seconds: float = 0.0
     shed: int = 0  # answers flagged late_compute
     late_frames: int = 0  # frames that came after their tick was answered (CORRECTED)
@@ -212,6 +279,19 @@ def _frames(spec: WorkerSpec, measured: Sequence[str]) -> list[bytes]:
     return out
 
 
+def _opened_with(opened: Any) -> str:
+    from jitdyn.v1 import common_pb2, dynamics_pb2
+
+    estimator = common_pb2.Estimator.Name(opened.estimator.estimator)
+    sigma = opened.estimator.sigma_points  # resolved for every estimator: a UKF's points only
+    ukf = opened.estimator.estimator == common_pb2.ESTIMATOR_UKF
+    scheme = f" {common_pb2.SigmaPoints.Name(sigma)}" if sigma and ukf else ""
+    return (
+        f"{common_pb2.Scenario.Name(opened.scenario)}, {estimator}{scheme} "
+        f"({dynamics_pb2.EstimatorChoice.Name(opened.estimator_choice)}: {opened.estimator_reason})"
+    )
+
+
 async def _session(
     stub_call: object, spec: WorkerSpec, frames: list[bytes], delay: float, result: WorkerResult
 ) -> None:
@@ -232,6 +312,7 @@ async def _session(
         result.errors.append(f"first answer is not `opened`: {first.WhichOneof('payload')}")
         return
     result.opened += 1
+    result.opened_with = result.opened_with or _opened_with(first.opened)
     start = time.monotonic()
     grace = first.opened.grace or spec.dt * GRACE_FRACTION
     first_answer: dict[int, tuple[float, int, bool, int]] = {}
@@ -440,6 +521,7 @@ def local_server(extra: Sequence[str] = (), log: list[str] | None = None) -> Ite
             except subprocess.TimeoutExpired:
                 process.kill()
             reader.join(timeout=5)
+            process.stdout.close()
 
 
 def stall_reports(log: Sequence[str]) -> list[str]:
@@ -647,6 +729,7 @@ class RunReport:
     stalls: list[str] = field(default_factory=list)  # the server's stall reports (a local server only)
     generator_lag_p99_ms: float = 0.0  # the load generator's own loop lag
     generator_lag_max_ms: float = 0.0
+    opened_with: str = ""  # the first session's scenario and estimator, as `opened` gave them
 
     def meets(self) -> bool:
         return (
@@ -677,6 +760,7 @@ class RunReport:
             )
             + self._floor()
             + self._rejections()
+            + (f"\n      opened with {self.opened_with}" if self.opened_with else "")
         )
 
     def _floor(self) -> str:
@@ -712,10 +796,9 @@ class RunReport:
 
 def default_config(model: str, scenario: str, rate: float) -> tuple[Any, Any]:
     """The compiled model and the default JITDYN estimator config of a session at `rate` Hz."""
-    from jitdyn.experiments.objects import load_source
     from jitdyn.server.estimation.config import resolve_config
 
-    mj = load_source(model).compile()
+    mj = model_source(model).compile()
     measured = {"qpos", "qvel", "ctrl"} if scenario == Scenario.CONTROLLED else {"qpos", "qvel"}
     config = resolve_config(
         model=mj,
@@ -727,6 +810,11 @@ def default_config(model: str, scenario: str, rate: float) -> tuple[Any, Any]:
         measured=measured,
     )
     return mj, config
+
+
+# The UKF's cycle and the physics are sampled at most this long, once this many samples are taken.
+_SAMPLING_SECONDS = 5.0
+_FEWEST_SAMPLES = 20
 
 
 def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.ndarray]) -> float:
@@ -747,9 +835,11 @@ def ukf_cycle_us(model: str, scenario: str, rate: float, states: dict[str, np.nd
             )
 
         estimator.initialise(measurement(0))
-        samples = []
+        samples: list[float] = []
         n = min(len(states["qpos"]), 400)
         for k in range(1, n):
+            if len(samples) >= _FEWEST_SAMPLES and sum(samples) > _SAMPLING_SECONDS:
+                break  # a big model's UKF (tens of ms a cycle): a median of what fits
             ctrl = states["ctrl"][k] if scenario == Scenario.CONTROLLED else None
             started = time.perf_counter()
             estimator.predict(ctrl=ctrl)
@@ -773,9 +863,11 @@ def tick_physics_us(model: str, scenario: str, rate: float, states: dict[str, np
         ukf = getattr(estimator, "_first", estimator)  # a SwitchingFilter's filter, before a switch
         if not isinstance(ukf, UnscentedFilter):
             raise SystemExit(f"the default estimator of {model} {scenario} is not a UKF")
-        samples = []
+        samples: list[float] = []
         n = min(len(states["qpos"]), 200)
         for k in range(n):
+            if len(samples) >= _FEWEST_SAMPLES and 5 * sum(samples) > _SAMPLING_SECONDS:
+                break
             frame = Measurement(
                 qpos=states["qpos"][k], qvel=states["qvel"][k], ctrl=states["ctrl"][k] if controlled else None
             )
@@ -818,7 +910,11 @@ def run(
     ukf_us: float | None = None,
     estimator: str | None = None,
     floor: bool = True,
+    name_scenario: bool = True,
 ) -> RunReport:
+    """`sessions` REALTIME sessions of `model` (a built-in or myo-sim name) for `seconds`; the open
+    names `scenario` unless `name_scenario` is False, when the server gives the model's default
+    (which `scenario` must then be: the trajectory and the UKF's figures are of it)."""
     from jitdyn.client import Client, SessionOptions
 
     dt = 1.0 / rate
@@ -839,10 +935,10 @@ def run(
         folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="jitdyn-load-frames-")))
         frames_path = folder / "frames.npz"
         np.savez(frames_path, **states)
-        options: dict[str, object] = {"scenario": scenario, "dt": dt, "clock": Clock.REALTIME}
-        from jitdyn.experiments.objects import load_source
-
-        source = load_source(model)
+        options: dict[str, object] = {"dt": dt, "clock": Clock.REALTIME}
+        if name_scenario:
+            options["scenario"] = scenario
+        source = model_source(model)
         with Client(address) as client:
             if source.builtin:
                 options["model_name"] = source.name
@@ -923,6 +1019,7 @@ def run(
         merged.refused.extend(r["refused"])
         merged.ended.extend(r["ended"])
         merged.errors.extend(r["errors"])
+        merged.opened_with = merged.opened_with or r["opened_with"]
         merged.cpu_seconds += r["cpu_seconds"]
         merged.generator_lag_ms.extend(r["generator_lag_ms"])
     expected = sessions * ticks
@@ -979,6 +1076,7 @@ def run(
         stalls=stall_reports(server_log),
         generator_lag_p99_ms=percentile(merged.generator_lag_ms, 99),
         generator_lag_max_ms=max(merged.generator_lag_ms, default=0.0),
+        opened_with=merged.opened_with,
     )
 
 
@@ -1042,12 +1140,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         epilog=__doc__.split("\n\n", 1)[1],
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--model", default="pendulum_3", help="pendulum_1..3, biped, myoelbow, myohand")
+    parser.add_argument(
+        "--model",
+        default="pendulum_3",
+        help="pendulum_1..3, biped, or any myo-sim model that compiles here (myoelbow, myohand, "
+        "myolegs_osl, ...; as `jitdyn models register --myo NAME` takes them)",
+    )
     parser.add_argument(
         "--scenario",
-        type=Scenario,
         default=Scenario.PASSIVE,
-        choices=(Scenario.PASSIVE, Scenario.CONTROLLED, Scenario.EXTERNAL, Scenario.DRIVEN),
+        choices=(Scenario.PASSIVE, Scenario.CONTROLLED, Scenario.EXTERNAL, Scenario.DRIVEN, DEFAULT_SCENARIO),
+        help=f"{DEFAULT_SCENARIO}: name none in the open, and get the server's default for the model "
+        "(default %(default)s)",
     )
     parser.add_argument("--rate", type=float, default=20.0, help="frames per second (Hz)")
     parser.add_argument("--sessions", type=int, default=10)
@@ -1111,9 +1215,12 @@ def main(argv: Sequence[str] | None = None) -> int:
                 flush=True,
             )
     else:
+        # A clear error for an unknown model before the trajectory's minutes; myo-sim's own spelling.
+        args.model = model_source(args.model).name
         report = run(
             model=args.model,
-            scenario=args.scenario,
+            scenario=resolve_scenario(args.model, args.scenario),
+            name_scenario=args.scenario != DEFAULT_SCENARIO,
             rate=args.rate,
             sessions=args.sessions,
             seconds=args.seconds or 20.0,

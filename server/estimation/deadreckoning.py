@@ -12,6 +12,10 @@ Channels a client does not measure come from the last two frames as DIS does: qd
 difference of positions, qdd0 from the difference of velocities, over the time between the frames
 (zero until there are two). No covariance, no NIS, no divergence guard: nothing can diverge.
 
+Unlike DIS's entities, the server's joints have ranges: an extrapolation stops a limited hinge or
+slide joint at its range, where it then rests (qd and qdd 0), and never carries one further out than
+its frame had it (docs/decisions/0215-dead-reckoning-within-the-joints-ranges.md).
+
     estimator = DeadReckoning(model, config)          # config.estimator = "CONSTANT_VELOCITY"
 """
 
@@ -41,6 +45,15 @@ class _Anchor:
     qacc: np.ndarray
 
 
+def _ranges(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The limited hinge and slide joints: their qpos addresses (k,), dof addresses (k,), and lower
+    and upper bounds (k,) (rad or m)."""
+    scalar = np.isin(model.jnt_type, [int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)])
+    limited = scalar & model.jnt_limited.astype(bool)
+    low, high = model.jnt_range[limited].T
+    return model.jnt_qposadr[limited].copy(), model.jnt_dofadr[limited].copy(), low.copy(), high.copy()
+
+
 @dataclass(frozen=True)
 class _Snapshot:
     owner: int
@@ -62,6 +75,7 @@ class DeadReckoning:
         self._kind = EstimatorKind(config.estimator)
         self._order = derivative_order(config.scenario)
         self._nq, self._nv = int(model.nq), int(model.nv)
+        self._qadr, self._dadr, self._low, self._high = _ranges(model)
         self._anchor: _Anchor | None = None
         self._elapsed = 0
 
@@ -155,13 +169,14 @@ class DeadReckoning:
         """The extrapolation t seconds after the anchor."""
         qpos = anchor.qpos.copy()
         kind = self._kind
+        # STATIC reports the qdd measured (the state held as it came); CONSTANT_VELOCITY none.
+        qacc = np.zeros(self._nv) if kind == EstimatorKind.CONSTANT_VELOCITY else anchor.qacc
         if kind == EstimatorKind.STATIC or t == 0.0:
             qvel = anchor.qvel
         else:
             mujoco.mj_integratePos(self._model, qpos, mean_velocity(kind, anchor.qvel, anchor.qacc, t), t)
             qvel = velocity(kind, anchor.qvel, anchor.qacc, t)
-        # STATIC reports the qdd measured (the state held as it came); CONSTANT_VELOCITY none.
-        qacc = np.zeros(self._nv) if kind == EstimatorKind.CONSTANT_VELOCITY else anchor.qacc
+            qacc = self._within_ranges(anchor, qpos, qvel, qacc)
         parts = [qpos, qvel] + ([qacc] if self._order == 3 else [])
         return Estimate(
             qpos=read_only(qpos),
@@ -172,3 +187,22 @@ class DeadReckoning:
             nis=None,
             reinitialised=False,
         )
+
+    def _within_ranges(
+        self, anchor: _Anchor, qpos: np.ndarray, qvel: np.ndarray, qacc: np.ndarray
+    ) -> np.ndarray:
+        """Stops the limited joints of an extrapolation (qpos (nq,), qvel (nv,), in place) at their
+        range, or at the frame's own position where that was already outside it, with qvel and the
+        returned qacc (nv,) 0 there: the joint rests against its limit."""
+        q0 = anchor.qpos[self._qadr]
+        low, high = np.minimum(self._low, q0), np.maximum(self._high, q0)
+        moved = qpos[self._qadr]
+        stopped = (moved < low) | (moved > high)
+        if not stopped.any():
+            return qacc
+        qpos[self._qadr] = np.clip(moved, low, high)
+        dofs = self._dadr[stopped]
+        qvel[dofs] = 0.0
+        qacc = qacc.copy()
+        qacc[dofs] = 0.0
+        return qacc

@@ -26,6 +26,24 @@ SLIDES = """
 </mujoco>
 """
 
+# The same slides, x limited to [-1, 1.2] and y to [-2.5, -1.9]; a hinge z limited to [0, 1] beside them.
+LIMITED = """
+<mujoco>
+  <option timestep="0.01"/>
+  <worldbody>
+    <body>
+      <joint name="x" type="slide" axis="1 0 0" range="-1 1.2"/>
+      <joint name="y" type="slide" axis="0 1 0" range="-2.5 -1.9"/>
+      <geom type="sphere" size="0.1" mass="1"/>
+      <body>
+        <joint name="z" type="hinge" axis="0 0 1" range="0 1"/>
+        <geom type="sphere" size="0.1" mass="1"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
 FREE_BODY = """
 <mujoco>
   <option timestep="0.01"/>
@@ -104,6 +122,34 @@ def test_a_frame_re_anchors_and_unmeasured_channels_come_from_differences() -> N
     later = estimator.update(Measurement(qpos=np.array([0.3, -0.6])))  # two ticks later
     np.testing.assert_allclose(later.qvel, [2.0, -4.0])
     np.testing.assert_allclose(later.qacc, [0.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["CONSTANT_VELOCITY", "CONSTANT_ACCELERATION"])
+def test_an_extrapolation_stops_a_limited_joint_at_its_range(kind: str) -> None:
+    model, cfg = config(kind, xml=LIMITED)
+    estimator = DeadReckoning(model, cfg)
+    # x starts inside and runs into 1.2 after 0.29 s; y starts past -1.9 and moves further out (its
+    # qdd too); the hinge z moves back from 0.1 rad at 0.6 rad/s, below 0 after 0.17 s.
+    q0, v0, a0 = np.array([1.0, -1.8, 0.1]), np.array([0.7, 0.25, -0.6]), np.array([0.0, 4.0, 0.0])
+    estimator.initialise(Measurement(qpos=q0, qvel=v0, qacc=a0))
+    free = DeadReckoning(*config(kind))  # the unlimited slides: the extrapolation as it would be
+    free.initialise(Measurement(qpos=q0[:2], qvel=v0[:2], qacc=a0[:2]))
+    accelerating = kind == "CONSTANT_ACCELERATION"
+    for tick in range(1, 9):
+        t = 0.05 * tick
+        estimate, unlimited = estimator.predict(ctrl=None), free.predict(ctrl=None)
+        x, z = min(1.0 + 0.7 * t, 1.2), max(0.1 - 0.6 * t, 0.0)
+        np.testing.assert_allclose(estimate.qpos[[0, 2]], [x, z], rtol=0, atol=1e-14)
+        # y was already out of its range at the frame: held there, not pulled in, not carried further.
+        assert estimate.qpos[1] == -1.8 and unlimited.qpos[1] > -1.8
+        stopped = np.array([x == 1.2, True, z == 0.0])
+        np.testing.assert_array_equal(estimate.qvel[stopped], 0.0)
+        np.testing.assert_array_equal(estimate.qvel[~stopped], v0[~stopped])
+        np.testing.assert_array_equal(estimate.qacc, a0 * (~stopped) if accelerating else 0.0)
+    assert estimator.extrapolate(10.0).qpos[0] == 1.2
+    anchored = estimator.update(Measurement(qpos=q0, qvel=v0, qacc=a0))  # a frame is answered as it came
+    np.testing.assert_array_equal(anchored.qpos, q0)
+    np.testing.assert_array_equal(anchored.qvel, v0)
 
 
 def test_controlled_state_carries_qdd_and_the_control_is_ignored() -> None:
