@@ -23,12 +23,13 @@ What it found, and why it is built so: docs/decisions/0009-the-loop-watched.md.
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import sys
 import threading
 import time
 import traceback
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -182,6 +183,11 @@ class LoopWatch:
         self._stopped = threading.Event()
         self._handle: asyncio.TimerHandle | None = None
         self._thread: threading.Thread | None = None
+        # The kernel's counts, read by the loop at a beat every LOOK (the watchdog's while a stall
+        # lasts), and the newest reading: a stall's account starts there.
+        self._kernel: _Kernel | None = None
+        self._reading: _Reading | None = None
+        self._read_at = -math.inf  # loop time of the next reading
 
     def start(self) -> None:
         """Call on the loop's thread."""
@@ -190,6 +196,8 @@ class LoopWatch:
         self._due = self._loop.time() + BEAT
         self._handle = self._loop.call_at(self._due, self._on_beat)
         if self._stall is not None and self._report is not None:
+            self._kernel = _Kernel(self._loop_tid)
+            self._reading = self._kernel.read()
             self._thread = threading.Thread(target=self._watch, name="jitdyn-loop-watch", daemon=True)
             self._thread.start()
 
@@ -205,6 +213,13 @@ class LoopWatch:
 
     def _on_beat(self) -> None:
         now = self._loop.time()
+        if self._kernel is not None and now >= self._read_at:
+            # Read here, before the beat it precedes, not by the watchdog: a look of its own every
+            # LOOK took the GIL from the loop 100 times a second
+            # (docs/decisions/0213-the-tick-around-the-engine.md).
+            self._read_at = now + LOOK
+            if (reading := self._kernel.read()) is not None:
+                self._reading = reading
         self._beat = time.monotonic()
         self._on_lag(max(0.0, now - self._due))
         # The next beat from now, not from when this one was due: a stall is one late beat.
@@ -212,15 +227,16 @@ class LoopWatch:
         self._handle = self._loop.call_at(self._due, self._on_beat)
 
     def _watch(self) -> None:
-        assert self._stall is not None and self._report is not None
+        assert self._stall is not None and self._report is not None and self._kernel is not None
         stall: Stall | None = None
         began = 0.0
-        kernel = _Kernel(self._loop_tid)
-        readings: deque[_Reading] = deque(maxlen=int(self._stall / LOOK) + 4)  # the last looks'
-        before: _Reading | None = None  # the kernel's counts at the last look before the stall began
-        while not self._stopped.wait(LOOK):
+        kernel = self._kernel
+        before: _Reading | None = None  # the kernel's counts at the last reading before the stall began
+        wait = LOOK
+        while not self._stopped.wait(wait):
             beat = self._beat
-            silent = time.monotonic() - beat
+            now = time.monotonic()
+            silent = now - beat
             if stall is not None and beat != began:  # the loop beat again: the stall is over
                 stall.seconds = beat - began
                 after = kernel.read()
@@ -229,15 +245,15 @@ class LoopWatch:
                 self._report(stall)
                 stall = None
             if silent <= self._stall:
-                if (reading := kernel.read()) is not None:
-                    readings.append(reading)
+                # Nothing to look at before the loop has been silent for `stall`: sleep until then
+                # (a beat meanwhile moves it later), not a look every LOOK.
+                wait = max(LOOK, beat + self._stall - now + LOOK / 2)
                 continue
+            wait = LOOK  # the stall's stacks, sampled every LOOK while it lasts
             frames = sys._current_frames()
             if stall is None:
                 stall, began = Stall(seconds=silent), beat
-                before = next(
-                    (r for r in reversed(readings) if r.at <= began), readings[0] if readings else None
-                )
+                before = self._reading  # read at a beat up to LOOK before the last one
                 names = {t.ident: t.name for t in threading.enumerate()}
                 stall.others = {
                     names.get(ident, str(ident)): _stack(frame, ours_only=True)
