@@ -4,8 +4,9 @@ stalled.
 A beat is due on the loop every BEAT; how late it runs is the loop's lag, and the lag of every
 deadline timer of the REALTIME sessions in that moment (an answer sent at its deadline leaves that
 late). Admission takes the lag as evidence (server/runtime/admission.py), and so does the
-`jitdyn_loop_lag_seconds` metric. A watchdog thread looks every LOOK: when the loop has not beaten
-for `stall` seconds, it samples the loop thread's stack until the loop beats again, and `report`
+`jitdyn_loop_lag_seconds` metric. A watchdog thread looks every READ while the loop beats, and as
+the loop could have been silent for `stall` seconds: when it has, it samples the loop thread's
+stack every LOOK until the loop beats again, and `report`
 gets the stall, its stacks by how often they were seen, and what the other threads were doing when
 it began (a loop waiting for the GIL shows in the call that gave it away, and the thread that has
 it shows among the others). It also gets the kernel's account of the stall (Linux's schedstat):
@@ -29,16 +30,19 @@ import sys
 import threading
 import time
 import traceback
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Final
 
-__all__ = ["BEAT", "LOOK", "LoopWatch", "Stall"]
+__all__ = ["BEAT", "LOOK", "READ", "LoopWatch", "Stall"]
 
 BEAT: Final = 5e-3  # s between two beats of the loop
-LOOK: Final = 10e-3  # s between two looks of the watchdog (and two samples of a stall)
+LOOK: Final = 10e-3  # s between two samples of a stall's stacks
+# s between two readings of the kernel's counts while the loop beats (a stall's account starts at
+# the last one before it); the watchdog sleeps in between, and until the loop could have stalled.
+READ: Final = 20e-3
 _OURS: Final = str(Path(__file__).resolve().parents[2])  # frames of jitdyn's own code
 _SHOWN: Final = 14  # innermost frames of a stack shown
 
@@ -183,11 +187,6 @@ class LoopWatch:
         self._stopped = threading.Event()
         self._handle: asyncio.TimerHandle | None = None
         self._thread: threading.Thread | None = None
-        # The kernel's counts, read by the loop at a beat every LOOK (the watchdog's while a stall
-        # lasts), and the newest reading: a stall's account starts there.
-        self._kernel: _Kernel | None = None
-        self._reading: _Reading | None = None
-        self._read_at = -math.inf  # loop time of the next reading
 
     def start(self) -> None:
         """Call on the loop's thread."""
@@ -196,8 +195,6 @@ class LoopWatch:
         self._due = self._loop.time() + BEAT
         self._handle = self._loop.call_at(self._due, self._on_beat)
         if self._stall is not None and self._report is not None:
-            self._kernel = _Kernel(self._loop_tid)
-            self._reading = self._kernel.read()
             self._thread = threading.Thread(target=self._watch, name="jitdyn-loop-watch", daemon=True)
             self._thread.start()
 
@@ -213,13 +210,6 @@ class LoopWatch:
 
     def _on_beat(self) -> None:
         now = self._loop.time()
-        if self._kernel is not None and now >= self._read_at:
-            # Read here, before the beat it precedes, not by the watchdog: a look of its own every
-            # LOOK took the GIL from the loop 100 times a second
-            # (docs/decisions/0213-the-tick-around-the-engine.md).
-            self._read_at = now + LOOK
-            if (reading := self._kernel.read()) is not None:
-                self._reading = reading
         self._beat = time.monotonic()
         self._on_lag(max(0.0, now - self._due))
         # The next beat from now, not from when this one was due: a stall is one late beat.
@@ -227,12 +217,17 @@ class LoopWatch:
         self._handle = self._loop.call_at(self._due, self._on_beat)
 
     def _watch(self) -> None:
-        assert self._stall is not None and self._report is not None and self._kernel is not None
+        assert self._stall is not None and self._report is not None
         stall: Stall | None = None
         began = 0.0
-        kernel = self._kernel
+        kernel = _Kernel(self._loop_tid)
+        readings: deque[_Reading] = deque(maxlen=int(self._stall / READ) + 4)  # the last readings
         before: _Reading | None = None  # the kernel's counts at the last reading before the stall began
+        read_at = -math.inf
         wait = LOOK
+        # A look every READ while the loop beats, or when it could have been silent for `stall`
+        # if that is sooner; every LOOK while a stall lasts. A look every LOOK throughout cost
+        # 9-11 ms of CPU a second (docs/decisions/0213-the-tick-around-the-engine.md).
         while not self._stopped.wait(wait):
             beat = self._beat
             now = time.monotonic()
@@ -245,15 +240,19 @@ class LoopWatch:
                 self._report(stall)
                 stall = None
             if silent <= self._stall:
-                # Nothing to look at before the loop has been silent for `stall`: sleep until then
-                # (a beat meanwhile moves it later), not a look every LOOK.
-                wait = max(LOOK, beat + self._stall - now + LOOK / 2)
+                if now >= read_at:
+                    read_at = now + READ
+                    if (reading := kernel.read()) is not None:
+                        readings.append(reading)
+                wait = max(1e-3, min(read_at, beat + self._stall + LOOK / 2) - now)
                 continue
-            wait = LOOK  # the stall's stacks, sampled every LOOK while it lasts
+            wait = LOOK
             frames = sys._current_frames()
             if stall is None:
                 stall, began = Stall(seconds=silent), beat
-                before = self._reading  # read at a beat up to LOOK before the last one
+                before = next(
+                    (r for r in reversed(readings) if r.at <= began), readings[0] if readings else None
+                )
                 names = {t.ident: t.name for t in threading.enumerate()}
                 stall.others = {
                     names.get(ident, str(ident)): _stack(frame, ours_only=True)
