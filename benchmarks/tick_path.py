@@ -91,7 +91,9 @@ class Run:
     process_us: float  # the same, of the whole process (the commit thread included)
 
 
-def _options(model: str, scenario: str, rate: float, estimator: str | None) -> SessionOptions:
+def _options(
+    model: str, scenario: str, rate: float, estimator: str | None, clock: Clock = Clock.LOCKSTEP
+) -> SessionOptions:
     from jitdyn.experiments.objects import load_source
 
     source = load_source(model)
@@ -101,7 +103,7 @@ def _options(model: str, scenario: str, rate: float, estimator: str | None) -> S
         model_name=source.name,
         scenario=scenario,
         dt=1.0 / rate,
-        clock=Clock.LOCKSTEP,
+        clock=clock,
         estimator={"estimator": estimator} if estimator else {},
     )
 
@@ -113,6 +115,7 @@ async def _feed(
     frames: list[dynamics_pb2.Frame],
     folder: Path,
     profile: bool,
+    realtime: bool = False,
 ) -> tuple[float, float, pstats.Stats | None]:
     """Thread and process CPU seconds per tick of one session fed `frames` (the first tenth warms up)."""
     config = ServerConfig(address="127.0.0.1:0", data_root=folder, engine=engine, shares_process=True)
@@ -122,15 +125,15 @@ async def _feed(
             opened = SessionOpener(services).open_session(open_request(options.to_message(), tenant="bench"))
         stream = _Stream(opened)
         warm = len(frames) // 10
+        feed = _realtime_tick if realtime else _lockstep_tick
         for frame in frames[:warm]:
-            stream.on_frame(frame, stream.clock.now())
+            await feed(stream, frame)
         profiler = cProfile.Profile() if profile else None
         thread, process = time.thread_time(), time.process_time()
         if profiler is not None:
             profiler.enable()
         for frame in frames[warm:]:
-            for response in stream.on_frame(frame, stream.clock.now()):
-                response.SerializeToString()
+            await feed(stream, frame)
         if profiler is not None:
             profiler.disable()
         ticks = len(frames) - warm
@@ -140,6 +143,30 @@ async def _feed(
     finally:
         await server.stop(None)
         services.committer.close()
+
+
+class _Wire:
+    """Where a stream's responses go in the REALTIME path: serialised, as grpc.aio's write does."""
+
+    async def write(self, response: dynamics_pb2.StreamSessionResponse) -> None:
+        response.SerializeToString()
+
+
+_WIRE = _Wire()
+
+
+async def _lockstep_tick(stream: _Stream, frame: dynamics_pb2.Frame) -> None:
+    for response in stream.on_frame(frame, stream.clock.now()):
+        response.SerializeToString()
+
+
+async def _realtime_tick(stream: _Stream, frame: dynamics_pb2.Frame) -> None:
+    """A REALTIME frame that arrives 1 ms before its tick's time, as an on-time client's does: the
+    session's clock is set there (server time = client time), and the frame goes the way the
+    servicer's request loop sends it: checked, answered at once, written."""
+    stream.clock.restart(elapsed=frame.seq * stream.plan.dt - 1e-3)
+    responses = stream.on_frame(frame, stream.clock.now())
+    await stream.write(_WIRE, *responses)  # type: ignore[arg-type]
 
 
 def _thread_cpu() -> dict[int, tuple[str, float]]:
@@ -225,18 +252,19 @@ def _path_table(args: argparse.Namespace, states: dict[str, np.ndarray]) -> None
         raw = _frames(_Spec(str(np_path), args.ticks, 1.0 / args.rate), measured)  # type: ignore[arg-type]
         frames = [dynamics_pb2.StreamSessionRequest.FromString(b).frame for b in raw]
         samples: dict[str, list[tuple[float, float]]] = {arm: [] for arm in args.arms}
+        clock = Clock.REALTIME if args.realtime else Clock.LOCKSTEP
         stats: dict[str, pstats.Stats | None] = {}
         print(
-            f"# {args.model} {args.scenario} at {args.rate:g} Hz, LOCKSTEP, {args.ticks} frames, {args.rounds} rounds"
+            f"# {args.model} {args.scenario} at {args.rate:g} Hz, {clock}, {args.ticks} frames, {args.rounds} rounds"
         )
         for r in range(args.rounds):
             for arm in args.arms:
                 engine, estimator = _ARMS[arm]
-                options = _options(args.model, args.scenario, args.rate, estimator)
+                options = _options(args.model, args.scenario, args.rate, estimator, clock)
                 data = folder / f"data-{arm}-{r}"
                 last = r == args.rounds - 1
                 thread, process, stats[arm] = asyncio.run(
-                    _feed(arm, engine, options, frames, data, bool(args.profile) and last)
+                    _feed(arm, engine, options, frames, data, bool(args.profile) and last, args.realtime)
                 )
                 samples[arm].append((thread, process))
                 print(
@@ -282,6 +310,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="print cProfile's N costliest functions of each arm's last session",
     )
     parser.add_argument(
+        "--realtime",
+        action="store_true",
+        help="REALTIME sessions instead of LOCKSTEP: each frame 1 ms before its tick's time, answered "
+        "at once and written (serialised) as the servicer's request loop does",
+    )
+    parser.add_argument(
         "--grpc", action="store_true", help="whole REALTIME sessions over gRPC, CPU by thread (see above)"
     )
     parser.add_argument("--sessions", type=int, default=8, help="with --grpc: sessions at once (default 8)")
@@ -291,8 +325,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"--ticks must be >= 20, --rounds and --sessions >= 1 and --rate > 0, got {args.ticks}, "
             f"{args.rounds}, {args.sessions}, {args.rate}"
         )
-    if args.grpc and args.profile:
-        parser.error("--profile profiles the tick path; it does not go with --grpc")
+    if args.grpc and (args.profile or args.realtime):
+        parser.error("--profile and --realtime are of the tick path; they do not go with --grpc")
     states = trajectory(args.model, args.scenario, args.rate, args.ticks)
     (_grpc_table if args.grpc else _path_table)(args, states)
     return 0

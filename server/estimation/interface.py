@@ -86,6 +86,11 @@ class Estimate:
     scenario: str = ""
 
 
+# The ufunc's own reduce, not ndarray.all() and numpy's Python wrapper of it: a measurement's
+# channels are checked every tick.
+_all_true = np.logical_and.reduce
+
+
 def check_vector(value: object, size: int, name: str) -> np.ndarray:
     """A private, read-only float64 copy of `value`, which must be finite with shape (size,)."""
     try:
@@ -94,7 +99,7 @@ def check_vector(value: object, size: int, name: str) -> np.ndarray:
         raise InvalidArgument(f"{name} must be an array of {size} numbers, got {value!r}") from None
     if array.shape != (size,):
         raise InvalidArgument(f"{name} must have shape ({size},), got {array.shape}")
-    if not np.isfinite(array).all():
+    if not _all_true(np.isfinite(array)):
         raise InvalidArgument(f"{name} must be finite, got {array.tolist()}")
     array.flags.writeable = False
     return array

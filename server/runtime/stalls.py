@@ -4,8 +4,9 @@ stalled.
 A beat is due on the loop every BEAT; how late it runs is the loop's lag, and the lag of every
 deadline timer of the REALTIME sessions in that moment (an answer sent at its deadline leaves that
 late). Admission takes the lag as evidence (server/runtime/admission.py), and so does the
-`jitdyn_loop_lag_seconds` metric. A watchdog thread looks every LOOK: when the loop has not beaten
-for `stall` seconds, it samples the loop thread's stack until the loop beats again, and `report`
+`jitdyn_loop_lag_seconds` metric. A watchdog thread looks every READ while the loop beats, and as
+the loop could have been silent for `stall` seconds: when it has, it samples the loop thread's
+stack every LOOK until the loop beats again, and `report`
 gets the stall, its stacks by how often they were seen, and what the other threads were doing when
 it began (a loop waiting for the GIL shows in the call that gave it away, and the thread that has
 it shows among the others). It also gets the kernel's account of the stall (Linux's schedstat):
@@ -23,6 +24,7 @@ What it found, and why it is built so: docs/decisions/0009-the-loop-watched.md.
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import sys
 import threading
@@ -34,10 +36,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Final
 
-__all__ = ["BEAT", "LOOK", "LoopWatch", "Stall"]
+__all__ = ["BEAT", "LOOK", "READ", "LoopWatch", "Stall"]
 
 BEAT: Final = 5e-3  # s between two beats of the loop
-LOOK: Final = 10e-3  # s between two looks of the watchdog (and two samples of a stall)
+LOOK: Final = 10e-3  # s between two samples of a stall's stacks
+# s between two readings of the kernel's counts while the loop beats (a stall's account starts at
+# the last one before it); the watchdog sleeps in between, and until the loop could have stalled.
+READ: Final = 20e-3
 _OURS: Final = str(Path(__file__).resolve().parents[2])  # frames of jitdyn's own code
 _SHOWN: Final = 14  # innermost frames of a stack shown
 
@@ -216,11 +221,17 @@ class LoopWatch:
         stall: Stall | None = None
         began = 0.0
         kernel = _Kernel(self._loop_tid)
-        readings: deque[_Reading] = deque(maxlen=int(self._stall / LOOK) + 4)  # the last looks'
-        before: _Reading | None = None  # the kernel's counts at the last look before the stall began
-        while not self._stopped.wait(LOOK):
+        readings: deque[_Reading] = deque(maxlen=int(self._stall / READ) + 4)  # the last readings
+        before: _Reading | None = None  # the kernel's counts at the last reading before the stall began
+        read_at = -math.inf
+        wait = LOOK
+        # A look every READ while the loop beats, or when it could have been silent for `stall`
+        # if that is sooner; every LOOK while a stall lasts. A look every LOOK throughout cost
+        # 9-11 ms of CPU a second (docs/decisions/0213-the-tick-around-the-engine.md).
+        while not self._stopped.wait(wait):
             beat = self._beat
-            silent = time.monotonic() - beat
+            now = time.monotonic()
+            silent = now - beat
             if stall is not None and beat != began:  # the loop beat again: the stall is over
                 stall.seconds = beat - began
                 after = kernel.read()
@@ -229,9 +240,13 @@ class LoopWatch:
                 self._report(stall)
                 stall = None
             if silent <= self._stall:
-                if (reading := kernel.read()) is not None:
-                    readings.append(reading)
+                if now >= read_at:
+                    read_at = now + READ
+                    if (reading := kernel.read()) is not None:
+                        readings.append(reading)
+                wait = max(1e-3, min(read_at, beat + self._stall + LOOK / 2) - now)
                 continue
+            wait = LOOK
             frames = sys._current_frames()
             if stall is None:
                 stall, began = Stall(seconds=silent), beat

@@ -38,6 +38,7 @@ from jitdyn.server.runtime.session import Place, TickOutcome
 from jitdyn.server.transport.auth import tenant_of
 from jitdyn.server.transport.frame_check import check_frame
 from jitdyn.server.transport.messages import (
+    covariance_diagonal,
     rejected_message,
     rejection_record,
     result_message,
@@ -266,8 +267,15 @@ class _Stream:
         now = self.clock.now()
         receive_to_send = max(0, int((now - arrived) * 1e6))
         delay = self.frame_delay(outcome.frame)
+        diagonal = covariance_diagonal(outcome)
         self.recorder.append(
-            tick_record(outcome, server_time=now, frame_delay=delay, receive_to_send_us=receive_to_send)
+            tick_record(
+                outcome,
+                server_time=now,
+                frame_delay=delay,
+                receive_to_send_us=receive_to_send,
+                diagonal=diagonal,
+            )
         )
         durable = self.recorder.durable_seq
         self._m_ticks[outcome.source].inc()
@@ -286,6 +294,7 @@ class _Stream:
             frame_delay=delay or 0.0,
             receive_to_send_us=receive_to_send,
             durable_seq=durable,
+            diagonal=diagonal,
         )
 
     def record_rejection(self, rejection: Rejection) -> Response:
