@@ -256,7 +256,8 @@ def _frames(spec: WorkerSpec, measured: Sequence[str]) -> list[bytes]:
     from jitdyn.checksum import frame_checksum
     from jitdyn.v1 import dynamics_pb2
 
-    data = np.load(spec.frames_path)
+    with np.load(spec.frames_path) as npz:  # each npz[key] reads the whole array again: once
+        data = {key: npz[key] for key in npz.files}
     out = []
     for k in range(spec.ticks):
         channels = {
