@@ -4,21 +4,17 @@ runs for minutes."""
 
 from __future__ import annotations
 
-import importlib
-from pathlib import Path
+from collections.abc import Callable
 from types import ModuleType
 
 import pytest
 
 from jitdyn.vocabulary import EstimatorKind, Scenario, SigmaScheme
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 @pytest.fixture
-def cost_nv(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
-    monkeypatch.syspath_prepend(str(ROOT))  # benchmarks/ is a folder of the checkout, not installed
-    return importlib.import_module("benchmarks.cost_nv")
+def cost_nv(benchmark_module: Callable[[str], ModuleType]) -> ModuleType:
+    return benchmark_module("cost_nv")
 
 
 def test_the_ukf_answers_gaps_better_than_dead_reckoning_at_a_price(cost_nv: ModuleType) -> None:

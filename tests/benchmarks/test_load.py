@@ -3,9 +3,8 @@ that compile here, and can leave the scenario and the estimator to the server.""
 
 from __future__ import annotations
 
-import importlib
 import re
-from pathlib import Path
+from collections.abc import Callable
 from types import ModuleType
 
 import numpy as np
@@ -13,13 +12,10 @@ import pytest
 
 from jitdyn.vocabulary import Scenario
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 @pytest.fixture
-def load(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
-    monkeypatch.syspath_prepend(str(ROOT))  # benchmarks/ is a folder of the checkout, not installed
-    return importlib.import_module("benchmarks.load")
+def load(benchmark_module: Callable[[str], ModuleType]) -> ModuleType:
+    return benchmark_module("load")
 
 
 def test_an_unknown_model_is_refused_with_the_models_offered(load: ModuleType) -> None:

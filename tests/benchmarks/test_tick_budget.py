@@ -3,8 +3,8 @@ the threads' CPU spread over them. The benchmark itself runs for minutes and is 
 
 from __future__ import annotations
 
-import importlib
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
@@ -16,9 +16,8 @@ SITE = "/venv/lib/python3.11/site-packages"
 
 
 @pytest.fixture
-def budget(monkeypatch: pytest.MonkeyPatch) -> ModuleType:
-    monkeypatch.syspath_prepend(str(ROOT))  # benchmarks/ is a folder of the checkout, not installed
-    return importlib.import_module("benchmarks.tick_budget")
+def budget(benchmark_module: Callable[[str], ModuleType]) -> ModuleType:
+    return benchmark_module("tick_budget")
 
 
 def stack(budget: ModuleType, *frames: tuple[str, str]) -> list[object]:
