@@ -18,11 +18,15 @@ from jitdyn.server.estimation.interface import Estimate, Measurement
 from jitdyn.server.estimation.linearised import LinearisedFilter, PythonTick, coarsening, ekf_process_model
 from jitdyn.server.estimation.native.linearised import NativeTick
 from jitdyn.vocabulary import Scenario
-from tests.server.test_native import REPEATED, REPLAYED, SKIPPED, TICKS, ball_frames, frames_for
+from tests.server.test_native import ADAPTIVE_TOL, REPEATED, REPLAYED, SKIPPED, TICKS, ball_frames, frames_for
 from tests.server.test_ukf import BALL_PENDULUM, config_for, pendulum
 
 # |native - python| <= TOL (1 + |python|), entry by entry (as tests/server/test_native.py).
 TOL = 1e-9
+# DRIVEN estimates the force from the frames' accelerations, and one tick of the run amplifies the
+# engines' rounding (Eigen's sums against OpenBLAS's) to 1.1e-9 on an AMD EPYC (below 1e-10 before
+# and after it, and below 1e-9 on the machine it was written on): held as test_native holds DRIVEN.
+DRIVEN_TOL = ADAPTIVE_TOL
 
 
 def ekf_config(
@@ -95,8 +99,9 @@ def assert_engines_agree(
     )
     assert seen == seen_python
     assert len(got) == len(expected)
+    tol = DRIVEN_TOL if native.scenario == Scenario.DRIVEN else TOL
     for i, (a, b) in enumerate(zip(got, expected, strict=True)):
-        np.testing.assert_allclose(a, b, rtol=TOL, atol=TOL, err_msg=f"output {i} ({native.scenario})")
+        np.testing.assert_allclose(a, b, rtol=tol, atol=tol, err_msg=f"output {i} ({native.scenario})")
     assert seen["replayed"] == len(REPLAYED)
     return seen
 
