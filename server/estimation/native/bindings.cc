@@ -231,31 +231,6 @@ PYBIND11_MODULE(_ukf, module) {
                                     t.act(), t.x(), t.P(), qacc, u.observed_frame);
             },
             py::arg("z"), py::kw_only(), py::arg("quiet"), py::arg("qvel"))
-        // Several sessions' on-time ticks in one call, the GIL released once: step's tuples, in order.
-        .def_static(
-            "step_many",
-            [](const std::vector<Tick*>& ticks, const std::vector<Vector>& zs, const std::vector<bool>& quiet) {
-              const std::size_t n = ticks.size();
-              if (zs.size() != n || quiet.size() != n)
-                throw std::invalid_argument("step_many: ticks, zs and quiet must be as long, got " +
-                                            std::to_string(n) + ", " + std::to_string(zs.size()) + " and " +
-                                            std::to_string(quiet.size()));
-              std::vector<jitdyn::TickUpdate> updates(n);
-              {
-                py::gil_scoped_release release;
-                for (std::size_t i = 0; i < n; ++i) updates[i] = ticks[i]->Step(zs[i], quiet[i], std::nullopt);
-              }
-              py::list out(n);
-              for (std::size_t i = 0; i < n; ++i) {
-                const jitdyn::TickUpdate& u = updates[i];
-                const Tick& t = *ticks[i];
-                py::object qacc = u.has_qacc ? py::cast(u.qacc) : py::none();
-                out[i] = py::make_tuple(u.updated, u.finite, u.nis, u.largest_variance, u.observed, u.adapted,
-                                        u.absorb, t.act(), t.x(), t.P(), qacc, u.observed_frame);
-              }
-              return out;
-            },
-            py::arg("ticks"), py::arg("zs"), py::arg("quiet"))
         .def("snapshot", &Tick::Snapshot, py::call_guard<py::gil_scoped_release>())
         .def("restore", &Tick::Restore, py::arg("state"), py::call_guard<py::gil_scoped_release>());
   }
