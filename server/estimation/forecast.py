@@ -36,8 +36,8 @@ dofs of q_p - r @ q, exceeds NOVELTY times the RMS departure of its scored past 
 C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row and column p times
 s_p (and D_h's, for the answer's variances), and the weights are solved again on that; by the
 ratio's square for the predictors that carry the last acceleration (MODEL under its held force,
-CONSTANT_ACCELERATION), whose small scored errors over a jump's flight otherwise kept their weight
-into the landing (docs/decisions/0219-a-carried-acceleration-weighs-by-the-square.md). The answer
+CONSTANT_ACCELERATION), whose small scored errors over a jump's push-off otherwise kept their
+weight past its end (docs/decisions/0219-a-carried-acceleration-weighs-by-the-square.md). The answer
 falls back on the predictors still in their regime, STATIC at least. The reference r is STATIC
 moved towards CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start
 of motion builds its speed over frames and is measured from what they extrapolate; a glitch of one

@@ -89,11 +89,11 @@ def test_motion_that_is_not_gait_is_not_answered_at_gaits_scale(client: Any) -> 
 
 
 @pytest.mark.timeout(300)
-def test_a_jumps_landing_is_not_answered_with_the_flights_acceleration(client: Any) -> None:
-    """The jump (cmj, perfect frames) with the first gap from 450 ms, whose gap before the landing
-    holds most of its error at 100 ms: the last two frames' velocities agree, and the model's
-    rollout (its scored errors small over the flight) and constant acceleration carry the flight's
-    acceleration into the impact. The novelty guard weighs those two by the square of their
+def test_the_end_of_a_jumps_push_off_is_not_answered_with_its_acceleration(client: Any) -> None:
+    """The jump (cmj, perfect frames) with the first gap from 450 ms, whose gap at the end of the
+    push-off (the joints stop at full extension) holds most of its error at 100 ms: the last two frames' velocities agree, and the model's
+    rollout (its scored errors small over the push-off) and constant acceleration carry the push-off's
+    acceleration past its end. The novelty guard weighs those two by the square of their
     departure's ratio, and the defaults stay within 1.05 x the best extrapolator over the whole
     run. Measured 0.564 x at 100 ms and 0.842 x at 35 ms; 1.602 x and 1.117 x with the ratio
     itself (docs/decisions/0219-a-carried-acceleration-weighs-by-the-square.md)."""
