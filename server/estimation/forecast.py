@@ -35,9 +35,8 @@ dofs of q_p - r @ q, exceeds NOVELTY times the RMS departure of its scored past 
 (e_p - r @ e is q_p - r @ q, the frame cancels, so its mean square is C_pp - 2 (C r)_p + r'C r of
 C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row and column p times
 s_p (and D_h's, for the answer's variances), and the weights are solved again on that; by the
-ratio's square for the predictors that carry the last acceleration (MODEL under its held force,
-CONSTANT_ACCELERATION), whose small scored errors over a jump's push-off otherwise kept their
-weight past its end (docs/decisions/0219-a-carried-acceleration-weighs-by-the-square.md). The answer
+ratio's square for MODEL, the rollout of physics under a held force, whose small scored errors
+over a jump's push-off otherwise kept its weight past its end (docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md). The answer
 falls back on the predictors still in their regime, STATIC at least. The reference r is STATIC
 moved towards CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start
 of motion builds its speed over frames and is measured from what they extrapolate; a glitch of one
@@ -135,11 +134,10 @@ VARIANCE_FLOOR: Final = 1e-12
 # NOVELTY, at most MAX_NOVELTY times (its variance 1e6 times: all but dropped; far larger factors
 # would let the solver's ridge, 1e-9 of the mean variance, swamp the others' variances). NOVELTY
 # measured on the recordings at 1.5, 2 and 3 (docs/decisions/0027-forecast-novelty-guard.md). The
-# predictors that carry the last acceleration (CARRIED) take the square of that ratio
-# (docs/decisions/0219-a-carried-acceleration-weighs-by-the-square.md).
+# model's rollout (MODEL) takes the square of that ratio
+# (docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md).
 NOVELTY: Final = 2.0
 MAX_NOVELTY: Final = 1e3
-CARRIED: Final = ("MODEL", "CONSTANT_ACCELERATION")
 # A regime change: a score at which every one of PREDICTORS erred by more than SURPRISE times the
 # RMS error of its scored past at that horizon (its error variance over SURPRISE^2 C_pp) describes
 # a motion the past scores do not (a landing's impact); it replaces the horizon's covariances
@@ -285,7 +283,7 @@ class ForecastCombiner:
         )
         self._static = self._predictors.index("STATIC")
         self._accelerating = self._predictors.index("CONSTANT_ACCELERATION")
-        self._carried = np.isin(np.array(self._predictors), CARRIED)
+        self._rollout = self._predictors.index("MODEL")
         self._prior_cols = PRIOR_K * prior.legs if prior is not None else 0
         self._prior_block, self._prior_mask, self._prior_cov = self._prior_scores(prior)
         self._columns = _Columns.of(
@@ -477,7 +475,7 @@ class ForecastCombiner:
         q, v, a = self._predictions(i)
         row = self._table[i]
         reference = self._reference(_confirmed(row[self._columns.v0], row[self._columns.a0], self._dt))
-        scale = _novelty(q, self._weighing(h)[0], reference, self._static, self._carried)
+        scale = _novelty(q, self._weighing(h)[0], reference, self._static, self._rollout)
         if scale is not None:
             weights = self._solve_weights(h, scale, matched=matched)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd, scale)
@@ -870,15 +868,14 @@ def _confirmed(v0: np.ndarray, a0: np.ndarray, dt: float) -> float:
 
 
 def _novelty(
-    q: np.ndarray, C: np.ndarray, reference: np.ndarray, static: int, carried: np.ndarray
+    q: np.ndarray, C: np.ndarray, reference: np.ndarray, static: int, rollout: int
 ) -> np.ndarray | None:
     """(P,) the novelty guard's factors on the predictors' errors at a gap, or None where none is
     novel: a predictor whose departure now from the reference (reference (P,): weights on the
     predictors; the RMS over dofs of q_p - reference @ q) exceeds NOVELTY times the RMS departure
     of its scored past at this horizon (e_p - reference @ e, from the pooled covariance:
     C_pp - 2 (C r)_p + r'C r) has its errors taken as larger by the ratio of the two over NOVELTY,
-    by its square for the predictors that carry the last acceleration (carried (P,) bool), at most
-    MAX_NOVELTY (STATIC is never novel: the answer falls back on it at least)."""
+    by its square for the model's rollout (the row `rollout`), at most MAX_NOVELTY (STATIC is never novel: the answer falls back on it at least)."""
     now = np.mean(np.square(q - reference @ q), axis=1)
     Cr = C @ reference
     limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) - 2.0 * Cr + float(reference @ Cr), 0.0)
@@ -889,7 +886,8 @@ def _novelty(
     scale = np.ones(q.shape[0])
     with np.errstate(divide="ignore"):
         ratio = now[novel] / limit[novel]
-        scale[novel] = np.minimum(np.where(carried[novel], ratio, np.sqrt(ratio)), MAX_NOVELTY)
+        factor = np.where(np.flatnonzero(novel) == rollout, ratio, np.sqrt(ratio))
+        scale[novel] = np.minimum(factor, MAX_NOVELTY)
     return scale
 
 

@@ -17,7 +17,7 @@ namespace jitdyn {
 namespace {
 
 // forecast.py's MIN_SAMPLES, LEARNED_SAMPLES, FORGETTING, PROBES, MAX_NOISE_SHARE, VARIANCE_FLOOR,
-// NOVELTY, MAX_NOVELTY, SURPRISE (CARRIED: kModel and kAcceleration below).
+// NOVELTY, MAX_NOVELTY, SURPRISE.
 constexpr double kMinSamples = 3.0;
 constexpr double kLearnedSamples = 5.0;
 constexpr double kForgetting = 0.8;
@@ -444,10 +444,9 @@ std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& 
     const double limit = kNovelty * kNovelty * std::max(C(p, p) - 2.0 * Cr[p] + rCr, 0.0);
     if (now > limit) {
       novel = true;
-      // The predictors that carry the last acceleration (CARRIED) take the ratio's square.
+      // The model's rollout takes the ratio's square.
       const double ratio = now / limit;
-      const bool carried = p == kModel || p == kAcceleration;
-      scale[p] = std::min(carried ? ratio : std::sqrt(ratio), kMaxNovelty);
+      scale[p] = std::min(p == kModel ? ratio : std::sqrt(ratio), kMaxNovelty);
     }
   }
   CombinedForecast out;
