@@ -36,12 +36,13 @@ dofs of q_p - r @ q, exceeds NOVELTY times the RMS departure of its scored past 
 C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row and column p times
 s_p (and D_h's, for the answer's variances), and the weights are solved again on that; by the
 ratio's square for MODEL, the rollout of physics under a held force, whose small scored errors
-over a jump's push-off otherwise kept its weight past its end (docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md). The answer
-falls back on the predictors still in their regime, STATIC at least. The reference r is STATIC
-moved towards CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start
-of motion builds its speed over frames and is measured from what they extrapolate; a glitch of one
-frame's velocity has none of it the frame before and is measured from STATIC. It costs a gap tick
-O(P nv), and a solve of the weights on the ticks where it acts
+over a jump's push-off otherwise kept its weight past its end
+(docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md). The answer falls back on the
+predictors still in their regime, STATIC at least. The reference r is STATIC moved towards
+CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start of motion
+builds its speed over frames and is measured from what they extrapolate; a glitch of one frame's
+velocity has none of it the frame before and is measured from STATIC. It costs a gap tick O(P nv),
+and a solve of the weights on the ticks where it acts
 (docs/decisions/0027-forecast-novelty-guard.md; its reference:
 docs/decisions/0216-a-start-of-motion-is-not-a-glitch.md).
 
@@ -875,7 +876,8 @@ def _novelty(
     predictors; the RMS over dofs of q_p - reference @ q) exceeds NOVELTY times the RMS departure
     of its scored past at this horizon (e_p - reference @ e, from the pooled covariance:
     C_pp - 2 (C r)_p + r'C r) has its errors taken as larger by the ratio of the two over NOVELTY,
-    by its square for the model's rollout (the row `rollout`), at most MAX_NOVELTY (STATIC is never novel: the answer falls back on it at least)."""
+    by its square for the model's rollout (the row `rollout`), at most MAX_NOVELTY (STATIC is
+    never novel: the answer falls back on it at least)."""
     now = np.mean(np.square(q - reference @ q), axis=1)
     Cr = C @ reference
     limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) - 2.0 * Cr + float(reference @ Cr), 0.0)
