@@ -34,12 +34,15 @@ not described by them. Over a gap, a predictor whose departure from a reference 
 dofs of q_p - r @ q, exceeds NOVELTY times the RMS departure of its scored past at that horizon
 (e_p - r @ e is q_p - r @ q, the frame cancels, so its mean square is C_pp - 2 (C r)_p + r'C r of
 C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row and column p times
-s_p (and D_h's, for the answer's variances), and the weights are solved again on that. The answer
-falls back on the predictors still in their regime, STATIC at least. The reference r is STATIC
-moved towards CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start
-of motion builds its speed over frames and is measured from what they extrapolate; a glitch of one
-frame's velocity has none of it the frame before and is measured from STATIC. It costs a gap tick
-O(P nv), and a solve of the weights on the ticks where it acts
+s_p (and D_h's, for the answer's variances), and the weights are solved again on that; by the
+ratio's square for MODEL, the rollout of physics under a held force, whose small scored errors
+over a jump's push-off otherwise kept its weight past its end
+(docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md). The answer falls back on the
+predictors still in their regime, STATIC at least. The reference r is STATIC moved towards
+CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start of motion
+builds its speed over frames and is measured from what they extrapolate; a glitch of one frame's
+velocity has none of it the frame before and is measured from STATIC. It costs a gap tick O(P nv),
+and a solve of the weights on the ticks where it acts
 (docs/decisions/0027-forecast-novelty-guard.md; its reference:
 docs/decisions/0216-a-start-of-motion-is-not-a-glitch.md).
 
@@ -131,7 +134,9 @@ VARIANCE_FLOOR: Final = 1e-12
 # the RMS departure of its scored past at that horizon has its errors taken as larger by the ratio over
 # NOVELTY, at most MAX_NOVELTY times (its variance 1e6 times: all but dropped; far larger factors
 # would let the solver's ridge, 1e-9 of the mean variance, swamp the others' variances). NOVELTY
-# measured on the recordings at 1.5, 2 and 3 (docs/decisions/0027-forecast-novelty-guard.md).
+# measured on the recordings at 1.5, 2 and 3 (docs/decisions/0027-forecast-novelty-guard.md). The
+# model's rollout (MODEL) takes the square of that ratio
+# (docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md).
 NOVELTY: Final = 2.0
 MAX_NOVELTY: Final = 1e3
 # A regime change: a score at which every one of PREDICTORS erred by more than SURPRISE times the
@@ -279,6 +284,7 @@ class ForecastCombiner:
         )
         self._static = self._predictors.index("STATIC")
         self._accelerating = self._predictors.index("CONSTANT_ACCELERATION")
+        self._rollout = self._predictors.index("MODEL")
         self._prior_cols = PRIOR_K * prior.legs if prior is not None else 0
         self._prior_block, self._prior_mask, self._prior_cov = self._prior_scores(prior)
         self._columns = _Columns.of(
@@ -470,7 +476,7 @@ class ForecastCombiner:
         q, v, a = self._predictions(i)
         row = self._table[i]
         reference = self._reference(_confirmed(row[self._columns.v0], row[self._columns.a0], self._dt))
-        scale = _novelty(q, self._weighing(h)[0], reference, self._static)
+        scale = _novelty(q, self._weighing(h)[0], reference, self._static, self._rollout)
         if scale is not None:
             weights = self._solve_weights(h, scale, matched=matched)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd, scale)
@@ -862,13 +868,16 @@ def _confirmed(v0: np.ndarray, a0: np.ndarray, dt: float) -> float:
     return min(max(float(v0 @ before) / larger, 0.0), 1.0)
 
 
-def _novelty(q: np.ndarray, C: np.ndarray, reference: np.ndarray, static: int) -> np.ndarray | None:
+def _novelty(
+    q: np.ndarray, C: np.ndarray, reference: np.ndarray, static: int, rollout: int
+) -> np.ndarray | None:
     """(P,) the novelty guard's factors on the predictors' errors at a gap, or None where none is
     novel: a predictor whose departure now from the reference (reference (P,): weights on the
     predictors; the RMS over dofs of q_p - reference @ q) exceeds NOVELTY times the RMS departure
     of its scored past at this horizon (e_p - reference @ e, from the pooled covariance:
     C_pp - 2 (C r)_p + r'C r) has its errors taken as larger by the ratio of the two over NOVELTY,
-    at most MAX_NOVELTY (STATIC is never novel: the answer falls back on it at least)."""
+    by its square for the model's rollout (the row `rollout`), at most MAX_NOVELTY (STATIC is
+    never novel: the answer falls back on it at least)."""
     now = np.mean(np.square(q - reference @ q), axis=1)
     Cr = C @ reference
     limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) - 2.0 * Cr + float(reference @ Cr), 0.0)
@@ -878,7 +887,9 @@ def _novelty(q: np.ndarray, C: np.ndarray, reference: np.ndarray, static: int) -
         return None
     scale = np.ones(q.shape[0])
     with np.errstate(divide="ignore"):
-        scale[novel] = np.minimum(np.sqrt(now[novel] / limit[novel]), MAX_NOVELTY)
+        ratio = now[novel] / limit[novel]
+        factor = np.where(np.flatnonzero(novel) == rollout, ratio, np.sqrt(ratio))
+        scale[novel] = np.minimum(factor, MAX_NOVELTY)
     return scale
 
 

@@ -191,7 +191,8 @@ class _ReferenceCombiner:
         a = np.stack([p.qacc, *(m[2] for m in moved)])
         C = self.cov[h]
         # The novelty guard: a predictor departing from the reference by more than NOVELTY times
-        # the RMS departure of its scored past has its errors scaled by the ratio over NOVELTY. The
+        # the RMS departure of its scored past has its errors scaled by the ratio over NOVELTY (by
+        # its square for MODEL, below). The
         # reference is STATIC (row 1) moved towards CONSTANT_ACCELERATION (row 3) as far as the
         # last two frames' velocities agree (v0 and v0 - a0 dt: their product over the larger square).
         before = p.v0 - p.a0 * self.dt
@@ -205,8 +206,12 @@ class _ReferenceCombiner:
         novel[1] = False
         if novel.any():
             scale = np.ones(len(PREDICTORS))
-            with np.errstate(divide="ignore"):
-                scale[novel] = np.minimum(np.sqrt(now[novel] / limit[novel]), MAX_NOVELTY)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = now / limit
+                # MODEL (row 0), the model's rollout: the ratio's square.
+                factor = np.sqrt(ratio)
+                factor[0] = ratio[0]
+                scale[novel] = np.minimum(factor[novel], MAX_NOVELTY)
             C = scale[:, None] * C * scale[None, :]
         w = _reference_weights(C)
         return w, w @ q, w @ v, w @ a

@@ -444,7 +444,9 @@ std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& 
     const double limit = kNovelty * kNovelty * std::max(C(p, p) - 2.0 * Cr[p] + rCr, 0.0);
     if (now > limit) {
       novel = true;
-      scale[p] = std::min(std::sqrt(now / limit), kMaxNovelty);
+      // The model's rollout takes the ratio's square.
+      const double ratio = now / limit;
+      scale[p] = std::min(p == kModel ? ratio : std::sqrt(ratio), kMaxNovelty);
     }
   }
   CombinedForecast out;
