@@ -307,6 +307,15 @@ class PriorMatcher:
     def library(self) -> PriorLibrary:
         return self._library
 
+    @property
+    def dt(self) -> float:
+        return self._dt
+
+    def joints(self) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
+        """Per leg, the columns of JOINTS it has (J,), the session's dofs of them (J,) and their
+        signs (J,): what the native engine's matcher is built from."""
+        return tuple(zip(self._columns, self._dofs, self._signs, strict=True))
+
     def scores_at(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The library's pooled covariances (4, 4) of q and qd errors at t seconds (PriorScores), or
         None when it has none."""
