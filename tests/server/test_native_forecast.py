@@ -21,6 +21,9 @@ from jitdyn.server.estimation import forecast
 from jitdyn.server.estimation.config import Engine
 from jitdyn.server.estimation.factory import make_estimator
 from jitdyn.server.estimation.forecast import CombinedForecast, ForecastCombiner
+from jitdyn.server.estimation.interface import Measurement
+from jitdyn.server.estimation.native import _ukf
+from jitdyn.server.estimation.native import combiner as native_combiner
 from jitdyn.server.estimation.native.combiner import NativeCombiner
 from jitdyn.server.estimation.pool import WorkerPool
 from jitdyn.server.estimation.predictors import PRIOR
@@ -260,6 +263,23 @@ def test_a_driven_estimator_answers_alike_with_either_combiner() -> None:
         np.testing.assert_allclose(a, b, rtol=ADAPTIVE_TOL, atol=ADAPTIVE_TOL, err_msg=f"output {i}")
 
 
+def test_a_leg_estimator_answers_alike_with_either_combiner() -> None:
+    """The same for a leg whose joints have roles, the prior among the predictors: a DRIVEN
+    session's whole estimator with the native combiner and with the Python one, 500 ticks with
+    gaps and late frames' replays."""
+    legs = mujoco.MjModel.from_xml_string(chain_mjcf())
+    roles = joint_roles(describe_model(legs).joints, ())
+    native = dataclasses.replace(config_for(legs, "DRIVEN", dt=LEG_DT), roles=roles)
+    python = dataclasses.replace(native, native_forecast=False)
+    signs = {d: s for leg in legs_of(roles) for d, s in zip(leg.dofs, leg.signs, strict=True) if d >= 0}
+    frames = [Measurement(qpos=q, qvel=v) for q, v in _walk(legs.nv, signs, 500, seed=9)]
+    (got, seen), (expected, seen_python) = run(legs, native, frames), run(legs, python, frames)
+    assert seen == seen_python
+    assert seen["forecast"] > 50 and seen["replayed"] == len(REPLAYED), seen
+    for i, (a, b) in enumerate(zip(got, expected, strict=True)):
+        np.testing.assert_allclose(a, b, rtol=ADAPTIVE_TOL, atol=ADAPTIVE_TOL, err_msg=f"output {i}")
+
+
 def test_the_fast_engine_keeps_the_python_combiner_and_the_prior_goes_native() -> None:
     """The FAST engine combines in Python; the NATIVE engine combines natively for a model whose
     joints have leg roles too, the prior of human motion among its predictors."""
@@ -420,3 +440,30 @@ def test_the_native_prior_answers_as_the_python_one(xml: str, horizon: int) -> N
     assert (given[:, -1] > 0.05).sum() >= 3
     # Before MIN_SAMPLES only the predictors the prior's scores cover weigh: not MODEL, not LEARNED.
     assert given[0, 0] == 0.0 and given[0, 4] == 0.0 and given[0, 1:4].sum() > 0.0
+
+
+def test_a_prior_that_does_not_fit_is_refused() -> None:
+    """A prior matcher of another dt, and a leg whose table, dofs and signs disagree, are refused
+    with errors that say what is wrong."""
+    model = mujoco.MjModel.from_xml_string(chain_mjcf())
+    legs = legs_of(joint_roles(describe_model(model).joints, ()))
+    process = process_model(model, scenario="DRIVEN")
+    other = PriorMatcher(library((LEFT_OUT,)), legs=legs, nv=3, dt=0.02)
+    with pytest.raises(ValueError, match=r"the prior's matcher has dt 0.02, the combiner 0.01"):
+        NativeCombiner(process, dt=LEG_DT, steps_per_tick=5, horizon=10, prior=other)
+    table = native_combiner.prior_table(library((LEFT_OUT,)), np.array([0, 1, 2]))
+    with pytest.raises(ValueError, match=r"a prior leg's table, dofs and signs disagree in their sizes"):
+        _ukf.Combiner(
+            process._address, dt=LEG_DT, steps_per_tick=5, horizon=10, legs=[(table, [0, 1], [1.0, 1.0])]
+        )
+    with pytest.raises(ValueError, match=r"a prior leg's dof must be in \[0, 3\), got 7"):
+        _ukf.Combiner(
+            process._address, dt=LEG_DT, steps_per_tick=5, horizon=10, legs=[(table, [0, 1, 7], [1.0] * 3)]
+        )
+    with pytest.raises(
+        ValueError, match=r"the prior's scores must have horizon \+ 1 = 11 covariances each, got 2"
+    ):
+        _ukf.Combiner(
+            process._address, dt=LEG_DT, steps_per_tick=5, horizon=10, legs=[(table, [0, 1, 2], [1.0] * 3)],
+            prior_cov=[np.eye(4)] * 2, prior_cov_v=[np.eye(4)] * 2,
+        )  # fmt: skip
