@@ -15,6 +15,7 @@ same frames) is printed too, with how many matches found the same library moment
 
     python -m benchmarks.prior                       # moore's walk, left out
     python -m benchmarks.prior --subject fukuchi --rounds 7
+    python -m benchmarks.prior --no-ankle            # a leg of hip and knee alone: more candidates
 """
 
 from __future__ import annotations
@@ -48,8 +49,15 @@ def walk(subject: str) -> tuple[np.ndarray, np.ndarray]:
     return q, np.gradient(q, DT, axis=0)
 
 
-def combiner(arm: str, subject: str) -> ForecastCombiner | NativeCombiner:
-    model = mujoco.MjModel.from_xml_string(chain_mjcf())
+def leg(no_ankle: bool) -> mujoco.MjModel:
+    """The chain; no_ankle: its ankle named so that it has no role (a leg of hip and knee alone,
+    whose match searches some 32,000 candidates of 8 features against 9,500 of 12)."""
+    joints = ("hip_flexion_r", "knee_flexion_r", "foot_hinge") if no_ankle else None
+    return mujoco.MjModel.from_xml_string(chain_mjcf(joints=joints))
+
+
+def combiner(arm: str, subject: str, no_ankle: bool = False) -> ForecastCombiner | NativeCombiner:
+    model = leg(no_ankle)
     legs = legs_of(joint_roles(describe_model(model).joints, ()))
     prior = None
     if BASELINE[arm] != arm:
@@ -71,8 +79,8 @@ def run(c: ForecastCombiner | NativeCombiner, q: np.ndarray, v: np.ndarray, tick
     return time.thread_time() - began
 
 
-def lookups(subject: str, q: np.ndarray, v: np.ndarray, count: int) -> None:
-    model = mujoco.MjModel.from_xml_string(chain_mjcf())
+def lookups(subject: str, q: np.ndarray, v: np.ndarray, count: int, no_ankle: bool = False) -> None:
+    model = leg(no_ankle)
     legs = legs_of(joint_roles(describe_model(model).joints, ()))
     matchers = [
         PriorMatcher(library((subject,)), legs=legs, nv=3, dt=DT, exhaustive=e) for e in (True, False)
@@ -102,9 +110,12 @@ def main() -> None:
     parser.add_argument("--subject", default="moore", help="whose walk, left out of the prior")
     parser.add_argument("--ticks", type=int, default=300)
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument(
+        "--no-ankle", action="store_true", help="a leg of hip and knee alone (the ankle has no role)"
+    )
     args = parser.parse_args()
     q, v = walk(args.subject)
-    combiners = {arm: combiner(arm, args.subject) for arm in ARMS}
+    combiners = {arm: combiner(arm, args.subject, args.no_ankle) for arm in ARMS}
     warm = 60  # every probe alive
     for c in combiners.values():
         run(c, q, v, range(warm))
@@ -116,7 +127,8 @@ def main() -> None:
         start += args.ticks
     per_tick = {arm: best[arm] / args.ticks * 1e6 for arm in ARMS}
     print(
-        f"{args.subject}'s walk, left out; a tick with a frame, the best of {args.rounds} rounds of {args.ticks}:"
+        f"{args.subject}'s walk, left out, on a leg of {'hip and knee' if args.no_ankle else 'hip, knee and ankle'}; "
+        f"a tick with a frame, the best of {args.rounds} rounds of {args.ticks}:"
     )
     for arm in ARMS:
         base = BASELINE[arm]
@@ -124,7 +136,7 @@ def main() -> None:
         print(f"  {arm:24s} {per_tick[arm]:7.0f} us{extra}")
     python, native = per_tick[ARMS[2]], per_tick[ARMS[4]]
     print(f"  the combination with the prior, Python / native: {python / native:.1f} x")
-    lookups(args.subject, q, v, 400)
+    lookups(args.subject, q, v, 400, args.no_ankle)
 
 
 if __name__ == "__main__":

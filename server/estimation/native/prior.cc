@@ -102,14 +102,19 @@ void PriorMatcher::Nearest(const PriorTable& table, int n) {
   for (int c = 0; c < count; ++c) {
     const double* f = data + static_cast<std::ptrdiff_t>(c) * width;
     // scipy's sqeuclidean_distance_double, over the components kept.
+    // After each block of four, the running sums' total is at most the distance (sums of squares
+    // only grow, in floating point too): a candidate already past the K-th nearest stops there.
     double acc[4] = {0.0, 0.0, 0.0, 0.0};
     int i = 0;
-    for (; i + 4 <= n; i += 4) {
+    bool beyond = false;
+    for (; i + 4 <= n && !beyond; i += 4) {
       for (int r = 0; r < 4; ++r) {
         const double d = query_[i + r] - f[kept_[i + r]];
         acc[r] += d * d;
       }
+      beyond = !(acc[0] + acc[1] + acc[2] + acc[3] < distance_[kPriorK - 1]);
     }
+    if (beyond) continue;
     double s = acc[0] + acc[1] + acc[2] + acc[3];
     for (; i < n; ++i) {
       const double d = query_[i] - f[kept_[i]];
