@@ -69,6 +69,7 @@ setup(
                     "adaptive.cc",
                     "forecast.cc",
                     "matching.cc",
+                    "prior.cc",
                     "linearised.cc",
                     "tick.cc",
                 )
@@ -81,6 +82,7 @@ setup(
                     "adaptive.h",
                     "forecast.h",
                     "matching.h",
+                    "prior.h",
                     "extrapolators.h",
                     "linearised.h",
                     "tick.h",

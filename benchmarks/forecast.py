@@ -19,7 +19,9 @@ stepping; alone/physics less 1 is the interpreter's cost per probe that one batc
     python -m benchmarks.forecast --share        # the forecast's share of a DRIVEN session's cycle
 
 With --share: the whole estimator of a DRIVEN session as the server builds it (JITDYN preset,
-native engine, one worker) on a 2-link arm at 50 Hz and myoElbow at 500 Hz, over the model's own
+native engine, one worker) on a 2-link arm at 50 Hz, myoElbow at 500 Hz and a 3-joint leg whose
+joints have roles at 100 Hz (hip, knee, ankle: the prior of human motion among its predictors;
+experiments/recorded.py's chain), over the model's own
 excited motion with 4 ticks of frames lost every 25, three ways alternated round by round: with the
 forecast combination in the native engine (the preset's: native/forecast.cc, motion matching
 included), with the Python ForecastCombiner in its place (`native_forecast` False, the same
@@ -115,17 +117,24 @@ def _driven_cycle(name: str, rate: float, forecast: str, *, native: bool = True)
     from benchmarks.cost_nv import load as load_model
     from benchmarks.cost_nv import truth
     from benchmarks.late_arm import ARM
+    from jitdyn.experiments.recorded import chain_mjcf
+    from jitdyn.registry.info import describe_model
+    from jitdyn.roles import joint_roles
     from jitdyn.server.estimation.config import resolve_config
     from jitdyn.server.estimation.factory import make_estimator
     from jitdyn.server.estimation.pool import WorkerPool
     from jitdyn.vocabulary import Scenario
 
-    model = mujoco.MjModel.from_xml_string(ARM) if name == "arm2" else load_model(name)
+    if name in ("arm2", "leg3"):
+        model = mujoco.MjModel.from_xml_string(ARM if name == "arm2" else chain_mjcf())
+    else:
+        model = load_model(name)
     dt = 1.0 / rate
     config = resolve_config(
         model=model, scenario="DRIVEN", dt=dt, requested={"forecast": forecast}, measured={"qpos", "qvel"}
     )
-    config = dataclasses.replace(config, native_forecast=native)
+    roles = joint_roles(describe_model(model).joints, ())  # the leg's: what the registry gives it
+    config = dataclasses.replace(config, native_forecast=native, roles=roles)
     frames = truth(model, Scenario.DRIVEN, round(dt / model.opt.timestep), ticks=1000)
     estimator = make_estimator(model, config, pool=WorkerPool(1))
     estimator.initialise(frames[0])
@@ -148,7 +157,7 @@ def share(rounds: int, ticks: int) -> None:
         "native share |"
     )
     print("|---|---|---|---|---|---|---|---|---|")
-    for name, rate in (("arm2", 50.0), ("myoelbow", 500.0)):
+    for name, rate in (("arm2", 50.0), ("myoelbow", 500.0), ("leg3", 100.0)):
         try:
             arms = {
                 "native": _driven_cycle(name, rate, "COMBINED"),

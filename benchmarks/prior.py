@@ -6,14 +6,16 @@ A 3-joint leg (hip, knee, ankle; experiments/recorded.py's chain, whose joint na
 replays a walk the prior does not hold (its person left out of the library) at 100 Hz, every frame
 arriving; each arm is a DRIVEN session's forecast combination (learner on, horizon 0.5 s), fed the
 walk's frames from the same tick: without the prior, with the prior searching every candidate
-(`exhaustive`, what a match did before), and with the prior's tree. A round runs each arm for
-`--ticks` ticks with a frame (advance and observe: the scoring, a match every fourth tick), in
-turn; the CPU time per tick of each arm is the best of the rounds, and the prior's cost is an arm's
-less the arm without it. The lookup alone (one match, both ways, on the same frames) is printed
-too, with how many matches found the same library moments.
+(`exhaustive`, what a match did before), and with the prior's tree; and the same combination in
+the native engine (native/forecast.cc, prior.cc) without the prior and with it. A round runs each
+arm for `--ticks` ticks with a frame (advance and observe: the scoring, a match every fourth tick),
+in turn; the CPU time per tick of each arm is the best of the rounds, and the prior's cost is an
+arm's less the arm of the same engine without it. The lookup alone (one match, both ways, on the
+same frames) is printed too, with how many matches found the same library moments.
 
     python -m benchmarks.prior                       # moore's walk, left out
     python -m benchmarks.prior --subject fukuchi --rounds 7
+    python -m benchmarks.prior --no-ankle            # a leg of hip and knee alone: more candidates
 """
 
 from __future__ import annotations
@@ -28,11 +30,14 @@ from jitdyn.experiments.recorded import chain_mjcf
 from jitdyn.registry.info import describe_model
 from jitdyn.roles import joint_roles
 from jitdyn.server.estimation.forecast import ForecastCombiner
+from jitdyn.server.estimation.native.combiner import NativeCombiner
 from jitdyn.server.estimation.prior import PriorMatcher, legs_of, library
 from jitdyn.server.estimation.propagate import process_model
 
 DT = 0.01
-ARMS = ("no prior", "prior, every candidate", "prior, k-d tree")
+ARMS = ("no prior", "prior, every candidate", "prior, k-d tree", "native, no prior", "native, prior")
+# Each arm's baseline: the arm of the same engine without the prior.
+BASELINE = {arm: ARMS[3] if arm.startswith("native") else ARMS[0] for arm in ARMS}
 
 
 def walk(subject: str) -> tuple[np.ndarray, np.ndarray]:
@@ -44,17 +49,26 @@ def walk(subject: str) -> tuple[np.ndarray, np.ndarray]:
     return q, np.gradient(q, DT, axis=0)
 
 
-def combiner(arm: str, subject: str) -> ForecastCombiner:
-    model = mujoco.MjModel.from_xml_string(chain_mjcf())
+def leg(no_ankle: bool) -> mujoco.MjModel:
+    """The chain; no_ankle: its ankle named so that it has no role (a leg of hip and knee alone,
+    whose match searches some 32,000 candidates of 8 features against 9,500 of 12)."""
+    joints = ("hip_flexion_r", "knee_flexion_r", "foot_hinge") if no_ankle else None
+    return mujoco.MjModel.from_xml_string(chain_mjcf(joints=joints))
+
+
+def combiner(arm: str, subject: str, no_ankle: bool = False) -> ForecastCombiner | NativeCombiner:
+    model = leg(no_ankle)
     legs = legs_of(joint_roles(describe_model(model).joints, ()))
     prior = None
-    if arm != ARMS[0]:
+    if BASELINE[arm] != arm:
         prior = PriorMatcher(library((subject,)), legs=legs, nv=3, dt=DT, exhaustive=arm == ARMS[1])
     process = process_model(model, scenario="DRIVEN")
+    if arm.startswith("native"):
+        return NativeCombiner(process, dt=DT, steps_per_tick=5, horizon=50, prior=prior)
     return ForecastCombiner(process, dt=DT, steps_per_tick=5, horizon=50, learner=True, prior=prior)
 
 
-def run(c: ForecastCombiner, q: np.ndarray, v: np.ndarray, ticks: range) -> float:
+def run(c: ForecastCombiner | NativeCombiner, q: np.ndarray, v: np.ndarray, ticks: range) -> float:
     """CPU seconds of `ticks` ticks with their frames."""
     zeros, act = np.zeros(3), np.zeros(0)
     began = time.thread_time()
@@ -65,8 +79,8 @@ def run(c: ForecastCombiner, q: np.ndarray, v: np.ndarray, ticks: range) -> floa
     return time.thread_time() - began
 
 
-def lookups(subject: str, q: np.ndarray, v: np.ndarray, count: int) -> None:
-    model = mujoco.MjModel.from_xml_string(chain_mjcf())
+def lookups(subject: str, q: np.ndarray, v: np.ndarray, count: int, no_ankle: bool = False) -> None:
+    model = leg(no_ankle)
     legs = legs_of(joint_roles(describe_model(model).joints, ()))
     matchers = [
         PriorMatcher(library((subject,)), legs=legs, nv=3, dt=DT, exhaustive=e) for e in (True, False)
@@ -96,9 +110,12 @@ def main() -> None:
     parser.add_argument("--subject", default="moore", help="whose walk, left out of the prior")
     parser.add_argument("--ticks", type=int, default=300)
     parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument(
+        "--no-ankle", action="store_true", help="a leg of hip and knee alone (the ankle has no role)"
+    )
     args = parser.parse_args()
     q, v = walk(args.subject)
-    combiners = {arm: combiner(arm, args.subject) for arm in ARMS}
+    combiners = {arm: combiner(arm, args.subject, args.no_ankle) for arm in ARMS}
     warm = 60  # every probe alive
     for c in combiners.values():
         run(c, q, v, range(warm))
@@ -110,12 +127,16 @@ def main() -> None:
         start += args.ticks
     per_tick = {arm: best[arm] / args.ticks * 1e6 for arm in ARMS}
     print(
-        f"{args.subject}'s walk, left out; a tick with a frame, the best of {args.rounds} rounds of {args.ticks}:"
+        f"{args.subject}'s walk, left out, on a leg of {'hip and knee' if args.no_ankle else 'hip, knee and ankle'}; "
+        f"a tick with a frame, the best of {args.rounds} rounds of {args.ticks}:"
     )
     for arm in ARMS:
-        extra = "" if arm == ARMS[0] else f"  (the prior adds {per_tick[arm] - per_tick[ARMS[0]]:.0f} us)"
+        base = BASELINE[arm]
+        extra = "" if arm == base else f"  (the prior adds {per_tick[arm] - per_tick[base]:.0f} us)"
         print(f"  {arm:24s} {per_tick[arm]:7.0f} us{extra}")
-    lookups(args.subject, q, v, 400)
+    python, native = per_tick[ARMS[2]], per_tick[ARMS[4]]
+    print(f"  the combination with the prior, Python / native: {python / native:.1f} x")
+    lookups(args.subject, q, v, 400, args.no_ankle)
 
 
 if __name__ == "__main__":

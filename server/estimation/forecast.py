@@ -71,11 +71,12 @@ most of its cost on a 50 ms tick. The result is the same, bit for bit.
 Pure numpy and MuJoCo, no gRPC; one combiner per filter, driven from one thread; its state is
 plain arrays, so `snapshot()`/`restore()` serve the timewarp and a replay is exact.
 
-This is the reference. A session on the NATIVE engine without the prior runs the same combination
-compiled (native/forecast.cc and matching.cc, through native/combiner.py; estimation/foresight.py
-chooses), held to these numbers to 1e-9: there a DRIVEN cycle's forecast costs about its probes'
-physics, 3.6-4.1 times less than here (a 2-link arm at 50 Hz, myoElbow at 500 Hz;
-docs/decisions/0208-the-forecast-in-the-native-engine.md).
+This is the reference. A session on the NATIVE engine runs the same combination compiled
+(native/forecast.cc, matching.cc and, with the prior, prior.cc, through native/combiner.py;
+estimation/foresight.py chooses), held to these numbers to 1e-9: there a DRIVEN cycle's forecast
+costs about its probes' physics, 3.3-4.1 times less than here (a 2-link arm at 50 Hz, myoElbow at
+500 Hz, a 3-joint leg with the prior at 100 Hz; docs/decisions/0208-the-forecast-in-the-native-engine.md,
+docs/decisions/0218-the-prior-in-the-native-engine.md).
 """
 
 from __future__ import annotations

@@ -15,10 +15,11 @@ and the filter's prediction's (answer_scale), and its unknown force the inverse 
 forecast motion; the filter's own mean and covariance go on predicting under their own force.
 
 Which combiner: with the NATIVE engine, the native one (native/combiner.py, the same numbers at a
-fraction of the cost); the Python ForecastCombiner, its reference, with the FAST and FILTERPY
-engines, with the prior of human motion (models whose joints have leg roles), with a predictor
+fraction of the cost), the prior of human motion included (models whose joints have leg roles);
+the Python ForecastCombiner, its reference, with the FAST and FILTERPY engines, with a predictor
 family the native engine lacks, or when the config asks for it (`native_forecast=False`)
-(docs/decisions/0208-the-forecast-in-the-native-engine.md).
+(docs/decisions/0208-the-forecast-in-the-native-engine.md,
+docs/decisions/0218-the-prior-in-the-native-engine.md).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ FORECAST_HORIZON: Final = 0.5
 
 
 def native_combination(config: EstimatorConfig) -> bool:
-    """Whether a session without the prior combines its forecasts in the native engine: its engine
+    """Whether a session combines its forecasts in the native engine (the prior included): its engine
     is NATIVE, the config does not ask for the Python combiner, and every predictor family is one
     the native engine computes (estimation/predictors.py's FAMILIES)."""
     return (
@@ -96,9 +97,9 @@ class Foresight:
             prior = PriorMatcher(chosen, legs=legs, nv=self._nv, dt=config.dt)
         horizon = int(np.ceil(FORECAST_HORIZON / config.dt - 1e-9))
         self.combiner: ForecastCombiner | NativeCombiner
-        if prior is None and native_combination(config):
+        if native_combination(config):
             self.combiner = NativeCombiner(
-                model, dt=config.dt, steps_per_tick=config.steps_per_tick, horizon=horizon
+                model, dt=config.dt, steps_per_tick=config.steps_per_tick, horizon=horizon, prior=prior
             )
         else:
             self.combiner = ForecastCombiner(

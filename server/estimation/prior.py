@@ -22,7 +22,9 @@ Cost: a match is a query of a k-d tree over the library's candidates (scipy's cK
 joints and set of lags present, built at its first use and shared by every session of the library):
 some 40 us, where a pass over all of them (`nearest`, kept as the reference the tree is tested
 against) took 200-1000 us (the library holds some 34,000 moments; a 3-joint leg's F is 12).
-docs/decisions/0190-prior-lookup-by-tree.md.
+docs/decisions/0190-prior-lookup-by-tree.md. This is the reference of the native engine's
+matcher (native/prior.cc), which a session on the NATIVE engine uses: a pass over the candidates
+summed as the tree sums a distance (docs/decisions/0218-the-prior-in-the-native-engine.md).
 """
 
 from __future__ import annotations
@@ -306,6 +308,15 @@ class PriorMatcher:
     @property
     def library(self) -> PriorLibrary:
         return self._library
+
+    @property
+    def dt(self) -> float:
+        return self._dt
+
+    def joints(self) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
+        """Per leg, the columns of JOINTS it has (J,), the session's dofs of them (J,) and their
+        signs (J,): what the native engine's matcher is built from."""
+        return tuple(zip(self._columns, self._dofs, self._signs, strict=True))
 
     def scores_at(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
         """The library's pooled covariances (4, 4) of q and qd errors at t seconds (PriorScores), or

@@ -11,7 +11,7 @@ process model. This module runs a tick through its steps, each in one place:
 | tidy, repair | | PythonCore.tidy | Ukf::Tidy |
 | adaptive noise | estimation/adaptive_steps.py | estimation/adaptive.py | native/adaptive.cc |
 | guard, restarts | estimation/guard.py, guard_steps.py | | |
-| gap answers | estimation/gap.py, foresight.py | estimation/forecast.py, matching.py | native/forecast.cc, matching.cc (no prior) |
+| gap answers | estimation/gap.py, foresight.py | estimation/forecast.py, matching.py, prior.py | native/forecast.cc, matching.cc, prior.cc |
 | estimate, dynamics | estimation/answer.py | PythonCore.forward | Ukf::Forward |
 | extrapolate, glance | estimation/lookahead.py | | |
 | snapshots (timewarp) | estimation/snapshot.py | | |

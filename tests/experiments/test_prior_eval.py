@@ -12,7 +12,7 @@ import pytest
 
 from jitdyn.experiments import prior_eval
 from jitdyn.experiments.runner import run_lockstep
-from jitdyn.server.estimation import forecast
+from jitdyn.server.estimation import forecast, foresight
 
 pytest.importorskip("scipy")
 
@@ -44,7 +44,10 @@ def test_the_novelty_guard_and_the_regime_rule_do_not_cost_gaits_short_horizon(
     below the same defaults with the novelty guard and the regime rule switched off (their factors
     too large to act). Measured: 0.466 and 0.373 x with them, 0.607 and 0.440 x without
     (docs/decisions/0191-short-horizons-on-gait.md; the guard's reference:
-    docs/decisions/0216-a-start-of-motion-is-not-a-glitch.md)."""
+    docs/decisions/0216-a-start-of-motion-is-not-a-glitch.md). The rules' factors are set in
+    forecast.py, the Python reference, so the run without them combines in Python; the run with
+    them combines as the server does, natively (the same numbers to 1e-9,
+    tests/server/test_native_forecast.py)."""
 
     def at_35_ms() -> dict[str, float]:
         rows = prior_eval.evaluate(
@@ -57,6 +60,7 @@ def test_the_novelty_guard_and_the_regime_rule_do_not_cost_gaits_short_horizon(
     with_rules = at_35_ms()
     monkeypatch.setattr(forecast, "NOVELTY", 1e12)
     monkeypatch.setattr(forecast, "SURPRISE", 1e12)
+    monkeypatch.setattr(foresight, "native_combination", lambda config: False)
     without = at_35_ms()
     for window in ("first stride", "whole run"):
         assert with_rules[window] <= 1.0, with_rules

@@ -1,7 +1,7 @@
-"""The forecast combination in the native engine (native/forecast.cc, matching.cc) against
-estimation/forecast.py's ForecastCombiner, its reference: the same sessions fed to both give the
-same answers to 1e-9 (weights, qpos, qvel, qacc, var_q, var_qd), and so does a DRIVEN session's
-whole estimator with either combiner."""
+"""The forecast combination in the native engine (native/forecast.cc, matching.cc, prior.cc)
+against estimation/forecast.py's ForecastCombiner, its reference: the same sessions fed to both
+give the same answers to 1e-9 (weights, qpos, qvel, qacc, var_q, var_qd), with and without the
+prior of human motion, and so does a DRIVEN session's whole estimator with either combiner."""
 
 from __future__ import annotations
 
@@ -21,9 +21,13 @@ from jitdyn.server.estimation import forecast
 from jitdyn.server.estimation.config import Engine
 from jitdyn.server.estimation.factory import make_estimator
 from jitdyn.server.estimation.forecast import CombinedForecast, ForecastCombiner
+from jitdyn.server.estimation.interface import Measurement
+from jitdyn.server.estimation.native import _ukf
+from jitdyn.server.estimation.native import combiner as native_combiner
 from jitdyn.server.estimation.native.combiner import NativeCombiner
 from jitdyn.server.estimation.pool import WorkerPool
-from jitdyn.server.estimation.prior import legs_of
+from jitdyn.server.estimation.predictors import PRIOR
+from jitdyn.server.estimation.prior import PriorMatcher, legs_of, library
 from jitdyn.server.estimation.propagate import process_model
 from jitdyn.server.estimation.ukf import UnscentedFilter
 from jitdyn.server.runtime.costs import snapshot_bytes
@@ -72,16 +76,29 @@ class _Log:
     weights: list[np.ndarray]  # of the answers given
 
 
-def _session(combiner: Any, model: mujoco.MjModel, *, ramp: bool, ticks: int = 520, seed: int = 0) -> _Log:
+def _session(
+    combiner: Any,
+    model: mujoco.MjModel,
+    *,
+    ramp: bool,
+    ticks: int = 520,
+    seed: int = 0,
+    frames: list[tuple[np.ndarray, np.ndarray]] | None = None,
+    early: bool = False,
+) -> _Log:
     """A session with gaps of 1 to 14 ticks, a second frame in some ticks, frames far off the motion
     (a landing's impact), a jolted last frame before some gaps, a probe under a force that diverges,
-    and the noise of the frames taken out of some answers."""
-    frames = _frames(model, ticks, seed)
+    and the noise of the frames taken out of some answers; frames: the motion's (q, qd) per tick,
+    else a pendulum's (_frames); early: gaps in the first 50 ticks too, while horizons have fewer
+    than MIN_SAMPLES scores and LEARNED fewer than LEARNED_SAMPLES."""
+    frames = _frames(model, ticks, seed) if frames is None else frames[:ticks]
     rng = np.random.default_rng(seed + 1)
     nv = model.nv
     gaps = {
         k: length for k, length in zip(range(60, ticks, 23), [1, 3, 7, 14, 2, 5, 11, 4, 9] * 5, strict=False)
     }
+    if early:
+        gaps |= {6: 4, 15: 9, 30: 14, 47: 6}
     log = _Log([], [])
     gap_left, ended = 0, False
 
@@ -173,13 +190,19 @@ def test_the_session_takes_the_regime_change_and_the_novelty_guard(
     _assert_equal(expected, _session(native, model, ramp=False))
 
 
-def test_a_late_frames_replay_is_the_first_run_and_the_python_ones() -> None:
+@pytest.mark.parametrize("leg", [False, True], ids=["pendulum", "leg-with-prior"])
+def test_a_late_frames_replay_is_the_first_run_and_the_python_ones(leg: bool) -> None:
     """Snapshot, run on, restore, run again: the native combiner answers as it did the first time
-    and as the Python one does through the same replay; reset forgets the scores alike."""
-    model = _process()
-    frames = _frames(model, 200, seed=3)
+    and as the Python one does through the same replay (with the prior: its ring of frames too);
+    reset forgets the scores alike."""
+    if leg:
+        model, python, native, signs = _leg_pair(chain_mjcf(), 10)
+        frames, pair = _walk(model.nv, signs, 200, seed=3), (python, native)
+    else:
+        model = _process()
+        frames, pair = _frames(model, 200, seed=3), _pair(model, 10)
     runs: list[list[np.ndarray | None]] = []
-    for combiner in _pair(model, 10):
+    for combiner in pair:
         answers: list[np.ndarray | None] = []
 
         def tick(k: int, c: Any = combiner, out: list[np.ndarray | None] = answers) -> None:
@@ -244,9 +267,26 @@ def test_a_driven_estimator_answers_alike_with_either_combiner() -> None:
         np.testing.assert_allclose(a, b, rtol=ADAPTIVE_TOL, atol=ADAPTIVE_TOL, err_msg=f"output {i}")
 
 
-def test_the_fast_engine_and_the_prior_keep_the_python_combiner() -> None:
-    """The FAST engine combines in Python; so does the NATIVE engine for a model whose joints have
-    leg roles (the prior of human motion stays Python)."""
+def test_a_leg_estimator_answers_alike_with_either_combiner() -> None:
+    """The same for a leg whose joints have roles, the prior among the predictors: a DRIVEN
+    session's whole estimator with the native combiner and with the Python one, 500 ticks with
+    gaps and late frames' replays."""
+    legs = mujoco.MjModel.from_xml_string(chain_mjcf())
+    roles = joint_roles(describe_model(legs).joints, ())
+    native = dataclasses.replace(config_for(legs, "DRIVEN", dt=LEG_DT), roles=roles)
+    python = dataclasses.replace(native, native_forecast=False)
+    signs = {d: s for leg in legs_of(roles) for d, s in zip(leg.dofs, leg.signs, strict=True) if d >= 0}
+    frames = [Measurement(qpos=q, qvel=v) for q, v in _walk(legs.nv, signs, 500, seed=9)]
+    (got, seen), (expected, seen_python) = run(legs, native, frames), run(legs, python, frames)
+    assert seen == seen_python
+    assert seen["forecast"] > 50 and seen["replayed"] == len(REPLAYED), seen
+    for i, (a, b) in enumerate(zip(got, expected, strict=True)):
+        np.testing.assert_allclose(a, b, rtol=ADAPTIVE_TOL, atol=ADAPTIVE_TOL, err_msg=f"output {i}")
+
+
+def test_the_fast_engine_keeps_the_python_combiner_and_the_prior_goes_native() -> None:
+    """The FAST engine combines in Python; the NATIVE engine combines natively for a model whose
+    joints have leg roles too, the prior of human motion among its predictors."""
     model = pendulum(2)
     fast = dataclasses.replace(config_for(model, "DRIVEN"), engine=Engine.FAST)
     legs = mujoco.MjModel.from_xml_string(chain_mjcf())
@@ -254,10 +294,11 @@ def test_the_fast_engine_and_the_prior_keep_the_python_combiner() -> None:
     native = dataclasses.replace(config_for(legs, "DRIVEN"), roles=roles)
     assert native.engine == Engine.NATIVE and legs_of(roles)
     with WorkerPool(1) as pool:
-        for m, config in ((model, fast), (legs, native)):
+        for m, config, kind in ((model, fast, ForecastCombiner), (legs, native, NativeCombiner)):
             built = make_estimator(m, config, pool=pool)
             assert isinstance(built, UnscentedFilter) and built._parts.foresight is not None
-            assert isinstance(built._parts.foresight.combiner, ForecastCombiner)
+            assert isinstance(built._parts.foresight.combiner, kind)
+            assert (PRIOR.names[0] in built._parts.foresight.combiner.predictors) == (m is legs)
 
 
 def test_a_filled_window_matches_alike() -> None:
@@ -305,3 +346,133 @@ def test_a_model_with_activations_carries_them_alike() -> None:
     _assert_equal(
         _session(python, model, ramp=True, ticks=300), _session(native, model, ramp=True, ticks=300)
     )
+
+
+# Two legs and a joint of neither: the right one with hip, knee and ankle; the left one without an
+# ankle and its knee's positive direction extension (sign -1); the trunk's joint no role's.
+LEGS = """
+<mujoco>
+  <option timestep="0.002"/>
+  <worldbody>
+    <body name="trunk" pos="0 0 1"><joint name="lumbar" type="hinge" axis="1 0 0" damping="1"/>
+      <geom type="box" size="0.1 0.1 0.1" mass="10"/>
+      <body name="thigh_r" pos="0 -0.1 -0.1"><joint name="hip_flexion_r" type="hinge" axis="0 -1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.42" size="0.06" mass="10"/>
+        <body pos="0 0 -0.42"><joint name="knee_flexion_r" type="hinge" axis="0 1 0"/>
+          <geom type="capsule" fromto="0 0 0 0 0 -0.43" size="0.04" mass="3"/>
+          <body pos="0 0 -0.43"><joint name="ankle_flexion_r" type="hinge" axis="0 -1 0"/>
+            <geom type="capsule" fromto="0 0 0 0.25 0 0" size="0.03" mass="1"/></body></body></body>
+      <body name="thigh_l" pos="0 0.1 -0.1"><joint name="hip_flexion_l" type="hinge" axis="0 -1 0"/>
+        <geom type="capsule" fromto="0 0 0 0 0 -0.42" size="0.06" mass="10"/>
+        <body pos="0 0 -0.42"><joint name="knee_extension_l" type="hinge" axis="0 -1 0"/>
+          <geom type="capsule" fromto="0 0 0 0 0 -0.43" size="0.04" mass="3"/></body></body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+LEG_DT = 0.01
+LEFT_OUT = "moore"  # whose walk the sessions replay, left out of their prior
+
+
+def _walk(nv: int, signs: dict[int, float], ticks: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """LEFT_OUT's walk as the library holds it, at LEG_DT: dof d of the model takes joint column
+    d % 3 of the walk, half a stride later on every other leg, times signs[d]; dofs of no leg a
+    third of the hip's swing (the whole motion repeats, so motion matching finds it: without a
+    match LEARNED answers as CONSTANT_VELOCITY, and the weights between two equal predictors are
+    the solver's rounding); a little noise on the frames."""
+    full = library()
+    rows = np.flatnonzero(full.subject == full.subjects.index(LEFT_OUT))
+    q = np.nan_to_num(full.q[rows])
+    v = np.gradient(q, LEG_DT, axis=0)
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(ticks):
+        qk, vk = np.zeros(nv), np.zeros(nv)
+        for d in range(nv):
+            if d in signs:
+                j = (k + 55 * (d // 3)) % q.shape[0]
+                qk[d], vk[d] = signs[d] * q[j, d % 3], signs[d] * v[j, d % 3]
+            else:
+                j = k % q.shape[0]
+                qk[d], vk[d] = 0.3 * q[j, 0], 0.3 * v[j, 0]
+        out.append((qk + 1e-3 * rng.standard_normal(nv), vk + 1e-2 * rng.standard_normal(nv)))
+    return out
+
+
+def _leg_pair(
+    xml: str, horizon: int
+) -> tuple[mujoco.MjModel, ForecastCombiner, NativeCombiner, dict[int, float]]:
+    """A leg model's process model, the Python and the native combiner with the prior (its walker
+    left out), and the sign of each leg's dof."""
+    model = mujoco.MjModel.from_xml_string(xml)
+    legs = legs_of(joint_roles(describe_model(model).joints, ()))
+    assert legs
+    chosen = library((LEFT_OUT,))
+    process = process_model(model, scenario="DRIVEN")
+
+    def prior() -> PriorMatcher:
+        return PriorMatcher(chosen, legs=legs, nv=model.nv, dt=LEG_DT)
+
+    signs = {d: s for leg in legs for d, s in zip(leg.dofs, leg.signs, strict=True) if d >= 0}
+    return (
+        process,
+        ForecastCombiner(process, dt=LEG_DT, steps_per_tick=5, horizon=horizon, learner=True, prior=prior()),
+        NativeCombiner(process, dt=LEG_DT, steps_per_tick=5, horizon=horizon, prior=prior()),
+        signs,
+    )
+
+
+@pytest.mark.parametrize(
+    ("xml", "horizon"),
+    [(chain_mjcf(), 10), (chain_mjcf(), 25), (LEGS, 25)],
+    ids=["leg-10", "leg-25", "two-legs"],
+)
+def test_the_native_prior_answers_as_the_python_one(xml: str, horizon: int) -> None:
+    """A leg model's session (a walk its prior does not hold, with the gaps, far-off frames, jolts
+    and diverging probes of _session) answers alike tick by tick from both combiners with the prior:
+    its matches, its continuations, its weight of its own before MIN_SAMPLES, and PRIOR's weight 0
+    on a probe without a match."""
+    process, python, native, signs = _leg_pair(xml, horizon)
+    assert native.predictors == python.predictors and native.predictors[-1] == PRIOR.names[0]
+    frames = _walk(process.nv, signs, 600, seed=5)
+    a = _session(python, process, ramp=False, ticks=600, frames=frames, early=True)
+    b = _session(native, process, ramp=False, ticks=600, frames=frames, early=True)
+    _assert_equal(a, b)
+    given = np.array(a.weights)
+    assert len(given) > 100
+    # PRIOR took weight (which it has only on a probe with a match of it).
+    assert (given[:, -1] > 0.05).sum() >= 3
+    # The first gap (ticks 6-9, asked at each) is answered at every tick: at its last, 4 ticks on,
+    # the horizon has fewer than MIN_SAMPLES scores, and only the predictors the prior's scores
+    # cover weigh (not MODEL, not LEARNED).
+    first_gap = a.answers[2:6]
+    assert all(x is not None for x in first_gap)
+    last = first_gap[-1]
+    assert last is not None and last[0] == 0.0 and last[4] == 0.0
+
+
+def test_a_prior_that_does_not_fit_is_refused() -> None:
+    """A prior matcher of another dt, and a leg whose table, dofs and signs disagree, are refused
+    with errors that say what is wrong."""
+    model = mujoco.MjModel.from_xml_string(chain_mjcf())
+    legs = legs_of(joint_roles(describe_model(model).joints, ()))
+    process = process_model(model, scenario="DRIVEN")
+    other = PriorMatcher(library((LEFT_OUT,)), legs=legs, nv=3, dt=0.02)
+    with pytest.raises(ValueError, match=r"the prior's matcher has dt 0.02, the combiner 0.01"):
+        NativeCombiner(process, dt=LEG_DT, steps_per_tick=5, horizon=10, prior=other)
+    table = native_combiner.prior_table(library((LEFT_OUT,)), np.array([0, 1, 2]))
+    with pytest.raises(ValueError, match=r"a prior leg's table, dofs and signs disagree in their sizes"):
+        _ukf.Combiner(
+            process._address, dt=LEG_DT, steps_per_tick=5, horizon=10, legs=[(table, [0, 1], [1.0, 1.0])]
+        )
+    with pytest.raises(ValueError, match=r"a prior leg's dof must be in \[0, 3\), got 7"):
+        _ukf.Combiner(
+            process._address, dt=LEG_DT, steps_per_tick=5, horizon=10, legs=[(table, [0, 1, 7], [1.0] * 3)]
+        )
+    with pytest.raises(
+        ValueError, match=r"the prior's scores must have horizon \+ 1 = 11 covariances each, got 2"
+    ):
+        _ukf.Combiner(
+            process._address, dt=LEG_DT, steps_per_tick=5, horizon=10, legs=[(table, [0, 1, 2], [1.0] * 3)],
+            prior_cov=[np.eye(4)] * 2, prior_cov_v=[np.eye(4)] * 2,
+        )  # fmt: skip

@@ -1,7 +1,7 @@
 """jitdyn's native estimation engine: the unscented filter's numeric work (sigma points, their
 propagation through MuJoCo's C API, the unscented transform and the update) in one compiled
 module, ukf.cc, which holds the filter's state and releases the GIL while it works; and a DRIVEN
-session's forecast combination (forecast.cc, matching.cc; native/combiner.py wraps it); and a
+session's forecast combination (forecast.cc, matching.cc, prior.cc; native/combiner.py wraps it); and a
 tick's steps in one call over the three (tick.cc; native/tick.py).
 
 The module is built by `pip install` (setup.py) against the headers of the pinned mujoco, and

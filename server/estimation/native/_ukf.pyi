@@ -83,8 +83,32 @@ class Ukf:
 class CombinerState:
     nbytes: int
 
+class PriorTable:
+    def __init__(
+        self,
+        *,
+        rate: float,
+        q: np.ndarray,
+        v: np.ndarray,
+        last: np.ndarray,
+        rows: np.ndarray,
+        features: np.ndarray,
+        spread: np.ndarray,
+    ) -> None: ...
+    candidates: int
+
 class Combiner:
-    def __init__(self, model_address: int, *, dt: float, steps_per_tick: int, horizon: int) -> None: ...
+    def __init__(
+        self,
+        model_address: int,
+        *,
+        dt: float,
+        steps_per_tick: int,
+        horizon: int,
+        legs: list[tuple[PriorTable, list[int], list[float]]] = ...,
+        prior_cov: list[np.ndarray] = ...,
+        prior_cov_v: list[np.ndarray] = ...,
+    ) -> None: ...
     def reset(self) -> None: ...
     def advance(self) -> None: ...
     def observe(
@@ -105,6 +129,7 @@ class Combiner:
     def snapshot(self) -> CombinerState: ...
     def restore(self, state: CombinerState) -> None: ...
     horizon: int
+    predictors: int
     nv: int
     na: int
     window: int

@@ -10,6 +10,7 @@
 #include "adaptive.h"
 #include "forecast.h"
 #include "linearised.h"
+#include "prior.h"
 #include "tick.h"
 #include "ukf.h"
 
@@ -100,12 +101,42 @@ PYBIND11_MODULE(_ukf, module) {
   using jitdyn::CombinerState;
   py::class_<CombinerState>(module, "CombinerState")
       .def_property_readonly("nbytes", [](const CombinerState& s) { return s.Bytes(); });
-  py::class_<Combiner>(module, "Combiner")
-      .def(py::init([](std::uintptr_t model_address, double dt, int steps_per_tick, int horizon) {
-             return std::make_unique<Combiner>(reinterpret_cast<const mjModel*>(model_address), dt, steps_per_tick,
-                                               horizon);
+  // One choice of the prior's library joints (prior.h), built once and shared by sessions.
+  using jitdyn::PriorTable;
+  py::class_<PriorTable, std::shared_ptr<PriorTable>>(module, "PriorTable")
+      .def(py::init([](double rate, const Matrix& q, const Matrix& v, const std::vector<std::int64_t>& last,
+                       const std::vector<std::int64_t>& rows, const Matrix& features, const Vector& spread) {
+             auto t = std::make_shared<PriorTable>();
+             t->rate = rate;
+             t->q = q;
+             t->v = v;
+             t->last = last;
+             t->rows = rows;
+             t->features = features;
+             t->spread = spread;
+             return t;
            }),
-           py::arg("model_address"), py::kw_only(), py::arg("dt"), py::arg("steps_per_tick"), py::arg("horizon"))
+           py::kw_only(), py::arg("rate"), py::arg("q"), py::arg("v"), py::arg("last"), py::arg("rows"),
+           py::arg("features"), py::arg("spread"))
+      .def_property_readonly("candidates", [](const PriorTable& t) { return t.rows.size(); });
+  // A leg of the prior: its table, the session's dofs of its joints and their signs.
+  using PriorLegs = std::vector<std::tuple<std::shared_ptr<PriorTable>, std::vector<int>, std::vector<double>>>;
+  py::class_<Combiner>(module, "Combiner")
+      .def(py::init([](std::uintptr_t model_address, double dt, int steps_per_tick, int horizon, const PriorLegs& legs,
+                       const std::vector<Eigen::Matrix4d>& prior_cov, const std::vector<Eigen::Matrix4d>& prior_cov_v) {
+             const mjModel* m = reinterpret_cast<const mjModel*>(model_address);
+             std::unique_ptr<jitdyn::PriorMatcher> prior;
+             if (!legs.empty()) {
+               std::vector<jitdyn::PriorLeg> made;
+               for (const auto& [table, dofs, signs] : legs) made.push_back({table, dofs, signs});
+               prior = std::make_unique<jitdyn::PriorMatcher>(std::move(made), m->nv, dt);
+             }
+             return std::make_unique<Combiner>(m, dt, steps_per_tick, horizon, std::move(prior), prior_cov,
+                                               prior_cov_v);
+           }),
+           py::arg("model_address"), py::kw_only(), py::arg("dt"), py::arg("steps_per_tick"), py::arg("horizon"),
+           py::arg("legs") = PriorLegs(),
+           py::arg("prior_cov") = std::vector<Eigen::Matrix4d>(), py::arg("prior_cov_v") = std::vector<Eigen::Matrix4d>())
       .def("reset", &Combiner::Reset)
       .def("advance", &Combiner::Advance, py::call_guard<py::gil_scoped_release>())
       .def("observe", &Combiner::Observe, py::arg("qpos"), py::arg("qvel"), py::kw_only(), py::arg("mean_qpos"),
@@ -121,7 +152,7 @@ PYBIND11_MODULE(_ukf, module) {
               answer = c.Forecast(noise_q, noise_qd, ended);
             }
             if (!answer) return std::nullopt;
-            return std::make_tuple(Vector(answer->weights), answer->qpos, answer->qvel, answer->qacc, answer->var_q,
+            return std::make_tuple(Vector(answer->weights.head(c.predictors())), answer->qpos, answer->qvel, answer->qacc, answer->var_q,
                                    answer->var_qd);
           },
           py::kw_only(), py::arg("noise_q"), py::arg("noise_qd"), py::arg("ended"))
@@ -132,6 +163,7 @@ PYBIND11_MODULE(_ukf, module) {
       .def_property_readonly("nv", &Combiner::nv)
       .def_property_readonly("na", &Combiner::na)
       .def_property_readonly("window", &Combiner::window)
+      .def_property_readonly("predictors", &Combiner::predictors)
       .def_property_readonly("tick", &Combiner::tick);
 
   py::class_<Ukf>(module, "Ukf")

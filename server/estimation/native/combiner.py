@@ -1,17 +1,20 @@
-"""The forecast combination in the native engine (forecast.cc, matching.cc) behind the surface of
-estimation/forecast.py's ForecastCombiner, for a DRIVEN session with the default predictors (MODEL,
-the IEEE 1278 extrapolators, LEARNED) and no prior of human motion::
+"""The forecast combination in the native engine (forecast.cc, matching.cc, prior.cc) behind the
+surface of estimation/forecast.py's ForecastCombiner, for a DRIVEN session with the default
+predictors (MODEL, the IEEE 1278 extrapolators, LEARNED) and, for a model whose joints have leg
+roles, the prior of human motion (PRIOR, estimation/prior.py)::
 
-    forecasts = NativeCombiner(process, dt=0.02, steps_per_tick=10, horizon=25)
+    forecasts = NativeCombiner(process, dt=0.02, steps_per_tick=10, horizon=25, prior=matcher)
     forecasts.advance()
     forecasts.observe(z_qpos, z_qvel, mean_qpos=q, mean_qvel=qd, act=act, force=f, rate=None)
     answer = forecasts.forecast()               # CombinedForecast or None
 
-The numbers are ForecastCombiner's with `learner=True` (tests/server/test_native_forecast.py holds
-them to 1e-9). The prior (estimation/prior.py, for models whose joints have leg roles) and any
-predictor family the native engine lacks stay in Python: a combination with them is the Python
+The numbers are ForecastCombiner's with `learner=True` and the same prior
+(tests/server/test_native_forecast.py holds them to 1e-9). The prior's library goes to the engine
+once per choice of a leg's joints (a PriorTable, shared by every session of that library). A
+predictor family the native engine lacks stays in Python: a combination with it is the Python
 ForecastCombiner's (estimation/foresight.py chooses;
-docs/decisions/0208-the-forecast-in-the-native-engine.md).
+docs/decisions/0208-the-forecast-in-the-native-engine.md,
+docs/decisions/0218-the-prior-in-the-native-engine.md).
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ import numpy as np
 
 from jitdyn.server.estimation.forecast import LEARNED, PREDICTORS, CombinedForecast
 from jitdyn.server.estimation.native import CombinerState, _ukf
+from jitdyn.server.estimation.predictors import PRIOR
+from jitdyn.server.estimation.prior import PriorLibrary, PriorMatcher
 
 __all__ = ["NATIVE_PREDICTORS", "NativeCombiner"]
 
@@ -31,23 +36,91 @@ __all__ = ["NATIVE_PREDICTORS", "NativeCombiner"]
 NATIVE_PREDICTORS: tuple[str, ...] = ("MODEL", "STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION")
 
 
+# The library's arrays the engine holds, per library and choice of a leg's joints, with the library
+# (which keeps its id from being reused).
+_TABLES: dict[tuple[int, tuple[int, ...]], tuple[PriorLibrary, _ukf.PriorTable]] = {}
+
+
 def _array(value: np.ndarray | None) -> np.ndarray | None:
     return None if value is None else np.asarray(value, dtype=np.float64)
+
+
+def prior_table(library: PriorLibrary, columns: np.ndarray) -> _ukf.PriorTable:
+    """The engine's copy of `library` over its `columns` (J,) of the prior's joints: q, qd, each
+    row's clip's end, the candidates and their scaled features; made once, then shared."""
+    key = (id(library), tuple(int(c) for c in columns))
+    found = _TABLES.get(key)
+    if found is None:
+        index = library.index(columns, (True,) * 4)
+        q, v = library.columns(columns)
+        table = _ukf.PriorTable(
+            rate=library.rate,
+            q=q,
+            v=v,
+            last=np.asarray(library.last, dtype=np.int64),
+            rows=np.asarray(index.rows, dtype=np.int64),
+            features=index.features[0],
+            spread=library.spread[columns].ravel(),
+        )
+        found = _TABLES[key] = (library, table)
+    return found[1]
+
+
+_Legs = list[tuple[_ukf.PriorTable, list[int], list[float]]]
+
+
+def _prior_arguments(
+    prior: PriorMatcher | None, horizon: int
+) -> tuple[_Legs, list[np.ndarray], list[np.ndarray]]:
+    """The Combiner's prior arguments: its legs (table, dofs, signs) and the library's scores at
+    every horizon 0..horizon (forecast.py's _prior_scores; none when the library has none)."""
+    if prior is None:
+        return [], [], []
+    legs = [
+        (prior_table(prior.library, columns), [int(d) for d in dofs], [float(s) for s in signs])
+        for columns, dofs, signs in prior.joints()
+    ]
+    if prior.scores_at(prior.dt) is None:
+        return legs, [], []
+    cov, cov_v = np.zeros((2, horizon + 1, 4, 4))
+    for h in range(1, horizon + 1):
+        scored = prior.scores_at(h * prior.dt)
+        assert scored is not None
+        cov[h], cov_v[h] = scored
+    return legs, list(cov), list(cov_v)
 
 
 class NativeCombiner:
     """ForecastCombiner's interface over forecast.cc (module docstring). process: the filter's
     process model (warm start off, actuation off), which it keeps alive while the engine holds its
-    pointer."""
+    pointer; prior: the session's matcher of the prior of human motion (its library, legs and dt),
+    whose matching the engine does from then on."""
 
-    def __init__(self, process: mujoco.MjModel, *, dt: float, steps_per_tick: int, horizon: int) -> None:
-        self._model = process
-        self._combiner = _ukf.Combiner(
-            process._address, dt=float(dt), steps_per_tick=int(steps_per_tick), horizon=int(horizon)
-        )
+    def __init__(
+        self,
+        process: mujoco.MjModel,
+        *,
+        dt: float,
+        steps_per_tick: int,
+        horizon: int,
+        prior: PriorMatcher | None = None,
+    ) -> None:
         if PREDICTORS != NATIVE_PREDICTORS:
             raise ValueError(f"the native combination computes {NATIVE_PREDICTORS}, not {PREDICTORS}")
-        self._predictors = (*PREDICTORS, LEARNED)
+        if prior is not None and prior.dt != float(dt):
+            raise ValueError(f"the prior's matcher has dt {prior.dt}, the combiner {float(dt)}")
+        self._model = process
+        legs, cov, cov_v = _prior_arguments(prior, max(1, int(horizon)))
+        self._combiner = _ukf.Combiner(
+            process._address,
+            dt=float(dt),
+            steps_per_tick=int(steps_per_tick),
+            horizon=int(horizon),
+            legs=legs,
+            prior_cov=cov,
+            prior_cov_v=cov_v,
+        )
+        self._predictors = (*PREDICTORS, LEARNED) + (PRIOR.names if prior is not None else ())
 
     @property
     def native(self) -> _ukf.Combiner:

@@ -1,4 +1,4 @@
-// See forecast.h. Mirrors server/estimation/forecast.py's ForecastCombiner without the prior; a
+// See forecast.h. Mirrors server/estimation/forecast.py's ForecastCombiner; a
 // frame's scoring is reckoned when it comes (forecast.py's PENDING batching gives the same numbers,
 // and is only there to spare Python calls).
 #include "forecast.h"
@@ -27,9 +27,10 @@ constexpr double kVarianceFloor = 1e-12;
 constexpr double kNovelty = 2.0;
 constexpr double kMaxNovelty = 1e3;
 constexpr double kSurprise = 2.0;
-// The predictors' rows: MODEL, the extrapolators (STATIC first), LEARNED; which vote on a regime
-// change and weigh before LEARNED has its samples (all but LEARNED).
-constexpr int kModel = 0, kStatic = 1, kAcceleration = 3, kLearned = 4, kFixed = 4;
+// The predictors' rows: MODEL, the extrapolators (STATIC first), LEARNED, PRIOR; which vote on a
+// regime change (the first kFixed); the prior's scores' block (PriorScores' order).
+constexpr int kModel = 0, kStatic = 1, kAcceleration = 3, kLearned = 4, kPrior = 5, kFixed = 4;
+constexpr std::array<int, 4> kPriorBlock = {1, 2, 3, kPrior};
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 // The probes' integer marks.
 constexpr int kOrigin = 0, kAge = 1, kKeep = 2, kRamp = 3, kMatched = 4;
@@ -85,7 +86,11 @@ using SmallVector = Eigen::Matrix<double, Eigen::Dynamic, 1, Eigen::ColMajor, kP
 // forecast.py's _min_variance_weights: argmin w' C w over w >= 0, sum w = 1, for the leading p
 // predictors of C (the rest weigh 0).
 PVector MinVarianceWeights(const PMatrix& full, int p) {
-  static const std::vector<std::vector<int>> subsets4 = Subsets(4), subsets5 = Subsets(5);
+  static const std::array<std::vector<std::vector<int>>, kPredictors + 1> subsets = [] {
+    std::array<std::vector<std::vector<int>>, kPredictors + 1> out;
+    for (int k = 1; k <= kPredictors; ++k) out[k] = Subsets(k);
+    return out;
+  }();
   PVector best = PVector::Zero();
   const double scale = full.topLeftCorner(p, p).trace() / p;
   if (!std::isfinite(scale) || scale <= 0.0) {
@@ -97,7 +102,7 @@ PVector MinVarianceWeights(const PMatrix& full, int p) {
   for (int i = 0; i < p; ++i) C(i, i) += 1e-9 * scale;
   double best_v = std::numeric_limits<double>::infinity();
   bool found = false;
-  for (const std::vector<int>& subset : p == 4 ? subsets4 : subsets5) {
+  for (const std::vector<int>& subset : subsets[p]) {
     const int k = static_cast<int>(subset.size());
     SmallMatrix A(k, k);
     for (int i = 0; i < k; ++i) {
@@ -133,6 +138,34 @@ PVector MinVarianceWeights(const PMatrix& full, int p) {
   return best;
 }
 
+// MinVarianceWeights over the predictors `allowed` (the first k of it) alone, the others 0.
+PVector MinVarianceOver(const PMatrix& C, const std::array<int, kPredictors>& allowed, int k) {
+  PMatrix sub = PMatrix::Zero();
+  for (int i = 0; i < k; ++i) {
+    for (int j = 0; j < k; ++j) sub(i, j) = C(allowed[i], allowed[j]);
+  }
+  const PVector w = MinVarianceWeights(sub, k);
+  PVector out = PVector::Zero();
+  for (int i = 0; i < k; ++i) out[allowed[i]] = w[i];
+  return out;
+}
+
+// forecast.py's _at_scale: the prior's covariance times the session's lowest variance among the
+// prior's predictors over the prior's own lowest (as it is where either is nil).
+PMatrix AtScale(const PMatrix& prior, const PMatrix& session) {
+  double ours = std::numeric_limits<double>::infinity(), theirs = ours;
+  for (int p : kPriorBlock) {
+    ours = std::min(ours, session(p, p));
+    theirs = std::min(theirs, prior(p, p));
+  }
+  return ours <= 0.0 || theirs <= 0.0 ? prior : PMatrix(prior * (ours / theirs));
+}
+
+// forecast.py's _PRIOR_SHARE: FORGETTING^n by C's pow, as Python's scalar power; nil from 200.
+double PriorShare(double count) {
+  return count >= 200.0 ? 0.0 : std::pow(kForgetting, count);
+}
+
 // forecast.py's _net_of_noise.
 Vector NetOfNoise(double scored, const std::optional<Vector>& noise, int nv) {
   if (!noise) return Vector::Constant(nv, std::max(scored, kVarianceFloor));
@@ -166,10 +199,12 @@ void RequireSize(const Vector& v, int size, const char* name) {
 std::size_t CombinerState::Bytes() const {
   return sizeof(double) * (table.size() + 5 * marks.size() + 2 * cov.size() * kPredictors * kPredictors +
                            count.size() + learned_count.size() + anchor_q.size() + anchor_v.size() +
-                           learner.size());
+                           learner.size() + prior.stamp.size() + prior.q.size() + prior.v.size());
 }
 
-Combiner::Combiner(const mjModel* model, double dt, int steps_per_tick, int horizon)
+Combiner::Combiner(const mjModel* model, double dt, int steps_per_tick, int horizon,
+                   std::unique_ptr<PriorMatcher> prior, std::vector<Eigen::Matrix4d> prior_cov,
+                   std::vector<Eigen::Matrix4d> prior_cov_v)
     : m_(model),
       d_(nullptr),
       dt_(dt),
@@ -180,7 +215,9 @@ Combiner::Combiner(const mjModel* model, double dt, int steps_per_tick, int hori
       nq_(model->nq),
       nv_(model->nv),
       na_(model->na),
-      matcher_(model->nv, dt, std::max(1, horizon)) {
+      matcher_(model->nv, dt, std::max(1, horizon)),
+      prior_(std::move(prior)),
+      p_(prior_ ? kPredictors : kPredictors - 1) {
   Require(nq_ == nv_, "the forecast combination needs nq == nv (no ball or free joints)");
   Require(nstep_ >= 1, "steps_per_tick must be >= 1, got " + std::to_string(nstep_));
   d_ = mj_makeData(m_);
@@ -207,11 +244,15 @@ Combiner::Combiner(const mjModel* model, double dt, int steps_per_tick, int hori
   c_.a0 = next(nv_);
   c_.match_ticks = next(kMatchK);
   c_.match_weights = next(kMatchK);
+  const int prior_width = prior_ ? prior_->legs() * kPriorK : 0;
+  c_.prior_rows = next(prior_width);
+  c_.prior_weights = next(prior_width);
   c_.width = at;
-  pq_ = Matrix::Zero(kPredictors, nv_);
-  pv_ = Matrix::Zero(kPredictors, nv_);
-  pa_ = Matrix::Zero(kPredictors, nv_);
-  errors_ = verrors_ = Matrix::Zero(kPredictors, nv_);
+  SetPriorScores(prior_cov, prior_cov_v);
+  pq_ = Matrix::Zero(p_, nv_);
+  pv_ = Matrix::Zero(p_, nv_);
+  pa_ = Matrix::Zero(p_, nv_);
+  errors_ = verrors_ = Matrix::Zero(p_, nv_);
   lq_ = lv_ = la_ = a0_ = at_ = anchor_q_ = anchor_v_ = Vector::Zero(nv_);
   Grow((horizon_ + stride_ - 1) / stride_ + 3);
   Reset();
@@ -234,6 +275,7 @@ void Combiner::Reset() {
   count_.assign(horizon_ + 1, 0.0);
   learned_count_.assign(horizon_ + 1, 0.0);
   cached_.assign(horizon_ + 1, false);
+  var_cached_.assign(horizon_ + 1, false);
   weights_.assign(horizon_ + 1, PVector::Zero());
   variances_.assign(horizon_ + 1, {0.0, 0.0});
   has_anchor_ = false;
@@ -280,6 +322,10 @@ void Combiner::MatchProbe(int i) {
   marks_[i][kMatched] = 1;
   double* ticks = table_.row(i).data() + c_.match_ticks;
   double* weights = table_.row(i).data() + c_.match_weights;
+  if (prior_) {
+    double* row = table_.row(i).data();
+    prior_->Match(marks_[i][kOrigin], row + c_.prior_rows, row + c_.prior_weights);
+  }
   if (!matcher_.Match(marks_[i][kOrigin], ticks, weights)) {
     for (int k = 0; k < kMatchK; ++k) {
       ticks[k] = kNaN;
@@ -306,6 +352,13 @@ void Combiner::Predict(int i) {
   pq_.row(kLearned) = lq_.transpose();
   pv_.row(kLearned) = lv_.transpose();
   pa_.row(kLearned) = la_.transpose();
+  if (prior_) {  // the dofs of no leg: LEARNED's
+    prior_->Follow(row + c_.prior_rows, row + c_.prior_weights, age, row + c_.q0, row + c_.v0, row + c_.a0,
+                   lq_.data(), lv_.data(), la_.data());
+    pq_.row(kPrior) = lq_.transpose();
+    pv_.row(kPrior) = lv_.transpose();
+    pa_.row(kPrior) = la_.transpose();
+  }
 }
 
 bool Combiner::Surprised(std::int64_t h, const PMatrix& c) const {
@@ -324,9 +377,9 @@ void Combiner::Score(int i, const Vector& qpos, const Vector& qvel) {
   verrors_ = pv_.rowwise() - qvel.transpose();
   if (!errors_.allFinite() || !verrors_.allFinite()) return;
   // A probe that diverged without going non-finite squares past the largest float: left out.
-  PMatrix c, cv;
-  c.noalias() = errors_ * errors_.transpose();
-  cv.noalias() = verrors_ * verrors_.transpose();
+  PMatrix c = PMatrix::Zero(), cv = PMatrix::Zero();
+  c.topLeftCorner(p_, p_).noalias() = errors_ * errors_.transpose();
+  cv.topLeftCorner(p_, p_).noalias() = verrors_ * verrors_.transpose();
   c /= nv_;
   cv /= nv_;
   if (!c.allFinite() || !cv.allFinite()) return;
@@ -337,6 +390,7 @@ void Combiner::Score(int i, const Vector& qpos, const Vector& qvel) {
   cov_v_[h] = (1.0 - d) * cov_v_[h] + d * cv;
   count_[h] += 1.0;
   cached_[h] = false;
+  var_cached_[h] = false;
 }
 
 void Combiner::Observe(const Vector& qpos, const Vector& qvel, const Vector& mean_qpos, const Vector& mean_qvel,
@@ -377,6 +431,7 @@ void Combiner::Observe(const Vector& qpos, const Vector& qvel, const Vector& mea
   anchor_tick_ = tick_;
   const bool keep = streak && tick_ % stride_ == 0;
   matcher_.Record(tick_, qpos.data(), qvel.data());
+  if (prior_) prior_->Record(tick_, qpos.data(), qvel.data());
   if (m + 1 > table_.rows()) Grow(2 * static_cast<int>(table_.rows()));
   auto row = table_.row(m);
   row.segment(c_.qpos, nq_) = mean_qpos.transpose();
@@ -397,11 +452,60 @@ void Combiner::Observe(const Vector& qpos, const Vector& qvel, const Vector& mea
   if (keep) MatchProbe(m);
 }
 
-PVector Combiner::SolveWeights(std::int64_t h, const PVector* scale) const {
-  PMatrix C = cov_[h];
+PVector Combiner::SolveWeights(std::int64_t h, const PVector* scale, bool matched) const {
+  PMatrix C = Weighing(h)[0];
   if (scale) C = (scale->asDiagonal() * C * scale->asDiagonal()).eval();
-  // LEARNED weighs 0 until it has LEARNED_SAMPLES scores from real matches at h.
-  return MinVarianceWeights(C, learned_count_[h] >= kLearnedSamples ? kPredictors : kFixed);
+  // LEARNED weighs 0 until it has LEARNED_SAMPLES scores from real matches at h; with the prior's
+  // scores, only the predictors they cover weigh until h has MIN_SAMPLES of the session's own;
+  // PRIOR weighs 0 for a probe without a match of it.
+  const bool learned = learned_count_[h] >= kLearnedSamples;
+  std::array<int, kPredictors> allowed{};
+  int k = 0;
+  if (!prior_cov_.empty() && count_[h] < kMinSamples) {
+    for (int p : kPriorBlock) allowed[k++] = p;
+  } else if (matched && learned) {
+    return MinVarianceWeights(C, p_);
+  } else {
+    for (int p = 0; p < p_; ++p) {
+      if (learned || p != kLearned) allowed[k++] = p;
+    }
+  }
+  if (!matched) k -= allowed[k - 1] == kPrior ? 1 : 0;
+  return MinVarianceOver(C, allowed, k);
+}
+
+std::array<PMatrix, 2> Combiner::Weighing(std::int64_t h) const {
+  if (prior_cov_.empty()) return {cov_[h], cov_v_[h]};
+  // The prior's scores on other people's walking blended with the session's as a fading memory
+  // holds a score made before the session's n, at the session's scale.
+  const double share = PriorShare(count_[h]);
+  const PMatrix C0 = AtScale(prior_cov_[h], cov_[h]), D0 = AtScale(prior_cov_v_[h], cov_v_[h]);
+  std::array<PMatrix, 2> out = {cov_[h], cov_v_[h]};
+  for (int i : kPriorBlock) {
+    for (int j : kPriorBlock) {
+      out[0](i, j) = share * C0(i, j) + (1.0 - share) * cov_[h](i, j);
+      out[1](i, j) = share * D0(i, j) + (1.0 - share) * cov_v_[h](i, j);
+    }
+  }
+  return out;
+}
+
+void Combiner::SetPriorScores(const std::vector<Eigen::Matrix4d>& cov, const std::vector<Eigen::Matrix4d>& cov_v) {
+  if (cov.empty() && cov_v.empty()) return;
+  Require(prior_ != nullptr, "the prior's scores need the prior");
+  Require(cov.size() == static_cast<std::size_t>(horizon_ + 1) && cov_v.size() == cov.size(),
+          "the prior's scores must have horizon + 1 = " + std::to_string(horizon_ + 1) + " covariances each, got " +
+              std::to_string(cov.size()) + " and " + std::to_string(cov_v.size()));
+  prior_cov_.assign(horizon_ + 1, PMatrix::Zero());
+  prior_cov_v_.assign(horizon_ + 1, PMatrix::Zero());
+  for (int h = 0; h <= horizon_; ++h) {
+    for (int i = 0; i < 4; ++i) {
+      for (int j = 0; j < 4; ++j) {
+        prior_cov_[h](kPriorBlock[i], kPriorBlock[j]) = cov[h](i, j);
+        prior_cov_v_[h](kPriorBlock[i], kPriorBlock[j]) = cov_v[h](i, j);
+      }
+    }
+  }
 }
 
 std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& noise_q,
@@ -414,31 +518,41 @@ std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& 
   // Past the scored horizon the filter answers, its prediction moving on.
   if (tick_ - marks_[i][kOrigin] - (ended ? 1 : 0) > horizon_) return std::nullopt;
   const std::int64_t h = std::min<std::int64_t>(marks_[i][kAge], horizon_);
-  if (count_[h] < kMinSamples) return std::nullopt;
+  // The prior answers from the first tick: its scores are other people's.
+  if (count_[h] < kMinSamples && !prior_) return std::nullopt;
   if (!marks_[i][kMatched]) MatchProbe(i);
-  if (!cached_[h]) {
-    weights_[h] = SolveWeights(h, nullptr);
-    const PMatrix& C = cov_[h];
-    const PMatrix& D = cov_v_[h];
-    variances_[h] = {weights_[h].dot(C * weights_[h]), weights_[h].dot(D * weights_[h])};
-    cached_[h] = true;
+  bool matched = !prior_;  // with the prior: whether a leg of it has a match
+  for (int k = 0; prior_ && k < prior_->legs() * kPriorK; ++k) {
+    matched = matched || !std::isnan(table_(i, c_.prior_rows + k));
+  }
+  PVector weights;
+  if (!matched) {
+    weights = SolveWeights(h, nullptr, false);
+  } else {
+    if (!cached_[h]) {
+      weights_[h] = SolveWeights(h, nullptr);
+      cached_[h] = true;
+    }
+    weights = weights_[h];
   }
   Predict(i);
   // The novelty guard: a predictor departing from the reference (STATIC moved towards
   // CONSTANT_ACCELERATION as far as the last two frames' velocities agree) by more than NOVELTY
   // times its scored past.
-  const PMatrix& C = cov_[h];
+  const std::array<PMatrix, 2> weighing = Weighing(h);
+  const PMatrix& C = weighing[0];
+  const PMatrix& D = weighing[1];
   const auto row = table_.row(i);
   const double confirmed = Confirmed(row.segment(c_.v0, nv_), row.segment(c_.a0, nv_), dt_);
   PVector reference = PVector::Zero();
   reference[kStatic] = 1.0 - confirmed;
   reference[kAcceleration] += confirmed;
-  at_.noalias() = pq_.transpose() * reference;
+  at_.noalias() = pq_.transpose() * reference.head(p_);
   const PVector Cr = C * reference;
   const double rCr = reference.dot(Cr);
   PVector scale = PVector::Ones();
   bool novel = false;
-  for (int p = 0; p < kPredictors; ++p) {
+  for (int p = 0; p < p_; ++p) {
     if (p == kStatic) continue;
     const double now = (pq_.row(p) - at_.transpose()).squaredNorm() / nv_;
     const double limit = kNovelty * kNovelty * std::max(C(p, p) - 2.0 * Cr[p] + rCr, 0.0);
@@ -452,19 +566,23 @@ std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& 
   CombinedForecast out;
   double var_q, var_qd;
   if (novel) {
-    out.weights = SolveWeights(h, &scale);
+    out.weights = SolveWeights(h, &scale, matched);
     const PMatrix S = scale * scale.transpose();
-    const PMatrix& D = cov_v_[h];
     var_q = out.weights.dot(S.cwiseProduct(C) * out.weights);
     var_qd = out.weights.dot(S.cwiseProduct(D) * out.weights);
   } else {
-    out.weights = weights_[h];
+    // Kept with the weights until a score changes them (the first weights asked for since).
+    out.weights = weights;
+    if (!var_cached_[h]) {
+      variances_[h] = {weights.dot(C * weights), weights.dot(D * weights)};
+      var_cached_[h] = true;
+    }
     var_q = variances_[h][0];
     var_qd = variances_[h][1];
   }
-  out.qpos = pq_.transpose() * out.weights;
-  out.qvel = pv_.transpose() * out.weights;
-  out.qacc = pa_.transpose() * out.weights;
+  out.qpos = pq_.transpose() * out.weights.head(p_);
+  out.qvel = pv_.transpose() * out.weights.head(p_);
+  out.qacc = pa_.transpose() * out.weights.head(p_);
   out.var_q = NetOfNoise(var_q, noise_q, nv_);
   out.var_qd = NetOfNoise(var_qd, noise_qd, nv_);
   return out;
@@ -494,6 +612,7 @@ CombinerState Combiner::Snapshot() const {
   s.anchor_v = anchor_v_;
   s.anchor_tick = anchor_tick_;
   s.learner = matcher_.State();
+  if (prior_) s.prior = prior_->State();
   return s;
 }
 
@@ -514,7 +633,9 @@ void Combiner::Restore(const CombinerState& s) {
   anchor_v_ = s.anchor_v;
   anchor_tick_ = s.anchor_tick;
   matcher_.Restore(s.learner);
+  if (prior_) prior_->Restore(s.prior);
   cached_.assign(horizon_ + 1, false);
+  var_cached_.assign(horizon_ + 1, false);
 }
 
 }  // namespace jitdyn

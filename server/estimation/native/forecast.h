@@ -1,8 +1,9 @@
-// The forecast combination of a DRIVEN session with the default predictors and no prior, as
+// The forecast combination of a DRIVEN session with the default predictors, as
 // server/estimation/forecast.py's ForecastCombiner computes it (tests/server/test_native_forecast.py
 // holds the two to 1e-9): MODEL (the posterior rolled out by mj_step on the process model, its force
 // held or ramped with its rate), IEEE 1278's STATIC, CONSTANT_VELOCITY and CONSTANT_ACCELERATION,
-// and LEARNED (motion matching, matching.h); probes scored against each frame into fading pooled
+// LEARNED (motion matching, matching.h) and, for a model whose joints have leg roles, PRIOR (the prior
+// of human motion, prior.h); probes scored against each frame into fading pooled
 // covariances; the minimum-variance weights over every subset; the novelty guard; the answer's
 // variances net of the frames' noise. One instance per session, one thread at a time.
 #ifndef JITDYN_SERVER_ESTIMATION_NATIVE_FORECAST_H_
@@ -18,12 +19,14 @@
 #include <vector>
 
 #include "matching.h"
+#include "prior.h"
 #include "ukf.h"
 
 namespace jitdyn {
 
-// The predictors, in the weights' order (forecast.py's PREDICTORS, then LEARNED).
-constexpr int kPredictors = 5;
+// The predictors, in the weights' order (forecast.py's PREDICTORS, then LEARNED, then PRIOR when the
+// combiner has the prior): at most kPredictors, the matrices sized for them.
+constexpr int kPredictors = 6;
 using PMatrix = Eigen::Matrix<double, kPredictors, kPredictors, Eigen::RowMajor>;
 using PVector = Eigen::Matrix<double, kPredictors, 1>;
 
@@ -45,12 +48,17 @@ struct CombinerState {
   Vector anchor_q, anchor_v;
   std::int64_t anchor_tick = -1;
   Vector learner;  // the matcher's moments
+  PriorRing prior;  // the prior's ring of frames (empty without the prior)
   std::size_t Bytes() const;
 };
 
 class Combiner {
  public:
-  Combiner(const mjModel* model, double dt, int steps_per_tick, int horizon);
+  // prior: the prior of human motion's matcher and its scores over STATIC, the other extrapolators
+  // and PRIOR at every horizon 0..horizon ((horizon + 1) 4 x 4 each; empty: none), or nothing.
+  Combiner(const mjModel* model, double dt, int steps_per_tick, int horizon,
+           std::unique_ptr<PriorMatcher> prior = nullptr, std::vector<Eigen::Matrix4d> prior_cov = {},
+           std::vector<Eigen::Matrix4d> prior_cov_v = {});
   ~Combiner();
   Combiner(const Combiner&) = delete;
   Combiner& operator=(const Combiner&) = delete;
@@ -74,11 +82,13 @@ class Combiner {
   int nv() const { return nv_; }
   int na() const { return na_; }
   int window() const { return matcher_.window(); }
+  int predictors() const { return p_; }
   std::int64_t tick() const { return tick_; }
 
  private:
   struct Columns {
-    int qpos, qvel, qacc, act, force, rate, q0, v0, a0, match_ticks, match_weights, width;
+    int qpos, qvel, qacc, act, force, rate, q0, v0, a0, match_ticks, match_weights, prior_rows, prior_weights,
+        width;
   };
   // Every predictor's qpos, qvel, qacc (P, nv) for probe row i at its age.
   void Predict(int i);
@@ -86,8 +96,11 @@ class Combiner {
   void Step(int i);
   void MatchProbe(int i);
   void Grow(int capacity);
+  void SetPriorScores(const std::vector<Eigen::Matrix4d>& cov, const std::vector<Eigen::Matrix4d>& cov_v);
   bool Surprised(std::int64_t h, const PMatrix& c) const;
-  PVector SolveWeights(std::int64_t h, const PVector* scale) const;
+  PVector SolveWeights(std::int64_t h, const PVector* scale, bool matched = true) const;
+  // The covariances of q and qd errors the weights of horizon h come from (forecast.py's _weighing).
+  std::array<PMatrix, 2> Weighing(std::int64_t h) const;
 
   const mjModel* m_;
   mjData* d_;
@@ -97,6 +110,9 @@ class Combiner {
   int nstep_, horizon_, stride_, nq_, nv_, na_;
   Columns c_;
   MotionMatcher matcher_;
+  std::unique_ptr<PriorMatcher> prior_;
+  std::vector<PMatrix> prior_cov_, prior_cov_v_;  // the prior's scores, empty without them
+  int p_;                                          // the predictors: 5, 6 with the prior
 
   std::int64_t tick_ = 0;
   int n_ = 0;
@@ -105,7 +121,7 @@ class Combiner {
   std::vector<PMatrix> cov_, cov_v_;
   std::vector<double> count_, learned_count_;
   // The weights and scored variances of each horizon, while its covariances have not changed.
-  std::vector<bool> cached_;
+  std::vector<bool> cached_, var_cached_;
   std::vector<PVector> weights_;
   std::vector<std::array<double, 2>> variances_;
   bool has_anchor_ = false;

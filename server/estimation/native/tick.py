@@ -88,7 +88,7 @@ class NativeTick:
     @classmethod
     def of(cls, parts: FilterParts) -> NativeTick | None:
         """The filter's, or None: another engine, the config's `native_tick` off, or a Python
-        adapter or combiner (the forecast's prior, `native_forecast` off)."""
+        adapter or combiner (`native_forecast` off)."""
         kf, adapter = parts.kf, parts.adapter
         combiner = parts.foresight.combiner if parts.foresight is not None else None
         if not parts.config.native_tick or not isinstance(kf, NativeUKF):
