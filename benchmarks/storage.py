@@ -14,11 +14,12 @@ fsynced. Target: >= 100k frames/s. The many-sessions case compares one group com
 sessions of a process (one fsync per commit window: docs/decisions/0040-group-commit-window.md) against one per session.
 `--close` measures what the server pays when a slow session ends: the compaction of a log of many
 tiny group commits, on a thread beside a thread that wakes every millisecond as the event loop does.
-`--record-path` sets what a record costs the server, the tick's `append` and its share of the
-commit thread's batch, as the committer does it now (written into preallocated columns, the
-window's batch a view of them: storage/buffers.py) beside the way it did before (records queued in
-a list, one batch converted from all sessions' records per window and sliced per session), on the
-same records in one run; the write and the fsync, the same in both, are left out.
+`--record-path` sets what a record costs the server, the tick's row and its share of the commit
+thread's batch, as the committer does it now (the tick's values written straight into preallocated
+columns, the window's batch a view of them: storage/buffers.py) beside the way it did before (a
+TickRecord built and queued in a list, one batch converted from all sessions' records per window
+and sliced per session), on the same values in one run; the write and the fsync, the same in both,
+are left out.
 """
 
 from __future__ import annotations
@@ -34,11 +35,13 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from jitdyn.storage.buffers import WindowRows
-from jitdyn.storage.columns import expected_lengths, records_to_batch
+from jitdyn.storage.columns import ARRAY_FIELDS, expected_lengths, records_to_batch
 from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.db import open_index
 from jitdyn.storage.index import SessionIndex
@@ -96,6 +99,37 @@ class Trajectory:
         self.nis = rng.chisquare(6, n)
         self.compute = rng.integers(80, 400, n)
 
+    def row(self, i: int) -> tuple[Any, ...]:
+        """Frame `i` as the tick writes it: `SessionRecorder.append_result`'s values."""
+        vectors: dict[str, npt.NDArray[np.float64] | None] = dict.fromkeys(ARRAY_FIELDS)
+        vectors.update(
+            frame_qpos=self.qpos[i],
+            frame_qvel=self.qvel[i],
+            qpos=self.qpos[i],
+            qvel=self.qvel[i],
+            qacc=self.qacc[i],
+            qfrc_inverse=self.qfrc[i],
+            covariance_diagonal=self.cov[i],
+            filter_state=self.state[i],
+        )
+        t = float(self.t[i])
+        compute = int(self.compute[i])
+        return (
+            i,
+            Source.MEASURED,
+            t,
+            t + 2e-4,
+            t,
+            0,
+            0.0,
+            float(self.nis[i]),
+            False,
+            False,
+            compute,
+            compute + 30,
+            tuple(vectors.values()),
+        )
+
     def record(self, i: int) -> TickRecord:
         return TickRecord(
             kind="result",
@@ -125,16 +159,19 @@ def throughput(root: Path, index: SessionIndex, frames: int) -> dict[str, float]
     started = time.perf_counter()
     records = [trajectory.record(i) for i in range(frames)]
     build_us = (time.perf_counter() - started) / frames * 1e6
+    del records
+    rows = [trajectory.row(i) for i in range(frames)]
     samples: list[float] = []
     recorder = SessionRecorder(data_root=root, index=index, header=header())
+    append = recorder.append_result
     started = time.perf_counter()
-    for i, record in enumerate(records):
+    for i, row in enumerate(rows):
         if i % 97 == 0:
             t0 = time.perf_counter_ns()
-            recorder.append(record)
+            append(*row)
             samples.append((time.perf_counter_ns() - t0) / 1e3)
         else:
-            recorder.append(record)
+            append(*row)
     appended = time.perf_counter() - started
     recorder.flush()
     durable = time.perf_counter() - started
@@ -156,14 +193,14 @@ def paced(root: Path, index: SessionIndex, rate: float, seconds: float) -> dict[
     sample how far durability lags behind (ms of frames appended but not yet fsynced)."""
     frames = int(rate * seconds)
     trajectory = Trajectory(frames, seed=2)
-    records = [trajectory.record(i) for i in range(frames)]
+    records = [trajectory.row(i) for i in range(frames)]
     burst = max(1, int(rate / 1000))
     lags: list[float] = []
     recorder = SessionRecorder(data_root=root, index=index, header=header())
     started = time.perf_counter()
     for start in range(0, frames, burst):
-        for record in records[start : start + burst]:
-            recorder.append(record)
+        for row in records[start : start + burst]:
+            recorder.append_result(*row)
         durable = recorder.durable_seq
         lags.append((start + burst - 1 - (-1 if durable is None else durable)) / rate * 1e3)
         pause = started + (start + burst) / rate - time.perf_counter()
@@ -209,7 +246,7 @@ def many_sessions(
             pause = due - time.perf_counter()
             if pause > 0:
                 time.sleep(pause)
-            recorder.append(trajectory.record(k))
+            recorder.append_result(*trajectory.row(k))
         durable = recorders[0].durable_seq
         lags.append((k - (-1 if durable is None else durable)) * period * 1e3)
     for recorder in recorders:
@@ -235,7 +272,7 @@ def compaction(root: Path, index: SessionIndex, frames: int) -> dict[str, float]
     recorder = SessionRecorder(data_root=root, index=index, header=header(), commit_every=4096)
     started = time.perf_counter()
     for i in range(frames):
-        recorder.append(trajectory.record(i))
+        recorder.append_result(*trajectory.row(i))
     recorder.flush()
     built_and_logged = time.perf_counter() - started
     log_bytes = recorder.log_bytes
@@ -259,7 +296,7 @@ def close_cost(root: Path, index: SessionIndex, *, ticks: int, per_commit: int) 
     trajectory = Trajectory(ticks, seed=4)
     recorder = SessionRecorder(data_root=root, index=index, header=header())
     for i in range(ticks):
-        recorder.append(trajectory.record(i))
+        recorder.append_result(*trajectory.row(i))
         if (i + 1) % per_commit == 0:
             recorder.flush()
     recorder.flush()
@@ -305,16 +342,18 @@ def _check_lengths(records: list[TickRecord], lengths: dict[str, int]) -> None:
                 raise ValueError(f"{name} at {position}: {len(array)} values, not {expected}")
 
 
-def _listed_window(windows: list[list[TickRecord]], lengths: dict[str, int]) -> tuple[float, float]:
-    """Before: every session's records queued in a list, then one batch converted from all of them,
-    sliced and serialised per session. (s spent appending, s spent building and serialising)."""
+def _listed_window(windows: list[list[tuple[Any, ...]]], lengths: dict[str, int]) -> tuple[float, float]:
+    """Before: each tick built a TickRecord and queued it in its session's list, then the commit
+    thread converted one batch from every session's records, sliced and serialised per session.
+    (s spent building and appending, s spent building the batch and serialising)."""
     queues: list[list[TickRecord]] = [[] for _ in windows]
     lock = threading.Lock()
     started = time.thread_time()
     for k in range(len(windows[0])):
-        for queue, records in zip(queues, windows, strict=True):
+        for queue, rows in zip(queues, windows, strict=True):
+            record = _record(*rows[k])
             with lock:
-                queue.append(records[k])
+                queue.append(record)
     appended = time.thread_time()
     _check_lengths([r for queue in queues for r in queue], lengths)
     batch = records_to_batch([r for queue in queues for r in queue])
@@ -325,15 +364,83 @@ def _listed_window(windows: list[list[TickRecord]], lengths: dict[str, int]) -> 
     return appended - started, time.thread_time() - appended
 
 
-def _columnar_window(windows: list[list[TickRecord]], columns: list[WindowRows]) -> tuple[float, float]:
-    """Now: each record written into its session's columns, then per session a batch viewing them,
-    serialised. (s spent appending, s spent building and serialising)."""
+def _record(
+    seq: int,
+    source: str,
+    t: float,
+    server_time: float,
+    frame_t: float | None,
+    late_ticks: int,
+    frame_delay: float | None,
+    nis: float | None,
+    reinitialised: bool,
+    late_compute: bool,
+    compute_us: int,
+    receive_to_send_us: int,
+    vectors: tuple[npt.NDArray[np.float64] | None, ...],
+) -> TickRecord:
+    """The TickRecord the tick built before, from the same values, as messages.tick_record did."""
+    (
+        frame_qpos,
+        frame_qvel,
+        frame_qacc,
+        frame_ctrl,
+        frame_sensordata,
+        qpos,
+        qvel,
+        qacc,
+        qfrc_inverse,
+        qacc_forward,
+        actuator_force,
+        sensordata,
+        covariance_diagonal,
+        filter_state,
+        forecast_weights,
+    ) = vectors
+    return TickRecord(
+        kind="result",
+        seq=seq,
+        source=source,
+        t=t,
+        server_time=server_time,
+        frame_received=frame_t is not None,
+        frame_t=frame_t,
+        frame_qpos=frame_qpos,
+        frame_qvel=frame_qvel,
+        frame_qacc=frame_qacc,
+        frame_ctrl=frame_ctrl,
+        frame_sensordata=frame_sensordata,
+        late_ticks=late_ticks,
+        frame_delay=frame_delay,
+        qpos=qpos,
+        qvel=qvel,
+        qacc=qacc,
+        qfrc_inverse=qfrc_inverse,
+        qacc_forward=qacc_forward,
+        actuator_force=actuator_force,
+        sensordata=sensordata,
+        covariance_diagonal=None if covariance_diagonal is None else covariance_diagonal.copy(),
+        filter_state=filter_state,
+        nis=nis,
+        reinitialised=reinitialised,
+        late_compute=late_compute,
+        forecast_weights=forecast_weights,
+        compute_us=compute_us,
+        receive_to_send_us=receive_to_send_us,
+        reject_reason="",
+        reject_message="",
+    )
+
+
+def _columnar_window(windows: list[list[tuple[Any, ...]]], columns: list[WindowRows]) -> tuple[float, float]:
+    """Now: each tick writes its values straight into its session's columns (no TickRecord), then
+    per session a batch viewing them is serialised. (s spent appending, s spent serialising)."""
     lock = threading.Lock()
     started = time.thread_time()
     for k in range(len(windows[0])):
-        for rows, records in zip(columns, windows, strict=True):
+        for rows, values in zip(columns, windows, strict=True):
             with lock:
-                rows.append(records[k])
+                rows.append_result(*values[k])
     appended = time.thread_time()
     for rows in columns:
         rows.batch().serialize()
@@ -350,7 +457,7 @@ def record_path(*, sessions: int, per_window: int, windows: int) -> dict[str, di
     samples: dict[str, list[tuple[float, float]]] = {"lists": [], "columns": []}
     for w in range(windows):
         base = w * per_window
-        batch = [[trajectory.record(base + k) for k in range(per_window)] for _ in range(sessions)]
+        batch = [[trajectory.row(base + k) for k in range(per_window)] for _ in range(sessions)]
         samples["lists"].append(_listed_window(batch, lengths))
         samples["columns"].append(_columnar_window(batch, columns))
     records = sessions * per_window
@@ -462,7 +569,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{p['lag_p50_ms']:.1f} / {p['lag_p99_ms']:.1f} / {p['lag_max_ms']:.1f}",
         ),
         ("  group commits (fsyncs)", f"{p['commits']:,}"),
-        ("building a TickRecord (us, the runtime's cost)", f"{t['build_us']:.2f}"),
+        ("building a TickRecord (us; the tick no longer does)", f"{t['build_us']:.2f}"),
         ("log bytes per frame", f"{t['log_bytes_per_frame']:.1f}"),
         (f"build + log, {args.compact_frames} frames (frames/s)", f"{c['log_rate']:,.0f}"),
         (f"close: compact {args.compact_frames} frames to Parquet (s)", f"{c['close_s']:.2f}"),
