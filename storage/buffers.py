@@ -436,8 +436,9 @@ class WindowRows:
         receive_to_send_us: int,
         vectors: tuple[npt.NDArray[np.float64] | None, ...],
     ) -> None:
-        """Write a tick's result as the next row, from its values, without a `TickRecord`: what the
-        tick's thread calls. `frame_t` is None when no frame arrived (frame_received False);
+        """Write a tick's result as the next row, from its values, without a `TickRecord` (the
+        server does not call it; what it costs there: decision 0217, and benchmarks/storage.py
+        --record-path measures it). `frame_t` is None when no frame arrived (frame_received False);
         `vectors` are the 15 array columns' values in ARRAY_FIELDS order, each a 1-D float64 array
         (copied here: it may change once this returns) or None. Straight-line, the scalars set and
         each vector copied into its block row; a value the fast path does not take (a width not
