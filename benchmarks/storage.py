@@ -100,7 +100,7 @@ class Trajectory:
         self.compute = rng.integers(80, 400, n)
 
     def row(self, i: int) -> tuple[Any, ...]:
-        """Frame `i` as the tick writes it: `SessionRecorder.append_result`'s values."""
+        """Frame `i` as `WindowRows.append_result` takes it: a tick's values, no TickRecord."""
         vectors: dict[str, npt.NDArray[np.float64] | None] = dict.fromkeys(ARRAY_FIELDS)
         vectors.update(
             frame_qpos=self.qpos[i],
