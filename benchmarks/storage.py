@@ -14,11 +14,12 @@ fsynced. Target: >= 100k frames/s. The many-sessions case compares one group com
 sessions of a process (one fsync per commit window: docs/decisions/0040-group-commit-window.md) against one per session.
 `--close` measures what the server pays when a slow session ends: the compaction of a log of many
 tiny group commits, on a thread beside a thread that wakes every millisecond as the event loop does.
-`--record-path` sets what a record costs the server, the tick's `append` and its share of the
-commit thread's batch, as the committer does it now (written into preallocated columns, the
-window's batch a view of them: storage/buffers.py) beside the way it did before (records queued in
-a list, one batch converted from all sessions' records per window and sliced per session), on the
-same records in one run; the write and the fsync, the same in both, are left out.
+`--record-path` sets what a record costs the server, the tick's row and its share of the commit
+thread's batch, as the committer does it (a TickRecord built and queued in a list, one batch
+converted from all sessions' records per window and sliced per session) beside preallocated
+columns (the tick's values written straight into them, the window's batch a view of them:
+storage/buffers.py; not used by the committer: docs/decisions/0217-the-tick-writes-its-row.md), on
+the same values in one run; the write and the fsync, the same in both, are left out.
 """
 
 from __future__ import annotations
@@ -34,11 +35,13 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from jitdyn.storage.buffers import WindowRows
-from jitdyn.storage.columns import expected_lengths, records_to_batch
+from jitdyn.storage.columns import ARRAY_FIELDS, expected_lengths, records_to_batch
 from jitdyn.storage.commit import GroupCommitter
 from jitdyn.storage.db import open_index
 from jitdyn.storage.index import SessionIndex
@@ -95,6 +98,37 @@ class Trajectory:
         self.state = np.hstack([self.qpos, self.qvel]) + 1e-4 * rng.standard_normal((n, 6))
         self.nis = rng.chisquare(6, n)
         self.compute = rng.integers(80, 400, n)
+
+    def row(self, i: int) -> tuple[Any, ...]:
+        """Frame `i` as `WindowRows.append_result` takes it: a tick's values, no TickRecord."""
+        vectors: dict[str, npt.NDArray[np.float64] | None] = dict.fromkeys(ARRAY_FIELDS)
+        vectors.update(
+            frame_qpos=self.qpos[i],
+            frame_qvel=self.qvel[i],
+            qpos=self.qpos[i],
+            qvel=self.qvel[i],
+            qacc=self.qacc[i],
+            qfrc_inverse=self.qfrc[i],
+            covariance_diagonal=self.cov[i],
+            filter_state=self.state[i],
+        )
+        t = float(self.t[i])
+        compute = int(self.compute[i])
+        return (
+            i,
+            Source.MEASURED,
+            t,
+            t + 2e-4,
+            t,
+            0,
+            0.0,
+            float(self.nis[i]),
+            False,
+            False,
+            compute,
+            compute + 30,
+            tuple(vectors.values()),
+        )
 
     def record(self, i: int) -> TickRecord:
         return TickRecord(
@@ -296,7 +330,7 @@ def close_cost(root: Path, index: SessionIndex, *, ticks: int, per_commit: int) 
 
 
 def _check_lengths(records: list[TickRecord], lengths: dict[str, int]) -> None:
-    """The check the commit thread ran on every queued record before the columns did it on append."""
+    """The check the commit thread runs on every queued record (columns.check_lengths)."""
     checked = [(name, operator.attrgetter(name), expected) for name, expected in lengths.items()]
     for position, record in enumerate(records):
         for name, getter, expected in checked:
@@ -305,16 +339,19 @@ def _check_lengths(records: list[TickRecord], lengths: dict[str, int]) -> None:
                 raise ValueError(f"{name} at {position}: {len(array)} values, not {expected}")
 
 
-def _listed_window(windows: list[list[TickRecord]], lengths: dict[str, int]) -> tuple[float, float]:
-    """Before: every session's records queued in a list, then one batch converted from all of them,
-    sliced and serialised per session. (s spent appending, s spent building and serialising)."""
+def _listed_window(windows: list[list[tuple[Any, ...]]], lengths: dict[str, int]) -> tuple[float, float]:
+    """The committer's way: each tick builds a TickRecord and queues it in its session's list, then
+    the commit thread converts one batch from every session's records, sliced and serialised per
+    session.
+    (s spent building and appending, s spent building the batch and serialising)."""
     queues: list[list[TickRecord]] = [[] for _ in windows]
     lock = threading.Lock()
     started = time.thread_time()
     for k in range(len(windows[0])):
-        for queue, records in zip(queues, windows, strict=True):
+        for queue, rows in zip(queues, windows, strict=True):
+            record = _record(*rows[k])
             with lock:
-                queue.append(records[k])
+                queue.append(record)
     appended = time.thread_time()
     _check_lengths([r for queue in queues for r in queue], lengths)
     batch = records_to_batch([r for queue in queues for r in queue])
@@ -325,15 +362,83 @@ def _listed_window(windows: list[list[TickRecord]], lengths: dict[str, int]) -> 
     return appended - started, time.thread_time() - appended
 
 
-def _columnar_window(windows: list[list[TickRecord]], columns: list[WindowRows]) -> tuple[float, float]:
-    """Now: each record written into its session's columns, then per session a batch viewing them,
-    serialised. (s spent appending, s spent building and serialising)."""
+def _record(
+    seq: int,
+    source: str,
+    t: float,
+    server_time: float,
+    frame_t: float | None,
+    late_ticks: int,
+    frame_delay: float | None,
+    nis: float | None,
+    reinitialised: bool,
+    late_compute: bool,
+    compute_us: int,
+    receive_to_send_us: int,
+    vectors: tuple[npt.NDArray[np.float64] | None, ...],
+) -> TickRecord:
+    """The TickRecord the tick builds from the same values, as messages.tick_record does."""
+    (
+        frame_qpos,
+        frame_qvel,
+        frame_qacc,
+        frame_ctrl,
+        frame_sensordata,
+        qpos,
+        qvel,
+        qacc,
+        qfrc_inverse,
+        qacc_forward,
+        actuator_force,
+        sensordata,
+        covariance_diagonal,
+        filter_state,
+        forecast_weights,
+    ) = vectors
+    return TickRecord(
+        kind="result",
+        seq=seq,
+        source=source,
+        t=t,
+        server_time=server_time,
+        frame_received=frame_t is not None,
+        frame_t=frame_t,
+        frame_qpos=frame_qpos,
+        frame_qvel=frame_qvel,
+        frame_qacc=frame_qacc,
+        frame_ctrl=frame_ctrl,
+        frame_sensordata=frame_sensordata,
+        late_ticks=late_ticks,
+        frame_delay=frame_delay,
+        qpos=qpos,
+        qvel=qvel,
+        qacc=qacc,
+        qfrc_inverse=qfrc_inverse,
+        qacc_forward=qacc_forward,
+        actuator_force=actuator_force,
+        sensordata=sensordata,
+        covariance_diagonal=None if covariance_diagonal is None else covariance_diagonal.copy(),
+        filter_state=filter_state,
+        nis=nis,
+        reinitialised=reinitialised,
+        late_compute=late_compute,
+        forecast_weights=forecast_weights,
+        compute_us=compute_us,
+        receive_to_send_us=receive_to_send_us,
+        reject_reason="",
+        reject_message="",
+    )
+
+
+def _columnar_window(windows: list[list[tuple[Any, ...]]], columns: list[WindowRows]) -> tuple[float, float]:
+    """Columns: each tick writes its values straight into its session's columns (no TickRecord),
+    then per session a batch viewing them is serialised. (s spent appending, s spent serialising)."""
     lock = threading.Lock()
     started = time.thread_time()
     for k in range(len(windows[0])):
-        for rows, records in zip(columns, windows, strict=True):
+        for rows, values in zip(columns, windows, strict=True):
             with lock:
-                rows.append(records[k])
+                rows.append_result(*values[k])
     appended = time.thread_time()
     for rows in columns:
         rows.batch().serialize()
@@ -350,7 +455,7 @@ def record_path(*, sessions: int, per_window: int, windows: int) -> dict[str, di
     samples: dict[str, list[tuple[float, float]]] = {"lists": [], "columns": []}
     for w in range(windows):
         base = w * per_window
-        batch = [[trajectory.record(base + k) for k in range(per_window)] for _ in range(sessions)]
+        batch = [[trajectory.row(base + k) for k in range(per_window)] for _ in range(sessions)]
         samples["lists"].append(_listed_window(batch, lengths))
         samples["columns"].append(_columnar_window(batch, columns))
     records = sessions * per_window
@@ -367,15 +472,17 @@ def print_record_path(args: argparse.Namespace) -> None:
         f"a record's CPU (us), pendulum_3 rows, {args.sessions_per_window} sessions a commit window, "
         f"median of {args.windows} windows each; {os.cpu_count()} CPUs"
     )
-    print(f"{'rows/session/window':>20}{'way':>10}{'append':>10}{'batch':>10}{'total':>10}{'before/now':>12}")
+    print(
+        f"{'rows/session/window':>20}{'way':>10}{'append':>10}{'batch':>10}{'total':>10}{'lists/columns':>15}"
+    )
     for per_window in args.rows_per_window:
         result = record_path(sessions=args.sessions_per_window, per_window=per_window, windows=args.windows)
         ratio = result["lists"]["total_us"] / result["columns"]["total_us"]
-        for way, label in (("lists", "before"), ("columns", "now")):
+        for way in ("lists", "columns"):
             r = result[way]
             print(
-                f"{per_window:>20}{label:>10}{r['append_us']:>10.2f}{r['commit_us']:>10.2f}{r['total_us']:>10.2f}"
-                + (f"{ratio:>11.2f}x" if way == "columns" else "")
+                f"{per_window:>20}{way:>10}{r['append_us']:>10.2f}{r['commit_us']:>10.2f}{r['total_us']:>10.2f}"
+                + (f"{ratio:>14.2f}x" if way == "columns" else "")
             )
 
 

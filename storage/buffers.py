@@ -1,19 +1,22 @@
-"""A session's commit window as preallocated columns in Arrow's own layout: `append` writes a
-`TickRecord`'s values into them on the tick's thread, and `batch` gives the commit thread the window
-as a slice of one Arrow batch that views those columns, built once, so that a window costs neither
-a conversion nor a copy before it is serialised.
+"""A session's commit window as preallocated columns in Arrow's own layout: the tick's thread writes
+its row into them (`append_result`, from a tick's values; `append`, from a `TickRecord`), and
+`batch` gives the commit thread the window as a slice of one Arrow batch that views those columns,
+built once, so that a window costs neither a conversion nor a copy before it is serialised.
 
     rows = WindowRows(lengths=expected_lengths(header))
-    rows.append(record)        # the tick's thread; InvalidArgument names a column the record misfits
+    rows.append_result(seq, source, ..., vectors)  # a tick's result, no TickRecord built
+    rows.append(record)        # rejected frames, tools; InvalidArgument names a misfit column
     batch = rows.batch()       # the commit thread; valid until the next `append` or `clear`
     rows.clear()               # once the batch is serialised: the rows are written again
 
 Numbers are numpy arrays; a vector column is one (capacity, width) float64 block, the values of a
 list column whose offsets are `k * width`; booleans and validity are bitmaps (bytearrays); strings
 are offsets and UTF-8 bytes. The vectors of a column are packed, a row without one a null of no
-values: the batch is the one `columns.records_to_batch` converts from the same records. The columns grow by doubling, and the batch viewing them is
-then built again; so is it when a vector column's width is first known. The committer does not use
-it yet: what it costs against the committer's conversion, docs/decisions/0151-columnar-record-windows.md.
+values: the batch is the one `columns.records_to_batch` converts from the same records. The columns
+grow by doubling, and the batch viewing them is then built again; so is it when a vector column's
+width is first known. The committer does not use it: queued TickRecords converted once a window
+cost a server's record path less (docs/decisions/0217-the-tick-writes-its-row.md; the first
+measure: 0151-columnar-record-windows.md).
 """
 
 from __future__ import annotations
@@ -317,6 +320,45 @@ class _Vectors:
         self.listed = None
 
 
+def _by_name(vectors: tuple[npt.NDArray[np.float64] | None, ...]) -> dict[str, Any]:
+    return dict(zip(ARRAY_FIELDS, vectors, strict=True))
+
+
+class _Named:
+    """The scalar columns by name, for `WindowRows.append_result`'s straight-line row."""
+
+    __slots__ = (
+        "compute_us",
+        "empty",
+        "frame_delay",
+        "frame_received",
+        "frame_t",
+        "kind",
+        "late_compute",
+        "late_ticks",
+        "nis",
+        "receive_to_send_us",
+        "reinitialised",
+        "seq",
+        "server_time",
+        "source",
+        "t",
+    )
+
+    def __init__(self, scalars: list[_Scalars], texts: list[_Texts]) -> None:
+        number = {c.field.name: c for c in scalars}
+        text = {c.field.name: c for c in texts}
+        self.seq, self.t, self.server_time = number["seq"], number["t"], number["server_time"]
+        self.late_ticks, self.compute_us = number["late_ticks"], number["compute_us"]
+        self.receive_to_send_us = number["receive_to_send_us"]
+        self.frame_t, self.frame_delay, self.nis = number["frame_t"], number["frame_delay"], number["nis"]
+        self.frame_received, self.reinitialised = number["frame_received"], number["reinitialised"]
+        self.late_compute = number["late_compute"]
+        self.kind, self.source = text["kind"], text["source"]
+        # reject_reason and reject_message: "" in a result.
+        self.empty = (text["reject_reason"], text["reject_message"])
+
+
 class WindowRows:
     """The rows of one commit window of one session, as columns of LOG_SCHEMA.
 
@@ -344,6 +386,7 @@ class WindowRows:
         self._flags = [c for c in self._scalars if isinstance(c.values, bytearray)]
         self._get_vectors = operator.attrgetter(*ARRAY_FIELDS)
         self._seq = next(s for s in self._scalars if s.field.name == "seq")
+        self._named = _Named(self._scalars, self._texts)
         self._viewed: pa.RecordBatch | None = None  # the batch viewing every column, at capacity
         self.rows = 0
         # The highest seq of a result among the rows (None: only rejections, or no rows).
@@ -376,6 +419,181 @@ class WindowRows:
             seq = int(self._seq.values[row])
             if self.top_seq is None or seq > self.top_seq:
                 self.top_seq = seq
+
+    def append_result(
+        self,
+        seq: int,
+        source: str,
+        t: float,
+        server_time: float,
+        frame_t: float | None,
+        late_ticks: int,
+        frame_delay: float | None,
+        nis: float | None,
+        reinitialised: bool,
+        late_compute: bool,
+        compute_us: int,
+        receive_to_send_us: int,
+        vectors: tuple[npt.NDArray[np.float64] | None, ...],
+    ) -> None:
+        """Write a tick's result as the next row, from its values, without a `TickRecord` (the
+        server does not call it; what it costs there: decision 0217, and benchmarks/storage.py
+        --record-path measures it). `frame_t` is None when no frame arrived (frame_received False);
+        `vectors` are the 15 array columns' values in ARRAY_FIELDS order, each a 1-D float64 array
+        (copied here: it may change once this returns) or None. Straight-line, the scalars set and
+        each vector copied into its block row; a value the fast path does not take (a width not
+        yet known, a row breaking its column's pattern, a wrong type) is written by `append` of the
+        same row as a record, which names a column the value does not fit."""
+        row = self.rows
+        if row == self._capacity:
+            self._grow()
+        try:
+            stale = self._write_result(
+                row,
+                seq,
+                source,
+                t,
+                server_time,
+                frame_t,
+                late_ticks,
+                frame_delay,
+                nis,
+                reinitialised,
+                late_compute,
+                compute_us,
+                receive_to_send_us,
+                vectors,
+            )
+        except Exception:  # noqa: BLE001 - written again as a record, column by column
+            if len(vectors) != len(ARRAY_FIELDS):
+                raise InvalidArgument(
+                    f"a row needs {len(ARRAY_FIELDS)} vectors ({', '.join(ARRAY_FIELDS)}), got {len(vectors)}"
+                ) from None
+            record = TickRecord(
+                kind="result",
+                seq=seq,
+                source=source,
+                t=t,
+                server_time=server_time,
+                frame_received=frame_t is not None,
+                frame_t=frame_t,
+                late_ticks=late_ticks,
+                frame_delay=frame_delay,
+                nis=nis,
+                reinitialised=reinitialised,
+                late_compute=late_compute,
+                compute_us=compute_us,
+                receive_to_send_us=receive_to_send_us,
+                **_by_name(vectors),
+            )
+            stale = self._write_checked(row, record)
+        if stale:
+            self._viewed = None
+        self.rows = row + 1
+        top = self.top_seq
+        if top is None or seq > top:
+            self.top_seq = seq
+
+    def _write_result(
+        self,
+        row: int,
+        seq: int,
+        source: str,
+        t: float,
+        server_time: float,
+        frame_t: float | None,
+        late_ticks: int,
+        frame_delay: float | None,
+        nis: float | None,
+        reinitialised: bool,
+        late_compute: bool,
+        compute_us: int,
+        receive_to_send_us: int,
+        vectors: tuple[npt.NDArray[np.float64] | None, ...],
+    ) -> bool:
+        """`append_result`'s row, straight-line; raises (anything) where the fast path does not
+        apply, the row then half written. True when the viewing batch is stale."""
+        byte, bit = row >> 3, 1 << (row & 7)
+        unset = 0xFF ^ bit
+        c = self._named
+        c.seq.values[row] = seq
+        c.t.values[row] = t  # type: ignore[call-overload]
+        c.server_time.values[row] = server_time  # type: ignore[call-overload]
+        c.late_ticks.values[row] = late_ticks
+        c.compute_us.values[row] = compute_us
+        c.receive_to_send_us.values[row] = receive_to_send_us
+        for column, number in ((c.frame_t, frame_t), (c.frame_delay, frame_delay), (c.nis, nis)):
+            valid = column.valid
+            assert valid is not None
+            if number is None:
+                column.values[row] = 0
+                valid[byte] &= unset
+            else:
+                column.values[row] = number  # type: ignore[call-overload]
+                valid[byte] |= bit
+        flags = c.frame_received.values
+        assert isinstance(flags, bytearray)
+        if frame_t is None:
+            flags[byte] &= unset
+        else:
+            flags[byte] |= bit
+        flags = c.reinitialised.values
+        assert isinstance(flags, bytearray)
+        if reinitialised is True:
+            flags[byte] |= bit
+        elif reinitialised is False:
+            flags[byte] &= unset
+        else:
+            raise TypeError("reinitialised")
+        flags, valid = c.late_compute.values, c.late_compute.valid
+        assert isinstance(flags, bytearray) and valid is not None
+        valid[byte] |= bit
+        if late_compute is True:
+            flags[byte] |= bit
+        elif late_compute is False:
+            flags[byte] &= unset
+        else:
+            raise TypeError("late_compute")
+        stale = False
+        for text, word in ((c.kind, "result"), (c.source, source)):
+            encoded = text.encoded[word]  # a word not yet encoded: KeyError, the checked path
+            start = text.end
+            end = start + len(encoded)
+            if end > len(text.data):
+                stale |= text.write(row, word)
+            else:
+                text.data[start:end] = encoded
+                text.offsets[row + 1] = text.end = end
+        for text in c.empty:
+            text.offsets[row + 1] = text.end
+        if len(vectors) != len(self._vectors):
+            raise TypeError("vectors")
+        # A column in its pattern (`dense` True: a vector every row, False: none) costs the copy of
+        # its vector or nothing; one that left it (None) is written row by row; one whose window
+        # changed width (`listed`) is the checked path's.
+        for column_, vector in zip(self._vectors, vectors):
+            dense = column_.dense
+            if dense is True:
+                if vector is None or vector.shape != column_.shape or vector.dtype is not _F64:
+                    raise TypeError(column_.name)
+                column_.block[row] = vector  # type: ignore[index]
+            elif dense is False:
+                if vector is not None:
+                    raise TypeError(column_.name)
+            elif column_.listed is not None:
+                raise TypeError(column_.name)
+            elif vector is None:
+                column_.offsets[row + 1] = column_.count * column_.width
+                column_.valid[byte] &= unset
+            elif vector.shape != column_.shape or vector.dtype is not _F64:
+                raise TypeError(column_.name)
+            else:
+                count = column_.count
+                column_.block[count] = vector  # type: ignore[index]
+                column_.count = count = count + 1
+                column_.offsets[row + 1] = count * column_.width
+                column_.valid[byte] |= bit
+        return stale
 
     def _write_fast(self, row: int, record: TickRecord) -> bool:
         """The row as a tick writes it: numbers into numpy, vectors of the block's width; anything

@@ -13,7 +13,7 @@ import pytest
 
 from jitdyn.errors import InvalidArgument
 from jitdyn.storage.buffers import WindowRows
-from jitdyn.storage.columns import LOG_SCHEMA, expected_lengths, records_to_batch
+from jitdyn.storage.columns import ARRAY_FIELDS, LOG_SCHEMA, expected_lengths, records_to_batch
 from jitdyn.storage.records import SessionHeader, TickRecord
 
 
@@ -149,3 +149,83 @@ def test_a_column_present_absent_or_mixed_window_after_window(
             rows.append(record)
         assert_same(rows, records)
         rows.clear()
+
+
+def append_row(rows: WindowRows, record: TickRecord) -> None:
+    """`record` through the tick's path: a result's values straight into the row, a rejection as a
+    record (what the server does with each)."""
+    if record.kind != "result":
+        rows.append(record)
+        return
+    rows.append_result(
+        record.seq,
+        record.source,
+        record.t,
+        record.server_time,
+        record.frame_t,
+        record.late_ticks,
+        record.frame_delay,
+        record.nis,
+        record.reinitialised,
+        record.late_compute,
+        record.compute_us,
+        record.receive_to_send_us,
+        tuple(getattr(record, name) for name in ARRAY_FIELDS),
+    )
+
+
+@pytest.mark.parametrize(("capacity", "window"), [(1, 7), (16, 5), (64, 120)])
+def test_result_rows_written_from_their_values_equal_the_converted_records(
+    make_header: Callable[..., SessionHeader], make_records: Any, capacity: int, window: int
+) -> None:
+    records: list[TickRecord] = make_records(300, seed=capacity + 7)
+    # A result's frame_received is whether its frame (frame_t) arrived.
+    assert all(r.frame_received == (r.frame_t is not None) for r in records if r.kind == "result")
+    rows = WindowRows(lengths=expected_lengths(make_header()), capacity=capacity)
+    for start in range(0, len(records), window):
+        part = records[start : start + window]
+        for record in part:
+            append_row(rows, record)
+        seqs = [r.seq for r in part if r.kind == "result"]
+        assert rows.top_seq == (max(seqs) if seqs else None)
+        assert_same(rows, part)
+        rows.clear()
+
+
+def test_a_result_row_copies_its_vectors_and_names_a_misfit(
+    make_header: Callable[..., SessionHeader],
+) -> None:
+    rows = WindowRows(lengths=expected_lengths(make_header()))
+    qpos = np.array([1.0, 2.0, 3.0])
+    vectors: list[np.ndarray | None] = [None] * len(ARRAY_FIELDS)
+    vectors[ARRAY_FIELDS.index("qpos")] = qpos
+    rows.append_result(4, "MEASURED", 0.2, 0.25, None, 0, None, None, False, False, 10, 20, tuple(vectors))
+    qpos[:] = 9.0  # the caller's array changes after the row was written
+    assert rows.batch().column("qpos").to_pylist() == [[1.0, 2.0, 3.0]]
+    vectors[ARRAY_FIELDS.index("qvel")] = np.zeros(5)
+    with pytest.raises(InvalidArgument, match="^qvel must have 3 values in every record, got 5$"):
+        rows.append_result(
+            5, "MEASURED", 0.3, 0.35, None, 0, None, None, False, False, 10, 20, tuple(vectors)
+        )
+    with pytest.raises(InvalidArgument, match="^a row needs 15 vectors"):
+        rows.append_result(5, "MEASURED", 0.3, 0.35, None, 0, None, None, False, False, 10, 20, (qpos,))
+    # The rows refused left nothing behind.
+    assert rows.rows == 1 and rows.batch().column("seq").to_pylist() == [4]
+
+
+def test_a_steady_result_row_takes_the_straight_line(make_header: Callable[..., SessionHeader]) -> None:
+    """Once its words are encoded and its columns' pattern set, a result's row is written by the
+    straight-line path, not as a record (which would give the same batch, at twice the cost)."""
+    rows = WindowRows(lengths=expected_lengths(make_header()))
+    vectors = tuple(np.ones(3) if name in ("qpos", "qvel", "qacc") else None for name in ARRAY_FIELDS)
+    rows.append_result(0, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, vectors)
+    rows.clear()
+    for row in range(3):
+        assert (
+            rows._write_result(
+                row, row, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, vectors
+            )
+            is False
+        )
+        rows.rows = row + 1
+    assert rows.batch().column("qvel").to_pylist() == [[1.0, 1.0, 1.0]] * 3
