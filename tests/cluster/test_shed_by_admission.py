@@ -23,7 +23,11 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from jitdyn.client import Client, FrameData, SessionOptions, Summary, TickResult
 from jitdyn.errors import ResourceExhausted
 
-pytestmark = pytest.mark.postgres
+# Slow (38 s, the suite's longest) and held to this machine's prices: --tick-budget 0.12 makes a
+# replica full with one session only where a tick costs what it cost where it was written, so on a
+# faster machine the moved session fits its survivor and is not admitted over the budget. It runs
+# with the soak (pytest -m slow), not in CI's run.
+pytestmark = [pytest.mark.postgres, pytest.mark.slow]
 
 HOSTS = ("127.0.0.41", "127.0.0.42", "127.0.0.43")
 # 0.12 of a core: an idle replica (about 0.04 of a core for its health checks and metrics) takes its
