@@ -231,7 +231,7 @@ def test_late_frames_wait_while_their_replays_keep_a_late_process_behind(tmp_pat
     from jitdyn.client import Rejection
 
     server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "1.0")
-    dt, late, count = 0.025, 24, 10
+    dt, late, count = 0.025, 24, 12
     replayed, waiting = 0, []
     try:
         with Client(server.address, timeout=30) as client:
