@@ -226,8 +226,9 @@ def test_late_frames_wait_while_their_replays_keep_a_late_process_behind(tmp_pat
     process's time (REPLAY_SHARE). While the process is stopped for 100 ms every 50 ticks (the
     machine taking its CPU), its answers go late, and late frames are refused until it catches up;
     on the old rule every replay fitted its own session and was applied. A spread replay costs
-    about three ticks a frame: ten sessions pass the share on a quiet machine too, where six
-    passed it only when the machine's load made their replays dear."""
+    about three ticks a frame: twelve sessions pass the share on a quiet machine too, where six
+    passed it only when the machine's load made their replays dear, and ten not always on a faster
+    machine, whose replays are cheaper."""
     from jitdyn.client import Rejection
 
     server = Serve(tmp_path / "data", "--processes", "1", "--tick-budget", "1.0")
