@@ -131,27 +131,8 @@ class Trajectory:
         )
 
     def record(self, i: int) -> TickRecord:
-        return TickRecord(
-            kind="result",
-            seq=i,
-            source=Source.MEASURED,
-            t=float(self.t[i]),
-            server_time=float(self.t[i]) + 2e-4,
-            frame_received=True,
-            frame_t=float(self.t[i]),
-            frame_qpos=self.qpos[i],
-            frame_qvel=self.qvel[i],
-            frame_delay=0.0,
-            qpos=self.qpos[i],
-            qvel=self.qvel[i],
-            qacc=self.qacc[i],
-            qfrc_inverse=self.qfrc[i],
-            covariance_diagonal=self.cov[i],
-            filter_state=self.state[i],
-            nis=float(self.nis[i]),
-            compute_us=int(self.compute[i]),
-            receive_to_send_us=int(self.compute[i]) + 30,
-        )
+        """Frame `i` as the committer takes it: the TickRecord the tick builds from `row(i)`."""
+        return _record(*self.row(i))
 
 
 def throughput(root: Path, index: SessionIndex, frames: int) -> dict[str, float]:
