@@ -37,7 +37,11 @@ C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row an
 s_p (and D_h's, for the answer's variances), and the weights are solved again on that; by the
 ratio's square for MODEL, the rollout of physics under a held force, whose small scored errors
 over a jump's push-off otherwise kept its weight past its end
-(docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md). The answer falls back on the
+(docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md). Until a horizon has SETTLED
+scores, its past is a short one, often a motion's slow start, from which the start itself departs:
+there a predictor that is the reference's by r_p takes 1 + (1 - r_p)(s_p - 1), judged by the share
+of it that is not the reference's, as STATIC is never judged
+(docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md). The answer falls back on the
 predictors still in their regime, STATIC at least. The reference r is STATIC moved towards
 CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start of motion
 builds its speed over frames and is measured from what they extrapolate; a glitch of one frame's
@@ -146,6 +150,11 @@ MAX_NOVELTY: Final = 1e3
 # (fading weight 1) instead of weighing 1 - FORGETTING. Measured at 1.5, 2, 2.5 and 3
 # (docs/decisions/0028-forecast-regime-change.md).
 SURPRISE: Final = 2.0
+# Scores a horizon needs before the novelty guard judges the reference's own predictors: before, a
+# predictor that is part of the reference (STATIC, CONSTANT_ACCELERATION as far as the last two
+# frames' velocities agree) is judged as the reference is, by the share of it that is not the
+# reference's (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md).
+SETTLED: Final = 12
 
 Predictions = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -477,7 +486,13 @@ class ForecastCombiner:
         q, v, a = self._predictions(i)
         row = self._table[i]
         reference = self._reference(_confirmed(row[self._columns.v0], row[self._columns.a0], self._dt))
-        scale = _novelty(q, self._weighing(h)[0], reference, self._static, self._rollout)
+        scale = _novelty(
+            q,
+            self._weighing(h)[0],
+            reference,
+            (self._static, self._rollout),
+            settled=bool(self._count[h] >= SETTLED),
+        )
         if scale is not None:
             weights = self._solve_weights(h, scale, matched=matched)
         var_q, var_qd = self._answer_covariance(h, weights, noise_q, noise_qd, scale)
@@ -607,15 +622,16 @@ class ForecastCombiner:
         """The covariances (P, P) of q and qd errors the weights of horizon h come from: the scored
         ones; with the prior, its scores on other people's walking (PriorScores) over STATIC, the
         other extrapolators and PRIOR, blended with the session's as a fading memory holds a score
-        made before the session's n: FORGETTING^n of the prior's, the rest the session's
-        (docs/decisions/0186-prior-predictor.md). Once the session has a score at h, the prior's
+        made before the session's n: FORGETTING^n of the prior's, times how far the session's own
+        scores agree with the prior's (_agreement), the rest the session's
+        (docs/decisions/0186-prior-predictor.md, docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md). Once the session has a score at h, the prior's
         covariances are taken at the session's scale, the variance of the best of the prior's
         predictors the session's best: the prior says how the predictors compare, the session how
         well the best of them forecasts its motion
         (docs/decisions/0211-the-prior-at-its-best-predictors-scale.md)."""
         if self._prior_cov is None or self._prior_block is None:
             return self._cov[h], self._cov_v[h]
-        share = _PRIOR_SHARE[min(int(self._count[h]), _PRIOR_SHARE.size - 1)]
+        share = _PRIOR_SHARE[min(int(self._count[h]), _PRIOR_SHARE.size - 1)] * self._agreement(h)
         block, prior = self._prior_mask, self._prior_cov
         C0, D0 = (
             _at_scale(prior[0][h], self._cov[h], self._prior_block),
@@ -624,6 +640,19 @@ class ForecastCombiner:
         C = np.where(block, share * C0 + (1.0 - share) * self._cov[h], self._cov[h])
         D = np.where(block, share * D0 + (1.0 - share) * self._cov_v[h], self._cov_v[h])
         return C, D
+
+    def _agreement(self, h: int) -> float:
+        """How far the session's own scores at h agree with the prior's, in [0, 1]: the lowest scored
+        variance of the prior's predictors over PRIOR's own (1 where PRIOR scores best, or before h
+        has MIN_SAMPLES scores). The prior's scores are gait's, where PRIOR forecasts best; on a
+        motion where the session scores PRIOR below the extrapolators, they describe another motion
+        (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md)."""
+        if self._prior_block is None or self._count[h] < MIN_SAMPLES:
+            return 1.0
+        scored = np.diagonal(self._cov[h])
+        prior = float(scored[self._prior_block[-1]])
+        best = float(np.min(scored[self._prior_block]))
+        return 1.0 if not prior > 0.0 else min(best / prior, 1.0)
 
     def _match(self, i: int) -> None:
         """Probe i's LEARNED match, from its frame (the log holds it: its origin is a frame's tick)."""
@@ -870,15 +899,17 @@ def _confirmed(v0: np.ndarray, a0: np.ndarray, dt: float) -> float:
 
 
 def _novelty(
-    q: np.ndarray, C: np.ndarray, reference: np.ndarray, static: int, rollout: int
+    q: np.ndarray, C: np.ndarray, reference: np.ndarray, rows: tuple[int, int], *, settled: bool = True
 ) -> np.ndarray | None:
     """(P,) the novelty guard's factors on the predictors' errors at a gap, or None where none is
     novel: a predictor whose departure now from the reference (reference (P,): weights on the
     predictors; the RMS over dofs of q_p - reference @ q) exceeds NOVELTY times the RMS departure
     of its scored past at this horizon (e_p - reference @ e, from the pooled covariance:
     C_pp - 2 (C r)_p + r'C r) has its errors taken as larger by the ratio of the two over NOVELTY,
-    by its square for the model's rollout (the row `rollout`), at most MAX_NOVELTY (STATIC is
-    never novel: the answer falls back on it at least)."""
+    by its square for the model's rollout, at most MAX_NOVELTY (STATIC is never novel: the answer
+    falls back on it at least); rows: STATIC's and the rollout's. Not settled (fewer than SETTLED
+    scores): a factor s of a predictor that is the reference's by r_p is 1 + (1 - r_p)(s - 1)."""
+    static, rollout = rows
     now = np.mean(np.square(q - reference @ q), axis=1)
     Cr = C @ reference
     limit = NOVELTY * NOVELTY * np.maximum(np.diagonal(C) - 2.0 * Cr + float(reference @ Cr), 0.0)
@@ -891,6 +922,8 @@ def _novelty(
         ratio = now[novel] / limit[novel]
         factor = np.where(np.flatnonzero(novel) == rollout, ratio, np.sqrt(ratio))
         scale[novel] = np.minimum(factor, MAX_NOVELTY)
+    if not settled:
+        scale = 1.0 + (1.0 - reference) * (scale - 1.0)
     return scale
 
 

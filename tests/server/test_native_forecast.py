@@ -451,6 +451,31 @@ def test_the_native_prior_answers_as_the_python_one(xml: str, horizon: int) -> N
     assert last is not None and last[0] == 0.0 and last[4] == 0.0
 
 
+@pytest.mark.parametrize("rule", ["settled", "agreement"])
+def test_the_leg_session_takes_the_rules_of_a_short_past(monkeypatch: pytest.MonkeyPatch, rule: str) -> None:
+    """The leg session with the prior above goes through both rules of a short past: the novelty
+    guard judging the reference's own predictors by their share not the reference's before SETTLED
+    scores, and the prior's scores counted as far as the session's agree with them. The Python
+    combiner without the rule answers otherwise, and the native one (the rule in C++) answers as
+    the Python one with it (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md)."""
+    process, python, native, signs = _leg_pair(chain_mjcf(), 25)
+    frames = _walk(process.nv, signs, 600, seed=5)
+    expected = _session(python, process, ramp=False, ticks=600, frames=frames, early=True)
+    if rule == "settled":
+        monkeypatch.setattr(forecast, "SETTLED", 0)
+    else:
+        monkeypatch.setattr(ForecastCombiner, "_agreement", lambda self, h: 1.0)
+    without = _session(
+        _leg_pair(chain_mjcf(), 25)[1], process, ramp=False, ticks=600, frames=frames, early=True
+    )
+    differs = [
+        x is not None and y is not None and not np.allclose(x, y, rtol=0.0, atol=1e-6)
+        for x, y in zip(expected.answers, without.answers, strict=True)
+    ]
+    assert sum(differs) >= 3, sum(differs)
+    _assert_equal(expected, _session(native, process, ramp=False, ticks=600, frames=frames, early=True))
+
+
 def test_a_prior_that_does_not_fit_is_refused() -> None:
     """A prior matcher of another dt, and a leg whose table, dofs and signs disagree, are refused
     with errors that say what is wrong."""

@@ -96,13 +96,17 @@ def test_a_restored_combiner_with_the_prior_answers_as_the_first_pass() -> None:
     assert all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
 
 
-def test_the_priors_covariances_take_the_scale_of_the_sessions_best_predictor() -> None:
+def test_the_priors_covariances_take_the_scale_of_the_sessions_best_predictor(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """A slow smooth swing that is not gait (0.3 sin t on every joint), scored for a second: at
     35 ms the session's CONSTANT_ACCELERATION errs far less than its STATIC, relative to each
     other, than gait's do. The prior's covariances the weights are blended from are the prior's
     times the session's lowest variance among the prior's predictors over the prior's own lowest
     (docs/decisions/0211-the-prior-at-its-best-predictors-scale.md), so constant acceleration does
-    not look worse than the session scores it; at STATIC's scale it looked several times worse."""
+    not look worse than the session scores it; at STATIC's scale it looked several times worse. (The
+    prior's share counted whole here: how far the session agrees with it is the next test's.)"""
+    monkeypatch.setattr(ForecastCombiner, "_agreement", lambda self, h: 1.0)
     t = np.arange(100) * DT
     q = np.stack([0.3 * np.sin(t + phase) for phase in (0.0, 1.0, 2.0)], axis=1)
     combiner = _combiner(prior=True)
@@ -123,6 +127,32 @@ def test_the_priors_covariances_take_the_scale_of_the_sessions_best_predictor() 
     ca, static = names.index("CONSTANT_ACCELERATION"), names.index("STATIC")
     at_static = prior[ca, ca] * session[static, static] / prior[static, static]
     assert at_static > 3.0 * scaled[2, 2], (at_static, scaled[2, 2], session[ca, ca])
+
+
+def test_the_prior_counts_as_far_as_the_sessions_scores_agree_with_it() -> None:
+    """The slow swing above, which is not gait: the session scores PRIOR far below the best of the
+    extrapolators, and the prior's share of the covariances is FORGETTING^n times the best one's
+    scored variance over PRIOR's (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md)."""
+    t = np.arange(100) * DT
+    q = np.stack([0.3 * np.sin(t + phase) for phase in (0.0, 1.0, 2.0)], axis=1)
+    combiner = _combiner(prior=True)
+    _feed(combiner, q, range(100))
+    h = 4
+    names = combiner.predictors
+    block = np.array(
+        [names.index(n) for n in ("STATIC", "CONSTANT_VELOCITY", "CONSTANT_ACCELERATION", "PRIOR")]
+    )
+    session = combiner._cov[h]
+    agreement = float(np.min(np.diagonal(session)[block]) / session[block[-1], block[-1]])
+    assert agreement < 0.01
+    assert combiner._agreement(h) == agreement
+    assert combiner._prior_cov is not None
+    prior = combiner._prior_cov[0][h]
+    theirs, ours = np.diagonal(prior)[block], np.diagonal(session)[block]
+    share = 0.8 ** int(combiner._count[h]) * agreement
+    expected = share * prior * ours.min() / theirs.min() + (1.0 - share) * session
+    blended = combiner._weighing(h)[0]
+    np.testing.assert_allclose(blended[np.ix_(block, block)], expected[np.ix_(block, block)], rtol=1e-12)
 
 
 def test_the_shipped_prior_holds_its_six_people_under_5_mb() -> None:

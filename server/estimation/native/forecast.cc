@@ -17,7 +17,7 @@ namespace jitdyn {
 namespace {
 
 // forecast.py's MIN_SAMPLES, LEARNED_SAMPLES, FORGETTING, PROBES, MAX_NOISE_SHARE, VARIANCE_FLOOR,
-// NOVELTY, MAX_NOVELTY, SURPRISE.
+// NOVELTY, MAX_NOVELTY, SURPRISE, SETTLED.
 constexpr double kMinSamples = 3.0;
 constexpr double kLearnedSamples = 5.0;
 constexpr double kForgetting = 0.8;
@@ -27,6 +27,7 @@ constexpr double kVarianceFloor = 1e-12;
 constexpr double kNovelty = 2.0;
 constexpr double kMaxNovelty = 1e3;
 constexpr double kSurprise = 2.0;
+constexpr double kSettled = 12.0;
 // The predictors' rows: MODEL, the extrapolators (STATIC first), LEARNED, PRIOR; which vote on a
 // regime change (the first kFixed); the prior's scores' block (PriorScores' order).
 constexpr int kModel = 0, kStatic = 1, kAcceleration = 3, kLearned = 4, kPrior = 5, kFixed = 4;
@@ -164,6 +165,17 @@ PMatrix AtScale(const PMatrix& prior, const PMatrix& session) {
 // forecast.py's _PRIOR_SHARE: FORGETTING^n by C's pow, as Python's scalar power; nil from 200.
 double PriorShare(double count) {
   return count >= 200.0 ? 0.0 : std::pow(kForgetting, count);
+}
+
+// forecast.py's _agreement: how far the session's own scores at a horizon (`scored`, after `count`
+// of them) agree with the prior's: the lowest variance of the prior's predictors over PRIOR's own, at
+// most 1 (1 before MIN_SAMPLES scores, or where PRIOR's is nil).
+double Agreement(const PMatrix& scored, double count) {
+  if (count < kMinSamples) return 1.0;
+  double best = std::numeric_limits<double>::infinity();
+  for (int p : kPriorBlock) best = std::min(best, scored(p, p));
+  const double prior = scored(kPrior, kPrior);
+  return !(prior > 0.0) ? 1.0 : std::min(best / prior, 1.0);
 }
 
 // forecast.py's _net_of_noise.
@@ -477,8 +489,9 @@ PVector Combiner::SolveWeights(std::int64_t h, const PVector* scale, bool matche
 std::array<PMatrix, 2> Combiner::Weighing(std::int64_t h) const {
   if (prior_cov_.empty()) return {cov_[h], cov_v_[h]};
   // The prior's scores on other people's walking blended with the session's as a fading memory
-  // holds a score made before the session's n, at the session's scale.
-  const double share = PriorShare(count_[h]);
+  // holds a score made before the session's n, as far as the session's scores agree with them, at
+  // the session's scale.
+  const double share = PriorShare(count_[h]) * Agreement(cov_[h], count_[h]);
   const PMatrix C0 = AtScale(prior_cov_[h], cov_[h]), D0 = AtScale(prior_cov_v_[h], cov_v_[h]);
   std::array<PMatrix, 2> out = {cov_[h], cov_v_[h]};
   for (int i : kPriorBlock) {
@@ -552,6 +565,8 @@ std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& 
   const double rCr = reference.dot(Cr);
   PVector scale = PVector::Ones();
   bool novel = false;
+  // Before SETTLED scores, a predictor that is the reference's by r is judged by the rest, 1 - r.
+  const bool settled = count_[h] >= kSettled;
   for (int p = 0; p < p_; ++p) {
     if (p == kStatic) continue;
     const double now = (pq_.row(p) - at_.transpose()).squaredNorm() / nv_;
@@ -561,6 +576,7 @@ std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& 
       // The model's rollout takes the ratio's square.
       const double ratio = now / limit;
       scale[p] = std::min(p == kModel ? ratio : std::sqrt(ratio), kMaxNovelty);
+      if (!settled) scale[p] = 1.0 + (1.0 - reference[p]) * (scale[p] - 1.0);
     }
   }
   CombinedForecast out;
