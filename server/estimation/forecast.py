@@ -37,11 +37,11 @@ C_h) has its errors taken as larger by the ratio over NOVELTY, s_p: C_h's row an
 s_p (and D_h's, for the answer's variances), and the weights are solved again on that; by the
 ratio's square for MODEL, the rollout of physics under a held force, whose small scored errors
 over a jump's push-off otherwise kept its weight past its end
-(docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md). Until a horizon has SETTLED
-scores, its past is a short one, often a motion's slow start, from which the start itself departs:
-there a predictor that is the reference's by r_p takes 1 + (1 - r_p)(s_p - 1), judged by the share
-of it that is not the reference's, as STATIC is never judged
-(docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md). The answer falls back on the
+(docs/decisions/0219-a-novel-rollout-weighs-by-the-square.md). With the prior, on a motion the
+session scores unlike the prior's, a horizon with fewer than SETTLED scores has a short past, often
+a slow start, from which the start itself departs: there a predictor that is the reference's by
+r_p takes 1 + (1 - r_p)(s_p - 1), judged by the share of it that is not the reference's, as STATIC
+is never judged (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md). The answer falls back on the
 predictors still in their regime, STATIC at least. The reference r is STATIC moved towards
 CONSTANT_ACCELERATION as far as the last two frames' velocities agree: a real start of motion
 builds its speed over frames and is measured from what they extrapolate; a glitch of one frame's
@@ -150,10 +150,11 @@ MAX_NOVELTY: Final = 1e3
 # (fading weight 1) instead of weighing 1 - FORGETTING. Measured at 1.5, 2, 2.5 and 3
 # (docs/decisions/0028-forecast-regime-change.md).
 SURPRISE: Final = 2.0
-# Scores a horizon needs before the novelty guard judges the reference's own predictors: before, a
-# predictor that is part of the reference (STATIC, CONSTANT_ACCELERATION as far as the last two
-# frames' velocities agree) is judged as the reference is, by the share of it that is not the
-# reference's (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md).
+# Scores a horizon needs before the novelty guard judges the reference's own predictors on a motion
+# the session scores unlike the prior's (_agreement below 1): before, a predictor that is part of
+# the reference (STATIC, CONSTANT_ACCELERATION as far as the last two frames' velocities agree) is
+# judged as the reference is, by the share of it that is not the reference's
+# (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md).
 SETTLED: Final = 12
 
 Predictions = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -491,7 +492,7 @@ class ForecastCombiner:
             self._weighing(h)[0],
             reference,
             (self._static, self._rollout),
-            settled=bool(self._count[h] >= SETTLED),
+            settled=bool(self._count[h] >= SETTLED or self._agreement(h) >= 1.0),
         )
         if scale is not None:
             weights = self._solve_weights(h, scale, matched=matched)

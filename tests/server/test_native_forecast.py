@@ -451,29 +451,51 @@ def test_the_native_prior_answers_as_the_python_one(xml: str, horizon: int) -> N
     assert last is not None and last[0] == 0.0 and last[4] == 0.0
 
 
+def _onset(nv: int, ticks: int, start: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A motion that is not gait: a slow small swing, and from tick `start` a movement that builds
+    its speed and comes to rest (0.8 s^2 e^-s, s in seconds from the start), larger on every later
+    dof; a little noise on the frames."""
+    rng = np.random.default_rng(seed)
+    scale = 1.0 + 0.3 * np.arange(nv)
+    out = []
+    for k in range(ticks):
+        t = k * LEG_DT
+        s = max(0.0, t - start * LEG_DT)
+        swing = np.arange(nv) + 2.0 * t
+        q = 0.02 * np.sin(swing) + 0.8 * s * s * np.exp(-s) * scale
+        v = 0.04 * np.cos(swing) + 0.8 * (2.0 * s - s * s) * np.exp(-s) * scale
+        out.append((q + 1e-4 * rng.standard_normal(nv), v + 1e-3 * rng.standard_normal(nv)))
+    return out
+
+
 @pytest.mark.parametrize("rule", ["settled", "agreement"])
-def test_the_leg_session_takes_the_rules_of_a_short_past(monkeypatch: pytest.MonkeyPatch, rule: str) -> None:
-    """The leg session with the prior above goes through both rules of a short past: the novelty
-    guard judging the reference's own predictors by their share not the reference's before SETTLED
-    scores, and the prior's scores counted as far as the session's agree with them. The Python
-    combiner without the rule answers otherwise, and the native one (the rule in C++) answers as
-    the Python one with it (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md)."""
-    process, python, native, signs = _leg_pair(chain_mjcf(), 25)
-    frames = _walk(process.nv, signs, 600, seed=5)
-    expected = _session(python, process, ramp=False, ticks=600, frames=frames, early=True)
+def test_a_start_of_motion_after_a_slow_start_answers_alike(
+    monkeypatch: pytest.MonkeyPatch, rule: str
+) -> None:
+    """A leg session with the prior on a motion that is not gait (_onset, from tick 10) goes through
+    both rules of a short past: the prior's scores counted as far as the session's agree with them,
+    and before SETTLED scores the novelty guard judging the reference's own predictors by their share
+    not the reference's. The Python combiner without the rule answers otherwise, and the native one
+    (the rule in C++) answers as the Python one with it
+    (docs/decisions/0222-a-short-past-does-not-judge-a-start-of-motion.md)."""
+    process, python, native, _ = _leg_pair(chain_mjcf(), 25)
+    frames = _onset(process.nv, 600, 10, seed=5)
+
+    def session(combiner: Any) -> _Log:
+        return _session(combiner, process, ramp=False, ticks=600, frames=frames, early=True)
+
+    expected = session(python)
     if rule == "settled":
         monkeypatch.setattr(forecast, "SETTLED", 0)
     else:
         monkeypatch.setattr(ForecastCombiner, "_agreement", lambda self, h: 1.0)
-    without = _session(
-        _leg_pair(chain_mjcf(), 25)[1], process, ramp=False, ticks=600, frames=frames, early=True
-    )
+    without = session(_leg_pair(chain_mjcf(), 25)[1])
     differs = [
         x is not None and y is not None and not np.allclose(x, y, rtol=0.0, atol=1e-6)
         for x, y in zip(expected.answers, without.answers, strict=True)
     ]
-    assert sum(differs) >= 3, sum(differs)
-    _assert_equal(expected, _session(native, process, ramp=False, ticks=600, frames=frames, early=True))
+    assert sum(differs) >= 2, sum(differs)
+    _assert_equal(expected, session(native))
 
 
 def test_a_prior_that_does_not_fit_is_refused() -> None:

@@ -565,8 +565,9 @@ std::optional<CombinedForecast> Combiner::Forecast(const std::optional<Vector>& 
   const double rCr = reference.dot(Cr);
   PVector scale = PVector::Ones();
   bool novel = false;
-  // Before SETTLED scores, a predictor that is the reference's by r is judged by the rest, 1 - r.
-  const bool settled = count_[h] >= kSettled;
+  // Before SETTLED scores, on a motion the session scores unlike the prior's, a predictor that is the
+  // reference's by r is judged by the rest, 1 - r.
+  const bool settled = count_[h] >= kSettled || prior_cov_.empty() || Agreement(cov_[h], count_[h]) >= 1.0;
   for (int p = 0; p < p_; ++p) {
     if (p == kStatic) continue;
     const double now = (pq_.row(p) - at_.transpose()).squaredNorm() / nv_;
