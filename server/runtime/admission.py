@@ -129,6 +129,9 @@ class Ticket:
     # s, the thread CPU of the session's own estimator and dynamics per tick: `compute_per_tick`
     # without the time the machine took the CPU away mid-tick; None before a tick tells it.
     cpu_per_tick: float | None = None
+    # s, the filter cycle the session was priced at (predict + update, at open): what the process's
+    # overhead figure is measured around, so that an open of its kind is priced at a tick's CPU.
+    filter_seconds: float = 0.0
     released: bool = False
     admitted_at: float = field(default_factory=time.monotonic)
     # What the session's own thread counted since admission: ticks, their compute (s), REALTIME
@@ -144,11 +147,17 @@ class Ticket:
         return self.cost_per_tick / self.dt
 
     def observe(self, seconds: float, *, cpu: float | None = None) -> None:
-        """One tick took `seconds` of the estimator and dynamics (`cpu` of them its thread's CPU);
-        the process's learnt overhead per tick (the transport, the loop, recording) is added."""
+        """One tick took `seconds` of the estimator and dynamics on the loop, `cpu` of them its
+        thread's CPU. Its price follows the tick's CPU plus the process's CPU per tick beyond its
+        ticks' own (the transport, the loop, recording); before the process has measured that, the
+        price it was admitted at stands (a tick's wall time during a burst of opens is other
+        threads' CPU too: docs/decisions/0223-a-session-priced-at-its-cpu.md)."""
+        own = seconds if cpu is None else cpu
         self.counted_ticks += 1
-        self.counted_compute += seconds
-        self.cost_per_tick += _EWMA * (seconds + self.admission.overhead - self.cost_per_tick)
+        self.counted_compute += own
+        around = self.admission.around_ticks
+        if around is not None:
+            self.cost_per_tick += _EWMA * (own + around - self.cost_per_tick)
         self.compute_per_tick += _EWMA * (seconds - self.compute_per_tick)
         if cpu is not None:
             previous = self.cpu_per_tick
@@ -204,10 +213,14 @@ class Admission:
     _cpu_mark: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
     _cpu_load: float = 0.0
     refused: int = 0
-    overhead: float = TRANSPORT_COST  # s per tick outside the estimator, learnt from this process's CPU
+    overhead: float = TRANSPORT_COST  # s per tick around the priced filter cycle, learnt from the CPU
     overhead_measured: bool = False  # the overhead is this process's own figure, not the starting guess
+    # s per tick of the process's CPU beyond its ticks' own CPU (the overhead is beyond their
+    # priced filter cycles); None until a window has measured it.
+    around_ticks: float | None = None
     _window_ticks: int = 0
-    _window_compute: float = 0.0
+    _window_compute: float = 0.0  # s, the CPU of the window's ticks
+    _window_cycles: float = 0.0  # s, the filter cycles their sessions were priced at, one a tick
     _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
     _machine_mark_at: float = field(default_factory=time.monotonic)
     machine_free: float | None = None  # cores the machine left idle over the last window
@@ -243,7 +256,7 @@ class Admission:
             self._cpu_mark = (time.monotonic(), time.process_time())
             self._cpu_load = 0.0
             self._collect()  # what was counted before is not the window's
-            self._window_ticks, self._window_compute = 0, 0.0
+            self._window_ticks, self._window_compute, self._window_cycles = 0, 0.0, 0.0
             self._answers, self._late_answers = 0, 0
             self._machine_mark, self._machine_mark_at = _machine_times(), time.monotonic()
             self._recent_mark, self.recent_free = (time.monotonic(), self._machine_mark), None
@@ -263,12 +276,21 @@ class Admission:
             if self.count_process_cpu:
                 self._cpu_load = (cpu - used) / (wall - since)
                 if self._window_ticks >= 50:
-                    # What a tick cost this process beyond its estimator: its CPU per tick, less compute.
-                    per_tick = (cpu - used) / self._window_ticks - self._window_compute / self._window_ticks
-                    self.overhead += 0.5 * (max(per_tick, 100e-6) - self.overhead)
+                    # What a tick cost this process beyond its priced filter cycle (an open's price is
+                    # its cycle plus this), and beyond the tick's own CPU (an admitted session's).
+                    per_tick = (cpu - used) / self._window_ticks
+                    around_cycle = per_tick - self._window_cycles / self._window_ticks
+                    around_ticks = max(per_tick - self._window_compute / self._window_ticks, 0.0)
+                    # The first measurement replaces the starting guess; later ones are smoothed.
+                    weight = 0.5 if self.overhead_measured else 1.0
+                    self.overhead += weight * (max(around_cycle, 100e-6) - self.overhead)
+                    previous = self.around_ticks
+                    self.around_ticks = (
+                        around_ticks if previous is None else previous + 0.5 * (around_ticks - previous)
+                    )
                     self.overhead_measured = True
                 self._sample_machine()
-            self._window_ticks, self._window_compute = 0, 0.0
+            self._window_ticks, self._window_compute, self._window_cycles = 0, 0.0, 0.0
             self._cpu_mark = (wall, cpu)
             enough = self._answers >= _LATE_EVIDENCE
             self.late_share = self._late_answers / self._answers if enough else 0.0
@@ -323,6 +345,7 @@ class Admission:
         seen_ticks, seen_compute, seen_answers, seen_late = self._collected.get(key, (0, 0.0, 0, 0))
         self._window_ticks += ticks - seen_ticks
         self._window_compute += compute - seen_compute
+        self._window_cycles += (ticks - seen_ticks) * ticket.filter_seconds
         self._answers += answers - seen_answers
         self._late_answers += late - seen_late
         self._collected[key] = (ticks, compute, answers, late)
@@ -522,6 +545,7 @@ class Admission:
             dt=dt,
             cost_per_tick=cost_per_tick,
             compute_per_tick=filter_seconds,
+            filter_seconds=filter_seconds,
             grace=grace,
         )
         with self._lock:

@@ -522,3 +522,51 @@ def test_tickets_count_their_answers_and_the_window_adds_them_up(monkeypatch: py
     time.sleep(0.25)
     admission.measured_load()
     assert admission.late_share == 0.0
+
+
+def _burn(seconds: float) -> None:
+    """Spend `seconds` of this thread's CPU."""
+    until = time.thread_time() + seconds
+    while time.thread_time() < until:
+        pass
+
+
+def test_a_session_is_priced_at_the_process_s_cpu_per_tick_not_its_ticks_wall_time(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each tick: 0.3 ms of its own CPU, 1 ms of wall time (other threads held the GIL and the
+    core), 0.3 ms of the process's CPU around it. Priced by wall time, a session cost 1.4 ms a
+    tick against 0.6 ms of CPU; and an open, priced at its 0.15 ms filter cycle plus the overhead
+    around the tick's wall time, cost less than the ticks it would add."""
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.5)
+    admission = Admission(budget=0.75, count_machine_cpu=False)
+    cycle = 0.15e-3
+    ticket = admission.admit(
+        cost_per_tick=cycle + TRANSPORT_COST, dt=0.05, what="pendulum_3", filter_seconds=cycle
+    )
+    admission.start_window()
+
+    def tick() -> None:
+        wall, cpu = time.perf_counter(), time.thread_time()
+        _burn(0.3e-3)
+        time.sleep(0.7e-3)
+        ticket.observe(time.perf_counter() - wall, cpu=time.thread_time() - cpu)
+        _burn(0.3e-3)
+
+    # Before the process has measured a window the price it was admitted at stands.
+    for _ in range(20):
+        tick()
+    assert ticket.cost_per_tick == cycle + TRANSPORT_COST
+    used, ticks = time.process_time(), 0
+    while not admission.overhead_measured:
+        tick()
+        ticks += 1
+        admission.measured_load()
+    per_tick = (time.process_time() - used) / ticks  # what a tick cost this process
+    for _ in range(100):  # the ticket's price follows its ticks
+        tick()
+    assert ticket.cost_per_tick == pytest.approx(per_tick, rel=0.25)
+    assert cycle + admission.overhead == pytest.approx(per_tick, rel=0.25)
+    ticket.release()
