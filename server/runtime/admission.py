@@ -221,6 +221,7 @@ class Admission:
     _window_ticks: int = 0
     _window_compute: float = 0.0  # s, the CPU of the window's ticks
     _window_cycles: float = 0.0  # s, the filter cycles their sessions were priced at, one a tick
+    _window_aside: float = 0.0  # s of the window's CPU that was no tick's: opening and storing sessions
     _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
     _machine_mark_at: float = field(default_factory=time.monotonic)
     machine_free: float | None = None  # cores the machine left idle over the last window
@@ -257,6 +258,7 @@ class Admission:
             self._cpu_load = 0.0
             self._collect()  # what was counted before is not the window's
             self._window_ticks, self._window_compute, self._window_cycles = 0, 0.0, 0.0
+            self._window_aside = 0.0
             self._answers, self._late_answers = 0, 0
             self._machine_mark, self._machine_mark_at = _machine_times(), time.monotonic()
             self._recent_mark, self.recent_free = (time.monotonic(), self._machine_mark), None
@@ -275,10 +277,11 @@ class Admission:
             self._collect()
             if self.count_process_cpu:
                 self._cpu_load = (cpu - used) / (wall - since)
-                if self._window_ticks >= 50:
+                # A window spent mostly opening sessions measures the opens, not the ticks.
+                if self._window_ticks >= 50 and self._window_aside <= 0.5 * (cpu - used):
                     # What a tick cost this process beyond its priced filter cycle (an open's price is
                     # its cycle plus this), and beyond the tick's own CPU (an admitted session's).
-                    per_tick = (cpu - used) / self._window_ticks
+                    per_tick = max(0.0, cpu - used - self._window_aside) / self._window_ticks
                     around_cycle = per_tick - self._window_cycles / self._window_ticks
                     around_ticks = max(per_tick - self._window_compute / self._window_ticks, 0.0)
                     # The first measurement replaces the starting guess; later ones are smoothed.
@@ -291,6 +294,7 @@ class Admission:
                     self.overhead_measured = True
                 self._sample_machine()
             self._window_ticks, self._window_compute, self._window_cycles = 0, 0.0, 0.0
+            self._window_aside = 0.0
             self._cpu_mark = (wall, cpu)
             enough = self._answers >= _LATE_EVIDENCE
             self.late_share = self._late_answers / self._answers if enough else 0.0
@@ -384,6 +388,13 @@ class Admission:
             self._recent_span = (self._recent_mark[0], now)
         self._recent_mark = (now, times)
         self._opens = (self._opens[1], 0)
+
+    def observe_aside(self, cpu: float) -> None:
+        """The process spent `cpu` s of a thread's CPU opening or storing a session: load, but no
+        tick's (a burst of opens in the first window priced every tick after it at 887 us around
+        its CPU against 680 a window later: docs/decisions/0223-a-session-priced-at-its-cpu.md)."""
+        with self._lock:
+            self._window_aside += cpu
 
     def observe_open(self) -> None:
         """A REALTIME open was asked of this process (at the door, before any decision)."""
