@@ -67,6 +67,8 @@ LATE_SHARE: Final = 0.01
 # share of the last window (of one core): the replays are then what keeps it behind.
 REPLAY_SHARE: Final = 0.1
 _LATE_EVIDENCE: Final = 20  # answers a window needs before its share of late ones counts
+# Of the ticks due in a window, the share its sessions must have counted for it to price a tick.
+_ANSWERED_SHARE: Final = 0.9
 
 
 def _machine_times() -> tuple[int, int] | None:
@@ -278,8 +280,7 @@ class Admission:
             self._collect()
             if self.count_process_cpu:
                 self._cpu_load = (cpu - used) / (wall - since)
-                # A window spent mostly opening sessions measures the opens, not the ticks.
-                if self._window_ticks >= 50 and self._window_aside <= 0.5 * (cpu - used):
+                if self._measures_ticks(since=since, wall=wall, cpu=cpu - used):
                     # What a tick cost this process beyond its priced filter cycle (an open's price is
                     # its cycle plus this), and beyond the tick's own CPU (an admitted session's).
                     per_tick = max(0.0, cpu - used - self._window_aside) / self._window_ticks
@@ -305,6 +306,19 @@ class Admission:
             self.replay_share = self._replaying / (wall - since)
             self._replaying = 0.0
         return self._cpu_load if self.count_process_cpu else 0.0
+
+    def _measures_ticks(self, *, since: float, wall: float, cpu: float) -> bool:
+        """Whether the window from `since` to `wall`, in which the process spent `cpu` s, measures
+        what a tick costs: it counted 50 ticks or more, it was not mostly opening sessions, and its
+        sessions' ticks were answered (a loop busy refusing a burst of opens at its door skipped
+        them: 65 ticks counted of 29 sessions' 1160, the CPU of 170 refusals priced each at 13 ms;
+        docs/decisions/0223-a-session-priced-at-its-cpu.md). Under the lock."""
+        due = sum((wall - max(since, t.admitted_at)) / t.dt for t in self._by_id.values())
+        return (
+            self._window_ticks >= 50
+            and self._window_aside <= 0.5 * cpu
+            and self._window_ticks >= _ANSWERED_SHARE * due
+        )
 
     def _first_look(self) -> None:
         """The machine's idle CPU over a short look, when no window has ended since the process

@@ -570,3 +570,29 @@ def test_a_session_is_priced_at_the_process_s_cpu_per_tick_not_its_ticks_wall_ti
     assert ticket.cost_per_tick == pytest.approx(per_tick, rel=0.25)
     assert cycle + admission.overhead == pytest.approx(per_tick, rel=0.25)
     ticket.release()
+
+
+def test_a_window_whose_ticks_went_unanswered_does_not_price_a_tick(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A loop busy refusing a burst of opens skips its sessions' ticks: the window's CPU, divided
+    among the few ticks it counted, priced each at 13 ms. Such a window does not measure them; one
+    that counted its sessions' ticks does."""
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.3)
+    admission = Admission(budget=0.75, count_machine_cpu=False)
+    ticket = admission.admit(cost_per_tick=0.3e-3, dt=1e-3, what="a 1 kHz session", filter_seconds=0.1e-3)
+    admission.start_window()
+
+    def window(ticks: int) -> None:
+        started = time.monotonic()
+        for _ in range(ticks):
+            _burn(10e-6)
+            ticket.observe(10e-6, cpu=10e-6)
+        time.sleep(max(0.0, started + 0.35 - time.monotonic()))
+        admission.measured_load()
+
+    window(60)  # of about 350 due
+    assert not admission.overhead_measured and admission.overhead == TRANSPORT_COST
+    window(2000)
+    assert admission.overhead_measured and admission.around_ticks is not None
+    ticket.release()
