@@ -46,10 +46,11 @@ __all__ = ["DEFAULT_TICK_BUDGET", "TRANSPORT_COST", "Admission", "Ticket"]
 _log = logging.getLogger(__name__)
 
 DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
-# Server CPU per tick outside the estimator (receiving the frame, checking it, the result message,
-# sending it, recording it, the event loop): the starting guess, which each process then replaces
-# with its own, learnt from its CPU and its ticks (docs/decisions/0005-admission-starting-guesses.md).
-TRANSPORT_COST: Final = 1e-3  # s
+# Server CPU per tick around the filter's cycle (receiving the frame, checking it, the forecast, the
+# result's dynamics and message, sending it, recording it, the event loop): the starting guess,
+# which each process then replaces with its own, learnt from its CPU and its ticks
+# (docs/decisions/0005-admission-starting-guesses.md, 0223-a-session-priced-at-its-cpu.md).
+TRANSPORT_COST: Final = 0.75e-3  # s
 _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 # A lone session's tick costs up to this many times the overhead figure (learnt among many
 # sessions, or guessed) around its filter: where that decides whether it fits, it is rehearsed
@@ -66,6 +67,8 @@ LATE_SHARE: Final = 0.01
 # share of the last window (of one core): the replays are then what keeps it behind.
 REPLAY_SHARE: Final = 0.1
 _LATE_EVIDENCE: Final = 20  # answers a window needs before its share of late ones counts
+# Of the ticks due in a window, the share its sessions must have counted for it to price a tick.
+_ANSWERED_SHARE: Final = 0.9
 
 
 def _machine_times() -> tuple[int, int] | None:
@@ -129,6 +132,9 @@ class Ticket:
     # s, the thread CPU of the session's own estimator and dynamics per tick: `compute_per_tick`
     # without the time the machine took the CPU away mid-tick; None before a tick tells it.
     cpu_per_tick: float | None = None
+    # s, the filter cycle the session was priced at (predict + update, at open): what the process's
+    # overhead figure is measured around, so that an open of its kind is priced at a tick's CPU.
+    filter_seconds: float = 0.0
     released: bool = False
     admitted_at: float = field(default_factory=time.monotonic)
     # What the session's own thread counted since admission: ticks, their compute (s), REALTIME
@@ -144,11 +150,17 @@ class Ticket:
         return self.cost_per_tick / self.dt
 
     def observe(self, seconds: float, *, cpu: float | None = None) -> None:
-        """One tick took `seconds` of the estimator and dynamics (`cpu` of them its thread's CPU);
-        the process's learnt overhead per tick (the transport, the loop, recording) is added."""
+        """One tick took `seconds` of the estimator and dynamics on the loop, `cpu` of them its
+        thread's CPU. Its price follows the tick's CPU plus the process's CPU per tick beyond its
+        ticks' own (the transport, the loop, recording); before the process has measured that, the
+        price it was admitted at stands (a tick's wall time during a burst of opens is other
+        threads' CPU too: docs/decisions/0223-a-session-priced-at-its-cpu.md)."""
+        own = seconds if cpu is None else cpu
         self.counted_ticks += 1
-        self.counted_compute += seconds
-        self.cost_per_tick += _EWMA * (seconds + self.admission.overhead - self.cost_per_tick)
+        self.counted_compute += own
+        around = self.admission.around_ticks
+        if around is not None:
+            self.cost_per_tick += _EWMA * (own + around - self.cost_per_tick)
         self.compute_per_tick += _EWMA * (seconds - self.compute_per_tick)
         if cpu is not None:
             previous = self.cpu_per_tick
@@ -204,10 +216,15 @@ class Admission:
     _cpu_mark: tuple[float, float] = field(default_factory=lambda: (time.monotonic(), time.process_time()))
     _cpu_load: float = 0.0
     refused: int = 0
-    overhead: float = TRANSPORT_COST  # s per tick outside the estimator, learnt from this process's CPU
+    overhead: float = TRANSPORT_COST  # s per tick around the priced filter cycle, learnt from the CPU
     overhead_measured: bool = False  # the overhead is this process's own figure, not the starting guess
+    # s per tick of the process's CPU beyond its ticks' own CPU (the overhead is beyond their
+    # priced filter cycles); None until a window has measured it.
+    around_ticks: float | None = None
     _window_ticks: int = 0
-    _window_compute: float = 0.0
+    _window_compute: float = 0.0  # s, the CPU of the window's ticks
+    _window_cycles: float = 0.0  # s, the filter cycles their sessions were priced at, one a tick
+    _window_aside: float = 0.0  # s of the window's CPU that was no tick's: opening and storing sessions
     _machine_mark: tuple[int, int] | None = field(default_factory=_machine_times)
     _machine_mark_at: float = field(default_factory=time.monotonic)
     machine_free: float | None = None  # cores the machine left idle over the last window
@@ -243,7 +260,8 @@ class Admission:
             self._cpu_mark = (time.monotonic(), time.process_time())
             self._cpu_load = 0.0
             self._collect()  # what was counted before is not the window's
-            self._window_ticks, self._window_compute = 0, 0.0
+            self._window_ticks, self._window_compute, self._window_cycles = 0, 0.0, 0.0
+            self._window_aside = 0.0
             self._answers, self._late_answers = 0, 0
             self._machine_mark, self._machine_mark_at = _machine_times(), time.monotonic()
             self._recent_mark, self.recent_free = (time.monotonic(), self._machine_mark), None
@@ -262,13 +280,23 @@ class Admission:
             self._collect()
             if self.count_process_cpu:
                 self._cpu_load = (cpu - used) / (wall - since)
-                if self._window_ticks >= 50:
-                    # What a tick cost this process beyond its estimator: its CPU per tick, less compute.
-                    per_tick = (cpu - used) / self._window_ticks - self._window_compute / self._window_ticks
-                    self.overhead += 0.5 * (max(per_tick, 100e-6) - self.overhead)
+                if self._measures_ticks(since=since, wall=wall, cpu=cpu - used):
+                    # What a tick cost this process beyond its priced filter cycle (an open's price is
+                    # its cycle plus this), and beyond the tick's own CPU (an admitted session's).
+                    per_tick = max(0.0, cpu - used - self._window_aside) / self._window_ticks
+                    around_cycle = per_tick - self._window_cycles / self._window_ticks
+                    around_ticks = max(per_tick - self._window_compute / self._window_ticks, 0.0)
+                    # The first measurement replaces the starting guess; later ones are smoothed.
+                    weight = 0.5 if self.overhead_measured else 1.0
+                    self.overhead += weight * (max(around_cycle, 100e-6) - self.overhead)
+                    previous = self.around_ticks
+                    self.around_ticks = (
+                        around_ticks if previous is None else previous + 0.5 * (around_ticks - previous)
+                    )
                     self.overhead_measured = True
                 self._sample_machine()
-            self._window_ticks, self._window_compute = 0, 0.0
+            self._window_ticks, self._window_compute, self._window_cycles = 0, 0.0, 0.0
+            self._window_aside = 0.0
             self._cpu_mark = (wall, cpu)
             enough = self._answers >= _LATE_EVIDENCE
             self.late_share = self._late_answers / self._answers if enough else 0.0
@@ -278,6 +306,19 @@ class Admission:
             self.replay_share = self._replaying / (wall - since)
             self._replaying = 0.0
         return self._cpu_load if self.count_process_cpu else 0.0
+
+    def _measures_ticks(self, *, since: float, wall: float, cpu: float) -> bool:
+        """Whether the window from `since` to `wall`, in which the process spent `cpu` s, measures
+        what a tick costs: it counted 50 ticks or more, it was not mostly opening sessions, and its
+        sessions' ticks were answered (a loop busy refusing a burst of opens at its door skipped
+        them: 65 ticks counted of 29 sessions' 1160, the CPU of 170 refusals priced each at 13 ms;
+        docs/decisions/0223-a-session-priced-at-its-cpu.md). Under the lock."""
+        due = sum((wall - max(since, t.admitted_at)) / t.dt for t in self._by_id.values())
+        return (
+            self._window_ticks >= 50
+            and self._window_aside <= 0.5 * cpu
+            and self._window_ticks >= _ANSWERED_SHARE * due
+        )
 
     def _first_look(self) -> None:
         """The machine's idle CPU over a short look, when no window has ended since the process
@@ -323,6 +364,7 @@ class Admission:
         seen_ticks, seen_compute, seen_answers, seen_late = self._collected.get(key, (0, 0.0, 0, 0))
         self._window_ticks += ticks - seen_ticks
         self._window_compute += compute - seen_compute
+        self._window_cycles += (ticks - seen_ticks) * ticket.filter_seconds
         self._answers += answers - seen_answers
         self._late_answers += late - seen_late
         self._collected[key] = (ticks, compute, answers, late)
@@ -361,6 +403,13 @@ class Admission:
             self._recent_span = (self._recent_mark[0], now)
         self._recent_mark = (now, times)
         self._opens = (self._opens[1], 0)
+
+    def observe_aside(self, cpu: float) -> None:
+        """The process spent `cpu` s of a thread's CPU opening or storing a session: load, but no
+        tick's (a burst of opens in the first window priced every tick after it at 887 us around
+        its CPU against 680 a window later: docs/decisions/0223-a-session-priced-at-its-cpu.md)."""
+        with self._lock:
+            self._window_aside += cpu
 
     def observe_open(self) -> None:
         """A REALTIME open was asked of this process (at the door, before any decision)."""
@@ -522,6 +571,7 @@ class Admission:
             dt=dt,
             cost_per_tick=cost_per_tick,
             compute_per_tick=filter_seconds,
+            filter_seconds=filter_seconds,
             grace=grace,
         )
         with self._lock:

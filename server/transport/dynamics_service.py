@@ -906,14 +906,17 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         for it in a tick (after a frame's read, a rollout, a write) cost up to the switch interval
         (stall reports: 79 ms with four opens beside the loop, 115 ms with four stores;
         docs/decisions/0009-the-loop-watched.md)."""
-        switch = self._services.admission.switch
+        admission = self._services.admission
+        switch = admission.switch
 
         def step() -> _R:
             if switch is not None:
                 switch.add(_SLOW_STEP_GRACE)
+            cpu = time.thread_time()
             try:
                 return call(*args, **kwargs)
             finally:
+                admission.observe_aside(time.thread_time() - cpu)
                 if switch is not None:
                     switch.remove(_SLOW_STEP_GRACE)
 

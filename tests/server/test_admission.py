@@ -20,15 +20,15 @@ def _beat_for(admission: Admission, seconds: float) -> None:
 
 
 def test_a_session_that_cannot_fit_alone_is_refused_by_an_idle_process_saying_what_rate_fits() -> None:
-    """Its filter alone fits (0.7 ms of a 2 ms tick), but not with the CPU a tick costs around it:
+    """Its filter alone fits (0.9 ms of a 2 ms tick), but not with the CPU a tick costs around it:
     an idle process used to take it on its filter alone, and answered it late."""
     admission = Admission(budget=0.75, count_process_cpu=False)
-    cost = 0.7e-3 + TRANSPORT_COST
+    cost = 0.9e-3 + TRANSPORT_COST
     with pytest.raises(ResourceExhausted) as refused:
-        admission.admit(cost_per_tick=cost, dt=2e-3, what="myoelbow at 500 Hz", filter_seconds=0.7e-3)
+        admission.admit(cost_per_tick=cost, dt=2e-3, what="myoelbow at 500 Hz", filter_seconds=0.9e-3)
     assert str(refused.value) == (
         f"a session of myoelbow at 500 Hz is estimated at {1e6 * cost:.0f} us of this server's CPU per "
-        f"tick: its filter 700 us and {1e6 * TRANSPORT_COST:.0f} us around it (the frame's read, the "
+        f"tick: its filter 900 us and {1e6 * TRANSPORT_COST:.0f} us around it (the frame's read, the "
         "result's dynamics and message, the write, the record, the event loop; the starting guess, "
         f"until this process has measured its own ticks), {100 * cost / 2e-3:.0f} % of a core against "
         "the tick budget of 75 % (--tick-budget 0.75) on its own: its answers could not be on time. "
@@ -37,9 +37,9 @@ def test_a_session_that_cannot_fit_alone_is_refused_by_an_idle_process_saying_wh
     assert admission.refused == 1 and admission.sessions == 0
     # At the rate it names, it is admitted; a second is refused on the first one's estimate.
     dt = cost / 0.75
-    ticket = admission.admit(cost_per_tick=cost, dt=dt * 1.01, what="myoelbow", filter_seconds=0.7e-3)
+    ticket = admission.admit(cost_per_tick=cost, dt=dt * 1.01, what="myoelbow", filter_seconds=0.9e-3)
     with pytest.raises(ResourceExhausted, match=rf"estimated at {1e6 * cost:.0f} us per tick"):
-        admission.admit(cost_per_tick=cost, dt=dt * 1.01, what="myoelbow", filter_seconds=0.7e-3)
+        admission.admit(cost_per_tick=cost, dt=dt * 1.01, what="myoelbow", filter_seconds=0.9e-3)
     ticket.release()
     assert admission.sessions == 0
 
@@ -522,3 +522,77 @@ def test_tickets_count_their_answers_and_the_window_adds_them_up(monkeypatch: py
     time.sleep(0.25)
     admission.measured_load()
     assert admission.late_share == 0.0
+
+
+def _burn(seconds: float) -> None:
+    """Spend `seconds` of this thread's CPU."""
+    until = time.thread_time() + seconds
+    while time.thread_time() < until:
+        pass
+
+
+def test_a_session_is_priced_at_the_process_s_cpu_per_tick_not_its_ticks_wall_time(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Each tick: 0.3 ms of its own CPU, 1 ms of wall time (other threads held the GIL and the
+    core), 0.3 ms of the process's CPU around it. Priced by wall time, a session cost 1.4 ms a
+    tick against 0.6 ms of CPU; and an open, priced at its 0.15 ms filter cycle plus the overhead
+    around the tick's wall time, cost less than the ticks it would add."""
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.5)
+    admission = Admission(budget=0.75, count_machine_cpu=False)
+    cycle = 0.15e-3
+    ticket = admission.admit(
+        cost_per_tick=cycle + TRANSPORT_COST, dt=0.05, what="pendulum_3", filter_seconds=cycle
+    )
+    admission.start_window()
+
+    def tick() -> None:
+        wall, cpu = time.perf_counter(), time.thread_time()
+        _burn(0.3e-3)
+        time.sleep(0.7e-3)
+        ticket.observe(time.perf_counter() - wall, cpu=time.thread_time() - cpu)
+        _burn(0.3e-3)
+
+    # Before the process has measured a window the price it was admitted at stands.
+    for _ in range(20):
+        tick()
+    assert ticket.cost_per_tick == cycle + TRANSPORT_COST
+    used, ticks = time.process_time(), 0
+    while not admission.overhead_measured:
+        tick()
+        ticks += 1
+        admission.measured_load()
+    per_tick = (time.process_time() - used) / ticks  # what a tick cost this process
+    for _ in range(100):  # the ticket's price follows its ticks
+        tick()
+    assert ticket.cost_per_tick == pytest.approx(per_tick, rel=0.25)
+    assert cycle + admission.overhead == pytest.approx(per_tick, rel=0.25)
+    ticket.release()
+
+
+def test_a_window_whose_ticks_went_unanswered_does_not_price_a_tick(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A loop busy refusing a burst of opens skips its sessions' ticks: the window's CPU, divided
+    among the few ticks it counted, priced each at 13 ms. Such a window does not measure them; one
+    that counted its sessions' ticks does."""
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.3)
+    admission = Admission(budget=0.75, count_machine_cpu=False)
+    ticket = admission.admit(cost_per_tick=0.3e-3, dt=1e-3, what="a 1 kHz session", filter_seconds=0.1e-3)
+    admission.start_window()
+
+    def window(ticks: int) -> None:
+        started = time.monotonic()
+        for _ in range(ticks):
+            _burn(10e-6)
+            ticket.observe(10e-6, cpu=10e-6)
+        time.sleep(max(0.0, started + 0.35 - time.monotonic()))
+        admission.measured_load()
+
+    window(60)  # of about 350 due
+    assert not admission.overhead_measured and admission.overhead == TRANSPORT_COST
+    window(2000)
+    assert admission.overhead_measured and admission.around_ticks is not None
+    ticket.release()
