@@ -1,22 +1,19 @@
-"""A session's commit window as preallocated columns in Arrow's own layout: the tick's thread writes
-its row into them (`append_result`, from a tick's values; `append`, from a `TickRecord`), and
-`batch` gives the commit thread the window as a slice of one Arrow batch that views those columns,
-built once, so that a window costs neither a conversion nor a copy before it is serialised.
+"""A session's commit window as preallocated columns in Arrow's own layout: `append` writes a
+`TickRecord`'s values into them on the tick's thread, and `batch` gives the commit thread the window
+as a slice of one Arrow batch that views those columns, built once, so that a window costs neither
+a conversion nor a copy before it is serialised.
 
     rows = WindowRows(lengths=expected_lengths(header))
-    rows.append_result(seq, source, ..., vectors)  # a tick's result, no TickRecord built
-    rows.append(record)        # rejected frames, tools; InvalidArgument names a misfit column
+    rows.append(record)        # the tick's thread; InvalidArgument names a column the record misfits
     batch = rows.batch()       # the commit thread; valid until the next `append` or `clear`
     rows.clear()               # once the batch is serialised: the rows are written again
 
 Numbers are numpy arrays; a vector column is one (capacity, width) float64 block, the values of a
 list column whose offsets are `k * width`; booleans and validity are bitmaps (bytearrays); strings
 are offsets and UTF-8 bytes. The vectors of a column are packed, a row without one a null of no
-values: the batch is the one `columns.records_to_batch` converts from the same records. The columns
-grow by doubling, and the batch viewing them is then built again; so is it when a vector column's
-width is first known. The committer does not use it: queued TickRecords converted once a window
-cost a server's record path less (docs/decisions/0217-the-tick-writes-its-row.md; the first
-measure: 0151-columnar-record-windows.md).
+values: the batch is the one `columns.records_to_batch` converts from the same records. The columns grow by doubling, and the batch viewing them is
+then built again; so is it when a vector column's width is first known. The committer does not use
+it yet: what it costs against the committer's conversion, docs/decisions/0151-columnar-record-windows.md.
 """
 
 from __future__ import annotations

@@ -1,11 +1,12 @@
 """The crash-safe recorder of one session, and the recovery of sessions a dead server left open.
 
     with SessionRecorder(data_root=root, index=index, header=header) as recorder:
-        recorder.append(record)           # cheap; from the event loop
+        recorder.append_result(...)       # a tick's row, straight into its columns; cheap
+        recorder.append(record)           # a TickRecord (rejected frames, tools)
         result.durable_seq = recorder.durable_seq
         location = recorder.close(summary) # blocking: compaction; run it in a thread
 
-`append` only queues the record; the process's commit thread (storage/commit.py, shared by every
+`append` only writes the row into the session's preallocated columns; the process's commit thread (storage/commit.py, shared by every
 session) appends what has queued to the session's log and makes it durable together with the other
 sessions' records of the same window (group commit), every `commit_every` records or
 `commit_interval` seconds after the first queued one, whichever comes first (the commit thread
@@ -33,7 +34,10 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import Any, Self
+
+import numpy as np
+import numpy.typing as npt
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
 from jitdyn.storage.columns import expected_lengths
@@ -53,6 +57,8 @@ from jitdyn.vocabulary import SessionStatus
 __all__ = ["SessionRecorder", "finish_orphan", "publish_unpublished", "recover_unfinished"]
 
 _log = logging.getLogger(__name__)
+
+Vector = npt.NDArray[np.float64]
 
 
 class _State(enum.Enum):
@@ -253,11 +259,54 @@ class SessionRecorder:
         return self._writer.size() if self._writer is not None else 0
 
     def append(self, record: TickRecord) -> None:
-        """Queue a record for the next group commit. Never waits for the disk.
+        """Write a record into the session's columns for the next group commit (rejected frames,
+        tools, importers; a tick's result takes `append_result`). Never waits for the disk. The
+        record's arrays are copied: they may be changed once it returns.
 
-        Raises FailedPrecondition after close, and Unavailable once the log could not be written
-        (the session cannot promise durability any more and should end).
+        Raises FailedPrecondition after close; InvalidArgument, naming the column, for a record
+        that does not fit the session's columns (a wrong length or type: a bug, which ends the
+        recorder as a failed write does); and Unavailable once the log could not be written (the
+        session cannot promise durability any more and should end).
         """
+        self._append(self._committer.append, record)
+
+    def append_result(
+        self,
+        seq: int,
+        source: str,
+        t: float,
+        server_time: float,
+        frame_t: float | None,
+        late_ticks: int,
+        frame_delay: float | None,
+        nis: float | None,
+        reinitialised: bool,
+        late_compute: bool,
+        compute_us: int,
+        receive_to_send_us: int,
+        vectors: tuple[Vector | None, ...],
+    ) -> None:
+        """`append` of a tick's result from its values, without a `TickRecord`: the row is written
+        straight into the session's columns (storage/buffers.py `WindowRows.append_result` says
+        what each value is). Raises as `append` does."""
+        self._append(
+            self._committer.append_result,
+            seq,
+            source,
+            t,
+            server_time,
+            frame_t,
+            late_ticks,
+            frame_delay,
+            nis,
+            reinitialised,
+            late_compute,
+            compute_us,
+            receive_to_send_us,
+            vectors,
+        )
+
+    def _append(self, write: Callable[..., None], *values: Any) -> None:
         with self._cond:
             if self._state is not _State.OPEN:
                 raise FailedPrecondition(
@@ -265,10 +314,15 @@ class SessionRecorder:
                 )
             if self._failure is not None:
                 raise self._failure
-            self._appended += 1
             # Under the recorder's lock, so that `close` cannot unregister in between (the commit
             # thread never takes this lock while holding the committer's: no inversion).
-            self._committer.append(self._key, record)
+            try:
+                write(self._key, *values)
+            except InvalidArgument as exc:
+                self._failure = InvalidArgument(f"session {self._header.session_id}: {exc}")
+                self._cond.notify_all()
+                raise self._failure from None
+            self._appended += 1
 
     def flush(self, timeout: float | None = None) -> None:
         """Commit what is queued now and wait until it is durable (for tests and shutdown)."""
