@@ -149,10 +149,10 @@ def throughput(root: Path, index: SessionIndex, frames: int) -> dict[str, float]
     for i, row in enumerate(rows):
         if i % 97 == 0:
             t0 = time.perf_counter_ns()
-            append(*row)
+            append(row)
             samples.append((time.perf_counter_ns() - t0) / 1e3)
         else:
-            append(*row)
+            append(row)
     appended = time.perf_counter() - started
     recorder.flush()
     durable = time.perf_counter() - started
@@ -181,7 +181,7 @@ def paced(root: Path, index: SessionIndex, rate: float, seconds: float) -> dict[
     started = time.perf_counter()
     for start in range(0, frames, burst):
         for row in records[start : start + burst]:
-            recorder.append_result(*row)
+            recorder.append_result(row)
         durable = recorder.durable_seq
         lags.append((start + burst - 1 - (-1 if durable is None else durable)) / rate * 1e3)
         pause = started + (start + burst) / rate - time.perf_counter()
@@ -227,7 +227,7 @@ def many_sessions(
             pause = due - time.perf_counter()
             if pause > 0:
                 time.sleep(pause)
-            recorder.append_result(*trajectory.row(k))
+            recorder.append_result(trajectory.row(k))
         durable = recorders[0].durable_seq
         lags.append((k - (-1 if durable is None else durable)) * period * 1e3)
     for recorder in recorders:
@@ -253,7 +253,7 @@ def compaction(root: Path, index: SessionIndex, frames: int) -> dict[str, float]
     recorder = SessionRecorder(data_root=root, index=index, header=header(), commit_every=4096)
     started = time.perf_counter()
     for i in range(frames):
-        recorder.append_result(*trajectory.row(i))
+        recorder.append_result(trajectory.row(i))
     recorder.flush()
     built_and_logged = time.perf_counter() - started
     log_bytes = recorder.log_bytes
@@ -277,7 +277,7 @@ def close_cost(root: Path, index: SessionIndex, *, ticks: int, per_commit: int) 
     trajectory = Trajectory(ticks, seed=4)
     recorder = SessionRecorder(data_root=root, index=index, header=header())
     for i in range(ticks):
-        recorder.append_result(*trajectory.row(i))
+        recorder.append_result(trajectory.row(i))
         if (i + 1) % per_commit == 0:
             recorder.flush()
     recorder.flush()
@@ -421,7 +421,7 @@ def _columnar_window(windows: list[list[tuple[Any, ...]]], columns: list[WindowR
     for k in range(len(windows[0])):
         for rows, values in zip(columns, windows, strict=True):
             with lock:
-                rows.append_result(*values[k])
+                rows.append_result(values[k])
     appended = time.thread_time()
     for rows in columns:
         rows.batch().serialize()

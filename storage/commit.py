@@ -3,12 +3,13 @@ session a process records, as a database's write-ahead log does.
 
 A session's ticks come `dt` apart (50 ms at 20 Hz), so a per-session commit thread had nothing to
 group: each tick cost an Arrow batch of one row, a thread wake-up and an fsync. Here each row is
-written, as it is appended, into its session's preallocated columns (storage/buffers.py); per
-window the thread swaps each due session's columns for its spare ones (the tick never waits for a
-write), appends them to the session's own log as one Arrow batch that views them (no conversion,
-no copy), in one write, and one `syncfs` makes every log durable (one `fsync` when a single log has
-new rows). Each session keeps its own log, so recovery, compaction and the per-log flock are
-unchanged. Why the columns: docs/decisions/0217-the-tick-writes-its-row.md.
+written, as it is appended, into its session's preallocated columns (storage/buffers.py); when a
+session's window is due the thread takes every session that has rows, swaps their columns for
+their spare ones (the tick never waits for a write), appends each to its session's own log as one
+Arrow batch that views them, in one write, and one `syncfs` makes every log durable (one `fsync`
+when a single log has new rows). Each session keeps its own log, so recovery, compaction and the
+per-log flock are unchanged. Why the columns, and why every session's rows share each commit:
+docs/decisions/0221-the-columns-pay-at-a-servers-load.md.
 
 With a shared tier (replicas sharing a PostgreSQL index, storage/shared.py), a session's rows go
 instead to the shared log: one transaction per window for every such session of the process, which
@@ -33,13 +34,13 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Final
 
 import pyarrow as pa
 
 from jitdyn.errors import InvalidArgument, JitdynError, Unavailable
 from jitdyn.lifecycle import Closeable
-from jitdyn.storage.buffers import INITIAL_ROWS, WindowRows
+from jitdyn.storage.buffers import INITIAL_ROWS, ResultRow, WindowRows
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.records import TickRecord
 from jitdyn.storage.shared import Fenced, Lease, SharedTier, Window
@@ -54,9 +55,10 @@ __all__ = [
     "default_committer",
 ]
 
-# A commit costs about the same whatever it carries, so the window widens until commits cost at most
-# COMMIT_SHARE of a core, and never past MAX_WINDOW, which bounds how far durable_seq trails the
-# newest answer (the measurements: docs/decisions/0040-group-commit-window.md).
+# A commit costs about the same whatever it carries, so the window widens until the commit thread
+# (its wake-ups and scans included) costs at most COMMIT_SHARE of a core, and never past
+# MAX_WINDOW, which bounds how far durable_seq trails the newest answer (the measurements:
+# docs/decisions/0040-group-commit-window.md, 0221-the-columns-pay-at-a-servers-load.md).
 COMMIT_SHARE: Final = 0.01
 MAX_WINDOW: Final = 0.1  # s
 _COST_EWMA: Final = 0.2
@@ -237,12 +239,12 @@ class GroupCommitter(Closeable):
             session.window.append(record)
             self._appended(session)
 
-    def append_result(self, key: int, *values: Any) -> None:
+    def append_result(self, key: int, values: ResultRow) -> None:
         """Write a tick's result into the columns of log `key`'s window, from its values as
         `WindowRows.append_result` takes them (no `TickRecord`). Never waits for the disk."""
         with self._cond:
             session = self._sessions[key]
-            session.window.append_result(*values)
+            session.window.append_result(values)
             self._appended(session)
 
     def _appended(self, session: _Session) -> None:
@@ -306,8 +308,9 @@ class GroupCommitter(Closeable):
     # The thread.
 
     def _take_due(self) -> list[tuple[_Session, WindowRows | None, _Held | None]] | None:
-        """Wait until some log is due; take its rows, and those of every log half-way through its
-        window (they share the flush), swapping in their spare columns; or a window the shared
+        """Wait until some log is due; take its rows, and those of every other log that has any
+        (they share the flush: the next commit is then a whole window away), swapping in their
+        spare columns; or a window the shared
         tier did not take, alone. None when stopping with nothing left."""
         with self._cond:
             while True:
@@ -329,13 +332,7 @@ class GroupCommitter(Closeable):
                 self._wake_at = -math.inf  # awake: it rescans every log before it waits again
             chosen = set(map(id, due))
             for s in self._sessions.values():
-                if (
-                    id(s) not in chosen
-                    and s.pending
-                    and not s.failed
-                    and now >= s.retry_at
-                    and now >= s.first_pending_at + max(s.commit_interval, window) / 2
-                ):
+                if id(s) not in chosen and s.pending and not s.failed and now >= s.retry_at:
                     due.append(s)
             taken: list[tuple[_Session, WindowRows | None, _Held | None]] = []
             for s in due:
@@ -352,11 +349,13 @@ class GroupCommitter(Closeable):
             return taken
 
     def _run(self) -> None:
+        # A commit's cost is the thread's CPU from the end of the last one: its wake-ups and scans
+        # while the window fills count, as its fsync and write do.
+        cpu_started = time.thread_time()
         while True:
             taken = self._take_due()
             if taken is None:
                 return
-            cpu_started = time.thread_time()
             written = self._write(taken)
             local = [(s, t) for s, t, _ in written if s.lease is None]
             durable: list[tuple[_Session, _Taken]] = []
@@ -387,7 +386,8 @@ class GroupCommitter(Closeable):
                         rows.clear()
                         s.spare = rows
                     s.in_flight = False
-                cost = time.thread_time() - cpu_started
+                cpu_now = time.thread_time()
+                cost, cpu_started = cpu_now - cpu_started, cpu_now
                 self._cpu += cost
                 self._commit_cost += _COST_EWMA * (cost - self._commit_cost)
                 self._window = min(MAX_WINDOW, self._commit_cost / COMMIT_SHARE)
@@ -498,6 +498,9 @@ class GroupCommitter(Closeable):
             return None
         try:
             data = rows.batch().serialize()
+        except InvalidArgument as exc:  # a vector that does not fit its column, named
+            self._fail(s, InvalidArgument(f"session {s.name}: {exc}"))
+            return None
         except (TypeError, ValueError, pa.ArrowException) as exc:
             self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
             return None

@@ -1,17 +1,17 @@
 """The crash-safe recorder of one session, and the recovery of sessions a dead server left open.
 
     with SessionRecorder(data_root=root, index=index, header=header) as recorder:
-        recorder.append_result(...)       # a tick's row, straight into its columns; cheap
+        recorder.append_result(values)    # a tick's row (a ResultRow), into its columns; cheap
         recorder.append(record)           # a TickRecord (rejected frames, tools)
         result.durable_seq = recorder.durable_seq
         location = recorder.close(summary) # blocking: compaction; run it in a thread
 
-`append` only writes the row into the session's preallocated columns; the process's commit thread (storage/commit.py, shared by every
-session) appends what has queued to the session's log and makes it durable together with the other
-sessions' records of the same window (group commit), every `commit_every` records or
-`commit_interval` seconds after the first queued one, whichever comes first (the commit thread
-widens the window, up to commit.MAX_WINDOW, while its commits carry too few records to be worth
-their fixed cost). `close` compacts the
+`append` only writes the row into the session's preallocated columns; the process's commit thread
+(storage/commit.py, shared by every session) appends what has queued to the session's log and
+makes it durable together with the other sessions' rows of the same window (group commit), every
+`commit_every` records or `commit_interval` seconds after the first queued one, whichever comes
+first (the commit thread widens the window, up to commit.MAX_WINDOW, while its commits carry too
+few records to be worth their fixed cost). `close` compacts the
 log to Parquet, marks the session ended in the index in one transaction, then deletes the log. On
 start, `recover_unfinished` does the same for every session whose server died.
 
@@ -36,10 +36,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Self
 
-import numpy as np
-import numpy.typing as npt
-
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
+from jitdyn.storage.buffers import ResultRow
 from jitdyn.storage.columns import expected_lengths
 from jitdyn.storage.commit import GroupCommitter, default_committer
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
@@ -57,8 +55,6 @@ from jitdyn.vocabulary import SessionStatus
 __all__ = ["SessionRecorder", "finish_orphan", "publish_unpublished", "recover_unfinished"]
 
 _log = logging.getLogger(__name__)
-
-Vector = npt.NDArray[np.float64]
 
 
 class _State(enum.Enum):
@@ -261,7 +257,7 @@ class SessionRecorder:
     def append(self, record: TickRecord) -> None:
         """Write a record into the session's columns for the next group commit (rejected frames,
         tools, importers; a tick's result takes `append_result`). Never waits for the disk. The
-        record's arrays are copied: they may be changed once it returns.
+        record's arrays are held until its window is committed: they must not change meanwhile.
 
         Raises FailedPrecondition after close; InvalidArgument, naming the column, for a record
         that does not fit the session's columns (a wrong length or type: a bug, which ends the
@@ -270,43 +266,14 @@ class SessionRecorder:
         """
         self._append(self._committer.append, record)
 
-    def append_result(
-        self,
-        seq: int,
-        source: str,
-        t: float,
-        server_time: float,
-        frame_t: float | None,
-        late_ticks: int,
-        frame_delay: float | None,
-        nis: float | None,
-        reinitialised: bool,
-        late_compute: bool,
-        compute_us: int,
-        receive_to_send_us: int,
-        vectors: tuple[Vector | None, ...],
-    ) -> None:
+    def append_result(self, values: ResultRow) -> None:
         """`append` of a tick's result from its values, without a `TickRecord`: the row is written
-        straight into the session's columns (storage/buffers.py `WindowRows.append_result` says
-        what each value is). Raises as `append` does."""
-        self._append(
-            self._committer.append_result,
-            seq,
-            source,
-            t,
-            server_time,
-            frame_t,
-            late_ticks,
-            frame_delay,
-            nis,
-            reinitialised,
-            late_compute,
-            compute_us,
-            receive_to_send_us,
-            vectors,
-        )
+        straight into the session's columns (storage/buffers.py `ResultRow` says what each value
+        is). Raises as `append` does; a vector that does not fit its column fails the recorder
+        when its window is committed."""
+        self._append(self._committer.append_result, values)
 
-    def _append(self, write: Callable[..., None], *values: Any) -> None:
+    def _append(self, write: Callable[[int, Any], None], values: Any) -> None:
         with self._cond:
             if self._state is not _State.OPEN:
                 raise FailedPrecondition(
@@ -317,7 +284,7 @@ class SessionRecorder:
             # Under the recorder's lock, so that `close` cannot unregister in between (the commit
             # thread never takes this lock while holding the committer's: no inversion).
             try:
-                write(self._key, *values)
+                write(self._key, values)
             except InvalidArgument as exc:
                 self._failure = InvalidArgument(f"session {self._header.session_id}: {exc}")
                 self._cond.notify_all()

@@ -138,8 +138,9 @@ def record_tick(
     diagonal: np.ndarray | None,
 ) -> None:
     """Write the stored row of one tick's answer, with what arrived, straight into the session's
-    columns (no `TickRecord`: its 31 fields cost more to build than the row costs to write);
-    `diagonal` is `covariance_diagonal(outcome)`. The vectors are copied into the columns."""
+    columns (no `TickRecord`); `diagonal` is `covariance_diagonal(outcome)`, copied here (a view
+    of the filter's covariance, which the next tick changes). The other vectors are the tick's
+    own, held by reference until the commit thread copies them into their columns."""
     frame = outcome.frame
     estimate = outcome.estimate
     dyn = outcome.dynamics
@@ -157,31 +158,33 @@ def record_tick(
         nis = estimate.nis if outcome.source != Source.PREDICTED else None
         reinitialised = bool(estimate.reinitialised)
     recorder.append_result(
-        outcome.seq,
-        outcome.source,
-        outcome.t,
-        server_time,
-        frame_t,
-        outcome.late_ticks,
-        frame_delay,
-        nis,
-        reinitialised,
-        outcome.late_compute,
-        outcome.compute_us,
-        receive_to_send_us,
         (
-            *frame_vectors,
-            outcome.qpos,
-            outcome.qvel,
-            outcome.qacc,
-            dyn.qfrc_inverse,
-            dyn.qacc_forward,
-            dyn.actuator_force,
-            dyn.sensordata,
-            diagonal,
-            state,
-            _forecast_weights(outcome),
-        ),
+            outcome.seq,
+            outcome.source,
+            outcome.t,
+            server_time,
+            frame_t,
+            outcome.late_ticks,
+            frame_delay,
+            nis,
+            reinitialised,
+            outcome.late_compute,
+            outcome.compute_us,
+            receive_to_send_us,
+            (
+                *frame_vectors,
+                outcome.qpos,
+                outcome.qvel,
+                outcome.qacc,
+                dyn.qfrc_inverse,
+                dyn.qacc_forward,
+                dyn.actuator_force,
+                dyn.sensordata,
+                None if diagonal is None else diagonal.copy(),
+                state,
+                _forecast_weights(outcome),
+            ),
+        )
     )
 
 

@@ -258,10 +258,11 @@ def test_a_result_row_that_does_not_fit_fails_the_recorder(
     recorder = SessionRecorder(data_root=data_root, index=index, header=header, commit_interval=30.0)
     vectors = [None] * len(ARRAY_FIELDS)
     vectors[ARRAY_FIELDS.index("qvel")] = np.zeros(2)
+    # The row's vectors are copied into their columns when its window is committed: there the
+    # misfit is named, and the recorder fails.
+    recorder.append_result((0, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, tuple(vectors)))
     with pytest.raises(InvalidArgument) as error:
-        recorder.append_result(
-            0, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, tuple(vectors)
-        )
+        recorder.flush(timeout=30)
     assert str(error.value) == f"session {header.session_id}: qvel must have 3 values in every record, got 2"
     with pytest.raises(InvalidArgument):
         recorder.close()
