@@ -62,6 +62,7 @@ ResultRow: TypeAlias = tuple[
 ]
 
 _F64: Final = np.dtype(np.float64)
+_NONE_ONLY: Final = {type(None)}
 # Strings up to _WORD characters are encoded once, up to _WORDS of them a column.
 _WORD: Final = 32
 _WORDS: Final = 64
@@ -331,26 +332,28 @@ class _Vectors:
         numpy copy when every row has one of the block's width, nothing when no row has one, else
         row by row. InvalidArgument names the column a vector does not fit. True when the block
         was allocated anew (the batch viewing the old one is stale)."""
-        present = [v for v in values if v is not None]
-        if not present:
+        n = len(values)
+        if values[0] is not None:
+            try:
+                # One copy into the block's first n rows: every row has a vector (len(None) raises),
+                # 1-D (concatenate's check) and of one width (the set's), n widths in all (out's).
+                widths = set(map(len, values))
+                width = widths.pop() if len(widths) == 1 else None
+                if width is not None and (self.expected is None or width == self.expected):
+                    stale = width != self.width or self.block is None
+                    if stale:
+                        self._allocate(width)  # the window's first vectors set the block's width
+                    assert self.block is not None
+                    np.concatenate(values, out=self.block.reshape(-1)[: n * width])
+                    if stale or self.dense is not True:
+                        self._pattern(True)
+                    return stale
+            except (TypeError, ValueError):
+                pass  # a row without one, or a vector that does not fit: row by row says which
+        elif set(map(type, values)) == _NONE_ONLY:
             if self.dense is not False:
                 self._pattern(False)
             return False
-        first = present[0]
-        if (
-            len(present) == len(values)
-            and self.block is not None
-            and getattr(first, "shape", None) == self.shape
-        ):
-            try:
-                # One copy; ragged or otherwise misfit rows after the first raise here.
-                self.block[: len(present)] = present
-            except (TypeError, ValueError):
-                pass  # a width that changed or does not fit: row by row says which
-            else:
-                if self.dense is not True:
-                    self._pattern(True)
-                return False
         self.dense = None
         self.count = 0
         self.listed = None
@@ -459,6 +462,28 @@ class _Named:
         # reject_reason and reject_message: "" in a result.
         self.empty = (text["reject_reason"], text["reject_message"])
 
+    def targets(self) -> tuple[Any, ...]:
+        """What `append_result` stores a row's scalars into, in its order; made again when the
+        columns grow (their buffers are new)."""
+        return (
+            self.seq.view,
+            self.t.view,
+            self.server_time.view,
+            self.late_ticks.view,
+            self.compute_us.view,
+            self.receive_to_send_us.view,
+            self.frame_t.view,
+            self.frame_t.valid,
+            self.frame_delay.view,
+            self.frame_delay.valid,
+            self.nis.view,
+            self.nis.valid,
+            self.frame_received.values,
+            self.reinitialised.values,
+            self.late_compute.values,
+            self.late_compute.valid,
+        )
+
 
 class WindowRows:
     """The rows of one commit window of one session, as columns of LOG_SCHEMA.
@@ -488,6 +513,9 @@ class WindowRows:
         self._get_vectors = operator.attrgetter(*ARRAY_FIELDS)
         self._seq = next(s for s in self._scalars if s.field.name == "seq")
         self._named = _Named(self._scalars, self._texts)
+        self._targets = self._named.targets()
+        named = self._named
+        self._result_texts = (named.kind, named.source, *named.empty)
         self._viewed: pa.RecordBatch | None = None  # the batch viewing every column, at capacity
         # Each row's vectors (ARRAY_FIELDS order), held until `batch` copies them into their blocks.
         self._held: list[tuple[Any, ...] | None] = [None] * capacity
@@ -561,57 +589,81 @@ class WindowRows:
         try:
             byte, bit = row >> 3, 1 << (row & 7)
             unset = 0xFF ^ bit
-            c = self._named
-            c.seq.view[row] = seq
-            c.t.view[row] = t
-            c.server_time.view[row] = server_time
-            c.late_ticks.view[row] = late_ticks
-            c.compute_us.view[row] = compute_us
-            c.receive_to_send_us.view[row] = receive_to_send_us
-            for column, number in ((c.frame_t, frame_t), (c.frame_delay, frame_delay), (c.nis, nis)):
-                valid = column.valid
-                assert valid is not None
-                if number is None:
-                    column.view[row] = 0.0
-                    valid[byte] &= unset
-                else:
-                    column.view[row] = number
-                    valid[byte] |= bit
-            flags = c.frame_received.values
-            assert isinstance(flags, bytearray)
+            (
+                seq_at,
+                t_at,
+                server_time_at,
+                late_ticks_at,
+                compute_at,
+                sent_at,
+                frame_t_at,
+                frame_t_valid,
+                delay_at,
+                delay_valid,
+                nis_at,
+                nis_valid,
+                received_bits,
+                reinitialised_bits,
+                late_bits,
+                late_valid,
+            ) = self._targets
+            seq_at[row] = seq
+            t_at[row] = t
+            server_time_at[row] = server_time
+            late_ticks_at[row] = late_ticks
+            compute_at[row] = compute_us
+            sent_at[row] = receive_to_send_us
             if frame_t is None:
-                flags[byte] &= unset
+                frame_t_at[row] = 0.0
+                frame_t_valid[byte] &= unset
+                received_bits[byte] &= unset
             else:
-                flags[byte] |= bit
-            flags = c.reinitialised.values
-            assert isinstance(flags, bytearray)
+                frame_t_at[row] = frame_t
+                frame_t_valid[byte] |= bit
+                received_bits[byte] |= bit
+            if frame_delay is None:
+                delay_at[row] = 0.0
+                delay_valid[byte] &= unset
+            else:
+                delay_at[row] = frame_delay
+                delay_valid[byte] |= bit
+            if nis is None:
+                nis_at[row] = 0.0
+                nis_valid[byte] &= unset
+            else:
+                nis_at[row] = nis
+                nis_valid[byte] |= bit
             if reinitialised is True:
-                flags[byte] |= bit
+                reinitialised_bits[byte] |= bit
             elif reinitialised is False:
-                flags[byte] &= unset
+                reinitialised_bits[byte] &= unset
             else:
                 raise TypeError("reinitialised")
-            flags, valid = c.late_compute.values, c.late_compute.valid
-            assert isinstance(flags, bytearray) and valid is not None
-            valid[byte] |= bit
+            late_valid[byte] |= bit
             if late_compute is True:
-                flags[byte] |= bit
+                late_bits[byte] |= bit
             elif late_compute is False:
-                flags[byte] &= unset
+                late_bits[byte] &= unset
             else:
                 raise TypeError("late_compute")
+            kind, source_text, reason, message = self._result_texts
+            # A word not yet encoded (KeyError) or a full buffer (IndexError): the checked path.
+            start = kind.end
+            end = start + 6  # len("result")
+            if end > len(kind.data):
+                raise IndexError(end)
+            kind.data[start:end] = kind.encoded["result"]
+            kind.view[row + 1] = kind.end = end
+            encoded = source_text.encoded[source]
+            start = source_text.end
+            end = start + len(encoded)
+            if end > len(source_text.data):
+                raise IndexError(end)
+            source_text.data[start:end] = encoded
+            source_text.view[row + 1] = source_text.end = end
+            reason.view[row + 1] = reason.end
+            message.view[row + 1] = message.end
             stale = False
-            for text, word in ((c.kind, "result"), (c.source, source)):
-                encoded = text.encoded[word]  # a word not yet encoded: KeyError, the checked path
-                start = text.end
-                end = start + len(encoded)
-                if end > len(text.data):
-                    stale |= text.write(row, word)
-                else:
-                    text.data[start:end] = encoded
-                    text.view[row + 1] = text.end = end
-            for text in c.empty:
-                text.view[row + 1] = text.end
         except Exception:  # noqa: BLE001 - written again as a record, column by column
             stale = self._write_checked(row, _result_record(values))
         if stale:
@@ -683,6 +735,7 @@ class WindowRows:
         self._capacity *= 2
         for column in self._order:
             column.grow(self._capacity)
+        self._targets = self._named.targets()
         self._viewed = None
 
     def batch(self) -> pa.RecordBatch:

@@ -174,7 +174,10 @@ class GroupCommitter(Closeable):
         self._renewed_at = time.monotonic()
         self._renew_retry_at = 0.0
         self._outage_since: float | None = None
-        self._cond = threading.Condition()
+        # The condition's own lock, taken directly where an append takes it: a Condition's
+        # __enter__ and __exit__ are Python calls, cold microseconds on the tick's path.
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
         self._sessions: dict[int, _Session] = {}
         self._next_key = 0
         self._stopping = False
@@ -242,10 +245,18 @@ class GroupCommitter(Closeable):
     def append_result(self, key: int, values: ResultRow) -> None:
         """Write a tick's result into the columns of log `key`'s window, from its values as
         `WindowRows.append_result` takes them (no `TickRecord`). Never waits for the disk."""
-        with self._cond:
+        with self._lock:
             session = self._sessions[key]
-            session.window.append_result(values)
-            self._appended(session)
+            window = session.window
+            window.append_result(values)
+            # `_appended`, inlined: this is the tick's path.
+            rows = window.rows
+            if rows == 1 and session.held is None:
+                session.first_pending_at = now = time.monotonic()
+                if now + max(session.commit_interval, self._window) < self._wake_at:
+                    self._cond.notify()
+            elif rows >= session.commit_every:
+                self._cond.notify()
 
     def _appended(self, session: _Session) -> None:
         rows = session.window.rows

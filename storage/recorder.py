@@ -127,7 +127,9 @@ class SessionRecorder:
         self._header = header
         self._committer = committer if committer is not None else default_committer()
 
-        self._cond = threading.Condition()
+        # Taken directly by append_result (a Condition's __enter__ is a Python call).
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
         self._appended = 0
         self._committed = 0
         self._commits = 0
@@ -271,7 +273,17 @@ class SessionRecorder:
         straight into the session's columns (storage/buffers.py `ResultRow` says what each value
         is). Raises as `append` does; a vector that does not fit its column fails the recorder
         when its window is committed."""
-        self._append(self._committer.append_result, values)
+        with self._lock:  # `_append`, inlined: this is the tick's path
+            if self._state is not _State.OPEN or self._failure is not None:
+                self._append(self._committer.append_result, values)  # raises what append raises
+                return
+            try:
+                self._committer.append_result(self._key, values)
+            except InvalidArgument as exc:
+                self._failure = InvalidArgument(f"session {self._header.session_id}: {exc}")
+                self._cond.notify_all()
+                raise self._failure from None
+            self._appended += 1
 
     def _append(self, write: Callable[[int, Any], None], values: Any) -> None:
         with self._cond:
