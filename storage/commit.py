@@ -333,6 +333,11 @@ class GroupCommitter(Closeable):
                 if self._stopping and not any(s.pending for s in self._sessions.values() if not s.failed):
                     return None
                 waiting = [s.next_due(window) for s in self._sessions.values() if s.pending and not s.failed]
+                if not waiting and self._sessions:
+                    # Nothing queued: wake in a window rather than be woken by the next row. A row
+                    # appended meanwhile is due no sooner, and its tick pays no notify (each commit
+                    # empties every log, so every commit's first row would).
+                    waiting.append(now + max(window, min(s.commit_interval for s in self._sessions.values())))
                 if self._shared is not None and any(s.lease for s in self._sessions.values()):
                     renew_at = max(self._renewed_at + self._shared.lease_ttl / 3, self._renew_retry_at)
                     if now >= renew_at:
