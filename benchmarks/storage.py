@@ -15,11 +15,11 @@ sessions of a process (one fsync per commit window: docs/decisions/0040-group-co
 `--close` measures what the server pays when a slow session ends: the compaction of a log of many
 tiny group commits, on a thread beside a thread that wakes every millisecond as the event loop does.
 `--record-path` sets what a record costs the server, the tick's row and its share of the commit
-thread's batch, as the committer does it (a TickRecord built and queued in a list, one batch
-converted from all sessions' records per window and sliced per session) beside preallocated
-columns (the tick's values written straight into them, the window's batch a view of them:
-storage/buffers.py; not used by the committer: docs/decisions/0217-the-tick-writes-its-row.md), on
-the same values in one run; the write and the fsync, the same in both, are left out.
+thread's batch, as the committer does it now (the tick's values written straight into preallocated
+columns, the window's batch a view of them: storage/buffers.py) beside the way it did before (a
+TickRecord built and queued in a list, one batch converted from all sessions' records per window
+and sliced per session), on the same values in one run; the write and the fsync, the same in both,
+are left out.
 """
 
 from __future__ import annotations
@@ -140,16 +140,19 @@ def throughput(root: Path, index: SessionIndex, frames: int) -> dict[str, float]
     started = time.perf_counter()
     records = [trajectory.record(i) for i in range(frames)]
     build_us = (time.perf_counter() - started) / frames * 1e6
+    del records
+    rows = [trajectory.row(i) for i in range(frames)]
     samples: list[float] = []
     recorder = SessionRecorder(data_root=root, index=index, header=header())
+    append = recorder.append_result
     started = time.perf_counter()
-    for i, record in enumerate(records):
+    for i, row in enumerate(rows):
         if i % 97 == 0:
             t0 = time.perf_counter_ns()
-            recorder.append(record)
+            append(row)
             samples.append((time.perf_counter_ns() - t0) / 1e3)
         else:
-            recorder.append(record)
+            append(row)
     appended = time.perf_counter() - started
     recorder.flush()
     durable = time.perf_counter() - started
@@ -171,14 +174,14 @@ def paced(root: Path, index: SessionIndex, rate: float, seconds: float) -> dict[
     sample how far durability lags behind (ms of frames appended but not yet fsynced)."""
     frames = int(rate * seconds)
     trajectory = Trajectory(frames, seed=2)
-    records = [trajectory.record(i) for i in range(frames)]
+    records = [trajectory.row(i) for i in range(frames)]
     burst = max(1, int(rate / 1000))
     lags: list[float] = []
     recorder = SessionRecorder(data_root=root, index=index, header=header())
     started = time.perf_counter()
     for start in range(0, frames, burst):
-        for record in records[start : start + burst]:
-            recorder.append(record)
+        for row in records[start : start + burst]:
+            recorder.append_result(row)
         durable = recorder.durable_seq
         lags.append((start + burst - 1 - (-1 if durable is None else durable)) / rate * 1e3)
         pause = started + (start + burst) / rate - time.perf_counter()
@@ -224,7 +227,7 @@ def many_sessions(
             pause = due - time.perf_counter()
             if pause > 0:
                 time.sleep(pause)
-            recorder.append(trajectory.record(k))
+            recorder.append_result(trajectory.row(k))
         durable = recorders[0].durable_seq
         lags.append((k - (-1 if durable is None else durable)) * period * 1e3)
     for recorder in recorders:
@@ -250,7 +253,7 @@ def compaction(root: Path, index: SessionIndex, frames: int) -> dict[str, float]
     recorder = SessionRecorder(data_root=root, index=index, header=header(), commit_every=4096)
     started = time.perf_counter()
     for i in range(frames):
-        recorder.append(trajectory.record(i))
+        recorder.append_result(trajectory.row(i))
     recorder.flush()
     built_and_logged = time.perf_counter() - started
     log_bytes = recorder.log_bytes
@@ -274,7 +277,7 @@ def close_cost(root: Path, index: SessionIndex, *, ticks: int, per_commit: int) 
     trajectory = Trajectory(ticks, seed=4)
     recorder = SessionRecorder(data_root=root, index=index, header=header())
     for i in range(ticks):
-        recorder.append(trajectory.record(i))
+        recorder.append_result(trajectory.row(i))
         if (i + 1) % per_commit == 0:
             recorder.flush()
     recorder.flush()
@@ -311,7 +314,7 @@ def close_cost(root: Path, index: SessionIndex, *, ticks: int, per_commit: int) 
 
 
 def _check_lengths(records: list[TickRecord], lengths: dict[str, int]) -> None:
-    """The check the commit thread runs on every queued record (columns.check_lengths)."""
+    """The check the commit thread ran on every queued record before the columns did it on append."""
     checked = [(name, operator.attrgetter(name), expected) for name, expected in lengths.items()]
     for position, record in enumerate(records):
         for name, getter, expected in checked:
@@ -321,9 +324,8 @@ def _check_lengths(records: list[TickRecord], lengths: dict[str, int]) -> None:
 
 
 def _listed_window(windows: list[list[tuple[Any, ...]]], lengths: dict[str, int]) -> tuple[float, float]:
-    """The committer's way: each tick builds a TickRecord and queues it in its session's list, then
-    the commit thread converts one batch from every session's records, sliced and serialised per
-    session.
+    """Before: each tick built a TickRecord and queued it in its session's list, then the commit
+    thread converted one batch from every session's records, sliced and serialised per session.
     (s spent building and appending, s spent building the batch and serialising)."""
     queues: list[list[TickRecord]] = [[] for _ in windows]
     lock = threading.Lock()
@@ -358,7 +360,7 @@ def _record(
     receive_to_send_us: int,
     vectors: tuple[npt.NDArray[np.float64] | None, ...],
 ) -> TickRecord:
-    """The TickRecord the tick builds from the same values, as messages.tick_record does."""
+    """The TickRecord the tick built before, from the same values, as messages.tick_record did."""
     (
         frame_qpos,
         frame_qvel,
@@ -412,14 +414,14 @@ def _record(
 
 
 def _columnar_window(windows: list[list[tuple[Any, ...]]], columns: list[WindowRows]) -> tuple[float, float]:
-    """Columns: each tick writes its values straight into its session's columns (no TickRecord),
-    then per session a batch viewing them is serialised. (s spent appending, s spent serialising)."""
+    """Now: each tick writes its values straight into its session's columns (no TickRecord), then
+    per session a batch viewing them is serialised. (s spent appending, s spent serialising)."""
     lock = threading.Lock()
     started = time.thread_time()
     for k in range(len(windows[0])):
         for rows, values in zip(columns, windows, strict=True):
             with lock:
-                rows.append_result(*values[k])
+                rows.append_result(values[k])
     appended = time.thread_time()
     for rows in columns:
         rows.batch().serialize()
@@ -453,17 +455,15 @@ def print_record_path(args: argparse.Namespace) -> None:
         f"a record's CPU (us), pendulum_3 rows, {args.sessions_per_window} sessions a commit window, "
         f"median of {args.windows} windows each; {os.cpu_count()} CPUs"
     )
-    print(
-        f"{'rows/session/window':>20}{'way':>10}{'append':>10}{'batch':>10}{'total':>10}{'lists/columns':>15}"
-    )
+    print(f"{'rows/session/window':>20}{'way':>10}{'append':>10}{'batch':>10}{'total':>10}{'before/now':>12}")
     for per_window in args.rows_per_window:
         result = record_path(sessions=args.sessions_per_window, per_window=per_window, windows=args.windows)
         ratio = result["lists"]["total_us"] / result["columns"]["total_us"]
-        for way in ("lists", "columns"):
+        for way, label in (("lists", "before"), ("columns", "now")):
             r = result[way]
             print(
-                f"{per_window:>20}{way:>10}{r['append_us']:>10.2f}{r['commit_us']:>10.2f}{r['total_us']:>10.2f}"
-                + (f"{ratio:>14.2f}x" if way == "columns" else "")
+                f"{per_window:>20}{label:>10}{r['append_us']:>10.2f}{r['commit_us']:>10.2f}{r['total_us']:>10.2f}"
+                + (f"{ratio:>11.2f}x" if way == "columns" else "")
             )
 
 
@@ -550,7 +550,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{p['lag_p50_ms']:.1f} / {p['lag_p99_ms']:.1f} / {p['lag_max_ms']:.1f}",
         ),
         ("  group commits (fsyncs)", f"{p['commits']:,}"),
-        ("building a TickRecord (us, the runtime's cost)", f"{t['build_us']:.2f}"),
+        ("building a TickRecord (us; the tick no longer does)", f"{t['build_us']:.2f}"),
         ("log bytes per frame", f"{t['log_bytes_per_frame']:.1f}"),
         (f"build + log, {args.compact_frames} frames (frames/s)", f"{c['log_rate']:,.0f}"),
         (f"close: compact {args.compact_frames} frames to Parquet (s)", f"{c['close_s']:.2f}"),

@@ -203,7 +203,7 @@ STAGES: tuple[Stage, ...] = (
     ),
     Stage(
         "the record (storage: the row, the commit thread)",
-        anywhere(in_files("storage/"), in_functions("server/transport/messages.py", "tick_record")),
+        anywhere(in_files("storage/"), in_functions("server/transport/messages.py", "record_tick")),
     ),
     Stage(
         "metrics",

@@ -1,29 +1,30 @@
-"""A session's commit window as preallocated columns in Arrow's own layout: the tick's thread writes
-its row into them (`append_result`, from a tick's values; `append`, from a `TickRecord`), and
-`batch` gives the commit thread the window as a slice of one Arrow batch that views those columns,
-built once, so that a window costs neither a conversion nor a copy before it is serialised.
+"""A session's commit window as preallocated columns in Arrow's own layout. On the tick's thread a
+row's scalars are stored into their columns (`append_result`: a tick's result from its values;
+`append`: a `TickRecord`) and its vectors are held by reference; `batch` gives the commit thread
+the window as a slice of one Arrow batch that views the columns, built once, after copying each
+vector column's rows into its block with one numpy copy. A window costs neither a per-record
+object nor a conversion before it is serialised.
 
     rows = WindowRows(lengths=expected_lengths(header))
-    rows.append_result(seq, source, ..., vectors)  # a tick's result, no TickRecord built
-    rows.append(record)        # rejected frames, tools; InvalidArgument names a misfit column
-    batch = rows.batch()       # the commit thread; valid until the next `append` or `clear`
-    rows.clear()               # once the batch is serialised: the rows are written again
+    rows.append_result(values)  # a tick's result (a ResultRow), no TickRecord built
+    rows.append(record)         # rejected frames, tools; InvalidArgument names a misfit column
+    batch = rows.batch()        # the commit thread; valid until the next `append` or `clear`
+    rows.clear()                # once the batch is serialised: the rows are written again
 
-Numbers are numpy arrays; a vector column is one (capacity, width) float64 block, the values of a
-list column whose offsets are `k * width`; booleans and validity are bitmaps (bytearrays); strings
-are offsets and UTF-8 bytes. The vectors of a column are packed, a row without one a null of no
-values: the batch is the one `columns.records_to_batch` converts from the same records. The columns
-grow by doubling, and the batch viewing them is then built again; so is it when a vector column's
-width is first known. The committer does not use it: queued TickRecords converted once a window
-cost a server's record path less (docs/decisions/0217-the-tick-writes-its-row.md; the first
-measure: 0151-columnar-record-windows.md).
+Numbers are numpy arrays (stored through memoryviews); a vector column is one (capacity, width)
+float64 block, the values of a list column whose offsets are `k * width`; booleans and validity are
+bitmaps (bytearrays); strings are offsets and UTF-8 bytes. The vectors of a column are packed, a
+row without one a null of no values: the batch is the one `columns.records_to_batch` converts from
+the same records. The columns grow by doubling, and the batch viewing them is then built again; so
+is it when a vector column's width is first known. Why the vectors are copied by the commit
+thread and not by the tick: docs/decisions/0221-the-columns-pay-at-a-servers-load.md.
 """
 
 from __future__ import annotations
 
 import operator
 from collections.abc import Callable
-from typing import Any, Final
+from typing import Any, Final, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
@@ -33,13 +34,35 @@ from jitdyn.errors import InvalidArgument
 from jitdyn.storage.columns import ARRAY_FIELDS, FLOAT_LIST, LOG_SCHEMA, SCALAR_FIELDS
 from jitdyn.storage.records import TickRecord
 
-__all__ = ["INITIAL_ROWS", "WindowRows"]
+__all__ = ["INITIAL_ROWS", "ResultRow", "WindowRows"]
 
 # Rows allocated at first; doubled whenever a window needs more. A 20 Hz session's window holds one
 # to a few rows, and a burst of replays (CORRECTED answers) a few more.
 INITIAL_ROWS: Final = 16
 
+# A tick's result as `WindowRows.append_result` takes it: (seq, source, t, server_time, frame_t,
+# late_ticks, frame_delay, nis, reinitialised, late_compute, compute_us, receive_to_send_us,
+# vectors). frame_t is None when no frame arrived (frame_received False); vectors are the 15 array
+# columns' values in ARRAY_FIELDS order, each a 1-D float64 array or None. A plain tuple, built
+# once by the tick and handed down unpacked only here.
+ResultRow: TypeAlias = tuple[
+    int,
+    str,
+    float,
+    float,
+    float | None,
+    int,
+    float | None,
+    float | None,
+    bool,
+    bool,
+    int,
+    int,
+    tuple[npt.NDArray[np.float64] | None, ...],
+]
+
 _F64: Final = np.dtype(np.float64)
+_NONE_ONLY: Final = {type(None)}
 # Strings up to _WORD characters are encoded once, up to _WORDS of them a column.
 _WORD: Final = 32
 _WORDS: Final = 64
@@ -48,6 +71,12 @@ _NUMBERS: Final[dict[pa.DataType, type[np.generic]]] = {
     pa.int32(): np.int32,
     pa.float64(): np.float64,
 }
+
+
+def _view(values: Any) -> Any:
+    """A memoryview of a column's buffer, for the row's stores (about half of numpy's item assignment,
+    cold). Typed Any: it stores floats too, which typeshed's memoryview does not allow."""
+    return memoryview(values)
 
 
 def _bitmap(capacity: int) -> bytearray:
@@ -69,7 +98,7 @@ def _copy_bits(new: bytearray, old: bytearray) -> bytearray:
 class _Scalars:
     """A number or boolean column, with its validity bitmap when it is nullable."""
 
-    __slots__ = ("field", "get", "valid", "values")
+    __slots__ = ("field", "get", "valid", "values", "view")
 
     def __init__(self, field: pa.Field, capacity: int) -> None:
         self.field = field
@@ -77,6 +106,8 @@ class _Scalars:
         self.values: npt.NDArray[Any] | bytearray = (
             _bitmap(capacity) if field.type == pa.bool_() else np.zeros(capacity, dtype=_NUMBERS[field.type])
         )
+        # A number's store through a memoryview costs about half of numpy's item assignment, cold.
+        self.view = _view(self.values)
         self.valid = _bitmap(capacity) if field.nullable else None
 
     def write(self, row: int, value: Any) -> None:
@@ -100,6 +131,7 @@ class _Scalars:
             self.values = _copy_bits(_bitmap(capacity), self.values)
         else:
             self.values = np.resize(self.values, capacity)
+        self.view = _view(self.values)
         if self.valid is not None:
             self.valid = _copy_bits(_bitmap(capacity), self.valid)
 
@@ -114,12 +146,13 @@ class _Scalars:
 class _Texts:
     """A string column: offsets and UTF-8 bytes."""
 
-    __slots__ = ("data", "encoded", "end", "field", "get", "offsets")
+    __slots__ = ("data", "encoded", "end", "field", "get", "offsets", "view")
 
     def __init__(self, field: pa.Field, capacity: int) -> None:
         self.field = field
         self.get: Callable[[TickRecord], Any] = operator.attrgetter(field.name)
         self.offsets = np.zeros(capacity + 1, dtype=np.int32)
+        self.view = _view(self.offsets)  # the row's stores, as _Scalars.view
         self.data = bytearray(64 * capacity)
         self.end = 0  # offsets[rows]: where the next row's bytes go
         # The few words a column holds (kinds, sources, reasons), encoded once.
@@ -156,6 +189,7 @@ class _Texts:
         offsets = np.zeros(capacity + 1, dtype=np.int32)
         offsets[: len(self.offsets)] = self.offsets
         self.offsets = offsets
+        self.view = _view(offsets)
 
     def array(self, capacity: int) -> pa.Array:
         return pa.Array.from_buffers(
@@ -170,10 +204,10 @@ class _Vectors:
     for a column whose width is not fixed by the model: the covariance diagonal, the filter state,
     the forecast weights).
 
-    A column is mostly the same in every row: present (`dense` True), or absent (False). Its
-    offsets and validity are then laid out for every row beforehand, so that a row costs the copy
-    of its vector, or nothing; a row that breaks the pattern writes them row by row (`dense` None)
-    until the window ends, and the next window starts in the pattern of the last row.
+    A column is mostly the same in every row of a window: present (`dense` True), or absent
+    (False). Its offsets and validity are then laid out for every row, and `fill` costs one copy of
+    the window's vectors, or nothing; a window that mixes them is written row by row (`dense`
+    None).
 
     Such a column changes width only with the estimator; a window in which it does keeps this
     column's vectors as a list, converted as the records' own arrays."""
@@ -276,12 +310,62 @@ class _Vectors:
                 listed.append(None)
         return listed
 
-    def rewind(self, row: int) -> None:
-        """Write `row` again (a failed append left it half written)."""
-        if self.listed is not None:
-            del self.listed[row:]
-        elif self.dense is None and self.width > 0:
-            self.count = int(self.offsets[row]) // self.width
+    def check(self, value: Any) -> npt.NDArray[np.float64] | None:
+        """`value` as this column holds it (a 1-D float64 vector, or None); InvalidArgument when it
+        does not fit."""
+        if value is None:
+            return None
+        try:
+            vector = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InvalidArgument(f"{self.name} must hold vectors of numbers, got {value!r}") from None
+        if vector.ndim != 1:
+            raise InvalidArgument(f"{self.name} must hold 1-D vectors, got an array of shape {vector.shape}")
+        if self.expected is not None and len(vector) != self.expected:
+            raise InvalidArgument(
+                f"{self.name} must have {self.expected} values in every record, got {len(vector)}"
+            )
+        return vector
+
+    def fill(self, values: tuple[Any, ...]) -> bool:
+        """Copy a window's vectors (one a row, None where a row has none) into the column: one
+        numpy copy when every row has one of the block's width, nothing when no row has one, else
+        row by row. InvalidArgument names the column a vector does not fit. True when the block
+        was allocated anew (the batch viewing the old one is stale)."""
+        n = len(values)
+        if values[0] is not None:
+            try:
+                # One copy into the block's first n rows: every row has a vector (len(None) raises),
+                # 1-D (concatenate's check) and of one width (the set's), n widths in all (out's).
+                widths = set(map(len, values))
+                width = widths.pop() if len(widths) == 1 else None
+                if width is not None and (self.expected is None or width == self.expected):
+                    stale = width != self.width or self.block is None
+                    if stale:
+                        self._allocate(width)  # the window's first vectors set the block's width
+                    assert self.block is not None
+                    np.concatenate(values, out=self.block.reshape(-1)[: n * width])
+                    if stale or self.dense is not True:
+                        self._pattern(True)
+                    return stale
+            except (TypeError, ValueError):
+                pass  # a row without one, or a vector that does not fit: row by row says which
+        elif set(map(type, values)) == _NONE_ONLY:
+            if self.dense is not False:
+                self._pattern(False)
+            return False
+        self.dense = None
+        self.count = 0
+        self.listed = None
+        stale = False
+        for row, value in enumerate(values):
+            try:
+                stale |= self.write(row, value)
+            except InvalidArgument:
+                raise
+            except (TypeError, ValueError) as exc:
+                raise InvalidArgument(f"{self.name} must hold vectors of numbers: {exc}") from None
+        return stale
 
     def grow(self, capacity: int) -> None:
         self.capacity = capacity
@@ -311,17 +395,37 @@ class _Vectors:
             children=[values],
         )
 
-    def clear(self, rows: int) -> None:
-        """Forget the window's `rows`; the next starts in the pattern of its last row."""
-        if rows and (self.dense is None or self.listed is not None):
-            last = self.valid[(rows - 1) >> 3] & (1 << ((rows - 1) & 7))
-            self._pattern(bool(last) and self.block is not None and self.listed is None)
+    def clear(self) -> None:
+        """Forget the window's vectors."""
         self.count = 0
         self.listed = None
 
 
 def _by_name(vectors: tuple[npt.NDArray[np.float64] | None, ...]) -> dict[str, Any]:
     return dict(zip(ARRAY_FIELDS, vectors, strict=True))
+
+
+def _result_record(values: ResultRow) -> TickRecord:
+    """A result's scalars as a record, for the checked path (its vectors are held apart)."""
+    seq, source, t, server_time, frame_t, late_ticks, frame_delay, nis, reinit, late, compute, sent, _ = (
+        values
+    )
+    return TickRecord(
+        kind="result",
+        seq=seq,
+        source=source,
+        t=t,
+        server_time=server_time,
+        frame_received=frame_t is not None,
+        frame_t=frame_t,
+        late_ticks=late_ticks,
+        frame_delay=frame_delay,
+        nis=nis,
+        reinitialised=reinit,
+        late_compute=late,
+        compute_us=compute,
+        receive_to_send_us=sent,
+    )
 
 
 class _Named:
@@ -358,6 +462,28 @@ class _Named:
         # reject_reason and reject_message: "" in a result.
         self.empty = (text["reject_reason"], text["reject_message"])
 
+    def targets(self) -> tuple[Any, ...]:
+        """What `append_result` stores a row's scalars into, in its order; made again when the
+        columns grow (their buffers are new)."""
+        return (
+            self.seq.view,
+            self.t.view,
+            self.server_time.view,
+            self.late_ticks.view,
+            self.compute_us.view,
+            self.receive_to_send_us.view,
+            self.frame_t.view,
+            self.frame_t.valid,
+            self.frame_delay.view,
+            self.frame_delay.valid,
+            self.nis.view,
+            self.nis.valid,
+            self.frame_received.values,
+            self.reinitialised.values,
+            self.late_compute.values,
+            self.late_compute.valid,
+        )
+
 
 class WindowRows:
     """The rows of one commit window of one session, as columns of LOG_SCHEMA.
@@ -387,7 +513,12 @@ class WindowRows:
         self._get_vectors = operator.attrgetter(*ARRAY_FIELDS)
         self._seq = next(s for s in self._scalars if s.field.name == "seq")
         self._named = _Named(self._scalars, self._texts)
+        self._targets = self._named.targets()
+        named = self._named
+        self._result_texts = (named.kind, named.source, *named.empty)
         self._viewed: pa.RecordBatch | None = None  # the batch viewing every column, at capacity
+        # Each row's vectors (ARRAY_FIELDS order), held until `batch` copies them into their blocks.
+        self._held: list[tuple[Any, ...] | None] = [None] * capacity
         self.rows = 0
         # The highest seq of a result among the rows (None: only rejections, or no rows).
         self.top_seq: int | None = None
@@ -405,6 +536,9 @@ class WindowRows:
     def append(self, record: TickRecord) -> None:
         """Write `record` as the next row. InvalidArgument, naming the column, when a value does not
         fit it; the row is then not added (nothing of it is stored)."""
+        vectors = tuple(
+            column.check(value) for column, value in zip(self._vectors, self._get_vectors(record))
+        )
         row = self.rows
         if row == self._capacity:
             self._grow()
@@ -414,190 +548,135 @@ class WindowRows:
             stale = self._write_checked(row, record)
         if stale:
             self._viewed = None
+        self._held[row] = vectors
         self.rows = row + 1
         if record.kind == "result":
             seq = int(self._seq.values[row])
             if self.top_seq is None or seq > self.top_seq:
                 self.top_seq = seq
 
-    def append_result(
-        self,
-        seq: int,
-        source: str,
-        t: float,
-        server_time: float,
-        frame_t: float | None,
-        late_ticks: int,
-        frame_delay: float | None,
-        nis: float | None,
-        reinitialised: bool,
-        late_compute: bool,
-        compute_us: int,
-        receive_to_send_us: int,
-        vectors: tuple[npt.NDArray[np.float64] | None, ...],
-    ) -> None:
-        """Write a tick's result as the next row, from its values, without a `TickRecord` (the
-        server does not call it; what it costs there: decision 0217, and benchmarks/storage.py
-        --record-path measures it). `frame_t` is None when no frame arrived (frame_received False);
-        `vectors` are the 15 array columns' values in ARRAY_FIELDS order, each a 1-D float64 array
-        (copied here: it may change once this returns) or None. Straight-line, the scalars set and
-        each vector copied into its block row; a value the fast path does not take (a width not
-        yet known, a row breaking its column's pattern, a wrong type) is written by `append` of the
-        same row as a record, which names a column the value does not fit."""
+    def append_result(self, values: ResultRow) -> None:
+        """Write a tick's result as the next row, from its values (`ResultRow`), without a
+        `TickRecord`: the server's record path (server/transport/messages.py `record_tick`). The
+        vectors are held, not copied, until `batch` copies each column's into its block, so they
+        must not change until then, and `batch` names a column whose vector does not fit. The
+        scalars are stored in a straight line; a value it does not take (a word not yet encoded,
+        a wrong type) is written by the checked path, as a record, which names the column."""
+        (
+            seq,
+            source,
+            t,
+            server_time,
+            frame_t,
+            late_ticks,
+            frame_delay,
+            nis,
+            reinitialised,
+            late_compute,
+            compute_us,
+            receive_to_send_us,
+            vectors,
+        ) = values
+        if len(vectors) != len(ARRAY_FIELDS):
+            raise InvalidArgument(
+                f"a row needs {len(ARRAY_FIELDS)} vectors ({', '.join(ARRAY_FIELDS)}), got {len(vectors)}"
+            )
         row = self.rows
         if row == self._capacity:
             self._grow()
+        # One function, no call per column: a row is written between a server's sleeps, its
+        # caches cold, where every call and numpy item store costs microseconds.
         try:
-            stale = self._write_result(
-                row,
-                seq,
-                source,
-                t,
-                server_time,
-                frame_t,
-                late_ticks,
-                frame_delay,
-                nis,
-                reinitialised,
-                late_compute,
-                compute_us,
-                receive_to_send_us,
-                vectors,
-            )
+            byte, bit = row >> 3, 1 << (row & 7)
+            unset = 0xFF ^ bit
+            (
+                seq_at,
+                t_at,
+                server_time_at,
+                late_ticks_at,
+                compute_at,
+                sent_at,
+                frame_t_at,
+                frame_t_valid,
+                delay_at,
+                delay_valid,
+                nis_at,
+                nis_valid,
+                received_bits,
+                reinitialised_bits,
+                late_bits,
+                late_valid,
+            ) = self._targets
+            seq_at[row] = seq
+            t_at[row] = t
+            server_time_at[row] = server_time
+            late_ticks_at[row] = late_ticks
+            compute_at[row] = compute_us
+            sent_at[row] = receive_to_send_us
+            if frame_t is None:
+                frame_t_at[row] = 0.0
+                frame_t_valid[byte] &= unset
+                received_bits[byte] &= unset
+            else:
+                frame_t_at[row] = frame_t
+                frame_t_valid[byte] |= bit
+                received_bits[byte] |= bit
+            if frame_delay is None:
+                delay_at[row] = 0.0
+                delay_valid[byte] &= unset
+            else:
+                delay_at[row] = frame_delay
+                delay_valid[byte] |= bit
+            if nis is None:
+                nis_at[row] = 0.0
+                nis_valid[byte] &= unset
+            else:
+                nis_at[row] = nis
+                nis_valid[byte] |= bit
+            if reinitialised is True:
+                reinitialised_bits[byte] |= bit
+            elif reinitialised is False:
+                reinitialised_bits[byte] &= unset
+            else:
+                raise TypeError("reinitialised")
+            late_valid[byte] |= bit
+            if late_compute is True:
+                late_bits[byte] |= bit
+            elif late_compute is False:
+                late_bits[byte] &= unset
+            else:
+                raise TypeError("late_compute")
+            kind, source_text, reason, message = self._result_texts
+            # A word not yet encoded (KeyError) or a full buffer (IndexError): the checked path.
+            start = kind.end
+            end = start + 6  # len("result")
+            if end > len(kind.data):
+                raise IndexError(end)
+            kind.data[start:end] = kind.encoded["result"]
+            kind.view[row + 1] = kind.end = end
+            encoded = source_text.encoded[source]
+            start = source_text.end
+            end = start + len(encoded)
+            if end > len(source_text.data):
+                raise IndexError(end)
+            source_text.data[start:end] = encoded
+            source_text.view[row + 1] = source_text.end = end
+            reason.view[row + 1] = reason.end
+            message.view[row + 1] = message.end
+            stale = False
         except Exception:  # noqa: BLE001 - written again as a record, column by column
-            if len(vectors) != len(ARRAY_FIELDS):
-                raise InvalidArgument(
-                    f"a row needs {len(ARRAY_FIELDS)} vectors ({', '.join(ARRAY_FIELDS)}), got {len(vectors)}"
-                ) from None
-            record = TickRecord(
-                kind="result",
-                seq=seq,
-                source=source,
-                t=t,
-                server_time=server_time,
-                frame_received=frame_t is not None,
-                frame_t=frame_t,
-                late_ticks=late_ticks,
-                frame_delay=frame_delay,
-                nis=nis,
-                reinitialised=reinitialised,
-                late_compute=late_compute,
-                compute_us=compute_us,
-                receive_to_send_us=receive_to_send_us,
-                **_by_name(vectors),
-            )
-            stale = self._write_checked(row, record)
+            stale = self._write_checked(row, _result_record(values))
         if stale:
             self._viewed = None
+        self._held[row] = vectors
         self.rows = row + 1
         top = self.top_seq
         if top is None or seq > top:
             self.top_seq = seq
 
-    def _write_result(
-        self,
-        row: int,
-        seq: int,
-        source: str,
-        t: float,
-        server_time: float,
-        frame_t: float | None,
-        late_ticks: int,
-        frame_delay: float | None,
-        nis: float | None,
-        reinitialised: bool,
-        late_compute: bool,
-        compute_us: int,
-        receive_to_send_us: int,
-        vectors: tuple[npt.NDArray[np.float64] | None, ...],
-    ) -> bool:
-        """`append_result`'s row, straight-line; raises (anything) where the fast path does not
-        apply, the row then half written. True when the viewing batch is stale."""
-        byte, bit = row >> 3, 1 << (row & 7)
-        unset = 0xFF ^ bit
-        c = self._named
-        c.seq.values[row] = seq
-        c.t.values[row] = t  # type: ignore[call-overload]
-        c.server_time.values[row] = server_time  # type: ignore[call-overload]
-        c.late_ticks.values[row] = late_ticks
-        c.compute_us.values[row] = compute_us
-        c.receive_to_send_us.values[row] = receive_to_send_us
-        for column, number in ((c.frame_t, frame_t), (c.frame_delay, frame_delay), (c.nis, nis)):
-            valid = column.valid
-            assert valid is not None
-            if number is None:
-                column.values[row] = 0
-                valid[byte] &= unset
-            else:
-                column.values[row] = number  # type: ignore[call-overload]
-                valid[byte] |= bit
-        flags = c.frame_received.values
-        assert isinstance(flags, bytearray)
-        if frame_t is None:
-            flags[byte] &= unset
-        else:
-            flags[byte] |= bit
-        flags = c.reinitialised.values
-        assert isinstance(flags, bytearray)
-        if reinitialised is True:
-            flags[byte] |= bit
-        elif reinitialised is False:
-            flags[byte] &= unset
-        else:
-            raise TypeError("reinitialised")
-        flags, valid = c.late_compute.values, c.late_compute.valid
-        assert isinstance(flags, bytearray) and valid is not None
-        valid[byte] |= bit
-        if late_compute is True:
-            flags[byte] |= bit
-        elif late_compute is False:
-            flags[byte] &= unset
-        else:
-            raise TypeError("late_compute")
-        stale = False
-        for text, word in ((c.kind, "result"), (c.source, source)):
-            encoded = text.encoded[word]  # a word not yet encoded: KeyError, the checked path
-            start = text.end
-            end = start + len(encoded)
-            if end > len(text.data):
-                stale |= text.write(row, word)
-            else:
-                text.data[start:end] = encoded
-                text.offsets[row + 1] = text.end = end
-        for text in c.empty:
-            text.offsets[row + 1] = text.end
-        if len(vectors) != len(self._vectors):
-            raise TypeError("vectors")
-        # A column in its pattern (`dense` True: a vector every row, False: none) costs the copy of
-        # its vector or nothing; one that left it (None) is written row by row; one whose window
-        # changed width (`listed`) is the checked path's.
-        for column_, vector in zip(self._vectors, vectors):
-            dense = column_.dense
-            if dense is True:
-                if vector is None or vector.shape != column_.shape or vector.dtype is not _F64:
-                    raise TypeError(column_.name)
-                column_.block[row] = vector  # type: ignore[index]
-            elif dense is False:
-                if vector is not None:
-                    raise TypeError(column_.name)
-            elif column_.listed is not None:
-                raise TypeError(column_.name)
-            elif vector is None:
-                column_.offsets[row + 1] = column_.count * column_.width
-                column_.valid[byte] &= unset
-            elif vector.shape != column_.shape or vector.dtype is not _F64:
-                raise TypeError(column_.name)
-            else:
-                count = column_.count
-                column_.block[count] = vector  # type: ignore[index]
-                column_.count = count = count + 1
-                column_.offsets[row + 1] = count * column_.width
-                column_.valid[byte] |= bit
-        return stale
-
     def _write_fast(self, row: int, record: TickRecord) -> bool:
-        """The row as a tick writes it: numbers into numpy, vectors of the block's width; anything
-        else goes to the column's own `write`. True when the viewing batch is stale."""
+        """A record's scalars: numbers into numpy; anything else goes to the column's own `write`.
+        True when the viewing batch is stale."""
         byte, bit = row >> 3, 1 << (row & 7)
         unset = 0xFF ^ bit
         stale = False
@@ -629,36 +708,11 @@ class WindowRows:
                 if encoded:
                     text.data[text.end : end] = encoded
                 text.offsets[row + 1] = text.end = end
-        for vectors, value in zip(self._vectors, self._get_vectors(record), strict=True):
-            dense = vectors.dense
-            if (
-                dense is True
-                and value is not None
-                and type(value) is np.ndarray
-                and value.dtype is _F64
-                and value.shape == vectors.shape
-            ):
-                vectors.block[row] = value  # type: ignore[index]
-            elif dense is False and value is None:
-                pass
-            elif dense is not None or vectors.listed is not None:
-                stale |= vectors.write(row, value)
-            elif value is None:
-                vectors.offsets[row + 1] = vectors.count * vectors.width
-                vectors.valid[byte] &= unset
-            elif type(value) is np.ndarray and value.dtype is _F64 and value.shape == vectors.shape:
-                count = vectors.count
-                vectors.block[count] = value  # type: ignore[index]
-                vectors.count = count = count + 1
-                vectors.offsets[row + 1] = count * vectors.width
-                vectors.valid[byte] |= bit
-            else:
-                stale |= vectors.write(row, value)
         return stale
 
     def _write_checked(self, row: int, record: TickRecord) -> bool:
-        """The row column by column, each checking its value: InvalidArgument names the first that
-        does not fit."""
+        """A record's scalars column by column, each checking its value: InvalidArgument names the
+        first that does not fit."""
         stale = False
         self._rewind(row)
         try:
@@ -666,8 +720,6 @@ class WindowRows:
                 scalar.write(row, scalar.get(record))
             for text in self._texts:
                 stale |= text.write(row, text.get(record))
-            for vectors in self._vectors:
-                stale |= vectors.write(row, vectors.get(record))
         except BaseException:
             self._viewed = None  # a column may have been allocated anew before the one that failed
             self._rewind(row)
@@ -677,18 +729,26 @@ class WindowRows:
     def _rewind(self, row: int) -> None:
         for text in self._texts:
             text.rewind(row)
-        for vectors in self._vectors:
-            vectors.rewind(row)
 
     def _grow(self) -> None:
+        self._held.extend([None] * self._capacity)
         self._capacity *= 2
         for column in self._order:
             column.grow(self._capacity)
+        self._targets = self._named.targets()
         self._viewed = None
 
     def batch(self) -> pa.RecordBatch:
         """The rows as one batch of LOG_SCHEMA, viewing these columns: serialise or copy it before
-        the next `append` or `clear`."""
+        the next `append` or `clear`. Each vector column's rows are copied into its block here,
+        one numpy copy a column; InvalidArgument names a column whose vector does not fit."""
+        rows = self.rows
+        if rows:
+            stale = False
+            for vectors, values in zip(self._vectors, zip(*self._held[:rows], strict=True), strict=True):
+                stale |= vectors.fill(values)
+            if stale:
+                self._viewed = None
         if self._viewed is None:
             columns = [c.array(self._capacity) for c in self._order]
             self._viewed = pa.RecordBatch.from_arrays(columns, schema=LOG_SCHEMA)
@@ -703,8 +763,9 @@ class WindowRows:
     def clear(self) -> None:
         """Forget the rows (their batch was written); the columns keep their size."""
         for vectors in self._vectors:
-            vectors.clear(self.rows)
+            vectors.clear()
         for text in self._texts:
             text.end = 0
+        self._held[: self.rows] = [None] * self.rows
         self.rows = 0
         self.top_seq = None

@@ -2,11 +2,14 @@
 session a process records, as a database's write-ahead log does.
 
 A session's ticks come `dt` apart (50 ms at 20 Hz), so a per-session commit thread had nothing to
-group: each tick cost an Arrow batch of one row, a thread wake-up and an fsync. Here the records
-that every session queued in a window become one Arrow batch (column by column, for all of them at
-once), each session's rows are appended to its own log as one zero-copy slice in one write, and one
-`syncfs` makes them all durable (one `fsync` when a single log has new rows). Each session keeps
-its own log, so recovery, compaction and the per-log flock are unchanged.
+group: each tick cost an Arrow batch of one row, a thread wake-up and an fsync. Here each row is
+written, as it is appended, into its session's preallocated columns (storage/buffers.py); when a
+session's window is due the thread takes every session that has rows, swaps their columns for
+their spare ones (the tick never waits for a write), appends each to its session's own log as one
+Arrow batch that views them, in one write, and one `syncfs` makes every log durable (one `fsync`
+when a single log has new rows). Each session keeps its own log, so recovery, compaction and the
+per-log flock are unchanged. Why the columns, and why every session's rows share each commit:
+docs/decisions/0221-the-columns-pay-at-a-servers-load.md.
 
 With a shared tier (replicas sharing a PostgreSQL index, storage/shared.py), a session's rows go
 instead to the shared log: one transaction per window for every such session of the process, which
@@ -30,14 +33,14 @@ import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Final
 
 import pyarrow as pa
 
 from jitdyn.errors import InvalidArgument, JitdynError, Unavailable
 from jitdyn.lifecycle import Closeable
-from jitdyn.storage.columns import check_lengths, records_to_batch
+from jitdyn.storage.buffers import INITIAL_ROWS, ResultRow, WindowRows
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
 from jitdyn.storage.records import TickRecord
 from jitdyn.storage.shared import Fenced, Lease, SharedTier, Window
@@ -52,9 +55,10 @@ __all__ = [
     "default_committer",
 ]
 
-# A commit costs about the same whatever it carries, so the window widens until commits cost at most
-# COMMIT_SHARE of a core, and never past MAX_WINDOW, which bounds how far durable_seq trails the
-# newest answer (the measurements: docs/decisions/0040-group-commit-window.md).
+# A commit costs about the same whatever it carries, so the window widens until the commit thread
+# (its wake-ups and scans included) costs at most COMMIT_SHARE of a core, and never past
+# MAX_WINDOW, which bounds how far durable_seq trails the newest answer (the measurements:
+# docs/decisions/0040-group-commit-window.md, 0221-the-columns-pay-at-a-servers-load.md).
 COMMIT_SHARE: Final = 0.01
 MAX_WINDOW: Final = 0.1  # s
 _COST_EWMA: Final = 0.2
@@ -84,18 +88,40 @@ def _sync_all(fds: list[int]) -> None:
         raise OSError(error, os.strerror(error))
 
 
+@dataclass(frozen=True, slots=True)
+class _Held:
+    """Rows of a window the shared tier did not take, serialised: retried as they were, under the
+    same key, never merged with newer rows."""
+
+    data: bytes
+    rows: int
+    top_seq: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class _Taken:
+    """One session's rows of a window, as the thread wrote them."""
+
+    rows: int
+    top_seq: int | None
+
+
 @dataclass
 class _Session:
     """One registered log: where its rows go and what the recorder wants to know."""
 
     name: str
     fd: int  # -1: a session of the shared tier
-    lengths: dict[str, int]
     commit_every: int
     commit_interval: float
     on_durable: Callable[[int, int | None], None]  # (records committed, highest result seq)
     on_failure: Callable[[JitdynError], None]
-    pending: list[TickRecord] = field(default_factory=list)
+    # The rows appended since the last take; `spare` is the other half of the double buffer, None
+    # while the thread writes it.
+    window: WindowRows
+    spare: WindowRows | None = None
+    # A window the shared tier did not take (it may have landed): the next take is this alone.
+    held: _Held | None = None
     first_pending_at: float = 0.0
     flush: bool = False
     in_flight: bool = False  # taken by the thread, not yet durable
@@ -104,17 +130,18 @@ class _Session:
     lease: Lease | None = None  # its log is the shared tier's, under this lease
     retry_at: float = 0.0  # the shared tier did not answer: not due before then (monotonic s)
     committed: int = 0  # records of a shared-tier session in windows the database took
-    # The first `retrying` pending records are a window whose commit may have landed: retried as
-    # they were, under the same key, never merged with newer records.
-    retrying: int = 0
+
+    @property
+    def pending(self) -> bool:
+        return self.window.rows > 0 or self.held is not None
 
     def due(self, now: float, window: float) -> bool:
         return (
-            bool(self.pending)
+            self.pending
             and now >= self.retry_at
             and (
                 self.flush
-                or len(self.pending) >= self.commit_every
+                or self.window.rows >= self.commit_every
                 or now >= self.first_pending_at + max(self.commit_interval, window)
             )
         )
@@ -147,7 +174,10 @@ class GroupCommitter(Closeable):
         self._renewed_at = time.monotonic()
         self._renew_retry_at = 0.0
         self._outage_since: float | None = None
-        self._cond = threading.Condition()
+        # The condition's own lock, taken directly where an append takes it: a Condition's
+        # __enter__ and __exit__ are Python calls, cold microseconds on the tick's path.
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
         self._sessions: dict[int, _Session] = {}
         self._next_key = 0
         self._stopping = False
@@ -188,31 +218,56 @@ class GroupCommitter(Closeable):
                 self._renewed_at = time.monotonic()  # the lease was made (or taken) just now
             key = self._next_key
             self._next_key += 1
+            window = WindowRows(lengths=lengths, capacity=min(commit_every, INITIAL_ROWS))
             self._sessions[key] = _Session(
                 name=name,
                 fd=fd,
-                lengths=lengths,
                 commit_every=commit_every,
                 commit_interval=commit_interval,
                 on_durable=on_durable,
                 on_failure=on_failure,
+                window=window,
+                spare=window.spare(),
                 lease=lease,
             )
             return key
 
     def append(self, key: int, record: TickRecord) -> None:
-        """Queue `record` for the log `key`. Never waits for the disk."""
+        """Write `record` into the columns of log `key`'s window. Never waits for the disk.
+
+        InvalidArgument, naming the column, when the record does not fit the log's columns; it is
+        then not stored."""
         with self._cond:
             session = self._sessions[key]
-            session.pending.append(record)
-            if len(session.pending) == 1:
+            session.window.append(record)
+            self._appended(session)
+
+    def append_result(self, key: int, values: ResultRow) -> None:
+        """Write a tick's result into the columns of log `key`'s window, from its values as
+        `WindowRows.append_result` takes them (no `TickRecord`). Never waits for the disk."""
+        with self._lock:
+            session = self._sessions[key]
+            window = session.window
+            window.append_result(values)
+            # `_appended`, inlined: this is the tick's path.
+            rows = window.rows
+            if rows == 1 and session.held is None:
                 session.first_pending_at = now = time.monotonic()
-                # The thread already wakes by then for another log's window: no need to wake it
-                # now (a notify per record was 3 % of the event loop's time at 8 sessions).
                 if now + max(session.commit_interval, self._window) < self._wake_at:
                     self._cond.notify()
-            elif len(session.pending) >= session.commit_every:
+            elif rows >= session.commit_every:
                 self._cond.notify()
+
+    def _appended(self, session: _Session) -> None:
+        rows = session.window.rows
+        if rows == 1 and session.held is None:
+            session.first_pending_at = now = time.monotonic()
+            # The thread already wakes by then for another log's window: no need to wake it
+            # now (a notify per record was 3 % of the event loop's time at 8 sessions).
+            if now + max(session.commit_interval, self._window) < self._wake_at:
+                self._cond.notify()
+        elif rows >= session.commit_every:
+            self._cond.notify()
 
     def request_flush(self, key: int) -> None:
         """Commit what log `key` has queued now, without waiting for its window."""
@@ -263,9 +318,11 @@ class GroupCommitter(Closeable):
 
     # The thread.
 
-    def _take_due(self) -> list[tuple[_Session, list[TickRecord]]] | None:
-        """Wait until some log is due; take its records, and those of every log half-way through
-        its window (they share the flush). None when stopping with nothing left."""
+    def _take_due(self) -> list[tuple[_Session, WindowRows | None, _Held | None]] | None:
+        """Wait until some log is due; take its rows, and those of every other log that has any
+        (they share the flush: the next commit is then a whole window away), swapping in their
+        spare columns; or a window the shared
+        tier did not take, alone. None when stopping with nothing left."""
         with self._cond:
             while True:
                 now = time.monotonic()
@@ -276,6 +333,11 @@ class GroupCommitter(Closeable):
                 if self._stopping and not any(s.pending for s in self._sessions.values() if not s.failed):
                     return None
                 waiting = [s.next_due(window) for s in self._sessions.values() if s.pending and not s.failed]
+                if not waiting and self._sessions:
+                    # Nothing queued: wake in a window rather than be woken by the next row. A row
+                    # appended meanwhile is due no sooner, and its tick pays no notify (each commit
+                    # empties every log, so every commit's first row would).
+                    waiting.append(now + max(window, min(s.commit_interval for s in self._sessions.values())))
                 if self._shared is not None and any(s.lease for s in self._sessions.values()):
                     renew_at = max(self._renewed_at + self._shared.lease_ttl / 3, self._renew_retry_at)
                     if now >= renew_at:
@@ -286,33 +348,33 @@ class GroupCommitter(Closeable):
                 self._wake_at = -math.inf  # awake: it rescans every log before it waits again
             chosen = set(map(id, due))
             for s in self._sessions.values():
-                if (
-                    id(s) not in chosen
-                    and s.pending
-                    and not s.failed
-                    and now >= s.retry_at
-                    and now >= s.first_pending_at + max(s.commit_interval, window) / 2
-                ):
+                if id(s) not in chosen and s.pending and not s.failed and now >= s.retry_at:
                     due.append(s)
-            taken = []
+            taken: list[tuple[_Session, WindowRows | None, _Held | None]] = []
             for s in due:
-                size = s.retrying or len(s.pending)
-                taken.append((s, s.pending[:size]))
-                s.pending = s.pending[size:]
-                s.retrying = 0
-                s.flush = bool(s.pending)
+                if s.held is not None:
+                    taken.append((s, None, s.held))
+                    s.held = None
+                    s.flush = s.window.rows > 0
+                else:
+                    taken.append((s, s.window, None))
+                    s.window = s.spare if s.spare is not None else s.window.spare()
+                    s.spare = None
+                    s.flush = False
                 s.in_flight = True
             return taken
 
     def _run(self) -> None:
+        # A commit's cost is the thread's CPU from the end of the last one: its wake-ups and scans
+        # while the window fills count, as its fsync and write do.
+        cpu_started = time.thread_time()
         while True:
             taken = self._take_due()
             if taken is None:
                 return
-            cpu_started = time.thread_time()
             written = self._write(taken)
-            local = [(s, r) for s, r, _ in written if s.lease is None]
-            durable: list[tuple[_Session, list[TickRecord]]] = []
+            local = [(s, t) for s, t, _ in written if s.lease is None]
+            durable: list[tuple[_Session, _Taken]] = []
             if local:
                 try:
                     _sync_all([s.fd for s, _ in local])
@@ -324,37 +386,38 @@ class GroupCommitter(Closeable):
                         )
                 else:
                     durable = local
-            durable.extend(self._commit_shared([(s, r, d) for s, r, d in written if s.lease is not None]))
+            durable.extend(self._commit_shared([(s, t, d) for s, t, d in written if s.lease is not None]))
             if self._shared is not None and self._renew_due(time.monotonic()):
                 self._renew_leases()
             with self._cond:
                 self._commits += 1 if durable else 0
                 self._syncs += 1 if durable else 0
-                self._records += sum(len(r) for _, r in durable)
-            for s, records in durable:
-                seqs = [r.seq for r in records if r.kind == "result"]
-                s.on_durable(len(records), max(seqs) if seqs else None)
+                self._records += sum(t.rows for _, t in durable)
+            for s, t in durable:
+                s.on_durable(t.rows, t.top_seq)
             with self._cond:
-                for s, _ in taken:
+                for s, rows, _ in taken:
+                    if rows is not None:
+                        # Its batch is serialised and written: the columns are the spare half now.
+                        rows.clear()
+                        s.spare = rows
                     s.in_flight = False
-                cost = time.thread_time() - cpu_started
+                cpu_now = time.thread_time()
+                cost, cpu_started = cpu_now - cpu_started, cpu_now
                 self._cpu += cost
                 self._commit_cost += _COST_EWMA * (cost - self._commit_cost)
                 self._window = min(MAX_WINDOW, self._commit_cost / COMMIT_SHARE)
                 self._cond.notify_all()
 
-    def _commit_shared(
-        self, written: list[tuple[_Session, list[TickRecord], bytes]]
-    ) -> list[tuple[_Session, list[TickRecord]]]:
+    def _commit_shared(self, written: list[tuple[_Session, _Taken, bytes]]) -> list[tuple[_Session, _Taken]]:
         """One transaction for every shared-tier session's rows of this window: the durable ones.
-        Rows the database did not take wait in their sessions' queues, first, for the next try."""
+        Rows the database did not take are held by their sessions, serialised, for the next try."""
         if not written or self._shared is None:
             return []
         windows = []
-        for s, records, data in written:
-            seqs = [r.seq for r in records if r.kind == "result"]
+        for s, t, data in written:
             assert s.lease is not None
-            windows.append(Window(s.lease, max(seqs) if seqs else None, data, first=s.committed))
+            windows.append(Window(s.lease, t.top_seq, data, first=s.committed))
         try:
             fenced = self._shared.commit(windows)
         except STORAGE_ERRORS as exc:
@@ -368,10 +431,9 @@ class GroupCommitter(Closeable):
                     self._fail(s, storage_failure(f"session {s.name}: the shared tier is unreachable", exc))
                 return []
             with self._cond:
-                for s, records, _ in written:
+                for s, t, data in written:
                     if not s.failed:
-                        s.pending = records + s.pending
-                        s.retrying = len(records)
+                        s.held = _Held(data, t.rows, t.top_seq)
                         s.first_pending_at = now
                         s.retry_at = now + _SHARED_RETRY
             return []
@@ -379,7 +441,7 @@ class GroupCommitter(Closeable):
             _log.warning("the shared tier answers again after %.1f s", time.monotonic() - self._outage_since)
             self._outage_since = None
         durable = []
-        for s, records, _ in written:
+        for s, t, _ in written:
             if s.name in fenced:
                 self._fail(
                     s,
@@ -388,8 +450,8 @@ class GroupCommitter(Closeable):
                     ),
                 )
             else:
-                s.committed += len(records)
-                durable.append((s, records))
+                s.committed += t.rows
+                durable.append((s, t))
         return durable
 
     def lease_lost(self) -> bool:
@@ -430,65 +492,46 @@ class GroupCommitter(Closeable):
                 )
 
     def _write(
-        self, taken: list[tuple[_Session, list[TickRecord]]]
-    ) -> list[tuple[_Session, list[TickRecord], bytes]]:
-        """Append each session's records to its log (a local one: written, not yet synced; a
-        shared one: serialised for `_commit_shared`); the sessions whose rows are, and those rows."""
-        good: list[tuple[_Session, list[TickRecord]]] = []
-        for s, records in taken:
-            try:
-                check_lengths(records, s.lengths)
-            except InvalidArgument as exc:
-                self._fail(s, InvalidArgument(f"session {s.name}: {exc}"))
-                continue
-            except TypeError as exc:
-                self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
-                continue
-            good.append((s, records))
-        if not good:
-            return []
-        everything = [r for _, records in good for r in records]
-        try:
-            batch = records_to_batch(everything)
-        except (TypeError, ValueError, pa.ArrowException, InvalidArgument):
-            # One session's record is of the wrong type: find whose, and let the others through.
-            return [w for w in (self._write_one(s, r, None) for s, r in good) if w is not None]
+        self, taken: list[tuple[_Session, WindowRows | None, _Held | None]]
+    ) -> list[tuple[_Session, _Taken, bytes]]:
+        """Append each session's rows to its log (a local one: written, not yet synced; a shared
+        one: serialised for `_commit_shared`); the sessions whose rows are, and what they carry."""
         written = []
-        offset = 0
-        for s, records in good:
-            part = batch.slice(offset, len(records))
-            offset += len(records)
-            one = self._write_one(s, records, part)
+        for s, rows, held in taken:
+            one = self._write_one(s, rows, held)
             if one is not None:
                 written.append(one)
         return written
 
     def _write_one(
-        self, s: _Session, records: list[TickRecord], batch: pa.RecordBatch | None
-    ) -> tuple[_Session, list[TickRecord], bytes] | None:
-        if batch is None:
-            try:
-                batch = records_to_batch(records)
-            except (TypeError, ValueError, pa.ArrowException, InvalidArgument) as exc:
-                self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
-                return None
-        if s.lease is not None:
-            try:
-                return s, records, batch.serialize().to_pybytes()
-            except pa.ArrowException as exc:
-                self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
-                return None
+        self, s: _Session, rows: WindowRows | None, held: _Held | None
+    ) -> tuple[_Session, _Taken, bytes] | None:
+        if held is not None:
+            return s, _Taken(held.rows, held.top_seq), held.data
+        assert rows is not None
+        taken = _Taken(rows.rows, rows.top_seq)
+        if taken.rows == 0:
+            return None
         try:
-            data = batch.serialize()
+            data = rows.batch().serialize()
+        except InvalidArgument as exc:  # a vector that does not fit its column, named
+            self._fail(s, InvalidArgument(f"session {s.name}: {exc}"))
+            return None
+        except (TypeError, ValueError, pa.ArrowException) as exc:
+            self._fail(s, InvalidArgument(f"session {s.name}: a record cannot be stored: {exc}"))
+            return None
+        if s.lease is not None:
+            return s, taken, data.to_pybytes()
+        try:
             written = os.write(s.fd, data)
             if written != data.size:
                 raise OSError(f"short write: {written} of {data.size} bytes")
-        except (OSError, pa.ArrowException) as exc:
+        except OSError as exc:
             self._count_error()
             self._fail(s, storage_failure(f"session {s.name}: its log cannot be written", exc))
             return None
         s.bytes_written += data.size
-        return s, records, b""
+        return s, taken, b""
 
     def _count_error(self) -> None:
         with self._cond:
@@ -498,7 +541,8 @@ class GroupCommitter(Closeable):
         _log.error("%s", failure)
         with self._cond:
             s.failed = True
-            s.pending = []
+            s.window.clear()
+            s.held = None
             self._fenced += isinstance(failure, Fenced)
         s.on_failure(failure)
 

@@ -1,16 +1,17 @@
 """The crash-safe recorder of one session, and the recovery of sessions a dead server left open.
 
     with SessionRecorder(data_root=root, index=index, header=header) as recorder:
-        recorder.append(record)           # cheap; from the event loop
+        recorder.append_result(values)    # a tick's row (a ResultRow), into its columns; cheap
+        recorder.append(record)           # a TickRecord (rejected frames, tools)
         result.durable_seq = recorder.durable_seq
         location = recorder.close(summary) # blocking: compaction; run it in a thread
 
-`append` only queues the record; the process's commit thread (storage/commit.py, shared by every
-session) appends what has queued to the session's log and makes it durable together with the other
-sessions' records of the same window (group commit), every `commit_every` records or
-`commit_interval` seconds after the first queued one, whichever comes first (the commit thread
-widens the window, up to commit.MAX_WINDOW, while its commits carry too few records to be worth
-their fixed cost). `close` compacts the
+`append` only writes the row into the session's preallocated columns; the process's commit thread
+(storage/commit.py, shared by every session) appends what has queued to the session's log and
+makes it durable together with the other sessions' rows of the same window (group commit), every
+`commit_every` records or `commit_interval` seconds after the first queued one, whichever comes
+first (the commit thread widens the window, up to commit.MAX_WINDOW, while its commits carry too
+few records to be worth their fixed cost). `close` compacts the
 log to Parquet, marks the session ended in the index in one transaction, then deletes the log. On
 start, `recover_unfinished` does the same for every session whose server died.
 
@@ -33,9 +34,10 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import Any, Self
 
 from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
+from jitdyn.storage.buffers import ResultRow
 from jitdyn.storage.columns import expected_lengths
 from jitdyn.storage.commit import GroupCommitter, default_committer
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
@@ -125,7 +127,9 @@ class SessionRecorder:
         self._header = header
         self._committer = committer if committer is not None else default_committer()
 
-        self._cond = threading.Condition()
+        # Taken directly by append_result (a Condition's __enter__ is a Python call).
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
         self._appended = 0
         self._committed = 0
         self._commits = 0
@@ -253,11 +257,35 @@ class SessionRecorder:
         return self._writer.size() if self._writer is not None else 0
 
     def append(self, record: TickRecord) -> None:
-        """Queue a record for the next group commit. Never waits for the disk.
+        """Write a record into the session's columns for the next group commit (rejected frames,
+        tools, importers; a tick's result takes `append_result`). Never waits for the disk. The
+        record's arrays are held until its window is committed: they must not change meanwhile.
 
-        Raises FailedPrecondition after close, and Unavailable once the log could not be written
-        (the session cannot promise durability any more and should end).
+        Raises FailedPrecondition after close; InvalidArgument, naming the column, for a record
+        that does not fit the session's columns (a wrong length or type: a bug, which ends the
+        recorder as a failed write does); and Unavailable once the log could not be written (the
+        session cannot promise durability any more and should end).
         """
+        self._append(self._committer.append, record)
+
+    def append_result(self, values: ResultRow) -> None:
+        """`append` of a tick's result from its values, without a `TickRecord`: the row is written
+        straight into the session's columns (storage/buffers.py `ResultRow` says what each value
+        is). Raises as `append` does; a vector that does not fit its column fails the recorder
+        when its window is committed."""
+        with self._lock:  # `_append`, inlined: this is the tick's path
+            if self._state is not _State.OPEN or self._failure is not None:
+                self._append(self._committer.append_result, values)  # raises what append raises
+                return
+            try:
+                self._committer.append_result(self._key, values)
+            except InvalidArgument as exc:
+                self._failure = InvalidArgument(f"session {self._header.session_id}: {exc}")
+                self._cond.notify_all()
+                raise self._failure from None
+            self._appended += 1
+
+    def _append(self, write: Callable[[int, Any], None], values: Any) -> None:
         with self._cond:
             if self._state is not _State.OPEN:
                 raise FailedPrecondition(
@@ -265,10 +293,15 @@ class SessionRecorder:
                 )
             if self._failure is not None:
                 raise self._failure
-            self._appended += 1
             # Under the recorder's lock, so that `close` cannot unregister in between (the commit
             # thread never takes this lock while holding the committer's: no inversion).
-            self._committer.append(self._key, record)
+            try:
+                write(self._key, values)
+            except InvalidArgument as exc:
+                self._failure = InvalidArgument(f"session {self._header.session_id}: {exc}")
+                self._cond.notify_all()
+                raise self._failure from None
+            self._appended += 1
 
     def flush(self, timeout: float | None = None) -> None:
         """Commit what is queued now and wait until it is durable (for tests and shutdown)."""

@@ -39,11 +39,11 @@ from jitdyn.server.transport.auth import tenant_of
 from jitdyn.server.transport.frame_check import check_frame
 from jitdyn.server.transport.messages import (
     covariance_diagonal,
+    record_tick,
     rejected_message,
     rejection_record,
     result_message,
     summary_info,
-    tick_record,
 )
 from jitdyn.server.transport.metrics import metrics
 from jitdyn.server.transport.opening import open_request, opened_message
@@ -268,14 +268,13 @@ class _Stream:
         receive_to_send = max(0, int((now - arrived) * 1e6))
         delay = self.frame_delay(outcome.frame)
         diagonal = covariance_diagonal(outcome)
-        self.recorder.append(
-            tick_record(
-                outcome,
-                server_time=now,
-                frame_delay=delay,
-                receive_to_send_us=receive_to_send,
-                diagonal=diagonal,
-            )
+        record_tick(
+            self.recorder,
+            outcome,
+            server_time=now,
+            frame_delay=delay,
+            receive_to_send_us=receive_to_send,
+            diagonal=diagonal,
         )
         durable = self.recorder.durable_seq
         self._m_ticks[outcome.source].inc()

@@ -12,17 +12,18 @@ import numpy as np
 
 from jitdyn.server.runtime.frames import FrameIn, Rejection
 from jitdyn.server.runtime.session import SessionCounts, TickOutcome
+from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.records import SessionSummaryInfo, TickRecord
 from jitdyn.v1 import common_pb2, dynamics_pb2
 from jitdyn.vocabulary import Output, Scenario, Source, to_proto
 
 __all__ = [
     "covariance_diagonal",
+    "record_tick",
     "rejected_message",
     "rejection_record",
     "result_message",
     "summary_info",
-    "tick_record",
 ]
 
 # The proto values of the words every result carries, looked up once (to_proto is ~1 us a call).
@@ -111,6 +112,7 @@ def rejected_message(rejection: Rejection) -> dynamics_pb2.Rejected:
 
 # What a frame brings to its stored row, as the `frame_*` columns.
 _FRAME_FIELDS = ("t", "qpos", "qvel", "qacc", "ctrl", "sensordata")
+_NO_FRAME: Final = (None,) * 5
 
 
 def _frame_columns(frame: FrameIn | None) -> dict[str, Any]:
@@ -126,52 +128,63 @@ def _forecast_weights(outcome: TickOutcome) -> np.ndarray | None:
     return np.asarray(estimate.forecast_weights, dtype=np.float64)
 
 
-def tick_record(
+def record_tick(
+    recorder: SessionRecorder,
     outcome: TickOutcome,
     *,
     server_time: float,
     frame_delay: float | None,
     receive_to_send_us: int,
     diagonal: np.ndarray | None,
-) -> TickRecord:
-    """The stored row of one tick's answer, with what arrived; `diagonal` is
-    `covariance_diagonal(outcome)` (copied here: the row outlives the estimate)."""
+) -> None:
+    """Write the stored row of one tick's answer, with what arrived, straight into the session's
+    columns (no `TickRecord`); `diagonal` is `covariance_diagonal(outcome)`, copied here (a view
+    of the filter's covariance, which the next tick changes). The other vectors are the tick's
+    own, held by reference until the commit thread copies them into their columns."""
     frame = outcome.frame
     estimate = outcome.estimate
     dyn = outcome.dynamics
-    # The frame's columns one by one: a dict of them spread into the call cost 2 us a tick.
-    return TickRecord(
-        kind="result",
-        seq=outcome.seq,
-        source=outcome.source,
-        t=outcome.t,
-        server_time=server_time,
-        frame_received=frame is not None,
-        frame_t=None if frame is None else frame.t,
-        frame_qpos=None if frame is None else frame.qpos,
-        frame_qvel=None if frame is None else frame.qvel,
-        frame_qacc=None if frame is None else frame.qacc,
-        frame_ctrl=None if frame is None else frame.ctrl,
-        frame_sensordata=None if frame is None else frame.sensordata,
-        late_ticks=outcome.late_ticks,
-        frame_delay=frame_delay,
-        qpos=outcome.qpos,
-        qvel=outcome.qvel,
-        qacc=outcome.qacc,
-        qfrc_inverse=dyn.qfrc_inverse,
-        qacc_forward=dyn.qacc_forward,
-        actuator_force=dyn.actuator_force,
-        sensordata=dyn.sensordata,
-        covariance_diagonal=diagonal.copy() if diagonal is not None else None,
-        filter_state=estimate.state if estimate is not None else None,
-        nis=estimate.nis if estimate is not None and outcome.source != Source.PREDICTED else None,
-        reinitialised=bool(estimate.reinitialised) if estimate is not None else False,
-        late_compute=outcome.late_compute,
-        forecast_weights=_forecast_weights(outcome),
-        compute_us=outcome.compute_us,
-        receive_to_send_us=receive_to_send_us,
-        reject_reason="",
-        reject_message="",
+    if frame is None:
+        frame_t = None
+        frame_vectors: tuple[np.ndarray | None, ...] = _NO_FRAME
+    else:
+        frame_t = frame.t
+        frame_vectors = (frame.qpos, frame.qvel, frame.qacc, frame.ctrl, frame.sensordata)
+    if estimate is None:
+        state = nis = None
+        reinitialised = False
+    else:
+        state = estimate.state
+        nis = estimate.nis if outcome.source != Source.PREDICTED else None
+        reinitialised = bool(estimate.reinitialised)
+    recorder.append_result(
+        (
+            outcome.seq,
+            outcome.source,
+            outcome.t,
+            server_time,
+            frame_t,
+            outcome.late_ticks,
+            frame_delay,
+            nis,
+            reinitialised,
+            outcome.late_compute,
+            outcome.compute_us,
+            receive_to_send_us,
+            (
+                *frame_vectors,
+                outcome.qpos,
+                outcome.qvel,
+                outcome.qacc,
+                dyn.qfrc_inverse,
+                dyn.qacc_forward,
+                dyn.actuator_force,
+                dyn.sensordata,
+                None if diagonal is None else diagonal.copy(),
+                state,
+                _forecast_weights(outcome),
+            ),
+        )
     )
 
 

@@ -158,19 +158,21 @@ def append_row(rows: WindowRows, record: TickRecord) -> None:
         rows.append(record)
         return
     rows.append_result(
-        record.seq,
-        record.source,
-        record.t,
-        record.server_time,
-        record.frame_t,
-        record.late_ticks,
-        record.frame_delay,
-        record.nis,
-        record.reinitialised,
-        record.late_compute,
-        record.compute_us,
-        record.receive_to_send_us,
-        tuple(getattr(record, name) for name in ARRAY_FIELDS),
+        (
+            record.seq,
+            record.source,
+            record.t,
+            record.server_time,
+            record.frame_t,
+            record.late_ticks,
+            record.frame_delay,
+            record.nis,
+            record.reinitialised,
+            record.late_compute,
+            record.compute_us,
+            record.receive_to_send_us,
+            tuple(getattr(record, name) for name in ARRAY_FIELDS),
+        )
     )
 
 
@@ -192,40 +194,42 @@ def test_result_rows_written_from_their_values_equal_the_converted_records(
         rows.clear()
 
 
-def test_a_result_row_copies_its_vectors_and_names_a_misfit(
+def test_a_result_row_holds_its_vectors_until_the_batch_copies_them(
     make_header: Callable[..., SessionHeader],
 ) -> None:
     rows = WindowRows(lengths=expected_lengths(make_header()))
     qpos = np.array([1.0, 2.0, 3.0])
     vectors: list[np.ndarray | None] = [None] * len(ARRAY_FIELDS)
     vectors[ARRAY_FIELDS.index("qpos")] = qpos
-    rows.append_result(4, "MEASURED", 0.2, 0.25, None, 0, None, None, False, False, 10, 20, tuple(vectors))
-    qpos[:] = 9.0  # the caller's array changes after the row was written
-    assert rows.batch().column("qpos").to_pylist() == [[1.0, 2.0, 3.0]]
-    vectors[ARRAY_FIELDS.index("qvel")] = np.zeros(5)
-    with pytest.raises(InvalidArgument, match="^qvel must have 3 values in every record, got 5$"):
-        rows.append_result(
-            5, "MEASURED", 0.3, 0.35, None, 0, None, None, False, False, 10, 20, tuple(vectors)
-        )
+    rows.append_result((4, "MEASURED", 0.2, 0.25, None, 0, None, None, False, False, 10, 20, tuple(vectors)))
+    batch = rows.batch()
+    qpos[:] = 9.0  # the caller's array changes once the window's batch was built
+    assert batch.column("qpos").to_pylist() == [[1.0, 2.0, 3.0]]
     with pytest.raises(InvalidArgument, match="^a row needs 15 vectors"):
-        rows.append_result(5, "MEASURED", 0.3, 0.35, None, 0, None, None, False, False, 10, 20, (qpos,))
-    # The rows refused left nothing behind.
+        rows.append_result((5, "MEASURED", 0.3, 0.35, None, 0, None, None, False, False, 10, 20, (qpos,)))
+    # The row refused left nothing behind.
     assert rows.rows == 1 and rows.batch().column("seq").to_pylist() == [4]
+    rows.clear()
+    vectors[ARRAY_FIELDS.index("qvel")] = np.zeros(5)
+    rows.append_result((5, "MEASURED", 0.3, 0.35, None, 0, None, None, False, False, 10, 20, tuple(vectors)))
+    with pytest.raises(InvalidArgument, match="^qvel must have 3 values in every record, got 5$"):
+        rows.batch()
 
 
-def test_a_steady_result_row_takes_the_straight_line(make_header: Callable[..., SessionHeader]) -> None:
-    """Once its words are encoded and its columns' pattern set, a result's row is written by the
-    straight-line path, not as a record (which would give the same batch, at twice the cost)."""
+def test_a_steady_result_row_takes_the_straight_line(
+    make_header: Callable[..., SessionHeader], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Once its words are encoded, a result's row is written by the straight line, not as a
+    record (which would give the same batch, at twice the cost)."""
     rows = WindowRows(lengths=expected_lengths(make_header()))
     vectors = tuple(np.ones(3) if name in ("qpos", "qvel", "qacc") else None for name in ARRAY_FIELDS)
-    rows.append_result(0, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, vectors)
+    rows.append_result((0, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, vectors))
     rows.clear()
-    for row in range(3):
-        assert (
-            rows._write_result(
-                row, row, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, vectors
-            )
-            is False
-        )
-        rows.rows = row + 1
+
+    def checked(row: int, record: TickRecord) -> bool:
+        raise AssertionError(f"row {row} went the checked way")
+
+    monkeypatch.setattr(rows, "_write_checked", checked)
+    for seq in range(3):
+        rows.append_result((seq, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, vectors))
     assert rows.batch().column("qvel").to_pylist() == [[1.0, 1.0, 1.0]] * 3

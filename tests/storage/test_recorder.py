@@ -18,6 +18,7 @@ import pytest
 from jitdyn.errors import FailedPrecondition, InvalidArgument
 from jitdyn.storage.columns import ARRAY_FIELDS, SCALAR_FIELDS
 from jitdyn.storage.index import SessionIndex
+from jitdyn.storage.log import read_log
 from jitdyn.storage.recorder import SessionRecorder
 from jitdyn.storage.records import SessionHeader, SessionSummaryInfo, TickRecord
 
@@ -232,21 +233,39 @@ def test_wrong_array_length_fails_the_recorder_loudly(
     data_root: Path, index: SessionIndex, make_header: Callable[..., SessionHeader]
 ) -> None:
     header = make_header()
-    recorder = SessionRecorder(data_root=data_root, index=index, header=header, commit_every=1)
-    recorder.append(TickRecord(kind="result", seq=0, source="MEASURED", qpos=np.zeros(4)))
+    recorder = SessionRecorder(data_root=data_root, index=index, header=header, commit_interval=30.0)
+    recorder.append(TickRecord(kind="result", seq=0, source="MEASURED", qpos=np.zeros(3)))
     with pytest.raises(InvalidArgument) as error:
-        recorder.flush()
-    assert str(error.value) == (
-        f"session {header.session_id}: qpos must have 3 values in every record, got 4 in the record "
-        "at position 0 of the batch"
-    )
+        recorder.append(TickRecord(kind="result", seq=1, source="MEASURED", qpos=np.zeros(4)))
+    assert str(error.value) == f"session {header.session_id}: qpos must have 3 values in every record, got 4"
     with pytest.raises(InvalidArgument):
-        recorder.append(TickRecord(kind="result", seq=1, source="MEASURED"))
+        recorder.append(TickRecord(kind="result", seq=2, source="MEASURED"))
+    with pytest.raises(InvalidArgument):
+        recorder.flush()
     with pytest.raises(InvalidArgument):
         recorder.close()
-    # What was durable stays in the log, the session OPEN, for recovery at the next start.
+    # What was durable stays in the log, the session OPEN, for recovery at the next start: the
+    # rows before the bad one, not the bad one.
     assert index.get(header.session_id, tenant="").status == "OPEN"
-    assert (data_root / "logs" / f"{header.session_id}.arrows").exists()
+    log = read_log(data_root / "logs" / f"{header.session_id}.arrows")
+    assert log.table.column("seq").to_pylist() == [0]
+
+
+def test_a_result_row_that_does_not_fit_fails_the_recorder(
+    data_root: Path, index: SessionIndex, make_header: Callable[..., SessionHeader]
+) -> None:
+    header = make_header()
+    recorder = SessionRecorder(data_root=data_root, index=index, header=header, commit_interval=30.0)
+    vectors = [None] * len(ARRAY_FIELDS)
+    vectors[ARRAY_FIELDS.index("qvel")] = np.zeros(2)
+    # The row's vectors are copied into their columns when its window is committed: there the
+    # misfit is named, and the recorder fails.
+    recorder.append_result((0, "MEASURED", 0.0, 0.0, None, 0, None, None, False, False, 1, 2, tuple(vectors)))
+    with pytest.raises(InvalidArgument) as error:
+        recorder.flush(timeout=30)
+    assert str(error.value) == f"session {header.session_id}: qvel must have 3 values in every record, got 2"
+    with pytest.raises(InvalidArgument):
+        recorder.close()
 
 
 def test_record_of_the_wrong_type_fails_the_recorder(
@@ -254,12 +273,19 @@ def test_record_of_the_wrong_type_fails_the_recorder(
 ) -> None:
     header = make_header()
     recorder = SessionRecorder(data_root=data_root, index=index, header=header)
-    recorder.append(TickRecord(kind="result", seq="seven", source="MEASURED"))  # type: ignore[arg-type]
     with pytest.raises(InvalidArgument) as error:
-        recorder.flush()
-    assert str(error.value).startswith(f"session {header.session_id}: a record cannot be stored: ")
+        recorder.append(TickRecord(kind="result", seq="seven", source="MEASURED"))  # type: ignore[arg-type]
+    assert str(error.value) == f"session {header.session_id}: seq must be int64, got 'seven'"
+    with pytest.raises(InvalidArgument):
+        recorder.append(TickRecord(kind="result", seq=1, source=7))  # type: ignore[arg-type]
     with pytest.raises(InvalidArgument):
         recorder.close()
+    other = SessionRecorder(data_root=data_root, index=index, header=make_header())
+    with pytest.raises(InvalidArgument) as error:
+        other.append(TickRecord(kind="result", seq=1, source=7))  # type: ignore[arg-type]
+    assert str(error.value) == f"session {other.header.session_id}: source must be a str, got 7"
+    with pytest.raises(InvalidArgument):
+        other.close()
 
 
 @pytest.mark.parametrize(
