@@ -333,6 +333,7 @@ class _Vectors:
         row by row. InvalidArgument names the column a vector does not fit. True when the block
         was allocated anew (the batch viewing the old one is stale)."""
         n = len(values)
+        stale = False
         if values[0] is not None:
             try:
                 # One copy into the block's first n rows: every row has a vector (len(None) raises),
@@ -354,10 +355,12 @@ class _Vectors:
             if self.dense is not False:
                 self._pattern(False)
             return False
+        # Row by row from no vectors: no offset is left of an earlier window's pattern, whose
+        # width may not be this block's (Arrow checks the last offset against the values).
+        self._pattern(False)
         self.dense = None
         self.count = 0
         self.listed = None
-        stale = False
         for row, value in enumerate(values):
             try:
                 stale |= self.write(row, value)

@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from jitdyn.errors import InvalidArgument
 from jitdyn.storage.buffers import WindowRows
@@ -147,6 +149,58 @@ def test_a_column_present_absent_or_mixed_window_after_window(
             seq += 1
         for record in records:
             rows.append(record)
+        assert_same(rows, records)
+        rows.clear()
+
+
+def test_a_mixed_window_after_a_wider_dense_one(make_header: Callable[..., SessionHeader]) -> None:
+    """A session whose filter changed (its state 3 wide, then 2) in a window that also holds rows
+    without one (a rejected frame): the row-by-row window must not keep the wider window's offsets,
+    which Arrow checks against the narrower block (a server's commit failed so: "Length spanned by
+    list offsets (48) larger than values array (length 32)")."""
+    rows = WindowRows(lengths=expected_lengths(make_header()), capacity=16)
+    wide = [TickRecord(kind="result", seq=k, filter_state=np.full(3, float(k))) for k in range(16)]
+    for record in wide:
+        rows.append(record)
+    assert_same(rows, wide)
+    rows.clear()
+    narrow = [
+        TickRecord(kind="rejected", seq=16, reject_reason="TOO_OLD", reject_message="late"),
+        *(TickRecord(kind="result", seq=k, filter_state=np.full(2, float(k))) for k in range(17, 27)),
+    ]
+    for record in narrow:
+        append_row(rows, record)
+    assert_same(rows, narrow)
+
+
+_ROW = st.tuples(st.booleans(), st.integers(0, 4), st.booleans())  # a result?, its width, by values?
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    windows=st.lists(st.lists(_ROW, min_size=1, max_size=20), min_size=1, max_size=6),
+    capacity=st.sampled_from([1, 4, 16]),
+)
+def test_any_windows_of_any_widths_equal_the_converted_records(
+    make_header: Callable[..., SessionHeader], windows: list[list[tuple[bool, int, bool]]], capacity: int
+) -> None:
+    """Windows one after another, each row a result or a rejected frame, its width-free vectors
+    (the covariance, the filter state) absent or of a width of its own, written as a record or from
+    its values: every window's batch equals the records converted, as Arrow reads it back."""
+    rows = WindowRows(lengths=expected_lengths(make_header()), capacity=capacity)
+    seq = 0
+    for window in windows:
+        records = []
+        for result, width, by_values in window:
+            vector = None if width == 0 else np.full(width, float(seq))
+            record = (
+                TickRecord(kind="result", seq=seq, covariance_diagonal=vector, filter_state=vector)
+                if result
+                else TickRecord(kind="rejected", seq=seq, reject_reason="TOO_OLD", reject_message="late")
+            )
+            (append_row if by_values else WindowRows.append)(rows, record)
+            records.append(record)
+            seq += 1
         assert_same(rows, records)
         rows.clear()
 
