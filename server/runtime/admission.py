@@ -512,6 +512,15 @@ class Admission:
                 covered += other.load
             return None
 
+    def answers_short(self) -> bool:
+        """Whether what the process promises went short in the last window: more than LATE_SHARE of
+        its answers late, or its CPU past its budget. Its loop's lag alone is not: it refuses new
+        sessions and tells the last admitted, but a session is ended only for this (at 56-63 % of a
+        core, loop lags of 5-20 ms against graces of 25 ms ended 1-2 sessions of 60 whose answers
+        were all on time; docs/decisions/0224-ended-for-late-answers-not-lag.md)."""
+        with self._lock:
+            return self.late_share > LATE_SHARE or self._sample_cpu() > self.budget
+
     def admitted_before(self, ticket: Ticket) -> int:
         """How many of the process's sessions were admitted before `ticket`'s: those that ending
         it would keep on time (none: ending it would help no one)."""

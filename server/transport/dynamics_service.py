@@ -167,7 +167,8 @@ class _Stream:
         self.batches = False
         self._held: list[Response] = []
         self._overload_checked = self._overload_told = -math.inf
-        self._late_since: float | None = None  # monotonic s since every check found it unaffordable
+        # monotonic s since every check found it unaffordable with its process's answers short
+        self._late_since: float | None = None
         self._token_issued = time.monotonic()  # when the client's newest resume token was made
 
     async def write(self, context: _Context, *responses: Response, due: bool = False) -> None:
@@ -222,9 +223,11 @@ class _Stream:
         """REALTIME: the in-band warning that this session's answers may go late
         (Admission.unaffordable), asked at most every OVERLOAD_CHECK s and repeated every
         OVERLOAD_REPEAT s while it holds. Raises LateTimeout once it has held at every check for
-        the late timeout: the session is ended (and stored), so that those admitted before it are
-        on time again, instead of every session of the process going late together. The session
-        admitted first is never ended: ending it would keep no one on time."""
+        the late timeout with the process's answers short (late, or its CPU past its budget; a
+        loop's lag alone only tells: Admission.answers_short): the session is ended (and stored),
+        so that those admitted before it are on time again, instead of every session of the
+        process going late together. The session admitted first is never ended: ending it would
+        keep no one on time."""
         if self.ticket is None:
             return None
         now = self.clock.now()
@@ -237,7 +240,10 @@ class _Stream:
             self._late_since = None
             return None
         mono, start = time.monotonic(), admission.late_evidence_from()
-        if self._late_since is None or self._late_since < start:
+        if not admission.answers_short():
+            # Told, not ended: the loop lags but the answers are on time.
+            self._late_since = None
+        elif self._late_since is None or self._late_since < start:
             self._late_since = max(mono, start)
         elif mono - self._late_since >= self.limits.late_timeout and admission.admitted_before(self.ticket):
             _log.warning(

@@ -342,6 +342,46 @@ def test_a_loop_that_runs_its_deadlines_late_admits_no_one(monkeypatch: pytest.M
     admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz")
 
 
+def test_a_lagging_loop_tells_but_only_late_answers_or_cpu_past_the_budget_end_a_session(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The loop's lag tells the last admitted session (above) but is not what ends it: at 56-63 % of
+    a core, loop lags of 5-20 ms ended sessions whose answers were all on time. Their answers late,
+    or the process past its budget, are."""
+    from jitdyn.server.runtime import admission as module
+
+    monkeypatch.setattr(module, "_CPU_WINDOW", 0.2)
+    admission = Admission(budget=0.75, count_process_cpu=False)
+    _first, second = (
+        admission.admit(cost_per_tick=2.5e-3, dt=0.05, what="pendulum_3 at 20 Hz") for _ in range(2)
+    )
+    admission.observe_loop_lag(0.045)
+    for _ in range(40):
+        second.answered(0.0)  # every answer on time
+    time.sleep(0.25)
+    admission.observe_loop_lag(0.0)
+    assert admission.lag_share > 0.1 and admission.late_share == 0.0
+    assert admission.unaffordable(second) is not None  # told
+    assert not admission.answers_short()  # not to be ended
+    for lateness in [0.0] * 30 + [0.02] * 10:  # a quarter of the answers 20 ms late
+        second.answered(lateness)
+    time.sleep(0.25)
+    admission.observe_loop_lag(0.0)
+    assert admission.late_share == pytest.approx(0.25)
+    assert admission.answers_short()
+    # A window on time, then a process whose CPU passes its budget.
+    time.sleep(0.25)
+    admission.observe_loop_lag(0.0)
+    assert not admission.answers_short()
+    busy = Admission(budget=0.01)
+    busy.start_window()
+    end = time.process_time() + 0.1
+    while time.process_time() < end:
+        pass
+    time.sleep(max(0.0, module._CPU_WINDOW - 0.1))
+    assert busy.answers_short()
+
+
 def test_a_loop_that_lags_with_no_session_admitted_is_late_for_no_one(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
