@@ -49,6 +49,7 @@ from jitdyn.server.transport.metrics import metrics
 from jitdyn.server.transport.opening import open_request, opened_message
 from jitdyn.server.transport.rehearsal import REHEARSAL_KEY, Marks, Rehearser, rehearse, warm_up
 from jitdyn.server.transport.session_service import summary_to_pb
+from jitdyn.server.transport.start_gate import StartGate
 from jitdyn.server.transport.status import abort
 from jitdyn.server.transport.tally import FLUSH_EVERY, CounterTally, HistogramTally
 from jitdyn.storage.failures import STORAGE_ERRORS, storage_failure
@@ -646,6 +647,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         self._opener = SessionOpener(services, limits=limits, on_admission=self._count_admission)
         self._slow_steps = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jitdyn-slow-steps")
         self._streams: dict[_Stream, _Context] = {}
+        self._start_gate = StartGate()
         self._draining = False
         self._all_moved = asyncio.Event()
         admission = services.admission
@@ -698,6 +700,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
             metrics().resumed.labels(metrics().process).inc()
         status = SessionStatus.ABANDONED
         try:
+            await self._hold_start(stream)
             # The session clock starts as `opened` leaves, as the client's starts as it arrives:
             # opening (the log's fsync, the index row) took milliseconds, tens under load, which the
             # client's clock knows nothing of; counted in, every frame looked late until a clock
@@ -731,6 +734,21 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
                 if not self._streams:
                     self._all_moved.set()
 
+    async def _hold_start(self, stream: _Stream) -> None:
+        """A new REALTIME session's first ticks after the process's opens and refusals under way,
+        not among them (server/transport/start_gate.py); a resumed one's clock goes on."""
+        if (
+            stream.plan.clock != Clock.REALTIME
+            or stream.opened.resume_from_seq is not None
+            or stream.rehearsal
+        ):
+            return
+        held = await self._start_gate.wait()
+        if held > 0.0:
+            _log.debug(
+                "session %s: started %.3f s after it was opened", stream.recorder.header.session_id, held
+            )
+
     async def _accept(
         self, first: dynamics_pb2.StreamSessionRequest, context: _Context
     ) -> tuple[_Stream, dynamics_pb2.SessionOpened]:
@@ -757,6 +775,7 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         except JitdynError as error:
             # Logged too: a balancer may not pass the status on (HAProxy 2.6 resets the stream
             # instead, docs/decisions/0121-refusals-through-a-balancer.md), and the operator should know.
+            self._start_gate.refused()
             resume = " (a resume)" if first.open.HasField("resume") else ""
             _log.info("an open%s was refused: %s: %s", resume, error.code.name, error)
             await abort(context, error)
@@ -834,12 +853,13 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         marks = self._marks if rehearsal else None
         opening = asyncio.ensure_future(self._slow(self._open_sync, request, marks))
         try:
-            try:
-                return await asyncio.shield(opening)
-            except Unrehearsed as need:
-                await self._rehearse(message, need)
-                opening = asyncio.ensure_future(self._slow(self._open_sync, request, marks))
-                return await asyncio.shield(opening)
+            with self._start_gate.opening():
+                try:
+                    return await asyncio.shield(opening)
+                except Unrehearsed as need:
+                    await self._rehearse(message, need)
+                    opening = asyncio.ensure_future(self._slow(self._open_sync, request, marks))
+                    return await asyncio.shield(opening)
         except JitdynError as error:
             # The refused open's frames (the model, an estimator of hundreds of MB for a large
             # model) would otherwise live in the error's traceback, kept in a reference cycle by
