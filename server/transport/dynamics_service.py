@@ -24,7 +24,7 @@ from typing import Any, Final, TypeVar
 
 import grpc
 
-from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, Unavailable
+from jitdyn.errors import FailedPrecondition, InvalidArgument, JitdynError, ResourceExhausted, Unavailable
 from jitdyn.mujoco_log import counting
 from jitdyn.server.runtime.alarm import Alarm
 from jitdyn.server.runtime.clients import LocalClients
@@ -775,7 +775,8 @@ class DynamicsServicer(dynamics_pb2_grpc.DynamicsServiceServicer):
         except JitdynError as error:
             # Logged too: a balancer may not pass the status on (HAProxy 2.6 resets the stream
             # instead, docs/decisions/0121-refusals-through-a-balancer.md), and the operator should know.
-            self._start_gate.refused()
+            if isinstance(error, ResourceExhausted):
+                self._start_gate.refused()  # a burst's surplus; a malformed open holds no one
             resume = " (a resume)" if first.open.HasField("resume") else ""
             _log.info("an open%s was refused: %s: %s", resume, error.code.name, error)
             await abort(context, error)

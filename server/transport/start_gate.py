@@ -5,7 +5,7 @@ opening or refusing others, so that its first ticks are not answered late by tha
     gate = StartGate()
     with gate.opening():            # around each open on the slow steps' thread
         ...
-    gate.refused()                  # each open refused
+    gate.refused()                  # each open refused for want of capacity
     held = await gate.wait()        # before an admitted session's `opened` is written
 
 A burst of opens costs the process CPU for a second or two: each admitted open runs tens of
@@ -54,7 +54,7 @@ class StartGate:
             self._opening -= 1
 
     def refused(self) -> None:
-        """An open was refused now."""
+        """An open was refused now for want of capacity (RESOURCE_EXHAUSTED)."""
         self._refused_at = time.monotonic()
 
     def busy(self) -> bool:
