@@ -8,7 +8,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+from jitdyn.storage import commit
 from jitdyn.storage.commit import COMMIT_SHARE, MAX_WINDOW, GroupCommitter
 from jitdyn.storage.records import TickRecord
 
@@ -18,7 +20,22 @@ def _record(seq: int) -> TickRecord:
     return TickRecord(kind="result", seq=seq, source="MEASURED", t=0.05 * seq, qpos=v, qvel=v.copy())
 
 
-def test_sparse_records_share_commits_and_durable_lag_stays_bounded(tmp_path: Path) -> None:
+def test_sparse_records_share_commits_and_durable_lag_stays_bounded(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The disk's own time: a sync of the file system waits for every other writer's dirty pages
+    # (one took 1.6 s in a full CI run), which no window bounds.
+    syncs: list[float] = []
+    sync_all = commit._sync_all
+
+    def timed_sync(fds: list[int]) -> None:
+        began = time.monotonic()
+        try:
+            sync_all(fds)
+        finally:
+            syncs.append(time.monotonic() - began)
+
+    monkeypatch.setattr(commit, "_sync_all", timed_sync)
     durable: dict[int, list[float]] = {0: [], 1: []}
     queued: dict[tuple[int, int], float] = {}
     with GroupCommitter() as committer:
@@ -56,6 +73,7 @@ def test_sparse_records_share_commits_and_durable_lag_stays_bounded(tmp_path: Pa
     assert 0.0 < stats.window <= MAX_WINDOW
     # The commit thread kept to about its share of a core (generous: a loaded machine).
     assert stats.cpu_seconds <= 4 * COMMIT_SHARE * 3.0 + 0.1, stats
-    # No record waited for the disk much past the longest window (plus a slow sync).
+    # No record waited for the disk much past the longest window, plus the slowest sync.
     lags = durable[0] + durable[1]
-    assert max(lags) < MAX_WINDOW + 0.4, max(lags)
+    assert syncs
+    assert max(lags) < MAX_WINDOW + 0.4 + max(syncs), (max(lags), max(syncs))
