@@ -50,7 +50,7 @@ DEFAULT_TICK_BUDGET: Final = 0.75  # of one core per process
 # result's dynamics and message, sending it, recording it, the event loop): the starting guess,
 # which each process then replaces with its own, learnt from its CPU and its ticks
 # (docs/decisions/0005-admission-starting-guesses.md, 0223-a-session-priced-at-its-cpu.md).
-TRANSPORT_COST: Final = 1e-3  # s
+TRANSPORT_COST: Final = 0.85e-3  # s
 _EWMA: Final = 0.05  # weight of the newest tick in a session's cost
 # A lone session's tick costs up to this many times the overhead figure (learnt among many
 # sessions, or guessed) around its filter: where that decides whether it fits, it is rehearsed
