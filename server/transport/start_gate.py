@@ -3,7 +3,7 @@ opening or refusing others, so that its first ticks are not answered late by tha
 (docs/decisions/0225-a-session-starts-after-the-burst.md).
 
     gate = StartGate()
-    with gate.opening():            # around each open on the slow steps' thread
+    with gate.opening():            # around each open, while the slow steps' thread runs it
         ...
     gate.refused()                  # each open refused for want of capacity
     held = await gate.wait()        # before an admitted session's `opened` is written
@@ -34,8 +34,7 @@ _LOOK: Final = 0.01  # s between two looks at whether the process is still busy
 
 
 class StartGate:
-    """The starts held while the process opens or refuses sessions. On the event loop, except
-    `opening`, which the slow steps' thread may enter."""
+    """The starts held while the process opens or refuses sessions. On the event loop only."""
 
     def __init__(self, *, hold: float = HOLD, quiet: float = QUIET, spacing: float = SPACING) -> None:
         self._hold, self._quiet, self._spacing = hold, quiet, spacing
